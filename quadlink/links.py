@@ -4,7 +4,7 @@
 URL                       link
 ========================  ==============================================================
 ``/dev/ttyUSB0:115200``   serial device at the given baud (8N1); ``/dev/ttyUSB0`` = 115200
-``socket://HOST:PORT``    TCP client (the SITL's ports; pyserial's URL handler)
+``socket://HOST:PORT``    TCP client (the SITL's ports; pyserial's URL syntax)
 ``pty``                   a new pseudo-terminal; ``.name`` is the slave path for serial users
 ========================  ==============================================================
 
@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import os
 import select
+import socket
 import termios
 import tty
 from typing import Protocol
@@ -69,6 +70,46 @@ class SerialStream:
         self._port.close()
 
 
+class TcpStream:
+    """A TCP client (``socket://HOST:PORT``, the URL form pyserial users know)."""
+
+    def __init__(self, url: str) -> None:
+        host, sep, port = url[len("socket://"):].rpartition(":")
+        if not sep or not port.isdigit():
+            raise LinkError(f"{url}: expected socket://HOST:PORT")
+        try:
+            self._sock = socket.create_connection((host, int(port)), timeout=2.0)
+        except OSError as exc:
+            raise LinkError(f"{url}: cannot open: {exc}") from exc
+        self._sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        self.name = url
+
+    def read(self, max_bytes: int, timeout_s: float) -> bytes:
+        try:
+            self._sock.settimeout(max(timeout_s, 1e-4))
+            data = self._sock.recv(max_bytes)
+        except TimeoutError:
+            return b""
+        except OSError as exc:
+            raise LinkError(f"{self.name}: read failed: {exc}") from exc
+        if not data:
+            raise LinkError(f"{self.name}: connection closed by the peer")
+        return data
+
+    def write(self, data: bytes) -> None:
+        try:
+            self._sock.settimeout(2.0)
+            self._sock.sendall(data)
+        except OSError as exc:
+            raise LinkError(f"{self.name}: write failed: {exc}") from exc
+
+    def close(self) -> None:
+        try:
+            self._sock.close()
+        except OSError:
+            pass
+
+
 class PtyStream:
     """The master side of a new pseudo-terminal; a serial-port user opens :attr:`name`."""
 
@@ -119,7 +160,7 @@ def open_stream(url: str) -> ByteStream:
         return PtyStream()
     try:
         if url.startswith("socket://"):
-            return SerialStream(serial.serial_for_url(url, timeout=0.1), url)
+            return TcpStream(url)
         if "://" in url:
             raise LinkError(f"{url}: unsupported link URL (use /dev/DEVICE[:BAUD], socket://HOST:PORT or pty)")
         device, baud = parse_serial_url(url)

@@ -20,10 +20,9 @@ OUTPUT = HERE / "generated" / "quadlink.py"
 
 def generate(output: Path = OUTPUT) -> Path:
     """Run mavgen (Python, MAVLink 2, strict units) on quadlink.xml and write ``output``."""
+    import pymavlink
     from pymavlink.generator import mavgen
     from pymavlink.generator.mavparse import PROTOCOL_2_0
-
-    import pymavlink
 
     common_dir = Path(pymavlink.__file__).parent / "message_definitions" / "v1.0"
     with tempfile.TemporaryDirectory() as tmp:
