@@ -10,7 +10,7 @@ from __future__ import annotations
 import struct
 import threading
 from pathlib import Path
-from typing import BinaryIO
+from typing import Any, BinaryIO
 
 _STAMP = struct.Struct(">Q")
 
@@ -43,3 +43,41 @@ class TlogWriter:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+def read_tlog(path: str | Path) -> list[tuple[float, Any]]:
+    """All decodable messages of a .tlog as ``(unix_stamp_s, message)``; corrupt records are skipped.
+
+    Parses the record framing itself (stamp, then one MAVLink 1 or 2 packet whose length is in its
+    header) and decodes each packet with the quadlink dialect.
+    """
+    from quadlink.mavlink import mavlink
+
+    data = Path(path).read_bytes()
+    parser = mavlink.MAVLink(None)
+    parser.robust_parsing = True
+    out: list[tuple[float, Any]] = []
+    i = 0
+    while i + 8 < len(data):
+        (stamp_us,) = _STAMP.unpack_from(data, i)
+        start = i + 8
+        magic = data[start]
+        if magic == 0xFD and start + 10 <= len(data):
+            signed = data[start + 2] & 0x01
+            end = start + 12 + data[start + 1] + (13 if signed else 0)
+        elif magic == 0xFE and start + 6 <= len(data):
+            end = start + 8 + data[start + 1]
+        else:
+            i += 1  # lost sync: slide until a record lines up again
+            continue
+        if end > len(data):
+            break
+        try:
+            messages = parser.parse_buffer(data[start:end]) or []
+        except mavlink.MAVError:
+            messages = []
+        for msg in messages:
+            if msg.get_type() != "BAD_DATA":
+                out.append((stamp_us / 1e6, msg))
+        i = end
+    return out
