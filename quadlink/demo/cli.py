@@ -1,0 +1,152 @@
+"""``quadlink demo``: the paper's experiment (paper 000 section VII) flown by the whole stack in the SITL."""
+
+from __future__ import annotations
+
+import logging
+import math
+import signal
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import click
+
+from quadlink import CONFIG_DIR
+from quadlink.demo.orchestrator import ProcessDied, ProcessSpec, Stack
+from quadlink.demo.recorder import Recorder
+from quadlink.demo.report import summary_table, write_report
+from quadlink.errors import ConfigError
+
+log = logging.getLogger("quadlink.demo")
+
+DEFAULT_SCRIPT = CONFIG_DIR / "teleop_scripts" / "paper_experiment.yaml"
+
+
+@dataclass(frozen=True)
+class Ports:
+    """Every port of a demo flight, shifted by one offset so several stacks can share a machine."""
+
+    offset: int = 0
+
+    def __getattr__(self, name: str) -> int:
+        base = {"mk1": 5760, "mk2": 5761, "camera": 5762, "image": 5770, "autopilot": 14540, "gcs_bridge": 14551,
+                "vehicle": 14555, "truth": 14560, "http": 8080}
+        if name not in base:
+            raise AttributeError(name)
+        return base[name] + self.offset
+
+
+def build_specs(scenario: str, script: Path, out_dir: Path, ports: Ports, lockstep: bool, speed: float,
+                duration_s: float) -> list[ProcessSpec]:
+    sitl = ["sitl", "--scenario", scenario, "--port1", str(ports.mk1), "--port2", str(ports.mk2),
+            "--camera-port", str(ports.camera), "--truth", f"udpout:127.0.0.1:{ports.truth}",
+            "--duration", f"{duration_s + 30:.0f}"]
+    if lockstep:
+        sitl.append("--lockstep")
+    if speed != 1.0:
+        sitl += ["--speed", str(speed)]
+    return [
+        ProcessSpec("sitl", tuple(sitl), ready_after_s=4.0),
+        ProcessSpec("bridge", ("bridge", "--mk-cmd", f"socket://127.0.0.1:{ports.mk1}",
+                               "--mk-imu", f"socket://127.0.0.1:{ports.mk2}",
+                               "--mavlink", f"udpout:127.0.0.1:{ports.autopilot}",
+                               "--mavlink", f"udpout:127.0.0.1:{ports.gcs_bridge}",
+                               "--params", str(out_dir / "bridge_params.yaml")), ready_after_s=2.0),
+        ProcessSpec("companion", ("companion", "--config", str(CONFIG_DIR / "companion.yaml"),
+                                  "--autopilot", f"udpin:127.0.0.1:{ports.autopilot}",
+                                  "--gcs", f"udpin:127.0.0.1:{ports.vehicle}",
+                                  "--camera", f"tcp://127.0.0.1:{ports.camera}",
+                                  "--image-port", str(ports.image),
+                                  "--tlog", str(out_dir / "companion.tlog")), ready_after_s=3.0),
+        ProcessSpec("teleop", ("teleop", "--device", "virtual", "--script", str(script),
+                               "--vehicle", f"udpout:127.0.0.1:{ports.vehicle}",
+                               "--image-stream", f"tcp://127.0.0.1:{ports.image}",
+                               "--http-port", str(ports.http), "--log-csv", str(out_dir / "teleop.csv"),
+                               "--exit-when-done"), ready_after_s=0.5),
+    ]
+
+
+def run_demo(scenario: str, duration_s: float, out_dir: Path, script: Path, lockstep: bool = True,
+             speed: float = 1.0, port_offset: int = 0, progress_every_s: float = 3.0) -> dict[str, object]:
+    """Fly the demo; returns the report. Raises :class:`ProcessDied` if a part dies."""
+    if not script.is_file():
+        raise ConfigError(f"{script}: operator script not found")
+    out_dir.mkdir(parents=True, exist_ok=True)
+    ports = Ports(port_offset)
+    stack = Stack(out_dir / "logs")
+    recorder = Recorder()
+    recorder.record("truth", f"udpin:127.0.0.1:{ports.truth}", out_dir / "truth.tlog", is_truth=True)
+    recorder.record("bridge", f"udpin:127.0.0.1:{ports.gcs_bridge}", out_dir / "bridge.tlog")
+    interrupted = False
+    failure: ProcessDied | None = None
+
+    def on_sigint(signum: int, frame: object) -> None:
+        nonlocal interrupted
+        interrupted = True
+
+    previous = signal.signal(signal.SIGINT, on_sigint)
+    t_wall0 = time.monotonic()
+    try:
+        for spec in build_specs(scenario, script, out_dir, ports, lockstep, speed, duration_s):
+            if interrupted:
+                break
+            stack.start(spec)
+        log.info("all parts running; operator view at http://127.0.0.1:%d ; logs in %s", ports.http, stack.log_dir)
+        next_progress = 0.0
+        while not interrupted:
+            time.sleep(0.2)
+            if not stack.is_running("teleop"):
+                code = stack.wait_exit("teleop", 1.0)
+                if code == 0:
+                    log.info("operator script finished")
+                    break
+            stack.check()
+            t = recorder.truth
+            if math.isfinite(t.sim_time_s) and t.sim_time_s >= duration_s:
+                log.info("duration of %.0f s simulated time reached", duration_s)
+                break
+            if time.monotonic() >= next_progress:
+                next_progress = time.monotonic() + progress_every_s
+                speed_m_s = math.hypot(*t.velocity_ned_m_s[:2]) if math.isfinite(t.velocity_ned_m_s[0]) else math.nan
+                log.info("t_sim %6.1f s  (wall %5.0f s)  altitude %5.2f m  speed %4.2f m/s  nearest obstacle "
+                         "%5.2f m  [truth %d msgs, bridge %d msgs]", t.sim_time_s, time.monotonic() - t_wall0,
+                         -t.position_ned_m[2], speed_m_s, t.nearest_obstacle_m, recorder.counts.get("truth", 0),
+                         recorder.counts.get("bridge", 0))
+    except ProcessDied as exc:
+        failure = exc
+        log.error("stopping: %s", exc)
+    finally:
+        signal.signal(signal.SIGINT, previous)
+        cpu = stack.cpu_seconds()
+        codes = stack.stop()
+        recorder.stop()
+        log.info("stopped (exit statuses: %s)", ", ".join(f"{k}={v}" for k, v in codes.items()))
+    report = write_report(out_dir, cpu, scenario)
+    report["interrupted"] = interrupted
+    report["failure"] = str(failure) if failure else None
+    if failure:
+        raise failure
+    return report
+
+
+@click.command(name="demo")
+@click.option("--scenario", default="paper-arena", show_default=True, help="SITL scenario (configs/scenarios/).")
+@click.option("--duration", "duration_s", default=70.0, show_default=True, help="Simulated seconds at most.")
+@click.option("--out", "out_dir", default="flight-report", show_default=True, type=click.Path(path_type=Path),
+              help="Folder for tlogs, report.json and plots.")
+@click.option("--script", default=str(DEFAULT_SCRIPT), show_default=True, type=click.Path(path_type=Path),
+              help="Scripted operator for the virtual haptic device.")
+@click.option("--lockstep/--realtime", default=True, show_default=True,
+              help="Lock-step keeps every part in step with simulated time on a loaded machine.")
+@click.option("--speed", default=1.0, show_default=True, help="Real-time factor in --realtime mode.")
+@click.option("--port-offset", default=0, show_default=True, help="Shift every port (run beside another stack).")
+def command(scenario: str, duration_s: float, out_dir: Path, script: Path, lockstep: bool, speed: float,
+            port_offset: int) -> None:
+    """Fly the paper's experiment in the SITL (take off, drive, rotate, approach and push the obstacle, land)."""
+    try:
+        report = run_demo(scenario, duration_s, out_dir, script, lockstep, speed, port_offset)
+    except ProcessDied as exc:
+        click.echo(f"quadlink demo: {exc}", err=True)
+        raise SystemExit(1) from exc
+    click.echo(f"\nFlight report ({out_dir}/report.json, plots: {', '.join(report.get('plots', []))}):")
+    click.echo(summary_table(report))

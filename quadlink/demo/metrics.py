@@ -1,0 +1,109 @@
+"""Flight-report metrics (issue 8), pure functions of logged time series.
+
+Every series is sampled in simulated time (seconds since the SITL started), which is the common
+time base of the truth stream, the bridge (board time) and the companion (camera capture time).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+Array = NDArray[np.float64]
+
+
+def interpolate(t_src_s: Array, values: Array, t_s: Array) -> Array:
+    """Linear interpolation of ``values`` (N or N×k) at times ``t_s``; NaN outside the source span."""
+    values = np.asarray(values, dtype=float)
+    t_src_s = np.asarray(t_src_s, dtype=float)
+    if values.ndim == 1:
+        out = np.interp(t_s, t_src_s, values, left=np.nan, right=np.nan)
+        return np.asarray(out, dtype=float)
+    return np.stack([interpolate(t_src_s, values[:, k], t_s) for k in range(values.shape[1])], axis=1)
+
+
+def velocity_ned_to_h(v_ned_m_s: Array, yaw_rad: Array) -> Array:
+    """Rotate world-NED velocities into H (yaw only): ``v_h = Rz(yaw)^T v_ned``."""
+    v = np.asarray(v_ned_m_s, dtype=float)
+    c, s = np.cos(yaw_rad), np.sin(yaw_rad)
+    return np.stack([c * v[:, 0] + s * v[:, 1], -s * v[:, 0] + c * v[:, 1], v[:, 2]], axis=1)
+
+
+def rmse_per_axis(t_est_s: Array, v_est: Array, t_ref_s: Array, v_ref: Array, mask: Array | None = None) -> Array:
+    """RMSE per column of ``v_est`` against ``v_ref`` interpolated at the estimate's stamps."""
+    ref = interpolate(t_ref_s, v_ref, t_est_s)
+    err = np.asarray(v_est, dtype=float) - ref
+    ok = np.all(np.isfinite(err), axis=1)
+    if mask is not None:
+        ok &= mask
+    if not np.any(ok):
+        return np.full(err.shape[1], np.nan)
+    return np.sqrt(np.mean(err[ok] ** 2, axis=0))
+
+
+@dataclass(frozen=True)
+class GapStats:
+    count_over: int
+    max_gap_s: float
+    threshold_s: float
+
+
+def stream_gaps(t_s: Array, threshold_s: float = 0.1) -> GapStats:
+    """Gaps between consecutive stamps of a stream longer than ``threshold_s``."""
+    t = np.sort(np.asarray(t_s, dtype=float))
+    if t.size < 2:
+        return GapStats(0, math.inf if t.size == 0 else 0.0, threshold_s)
+    gaps = np.diff(t)
+    return GapStats(int(np.sum(gaps > threshold_s)), float(gaps.max()), threshold_s)
+
+
+def fraction_at_or_below(t_est_s: Array, d_est_m: Array, t_ref_s: Array, d_ref_m: Array,
+                         tolerance_m: float = 0.0) -> float:
+    """Fraction of valid estimates with ``d_est <= d_ref + tolerance`` (the paper's safe side)."""
+    ref = interpolate(t_ref_s, d_ref_m, t_est_s)
+    est = np.asarray(d_est_m, dtype=float)
+    ok = np.isfinite(ref) & np.isfinite(est) & (est >= 0)
+    if not np.any(ok):
+        return math.nan
+    return float(np.mean(est[ok] <= ref[ok] + tolerance_m))
+
+
+@dataclass(frozen=True)
+class Sinusoid:
+    amplitude: float
+    frequency_hz: float
+    phase_rad: float
+    offset: float
+    residual_rms: float
+
+
+def fit_sinusoid(t_s: Array, y: Array, min_hz: float = 0.02, max_hz: float = 5.0) -> Sinusoid:
+    """Least-squares ``offset + a sin(2 pi f t + phase)``: frequency from a periodogram, refined by a scan.
+
+    Works on irregular sampling (a dense grid of trial frequencies, closed-form linear fit at each).
+    """
+    t = np.asarray(t_s, dtype=float)
+    y = np.asarray(y, dtype=float)
+    ok = np.isfinite(t) & np.isfinite(y)
+    t, y = t[ok], y[ok]
+    if t.size < 8:
+        return Sinusoid(math.nan, math.nan, math.nan, math.nan, math.nan)
+    span = t[-1] - t[0]
+    lo = max(min_hz, 1.0 / max(span, 1e-6))
+
+    def fit(f: float) -> tuple[float, Array]:
+        w = 2 * math.pi * f
+        A = np.column_stack([np.sin(w * t), np.cos(w * t), np.ones_like(t)])
+        coef, *_ = np.linalg.lstsq(A, y, rcond=None)
+        return float(np.sum((A @ coef - y) ** 2)), coef
+
+    coarse = np.geomspace(lo, max_hz, 400)
+    best = min(coarse, key=lambda f: fit(f)[0])
+    fine = np.linspace(best * 0.97, best * 1.03, 121)
+    f_best = min(fine, key=lambda f: fit(f)[0])
+    sse, (a_sin, a_cos, offset) = fit(f_best)
+    return Sinusoid(float(math.hypot(a_sin, a_cos)), float(f_best), float(math.atan2(a_cos, a_sin)),
+                    float(offset), float(math.sqrt(sse / t.size)))

@@ -1,0 +1,142 @@
+"""Run the stack's processes together: start in order, watch, stop cleanly (issue 8).
+
+Each part runs as its own ``quadlink`` subprocess over the real links, its output in
+``DIR/logs/NAME.log``. If any part dies, everything stops and the reason is reported; Ctrl-C stops
+everything in reverse order (SIGINT, then SIGTERM, then SIGKILL after bounded waits).
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import signal
+import subprocess
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import psutil
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class ProcessSpec:
+    name: str
+    args: tuple[str, ...]  # arguments after ``quadlink``
+    ready_after_s: float = 0.5  # settle time before the next part starts
+    env: dict[str, str] = field(default_factory=dict)
+
+
+@dataclass
+class Running:
+    spec: ProcessSpec
+    popen: subprocess.Popen[bytes]
+    log_path: Path
+    cpu_s: float = 0.0
+
+
+class ProcessDied(RuntimeError):
+    def __init__(self, name: str, returncode: int, tail: str) -> None:
+        super().__init__(f"{name} exited with status {returncode}: {tail}")
+        self.name = name
+        self.returncode = returncode
+
+
+def _tail(path: Path, lines: int = 3) -> str:
+    try:
+        text = path.read_text(errors="replace").strip().splitlines()
+    except OSError:
+        return ""
+    return " | ".join(text[-lines:])
+
+
+class Stack:
+    """A set of ``quadlink`` subprocesses with logs in ``log_dir``."""
+
+    def __init__(self, log_dir: Path) -> None:
+        self.log_dir = log_dir
+        self.log_dir.mkdir(parents=True, exist_ok=True)
+        self.running: list[Running] = []
+
+    def start(self, spec: ProcessSpec) -> Running:
+        log_path = self.log_dir / f"{spec.name}.log"
+        argv = [sys.executable, "-m", "quadlink.cli", *spec.args]
+        env = {**os.environ, "PYTHONUNBUFFERED": "1", **spec.env}
+        with open(log_path, "wb") as out:
+            popen = subprocess.Popen(argv, stdout=out, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+                                     env=env, start_new_session=True)
+        running = Running(spec, popen, log_path)
+        self.running.append(running)
+        log.info("started %s (pid %d): quadlink %s", spec.name, popen.pid, " ".join(spec.args))
+        deadline = time.monotonic() + spec.ready_after_s
+        while time.monotonic() < deadline:
+            self.check()
+            time.sleep(0.05)
+        return running
+
+    def check(self) -> None:
+        """Raise :class:`ProcessDied` if a part has exited; also samples CPU time."""
+        for r in self.running:
+            self._sample_cpu(r)
+            code = r.popen.poll()
+            if code is not None:
+                raise ProcessDied(r.spec.name, code, _tail(r.log_path))
+
+    def is_running(self, name: str) -> bool:
+        return any(r.spec.name == name and r.popen.poll() is None for r in self.running)
+
+    def wait_exit(self, name: str, timeout_s: float) -> int | None:
+        for r in self.running:
+            if r.spec.name == name:
+                try:
+                    return r.popen.wait(timeout=timeout_s)
+                except subprocess.TimeoutExpired:
+                    return None
+        return None
+
+    @staticmethod
+    def _sample_cpu(r: Running) -> None:
+        try:
+            proc = psutil.Process(r.popen.pid)
+            total = proc.cpu_times()
+            cpu = total.user + total.system
+            for child in proc.children(recursive=True):
+                ct = child.cpu_times()
+                cpu += ct.user + ct.system
+            r.cpu_s = max(r.cpu_s, cpu)
+        except (psutil.NoSuchProcess, psutil.AccessDenied, psutil.ZombieProcess):
+            pass
+
+    def cpu_seconds(self) -> dict[str, float]:
+        for r in self.running:
+            self._sample_cpu(r)
+        return {r.spec.name: r.cpu_s for r in self.running}
+
+    def stop(self, timeout_s: float = 8.0) -> dict[str, int | None]:
+        """Stop all parts in reverse start order; returns their exit statuses."""
+        for r in self.running:
+            self._sample_cpu(r)
+        codes: dict[str, int | None] = {}
+        for r in reversed(self.running):
+            codes[r.spec.name] = self._stop_one(r, timeout_s)
+        return codes
+
+    @staticmethod
+    def _stop_one(r: Running, timeout_s: float) -> int | None:
+        if r.popen.poll() is not None:
+            return r.popen.returncode
+        for sig, wait_s in ((signal.SIGINT, timeout_s), (signal.SIGTERM, 3.0), (signal.SIGKILL, 3.0)):
+            try:
+                os.killpg(r.popen.pid, sig)
+            except ProcessLookupError:
+                break
+            try:
+                code = r.popen.wait(timeout=wait_s)
+                if sig != signal.SIGINT:
+                    log.warning("%s needed %s to stop", r.spec.name, signal.Signals(sig).name)
+                return code
+            except subprocess.TimeoutExpired:
+                continue
+        return r.popen.poll()

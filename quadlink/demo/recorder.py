@@ -1,0 +1,84 @@
+"""Record MAVLink UDP streams to .tlog files while the demo flies, and keep the latest truth state.
+
+One thread per endpoint (blocking reads with a timeout); :meth:`Recorder.stop` joins them.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from quadlink.mavlink.connection import open_mavlink
+from quadlink.mavlink.tlog import TlogWriter
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class TruthState:
+    """Latest ground truth seen on the SITL's truth stream (for progress lines only)."""
+
+    sim_time_s: float = float("nan")
+    position_ned_m: tuple[float, float, float] = (float("nan"),) * 3
+    velocity_ned_m_s: tuple[float, float, float] = (float("nan"),) * 3
+    nearest_m: float = float("nan")
+    nearest_obstacle_m: float = float("nan")
+    messages: int = 0
+
+
+class Recorder:
+    def __init__(self) -> None:
+        self._threads: list[threading.Thread] = []
+        self._stop = threading.Event()
+        self.truth = TruthState()
+        self.counts: dict[str, int] = {}
+        self._writers: list[TlogWriter] = []
+
+    def record(self, name: str, url: str, path: Path, is_truth: bool = False) -> None:
+        conn = open_mavlink(url, source_system=255, source_component=190)
+        writer = TlogWriter(path)
+        self._writers.append(writer)
+        self.counts[name] = 0
+        thread = threading.Thread(target=self._loop, args=(name, conn, writer, is_truth), name=f"rec-{name}",
+                                  daemon=True)
+        thread.start()
+        self._threads.append(thread)
+        log.info("recording %s from %s to %s", name, url, path)
+
+    def _loop(self, name: str, conn: Any, writer: TlogWriter, is_truth: bool) -> None:
+        try:
+            while not self._stop.is_set():
+                msg = conn.recv_match(blocking=True, timeout=0.2)
+                if msg is None or msg.get_type() == "BAD_DATA":
+                    continue
+                writer.write(msg.get_msgbuf(), time.time())
+                self.counts[name] += 1
+                if is_truth:
+                    self._update_truth(msg)
+        finally:
+            conn.close()
+
+    def _update_truth(self, msg: Any) -> None:
+        kind = msg.get_type()
+        t = self.truth
+        t.messages += 1
+        if kind == "LOCAL_POSITION_NED":
+            t.sim_time_s = msg.time_boot_ms / 1000.0
+            t.position_ned_m = (msg.x, msg.y, msg.z)
+            t.velocity_ned_m_s = (msg.vx, msg.vy, msg.vz)
+        elif kind == "DISTANCE_SENSOR":
+            if msg.id == 0:
+                t.nearest_m = msg.current_distance / 100.0
+            elif msg.id == 1:
+                t.nearest_obstacle_m = msg.current_distance / 100.0
+
+    def stop(self) -> None:
+        self._stop.set()
+        for thread in self._threads:
+            thread.join(timeout=2.0)
+        for writer in self._writers:
+            writer.close()

@@ -1,0 +1,283 @@
+"""Turn a demo flight's logs into ``report.json``, the paper-style plots and a summary table.
+
+Inputs (all in the demo's output folder): ``truth.tlog`` (SITL ground truth), ``companion.tlog``
+(everything the companion sent and received: TELEOP_FEEDBACK, setpoints, IMU), ``bridge.tlog`` (the
+autopilot's ground-station stream) and ``teleop.csv`` (the haptic client's force log). Times are
+simulated seconds throughout (see :mod:`quadlink.demo.metrics`).
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from quadlink.demo import metrics
+from quadlink.frames import euler_from_quat_wxyz
+from quadlink.mavlink.tlog import read_tlog
+
+SAFE_DISTANCE_M = 0.45
+
+TARGETS = {
+    "velocity_rmse_m_s": 0.05,  # per axis, at most
+    "min_true_obstacle_distance_m": 0.40,  # at least
+    "fraction_estimate_le_truth": 0.95,  # at least
+    "setpoint_gaps_over_100ms": 0,  # at most
+}
+
+
+def _arr(rows: list[list[float]], width: int) -> np.ndarray:
+    return np.asarray(rows, dtype=float).reshape(-1, width)
+
+
+@dataclass
+class FlightLog:
+    """Time series pulled out of the logs (each ``t_*`` in simulated seconds)."""
+
+    t_truth: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    p_ned: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    v_ned: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    t_att: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    yaw_true: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    t_dist0: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    dist0_m: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    t_dist1: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    dist1_m: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    t_fb: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    v_est_h: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    v_cmd_h: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    v_rep_h: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    pan_scan_rate: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    yaw_rate_cmd: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    gyro_yaw_rate: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    obstacle_est_m: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    mode: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    t_setpoint: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    force: dict[str, np.ndarray] = field(default_factory=dict)
+
+
+def load_flight(out_dir: Path) -> FlightLog:
+    flight = FlightLog()
+    truth = out_dir / "truth.tlog"
+    if truth.is_file():
+        pos, att, d0, d1 = [], [], [], []
+        for _, m in read_tlog(truth):
+            kind = m.get_type()
+            if kind == "LOCAL_POSITION_NED":
+                pos.append([m.time_boot_ms / 1e3, m.x, m.y, m.z, m.vx, m.vy, m.vz])
+            elif kind == "ATTITUDE_QUATERNION":
+                att.append([m.time_boot_ms / 1e3, euler_from_quat_wxyz([m.q1, m.q2, m.q3, m.q4])[2]])
+            elif kind == "DISTANCE_SENSOR" and m.id in (0, 1):
+                (d0 if m.id == 0 else d1).append([m.time_boot_ms / 1e3, m.current_distance / 100.0])
+        P, A = _arr(pos, 7), _arr(att, 2)
+        flight.t_truth, flight.p_ned, flight.v_ned = P[:, 0], P[:, 1:4], P[:, 4:7]
+        flight.t_att, flight.yaw_true = A[:, 0], np.unwrap(A[:, 1])
+        D0, D1 = _arr(d0, 2), _arr(d1, 2)
+        flight.t_dist0, flight.dist0_m, flight.t_dist1, flight.dist1_m = D0[:, 0], D0[:, 1], D1[:, 0], D1[:, 1]
+    companion = out_dir / "companion.tlog"
+    if companion.is_file():
+        fb, sp = [], []
+        for _, m in read_tlog(companion):
+            kind = m.get_type()
+            if kind == "TELEOP_FEEDBACK":
+                fb.append([m.time_usec / 1e6, m.vx_h, m.vy_h, m.vz_h, m.vx_cmd, m.vy_cmd, m.vz_cmd, m.vx_rep,
+                           m.vy_rep, m.vz_rep, m.pan_scan_yaw_rate, m.yaw_rate_cmd, m.gyro_yaw_rate,
+                           m.obstacle_distance, m.mode])
+            elif kind == "SET_POSITION_TARGET_LOCAL_NED":
+                sp.append(m.time_boot_ms / 1e3)
+        F = _arr(fb, 15)
+        order = np.argsort(F[:, 0], kind="stable")
+        F = F[order]
+        flight.t_fb = F[:, 0]
+        flight.v_est_h, flight.v_cmd_h, flight.v_rep_h = F[:, 1:4], F[:, 4:7], F[:, 7:10]
+        flight.pan_scan_rate, flight.yaw_rate_cmd, flight.gyro_yaw_rate = F[:, 10], F[:, 11], F[:, 12]
+        flight.obstacle_est_m, flight.mode = F[:, 13], F[:, 14]
+        flight.t_setpoint = np.asarray(sorted(set(sp)), dtype=float)
+    force_csv = out_dir / "teleop.csv"
+    if force_csv.is_file():
+        with open(force_csv, newline="") as f:
+            rows = list(csv.DictReader(f))
+        if rows:
+            flight.force = {k: np.array([float(r[k]) if r[k] not in ("", None) else math.nan for r in rows])
+                            for k in rows[0] if k}
+    return flight
+
+
+def _flying_mask(flight: FlightLog, t: np.ndarray, min_altitude_m: float = 0.3) -> np.ndarray:
+    if flight.t_truth.size == 0:
+        return np.zeros(t.shape, bool)
+    z = metrics.interpolate(flight.t_truth, flight.p_ned[:, 2], t)
+    z0 = flight.p_ned[0, 2]
+    return np.isfinite(z) & (z0 - z > min_altitude_m)
+
+
+def compute_report(flight: FlightLog, cpu_s: dict[str, float] | None = None, scenario: str = "",
+                   safe_distance_m: float = SAFE_DISTANCE_M) -> dict[str, Any]:
+    report: dict[str, Any] = {"scenario": scenario, "safe_distance_m": safe_distance_m}
+    duration = float(flight.t_truth[-1] - flight.t_truth[0]) if flight.t_truth.size > 1 else 0.0
+    report["sim_duration_s"] = duration
+    if flight.t_truth.size and flight.t_fb.size:
+        yaw = metrics.interpolate(flight.t_att, flight.yaw_true, flight.t_truth)
+        v_true_h = metrics.velocity_ned_to_h(flight.v_ned, yaw)
+        flying = _flying_mask(flight, flight.t_fb)
+        rmse = metrics.rmse_per_axis(flight.t_fb, flight.v_est_h, flight.t_truth, v_true_h, flying)
+        report["velocity_rmse_m_s"] = dict(zip("xyz", map(float, rmse)))
+        free = flying & (np.linalg.norm(flight.v_rep_h, axis=1) < 0.02) & (flight.mode == 2)
+        track = metrics.rmse_per_axis(flight.t_fb, flight.v_cmd_h + flight.v_rep_h, flight.t_truth, v_true_h, free)
+        report["tracking_rmse_m_s"] = dict(zip("xyz", map(float, track)))
+        report["flying_time_s"] = float(np.sum(np.diff(flight.t_fb)[flying[1:]])) if flight.t_fb.size > 1 else 0.0
+    if flight.t_dist1.size:
+        flying = _flying_mask(flight, flight.t_dist1)
+        d = flight.dist1_m[flying] if np.any(flying) else flight.dist1_m
+        report["min_true_obstacle_distance_m"] = float(np.min(d))
+    if flight.t_dist0.size and flight.t_fb.size:
+        flying = _flying_mask(flight, flight.t_fb)
+        est = np.where(flying, flight.obstacle_est_m, np.nan)
+        report["fraction_estimate_le_truth"] = metrics.fraction_at_or_below(flight.t_fb, est, flight.t_dist0,
+                                                                            flight.dist0_m)
+    if flight.t_fb.size:
+        teleop = flight.mode == 2
+        if np.sum(teleop) > 30:
+            cmd = metrics.fit_sinusoid(flight.t_fb[teleop], flight.pan_scan_rate[teleop])
+            operator = flight.yaw_rate_cmd - flight.pan_scan_rate
+            meas = metrics.fit_sinusoid(flight.t_fb[teleop], (flight.gyro_yaw_rate - operator)[teleop])
+            report["pan_scan"] = {
+                "commanded_amplitude_rad_s": cmd.amplitude, "commanded_frequency_hz": cmd.frequency_hz,
+                "measured_amplitude_rad_s": meas.amplitude, "measured_frequency_hz": meas.frequency_hz,
+                "phase_lag_rad": float(np.angle(np.exp(1j * (cmd.phase_rad - meas.phase_rad)))),
+            }
+    gaps = metrics.stream_gaps(flight.t_setpoint, 0.1)
+    report["setpoint_count"] = int(flight.t_setpoint.size)
+    report["setpoint_gaps_over_100ms"] = gaps.count_over
+    report["max_setpoint_gap_s"] = gaps.max_gap_s
+    if cpu_s:
+        report["cpu_core_s_per_sim_s"] = {k: (v / duration if duration > 0 else math.nan) for k, v in cpu_s.items()}
+    report["targets"] = check_targets(report)
+    return report
+
+
+def check_targets(report: dict[str, Any]) -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    rmse = report.get("velocity_rmse_m_s")
+    if rmse:
+        finite = [v for v in rmse.values() if math.isfinite(v)]
+        worst = max(finite) if finite else math.nan
+        out["velocity_rmse_m_s"] = {"value": worst, "target": f"<= {TARGETS['velocity_rmse_m_s']}",
+                                    "pass": bool(worst <= TARGETS["velocity_rmse_m_s"])}
+    if "min_true_obstacle_distance_m" in report:
+        v = report["min_true_obstacle_distance_m"]
+        out["min_true_obstacle_distance_m"] = {"value": v, "target": ">= 0.40", "pass": bool(v >= 0.40)}
+    if "fraction_estimate_le_truth" in report:
+        v = report["fraction_estimate_le_truth"]
+        out["fraction_estimate_le_truth"] = {"value": v, "target": ">= 0.95", "pass": bool(v >= 0.95)}
+    v = report.get("setpoint_gaps_over_100ms")
+    if v is not None:
+        out["setpoint_gaps_over_100ms"] = {"value": v, "target": "== 0",
+                                           "pass": bool(v == 0 and report.get("setpoint_count", 0) > 0)}
+    return out
+
+
+def summary_table(report: dict[str, Any]) -> str:
+    lines = [f"{'metric':<36} {'value':>12}  {'target':<10} result"]
+    for name, t in report.get("targets", {}).items():
+        value = t["value"]
+        text = f"{value:.3f}" if isinstance(value, float) else str(value)
+        lines.append(f"{name:<36} {text:>12}  {t['target']:<10} {'PASS' if t['pass'] else 'FAIL'}")
+    for key in ("tracking_rmse_m_s",):
+        if key in report:
+            lines.append(f"{key:<36} " + " ".join(f"{a}={v:.3f}" for a, v in report[key].items()))
+    if "pan_scan" in report:
+        p = report["pan_scan"]
+        lines.append(f"{'pan-scan amplitude cmd/meas (rad/s)':<36} {p['commanded_amplitude_rad_s']:.3f} / "
+                     f"{p['measured_amplitude_rad_s']:.3f}")
+        lines.append(f"{'pan-scan frequency cmd/meas (Hz)':<36} {p['commanded_frequency_hz']:.3f} / "
+                     f"{p['measured_frequency_hz']:.3f}")
+    for name, value in report.get("cpu_core_s_per_sim_s", {}).items():
+        lines.append(f"{'cpu ' + name + ' (core-s per sim-s)':<36} {value:12.3f}")
+    return "\n".join(lines)
+
+
+def make_plots(flight: FlightLog, out_dir: Path, safe_distance_m: float = SAFE_DISTANCE_M) -> list[Path]:
+    """PNG plots like paper 000 Figs. 6-8 and the operator force."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    paths: list[Path] = []
+    if flight.t_fb.size and flight.t_truth.size:
+        yaw = metrics.interpolate(flight.t_att, flight.yaw_true, flight.t_truth)
+        v_true_h = metrics.velocity_ned_to_h(flight.v_ned, yaw)
+        fig, axes = plt.subplots(2, 1, figsize=(10, 6), sharex=True)
+        for ax, k, label in ((axes[0], 0, "x"), (axes[1], 2, "z")):
+            ax.plot(flight.t_fb, flight.v_est_h[:, k], "b", lw=1, label="estimated")
+            ax.plot(flight.t_truth, v_true_h[:, k], "r", lw=1, label="ground truth")
+            ax.plot(flight.t_fb, flight.v_cmd_h[:, k], "g", lw=1, label="commanded")
+            ax.set_ylabel(f"v_{label} in H [m/s]")
+            ax.grid(alpha=0.3)
+        axes[0].legend(loc="upper right")
+        axes[1].set_xlabel("time [s]")
+        fig.suptitle("Velocity in H (paper Fig. 6)")
+        paths.append(_save(fig, out_dir / "fig6_velocity.png"))
+    if flight.t_fb.size:
+        fig, ax = plt.subplots(figsize=(10, 3.5))
+        ax.plot(flight.t_fb, flight.gyro_yaw_rate, "b", lw=1, label="gyro")
+        ax.plot(flight.t_fb, flight.yaw_rate_cmd, "g", lw=1, label="commanded (operator + pan-scan)")
+        ax.set_xlabel("time [s]")
+        ax.set_ylabel("yaw rate [rad/s]")
+        ax.grid(alpha=0.3)
+        ax.legend(loc="upper right")
+        ax.set_title("Yaw rate (paper Fig. 7)")
+        paths.append(_save(fig, out_dir / "fig7_yaw_rate.png"))
+    if flight.t_dist0.size:
+        fig, ax = plt.subplots(figsize=(10, 3.5))
+        ax.plot(flight.t_dist0, flight.dist0_m, "r", lw=1, label="true (all surfaces)")
+        if flight.t_dist1.size:
+            ax.plot(flight.t_dist1, flight.dist1_m, "m", lw=0.8, ls="--", label="true (obstacles and walls)")
+        if flight.t_fb.size:
+            est = np.where(flight.obstacle_est_m >= 0, flight.obstacle_est_m, np.nan)
+            ax.plot(flight.t_fb, est, "b", lw=1, label="estimated (obstacle map)")
+        ax.axhline(safe_distance_m, color="k", ls=":", label=f"safe distance {safe_distance_m} m")
+        ax.set_ylim(0, 3.0)
+        ax.set_xlabel("time [s]")
+        ax.set_ylabel("distance [m]")
+        ax.grid(alpha=0.3)
+        ax.legend(loc="upper right")
+        ax.set_title("Distance to the surroundings (paper Fig. 8)")
+        paths.append(_save(fig, out_dir / "fig8_distance.png"))
+    if flight.force:
+        t_key = next((k for k in flight.force if k.startswith("t")), None)
+        if t_key:
+            fig, ax = plt.subplots(figsize=(10, 3.5))
+            for key, values in flight.force.items():
+                if key != t_key and (key.startswith("tau") or key.startswith("f_") or key.startswith("force")):
+                    ax.plot(flight.force[t_key], values, lw=1, label=key)
+            ax.set_xlabel("time [s]")
+            ax.set_ylabel("force [N]")
+            ax.grid(alpha=0.3)
+            ax.legend(loc="upper right", ncol=3)
+            ax.set_title("Operator force and haptic feedback")
+            paths.append(_save(fig, out_dir / "force.png"))
+    return paths
+
+
+def _save(fig: Any, path: Path) -> Path:
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    import matplotlib.pyplot as plt
+
+    plt.close(fig)
+    return path
+
+
+def write_report(out_dir: Path, cpu_s: dict[str, float] | None = None, scenario: str = "") -> dict[str, Any]:
+    flight = load_flight(out_dir)
+    report = compute_report(flight, cpu_s, scenario)
+    report["plots"] = [p.name for p in make_plots(flight, out_dir)]
+    (out_dir / "report.json").write_text(json.dumps(report, indent=2, default=float) + "\n")
+    return report

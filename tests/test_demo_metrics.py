@@ -1,0 +1,78 @@
+"""Flight-report metrics against cases with known answers."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from quadlink.demo import metrics
+from quadlink.demo.report import FlightLog, check_targets, compute_report
+
+
+def test_velocity_into_h_uses_yaw_only() -> None:
+    v_ned = np.array([[0.0, 1.0, 0.2]])  # flying east, descending
+    v_h = metrics.velocity_ned_to_h(v_ned, np.array([math.pi / 2]))  # heading east
+    assert np.allclose(v_h, [[1.0, 0.0, 0.2]], atol=1e-12)
+
+
+def test_rmse_interpolates_reference(rng: np.random.Generator) -> None:
+    t_ref = np.linspace(0, 10, 1001)
+    v_ref = np.stack([np.sin(t_ref), np.cos(t_ref), 0 * t_ref], axis=1)
+    t_est = np.sort(rng.uniform(0.5, 9.5, 300))
+    noise = rng.normal(0, 0.03, (300, 3))
+    v_est = np.stack([np.sin(t_est), np.cos(t_est), 0 * t_est], axis=1) + noise
+    rmse = metrics.rmse_per_axis(t_est, v_est, t_ref, v_ref)
+    assert np.allclose(rmse, np.sqrt(np.mean(noise**2, axis=0)), atol=2e-3)
+    masked = metrics.rmse_per_axis(t_est, v_est, t_ref, v_ref, mask=t_est > 5)
+    assert np.all(np.isfinite(masked))
+
+
+def test_gaps() -> None:
+    t = np.concatenate([np.arange(0, 1, 1 / 30), np.arange(1.25, 2, 1 / 30)])
+    gaps = metrics.stream_gaps(t, 0.1)
+    assert gaps.count_over == 1 and gaps.max_gap_s == pytest.approx(0.25 + 1 / 30, abs=1e-6)
+    assert metrics.stream_gaps(np.arange(0, 5, 1 / 30)).count_over == 0
+
+
+def test_fraction_at_or_below() -> None:
+    t = np.linspace(0, 1, 11)
+    truth = np.full(11, 1.0)
+    est = np.array([0.9] * 9 + [1.1, -1.0])  # one over, one invalid (-1 = none)
+    assert metrics.fraction_at_or_below(t, est, t, truth) == pytest.approx(9 / 10)
+
+
+def test_sinusoid_fit_recovers_pan_scan(rng: np.random.Generator) -> None:
+    t = np.sort(rng.uniform(0, 20, 800))
+    y = 0.4 + 0.6 * np.sin(2 * math.pi * 0.25 * t + 0.7) + rng.normal(0, 0.05, t.size)
+    fit = metrics.fit_sinusoid(t, y)
+    assert fit.frequency_hz == pytest.approx(0.25, rel=0.01)
+    assert fit.amplitude == pytest.approx(0.6, rel=0.03)
+    assert fit.phase_rad == pytest.approx(0.7, abs=0.1)
+    assert fit.offset == pytest.approx(0.4, abs=0.02)
+
+
+def test_report_on_synthetic_flight(rng: np.random.Generator) -> None:
+    t = np.arange(0, 20, 0.02)
+    alt = np.clip(t - 1, 0, 1.0)
+    v_n = np.where(t > 5, 0.3, 0.0)
+    f = FlightLog(
+        t_truth=t, p_ned=np.stack([np.cumsum(v_n) * 0.02, 0 * t, -alt], axis=1),
+        v_ned=np.stack([v_n, 0 * t, 0 * t], axis=1), t_att=t, yaw_true=0 * t,
+        t_dist0=t, dist0_m=np.full(t.size, 1.0), t_dist1=t, dist1_m=np.where(t > 3, 0.8, 3.0),
+        t_fb=t, v_est_h=np.stack([v_n + rng.normal(0, 0.01, t.size), 0 * t, 0 * t], axis=1),
+        v_cmd_h=np.stack([v_n, 0 * t, 0 * t], axis=1), v_rep_h=np.zeros((t.size, 3)),
+        pan_scan_rate=0.5 * np.sin(2 * math.pi * 0.2 * t), yaw_rate_cmd=0.5 * np.sin(2 * math.pi * 0.2 * t),
+        gyro_yaw_rate=0.4 * np.sin(2 * math.pi * 0.2 * t - 0.3), obstacle_est_m=np.full(t.size, 0.9),
+        mode=np.full(t.size, 2.0), t_setpoint=np.arange(0, 20, 1 / 30),
+    )
+    report = compute_report(f, {"sitl": 10.0}, "synthetic")
+    assert report["velocity_rmse_m_s"]["x"] == pytest.approx(0.01, abs=0.003)
+    assert report["min_true_obstacle_distance_m"] == pytest.approx(0.8)
+    assert report["fraction_estimate_le_truth"] == 1.0
+    assert report["pan_scan"]["measured_amplitude_rad_s"] == pytest.approx(0.4, rel=0.05)
+    assert report["pan_scan"]["phase_lag_rad"] == pytest.approx(0.3, abs=0.05)
+    assert all(t["pass"] for t in report["targets"].values())
+    bad = check_targets({**report, "min_true_obstacle_distance_m": 0.3})
+    assert not bad["min_true_obstacle_distance_m"]["pass"]
