@@ -1,0 +1,229 @@
+"""Reference velocity and yaw rate from the operator, the pan-scan and the obstacles (paper 000, eqs. 2-8).
+
+Pure functions of their inputs (no clock, no I/O). Frames: everything is in H (horizontal, NED: x along
+the heading, y right, z down); yaw rates are NED (positive = turning right seen from above).
+
+* :func:`operator_from_manual_control` maps MANUAL_CONTROL (QGroundControl's joystick ranges:
+  x, y in -1000..1000, z in 0..1000 with 500 = no climb) to the normalised handle position q.
+* :func:`camera_yaw_rad` is alpha's first term, the yaw of the camera in Q (eq. 6). The paper's camera
+  frame has x along the optical axis (alpha = atan2(r21, r11)); quadlink's C is optical (z forward),
+  so the optical axis is the third column of R_qc and alpha = atan2(r23, r13).
+* :func:`operator_velocity` is eqs. (2)-(3) with alpha from eq. (6). The paper's psi_dot_d = -k_psi q_y
+  is written for its NWU-yaw convention; in NED the same gesture (handle to the right -> turn right) is
+  psi_dot_d = +k_psi q_y.
+* :func:`repulsion_velocity` is v_o of eq. (7): a sum over the map points of the gradient of a standard
+  (Khatib) repulsive potential ``U_j = eta/2 (1/d_j - 1/d_0)^2`` for d_j < d_0, i.e.
+  ``v_j = eta (1/d_j - 1/d_0) / d_j^2 * (-p_j / d_j)``, the sum limited to ``max_speed_m_s``.
+* :func:`reference_velocity` adds them (eq. 7) and the pan-scan yaw rate (eq. 8), then enforces the
+  safety constraints: no component toward any obstacle closer than the safe distance, and (when the
+  obstacle data are stale or unknown sectors are not allowed) no horizontal motion toward unknown sectors.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from companion.pan_scan import PanScanState
+
+MANUAL_XY_FULL_SCALE = 1000.0  # MANUAL_CONTROL x, y: -1000..1000
+MANUAL_Z_CENTRE = 500.0  # MANUAL_CONTROL z: 0..1000, 500 = no climb (QGroundControl joystick)
+MANUAL_Z_HALF_RANGE = 500.0
+
+
+@dataclass(frozen=True)
+class OperatorInput:
+    """Normalised handle position: ``qx`` forward, ``qy`` right (-> yaw rate), ``qz`` up, each in [-1, 1]."""
+
+    qx: float = 0.0
+    qy: float = 0.0
+    qz: float = 0.0
+
+
+@dataclass(frozen=True)
+class ReferenceParams:
+    """Gains and safety limits of the reference velocity.
+
+    k_v_m_s: horizontal speed at full handle deflection (eq. 2); k_climb_m_s: climb speed at full
+    deflection; k_psi_rad_s: yaw rate at full deflection (eq. 3). Repulsion (eq. 7): eta gain
+    [m^3/s], influence distance d_0, limit on |v_o|; safe distance (paper Fig. 8: 0.45 m) inside which
+    the reference has no component toward the obstacle.
+    """
+
+    k_v_m_s: float = 0.6
+    k_climb_m_s: float = 0.4
+    k_psi_rad_s: float = 0.8
+    deadband: float = 0.03
+    repulsion_gain_m3_s: float = 0.15
+    influence_distance_m: float = 0.9
+    max_repulsion_m_s: float = 1.0
+    safe_distance_m: float = 0.45
+    max_speed_m_s: float = 1.5
+    unknown_sector_guard_rad: float = math.radians(15.0)
+
+
+@dataclass(frozen=True)
+class ReferenceOutput:
+    """Reference for the velocity tracker, in H, and its parts (for TELEOP_FEEDBACK)."""
+
+    v_ref_h_m_s: NDArray[np.float64]  # eq. (7), after the safety constraints
+    yaw_rate_ref_rad_s: float  # eq. (8)
+    v_operator_h_m_s: NDArray[np.float64]  # eq. (2)
+    v_repulsion_h_m_s: NDArray[np.float64]  # v_o of eq. (7)
+    alpha_rad: float  # eq. (6)
+    pan_scan_yaw_rate_rad_s: float  # eq. (4)
+    operator_yaw_rate_rad_s: float  # eq. (3)
+    constrained: bool  # a safety constraint removed part of the command
+
+
+def _deadband(value: float, width: float) -> float:
+    value = max(-1.0, min(1.0, value))
+    if abs(value) <= width:
+        return 0.0
+    return math.copysign((abs(value) - width) / (1.0 - width), value) if width < 1.0 else 0.0
+
+
+def operator_from_manual_control(x: int, y: int, z: int, deadband: float = 0.0) -> OperatorInput:
+    """MANUAL_CONTROL axes -> handle position (x forward, y -> yaw, z climb with 500 = no climb)."""
+    return OperatorInput(
+        qx=_deadband(x / MANUAL_XY_FULL_SCALE, deadband),
+        qy=_deadband(y / MANUAL_XY_FULL_SCALE, deadband),
+        qz=_deadband((z - MANUAL_Z_CENTRE) / MANUAL_Z_HALF_RANGE, deadband),
+    )
+
+
+def camera_yaw_rad(R_qc: ArrayLike) -> float:
+    """Yaw of the camera's optical axis in Q (first term of eq. 6, for an optical camera frame)."""
+    R = np.asarray(R_qc, dtype=float)
+    return math.atan2(R[1, 2], R[0, 2])
+
+
+def operator_velocity(op: OperatorInput, alpha_rad: float, params: ReferenceParams
+                      ) -> tuple[NDArray[np.float64], float]:
+    """Eqs. (2)-(3): operator velocity in H (NED, climb is -z) and yaw rate (NED)."""
+    v = np.array([params.k_v_m_s * op.qx * math.cos(alpha_rad),  # eq. (2)
+                  params.k_v_m_s * op.qx * math.sin(alpha_rad),
+                  -params.k_climb_m_s * op.qz])
+    return v, params.k_psi_rad_s * op.qy  # eq. (3), NED sign (see module doc)
+
+
+def _points(points_h_m: ArrayLike | None) -> NDArray[np.float64]:
+    if points_h_m is None:
+        return np.zeros((0, 3))
+    p = np.asarray(points_h_m, dtype=float).reshape(-1, 3)
+    return p[np.all(np.isfinite(p), axis=1)]
+
+
+def repulsion_velocity(points_h_m: ArrayLike | None, params: ReferenceParams) -> NDArray[np.float64]:
+    """v_o of eq. (7): summed repulsive-potential gradients of the map points (vehicle at the origin of H)."""
+    p = _points(points_h_m)
+    if p.size == 0:
+        return np.zeros(3)
+    d = np.linalg.norm(p, axis=1)
+    near = (d < params.influence_distance_m) & (d > 1e-6)
+    if not np.any(near):
+        return np.zeros(3)
+    p, d = p[near], d[near]
+    magnitude = params.repulsion_gain_m3_s * (1.0 / d - 1.0 / params.influence_distance_m) / d**2
+    v = np.sum((-p / d[:, None]) * magnitude[:, None], axis=0)
+    speed = float(np.linalg.norm(v))
+    if speed > params.max_repulsion_m_s:
+        v *= params.max_repulsion_m_s / speed
+    return v
+
+
+def remove_toward_close_obstacles(v_h_m_s: NDArray[np.float64], points_h_m: ArrayLike | None,
+                                  safe_distance_m: float) -> tuple[NDArray[np.float64], bool]:
+    """Remove from v every component toward an obstacle point closer than ``safe_distance_m``.
+
+    Projection onto the half-spaces {v . u_j <= 0}, repeated so that removing one component cannot leave
+    another one pointing at a close obstacle (converges in a few passes for a handful of directions).
+    """
+    p = _points(points_h_m)
+    v = np.array(v_h_m_s, dtype=float)
+    if p.size == 0:
+        return v, False
+    d = np.linalg.norm(p, axis=1)
+    close = (d < safe_distance_m) & (d > 1e-6)
+    if not np.any(close):
+        return v, False
+    u = p[close] / d[close, None]
+    changed = False
+    for _ in range(10):
+        dots = u @ v
+        worst = int(np.argmax(dots))
+        if dots[worst] <= 1e-9:
+            break
+        v = v - dots[worst] * u[worst]
+        changed = True
+    # The repeated projections can stop short for nearly opposed constraints: there the only
+    # command that moves toward none of them is no motion at all.
+    if np.any(u @ v > 1e-6):
+        v[:] = 0.0
+    return v, changed
+
+
+def sector_index(angle_rad: float, n_sectors: int) -> int:
+    """Sector of a direction in H (0 = +x, increasing toward +y), sectors of 2 pi / n starting at 0."""
+    width = 2.0 * math.pi / n_sectors
+    return int((angle_rad % (2.0 * math.pi)) // width) % n_sectors
+
+
+def remove_toward_unknown(v_h_m_s: NDArray[np.float64], sectors_m: ArrayLike | None,
+                          guard_rad: float) -> tuple[NDArray[np.float64], bool]:
+    """Zero the horizontal velocity if it points (within ``guard_rad``) into a sector of unknown distance.
+
+    ``sectors_m`` is the 360 deg sector array (NaN = unknown, inf = free); None means nothing is known.
+    Like PX4's collision prevention without CP_GO_NO_DATA: no motion toward where nothing is known.
+    """
+    v = np.array(v_h_m_s, dtype=float)
+    speed = math.hypot(v[0], v[1])
+    if speed < 1e-9:
+        return v, False
+    if sectors_m is None:
+        v[:2] = 0.0
+        return v, True
+    s = np.asarray(sectors_m, dtype=float).ravel()
+    n = s.size
+    if n == 0:
+        v[:2] = 0.0
+        return v, True
+    heading = math.atan2(v[1], v[0])
+    width = 2.0 * math.pi / n
+    steps = int(math.ceil(guard_rad / width))
+    for k in range(-steps, steps + 1):
+        if np.isnan(s[sector_index(heading + k * width, n)]):
+            v[:2] = 0.0
+            return v, True
+    return v, False
+
+
+def reference_velocity(op: OperatorInput, R_qc: ArrayLike, scan: PanScanState,
+                       obstacle_points_h_m: ArrayLike | None, params: ReferenceParams,
+                       sectors_m: ArrayLike | None = None, block_unknown: bool = False,
+                       operator_enabled: bool = True) -> ReferenceOutput:
+    """Eqs. (2)-(8) with the safety constraints (see module doc).
+
+    ``operator_enabled`` False (hold, link lost) zeroes the operator part but keeps the repulsion;
+    ``block_unknown`` forbids horizontal operator motion toward unknown sectors of ``sectors_m``
+    (the caller sets it when the obstacle data are stale, passing ``sectors_m=None``).
+    """
+    alpha = camera_yaw_rad(R_qc) + scan.yaw_offset_rad  # eq. (6)
+    if not operator_enabled:
+        op = OperatorInput()
+    v_d, yaw_rate_d = operator_velocity(op, alpha, params)  # eqs. (2)-(3)
+    constrained = False
+    if block_unknown:
+        v_d, constrained = remove_toward_unknown(v_d, sectors_m, params.unknown_sector_guard_rad)
+    v_o = repulsion_velocity(obstacle_points_h_m, params)
+    v_r = v_d + v_o  # eq. (7)
+    v_r, removed = remove_toward_close_obstacles(v_r, obstacle_points_h_m, params.safe_distance_m)
+    speed = float(np.linalg.norm(v_r))
+    if speed > params.max_speed_m_s:
+        v_r *= params.max_speed_m_s / speed
+        constrained = True
+    yaw_rate = yaw_rate_d + scan.yaw_rate_rad_s  # eq. (8)
+    return ReferenceOutput(v_r, yaw_rate, v_d, v_o, alpha, scan.yaw_rate_rad_s, yaw_rate_d, constrained or removed)
