@@ -1,0 +1,202 @@
+"""Flight modes and safety of the companion: a pure state machine (no clock, no I/O).
+
+Modes (TELEOP_FEEDBACK.mode numbering): IDLE 0, TAKEOFF 1, TELEOP 2, HOLD 3, LAND 4.
+
+* IDLE: on the ground or not in control. Ground-station ``takeoff`` -> arm + takeoff commands to the
+  autopilot -> TAKEOFF. ``arm`` / ``disarm`` are passed on as commands.
+* TAKEOFF: waits for the autopilot to finish its takeoff (in air and no longer in its takeoff mode, or
+  armed for ``takeoff_timeout_s``), then asks for offboard mode -> TELEOP. Disarm or a refused
+  command -> IDLE.
+* TELEOP: operator command + pan-scan + repulsion.
+* HOLD: zero operator command, repulsion still active (hover). Entered when the ground-station link is
+  lost (no MANUAL_CONTROL for ``gcs_timeout_s``) or the odometry fails; left to TELEOP when both are
+  good again (odometry good for ``odometry_recover_s``); -> LAND when the link stays lost for
+  ``gcs_land_timeout_s`` or the odometry stays bad for ``odometry_land_timeout_s``.
+* LAND: land command to the autopilot; -> IDLE when the autopilot reports landed or disarmed.
+
+Every transition returns a :class:`StatusText` action (the daemon logs it and sends STATUSTEXT) and
+the autopilot commands to send as :class:`AutopilotRequest` actions (the daemon sends them with acks
+and reports failures back with :meth:`ModeMachine.on_request_failed`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from enum import IntEnum
+
+
+class Mode(IntEnum):
+    IDLE = 0
+    TAKEOFF = 1
+    TELEOP = 2
+    HOLD = 3
+    LAND = 4
+
+
+@dataclass(frozen=True)
+class ModeParams:
+    gcs_timeout_s: float = 0.5
+    gcs_land_timeout_s: float = 10.0
+    odometry_recover_s: float = 0.5
+    odometry_land_timeout_s: float = 5.0
+    takeoff_altitude_m: float = 1.0
+    takeoff_timeout_s: float = 8.0
+    takeoff_min_s: float = 1.0
+
+
+@dataclass(frozen=True)
+class VehicleStatus:
+    """What the autopilot reports (HEARTBEAT, EXTENDED_SYS_STATE): armed, in air, in its takeoff mode."""
+
+    armed: bool = False
+    in_air: bool = False
+    taking_off: bool = False
+
+
+@dataclass(frozen=True)
+class AutopilotRequest:
+    """A command for the autopilot: ``arm``, ``disarm``, ``takeoff`` (altitude_m), ``land``, ``offboard``."""
+
+    name: str
+    altitude_m: float = 0.0
+
+
+@dataclass(frozen=True)
+class StatusText:
+    """A transition or event to log and send as STATUSTEXT (MAV_SEVERITY_* numbering)."""
+
+    severity: int
+    text: str
+
+
+SEVERITY_CRITICAL = 2
+SEVERITY_WARNING = 4
+SEVERITY_NOTICE = 5
+SEVERITY_INFO = 6
+
+Action = AutopilotRequest | StatusText
+GCS_REQUESTS = ("arm", "disarm", "takeoff", "land")
+
+
+class ModeMachine:
+    """The companion's modes; feed it time, link and vehicle state with :meth:`update`."""
+
+    def __init__(self, params: ModeParams) -> None:
+        self.params = params
+        self.mode = Mode.IDLE
+        self.reason = "start"
+        self._entered_s = 0.0
+        self._last_manual_s: float | None = None
+        self._odometry_ok_since_s: float | None = None
+        self._odometry_bad_since_s: float | None = None
+        self.gcs_ok = False
+        self.odometry_ok = False
+
+    # --- inputs -----------------------------------------------------------------------------
+    def on_manual_control(self, now_s: float) -> None:
+        self._last_manual_s = now_s
+
+    @property
+    def operator_enabled(self) -> bool:
+        return self.mode == Mode.TELEOP
+
+    @property
+    def in_control(self) -> bool:
+        """The companion streams meaningful setpoints (the autopilot is meant to follow them)."""
+        return self.mode in (Mode.TELEOP, Mode.HOLD)
+
+    def time_in_mode_s(self, now_s: float) -> float:
+        return now_s - self._entered_s
+
+    def _go(self, mode: Mode, now_s: float, reason: str, severity: int = SEVERITY_INFO) -> list[Action]:
+        old = self.mode
+        self.mode, self.reason, self._entered_s = mode, reason, now_s
+        return [StatusText(severity, f"companion: {old.name} -> {mode.name} ({reason})")]
+
+    def request(self, name: str, now_s: float, status: VehicleStatus) -> tuple[bool, list[Action]]:
+        """A ground-station command (``arm``, ``disarm``, ``takeoff``, ``land``): accepted?, actions."""
+        if name not in GCS_REQUESTS:
+            return False, []
+        if name == "arm":
+            if self.mode != Mode.IDLE:
+                return False, []
+            return True, [AutopilotRequest("arm")]
+        if name == "disarm":
+            if status.in_air and self.mode != Mode.IDLE:
+                return False, [StatusText(SEVERITY_WARNING, "companion: disarm refused in flight (land first)")]
+            return True, [AutopilotRequest("disarm")]
+        if name == "takeoff":
+            if self.mode != Mode.IDLE:
+                return False, []
+            actions: list[Action] = [] if status.armed else [AutopilotRequest("arm")]
+            actions.append(AutopilotRequest("takeoff", self.params.takeoff_altitude_m))
+            return True, actions + self._go(Mode.TAKEOFF, now_s, "ground-station takeoff")
+        # land
+        if self.mode in (Mode.IDLE, Mode.LAND):
+            return self.mode == Mode.LAND, []
+        return True, [AutopilotRequest("land")] + self._go(Mode.LAND, now_s, "ground-station land")
+
+    def on_request_failed(self, request: AutopilotRequest, now_s: float, detail: str) -> list[Action]:
+        """The autopilot refused a command or never acknowledged it."""
+        text = StatusText(SEVERITY_WARNING, f"companion: autopilot {request.name} failed ({detail})")
+        if request.name in ("arm", "takeoff") and self.mode == Mode.TAKEOFF:
+            return [text] + self._go(Mode.IDLE, now_s, f"{request.name} refused", SEVERITY_WARNING)
+        if request.name == "offboard" and self.mode in (Mode.TELEOP, Mode.HOLD):
+            # Without offboard the autopilot keeps its own hold; we cannot fly, so land.
+            return [text, AutopilotRequest("land")] + self._go(Mode.LAND, now_s, "offboard refused",
+                                                                SEVERITY_WARNING)
+        return [text]
+
+    # --- the periodic step ------------------------------------------------------------------
+    def update(self, now_s: float, status: VehicleStatus, odometry_ok: bool) -> list[Action]:
+        p = self.params
+        actions: list[Action] = []
+        gcs_ok = self._last_manual_s is not None and now_s - self._last_manual_s <= p.gcs_timeout_s
+        if gcs_ok != self.gcs_ok:
+            actions.append(StatusText(SEVERITY_NOTICE if gcs_ok else SEVERITY_WARNING,
+                                      "companion: ground-station link " + ("ok" if gcs_ok else "lost")))
+        self.gcs_ok = gcs_ok
+        if odometry_ok:
+            self._odometry_bad_since_s = None
+            if self._odometry_ok_since_s is None:
+                self._odometry_ok_since_s = now_s
+        else:
+            self._odometry_ok_since_s = None
+            if self._odometry_bad_since_s is None:
+                self._odometry_bad_since_s = now_s
+        if odometry_ok != self.odometry_ok:
+            actions.append(StatusText(SEVERITY_NOTICE if odometry_ok else SEVERITY_CRITICAL,
+                                      "companion: odometry " + ("ok" if odometry_ok else "failed")))
+        self.odometry_ok = odometry_ok
+        odo_good = self._odometry_ok_since_s is not None and now_s - self._odometry_ok_since_s >= p.odometry_recover_s
+        in_mode = now_s - self._entered_s
+
+        if self.mode == Mode.TAKEOFF:
+            if not status.armed and in_mode > 2.0:
+                actions += self._go(Mode.IDLE, now_s, "disarmed during takeoff", SEVERITY_WARNING)
+            elif status.armed and ((status.in_air and not status.taking_off and in_mode >= p.takeoff_min_s)
+                                   or in_mode >= p.takeoff_timeout_s):
+                actions.append(AutopilotRequest("offboard"))
+                actions += self._go(Mode.TELEOP, now_s, "takeoff complete")
+        elif self.mode in (Mode.TELEOP, Mode.HOLD):
+            if not status.armed:
+                actions += self._go(Mode.IDLE, now_s, "autopilot disarmed", SEVERITY_WARNING)
+            elif self.mode == Mode.TELEOP and not odometry_ok:
+                actions += self._go(Mode.HOLD, now_s, "odometry failed", SEVERITY_CRITICAL)
+            elif self.mode == Mode.TELEOP and not gcs_ok:
+                actions += self._go(Mode.HOLD, now_s, "ground-station link lost", SEVERITY_WARNING)
+            elif self.mode == Mode.HOLD:
+                lost_for = now_s - self._last_manual_s if self._last_manual_s is not None else in_mode
+                bad_for = now_s - self._odometry_bad_since_s if self._odometry_bad_since_s is not None else 0.0
+                if not gcs_ok and lost_for >= p.gcs_land_timeout_s:
+                    actions.append(AutopilotRequest("land"))
+                    actions += self._go(Mode.LAND, now_s, "ground-station link lost too long", SEVERITY_CRITICAL)
+                elif not odometry_ok and bad_for >= p.odometry_land_timeout_s:
+                    actions.append(AutopilotRequest("land"))
+                    actions += self._go(Mode.LAND, now_s, "odometry failed too long", SEVERITY_CRITICAL)
+                elif gcs_ok and odo_good:
+                    actions += self._go(Mode.TELEOP, now_s, "link and odometry ok")
+        elif self.mode == Mode.LAND:
+            if not status.armed or (not status.in_air and in_mode > 1.0):
+                actions += self._go(Mode.IDLE, now_s, "landed")
+        return actions

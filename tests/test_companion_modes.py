@@ -1,0 +1,145 @@
+"""Companion modes/safety state machine and the autopilot command queue."""
+
+from __future__ import annotations
+
+from companion.commands import CommandQueue, command_for
+from companion.modes import AutopilotRequest, Mode, ModeMachine, ModeParams, StatusText, VehicleStatus
+from quadlink.mavlink import mavlink
+
+GROUND = VehicleStatus(armed=False, in_air=False)
+ARMED_GROUND = VehicleStatus(armed=True, in_air=False)
+CLIMBING = VehicleStatus(armed=True, in_air=True, taking_off=True)
+FLYING = VehicleStatus(armed=True, in_air=True)
+
+
+def _requests(actions: list) -> list[str]:
+    return [a.name for a in actions if isinstance(a, AutopilotRequest)]
+
+
+def _texts(actions: list) -> list[str]:
+    return [a.text for a in actions if isinstance(a, StatusText)]
+
+
+def _flying_machine(params: ModeParams | None = None) -> tuple[ModeMachine, float]:
+    m = ModeMachine(params or ModeParams())
+    t = 0.0
+    m.on_manual_control(t)
+    ok, actions = m.request("takeoff", t, GROUND)
+    assert ok and _requests(actions) == ["arm", "takeoff"] and m.mode == Mode.TAKEOFF
+    for t in (0.2, 0.5, 0.9):
+        m.on_manual_control(t)
+        assert m.update(t, CLIMBING, True) == [] or m.mode == Mode.TAKEOFF
+    t = 1.5
+    m.on_manual_control(t)
+    actions = m.update(t, FLYING, True)
+    assert _requests(actions) == ["offboard"] and m.mode == Mode.TELEOP
+    assert any("TAKEOFF -> TELEOP" in s for s in _texts(actions))
+    return m, t
+
+
+def test_takeoff_sequence_arms_takes_off_then_offboard() -> None:
+    m, _ = _flying_machine()
+    assert m.operator_enabled and m.in_control
+
+
+def test_takeoff_needs_idle_and_falls_back_when_refused() -> None:
+    m = ModeMachine(ModeParams())
+    ok, _ = m.request("takeoff", 0.0, ARMED_GROUND)
+    assert ok and m.mode == Mode.TAKEOFF
+    assert m.request("takeoff", 0.1, ARMED_GROUND)[0] is False
+    actions = m.on_request_failed(AutopilotRequest("takeoff"), 0.2, "DENIED")
+    assert m.mode == Mode.IDLE and any("IDLE" in s for s in _texts(actions))
+
+
+def test_takeoff_timeout_goes_to_teleop_if_armed() -> None:
+    m = ModeMachine(ModeParams(takeoff_timeout_s=3.0))
+    m.request("takeoff", 0.0, GROUND)
+    assert m.update(2.9, CLIMBING, True) == [] or m.mode == Mode.TAKEOFF
+    m.update(3.0, CLIMBING, True)
+    assert m.mode == Mode.TELEOP
+
+
+def test_gcs_loss_holds_then_lands_and_recovery_resumes() -> None:
+    params = ModeParams(gcs_timeout_s=0.5, gcs_land_timeout_s=4.0)
+    m, t = _flying_machine(params)
+    last = t
+    m.update(last + 0.4, FLYING, True)
+    assert m.mode == Mode.TELEOP
+    actions = m.update(last + 0.6, FLYING, True)
+    assert m.mode == Mode.HOLD and not m.operator_enabled and m.in_control
+    assert "companion: ground-station link lost" in _texts(actions)
+    # link back -> teleop
+    m.on_manual_control(last + 1.0)
+    m.update(last + 1.0, FLYING, True)
+    assert m.mode == Mode.TELEOP
+    # lost again, long enough to land (measured from the last MANUAL_CONTROL)
+    last += 1.0
+    m.update(last + 0.6, FLYING, True)
+    assert m.mode == Mode.HOLD
+    assert _requests(m.update(last + 3.9, FLYING, True)) == []
+    actions = m.update(last + 4.0, FLYING, True)
+    assert _requests(actions) == ["land"] and m.mode == Mode.LAND
+    m.update(last + 6.0, VehicleStatus(armed=True, in_air=False), True)
+    assert m.mode == Mode.IDLE
+
+
+def test_odometry_failure_holds_and_recovers_after_a_good_period() -> None:
+    params = ModeParams(odometry_recover_s=0.5, odometry_land_timeout_s=3.0)
+    m, t = _flying_machine(params)
+    m.on_manual_control(t + 0.1)
+    actions = m.update(t + 0.1, FLYING, False)
+    assert m.mode == Mode.HOLD and "companion: odometry failed" in _texts(actions)
+    m.on_manual_control(t + 0.3)
+    m.update(t + 0.3, FLYING, True)
+    assert m.mode == Mode.HOLD  # not yet good long enough
+    m.on_manual_control(t + 0.85)
+    m.update(t + 0.85, FLYING, True)
+    assert m.mode == Mode.TELEOP
+    # odometry bad for too long -> land
+    for k in range(0, 32):
+        now = t + 1.0 + 0.1 * k
+        m.on_manual_control(now)
+        actions = m.update(now, FLYING, False)
+    assert m.mode == Mode.LAND
+
+
+def test_ground_station_land_and_disarm_rules() -> None:
+    m, t = _flying_machine()
+    ok, actions = m.request("disarm", t, FLYING)
+    assert not ok and m.mode == Mode.TELEOP
+    ok, actions = m.request("land", t, FLYING)
+    assert ok and _requests(actions) == ["land"] and m.mode == Mode.LAND
+    m.update(t + 0.5, VehicleStatus(armed=False), True)
+    assert m.mode == Mode.IDLE
+    assert m.request("land", t + 1, GROUND)[0] is False
+    assert m.request("bogus", t + 1, GROUND)[0] is False
+
+
+def test_command_queue_orders_retries_and_fails() -> None:
+    q = CommandQueue(ack_timeout_s=0.5, retries=2)
+    q.push(AutopilotRequest("arm"))
+    q.push(AutopilotRequest("takeoff", 1.0))
+    send, failed = q.poll(0.0)
+    assert [(c.command, conf) for c, conf in send] == [(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 0)] and not failed
+    assert q.poll(0.2) == ([], [])
+    done, failed = q.on_ack(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, mavlink.MAV_RESULT_ACCEPTED, 0.3)
+    assert done == AutopilotRequest("arm") and not failed
+    send, _ = q.poll(0.3)
+    assert send[0][0].command == mavlink.MAV_CMD_NAV_TAKEOFF and send[0][0].params[6] == 1.0
+    # no ack: resent with increasing confirmation, then failed
+    assert q.poll(0.81)[0][0][1] == 1
+    assert q.poll(1.32)[0][0][1] == 2
+    send, failed = q.poll(1.83)
+    assert send == [] and failed == [(AutopilotRequest("takeoff", 1.0), "no acknowledgement")]
+    # denied drops the queue
+    q.push(AutopilotRequest("arm"))
+    q.push(AutopilotRequest("takeoff", 1.0))
+    q.poll(2.0)
+    done, failed = q.on_ack(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, mavlink.MAV_RESULT_DENIED, 2.1)
+    assert done is None and [r.name for r, _ in failed] == ["arm", "takeoff"] and q.pending == []
+
+
+def test_offboard_is_px4_do_set_mode() -> None:
+    c = command_for(AutopilotRequest("offboard"))
+    assert c.command == mavlink.MAV_CMD_DO_SET_MODE
+    assert c.params[0] == mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED and c.params[1] == 6
