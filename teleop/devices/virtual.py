@@ -1,0 +1,142 @@
+"""Virtual haptic device: eq. (1) ``M q'' + C q' = tau + f`` with diagonal M, C (a Cartesian
+handle: no Coriolis coupling, C is the mechanism's viscous friction), the operator force f from a
+script or the keyboard.
+
+:func:`step_dynamics` is the exact zero-order-hold solution of eq. (1) over one step (constant
+force), so the simulated handle matches the analytic solution at any step size; the workspace is a
+hard stop (position clamped, outward velocity zeroed).
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+from collections.abc import Callable
+
+import numpy as np
+from numpy.typing import NDArray
+
+from teleop.config import DeviceConfig
+from teleop.devices.base import DeviceState, HapticDevice
+from teleop.devices.script import OperatorScript
+
+Vec3 = NDArray[np.float64]
+
+
+def step_dynamics(q_m: Vec3, qdot_m_s: Vec3, force_n: Vec3, dt_s: float, mass_kg: Vec3,
+                  damping_n_s_m: Vec3) -> tuple[Vec3, Vec3]:
+    """Exact solution of eq. (1) per axis over ``dt_s`` with the force held constant."""
+    q_next = np.empty(3)
+    v_next = np.empty(3)
+    for i in range(3):
+        m, c, u, v = float(mass_kg[i]), float(damping_n_s_m[i]), float(force_n[i]), float(qdot_m_s[i])
+        if c * dt_s / m < 1e-9:  # undamped: constant acceleration
+            a = u / m
+            v_next[i] = v + a * dt_s
+            q_next[i] = q_m[i] + v * dt_s + 0.5 * a * dt_s * dt_s
+            continue
+        v_inf = u / c                          # terminal velocity
+        decay = math.exp(-c * dt_s / m)
+        v_next[i] = v_inf + (v - v_inf) * decay
+        q_next[i] = q_m[i] + v_inf * dt_s + (v - v_inf) * (m / c) * (1.0 - decay)
+    return q_next, v_next
+
+
+def clamp_workspace(q_m: Vec3, qdot_m_s: Vec3, workspace_m: Vec3) -> tuple[Vec3, Vec3]:
+    q = np.clip(q_m, -workspace_m, workspace_m)
+    v = qdot_m_s.copy()
+    v[(q >= workspace_m) & (v > 0)] = 0.0
+    v[(q <= -workspace_m) & (v < 0)] = 0.0
+    return q, v
+
+
+class OperatorSource:
+    """Where the virtual device's operator force and button presses come from."""
+
+    def force_at(self, t_s: float) -> Vec3:
+        return np.zeros(3)
+
+    def presses_between(self, t0_s: float, t1_s: float) -> tuple[str, ...]:
+        return ()
+
+    @property
+    def finished_at_s(self) -> float | None:
+        return None
+
+    def close(self) -> None:
+        pass
+
+
+class ScriptedOperator(OperatorSource):
+    def __init__(self, script: OperatorScript) -> None:
+        self.script = script
+
+    def force_at(self, t_s: float) -> Vec3:
+        return self.script.force_at(t_s)
+
+    def presses_between(self, t0_s: float, t1_s: float) -> tuple[str, ...]:
+        return self.script.presses_between(t0_s, t1_s)
+
+    @property
+    def finished_at_s(self) -> float | None:
+        return self.script.end_s
+
+
+class VirtualDevice(HapticDevice):
+    """eq. (1) integrated at the force-loop rate (sub-stepped at <= 1 ms if polled slower)."""
+
+    name = "virtual"
+    has_force_output = True
+
+    def __init__(self, cfg: DeviceConfig, operator: OperatorSource | None = None,
+                 max_step_s: float = 1e-3, on_finished: Callable[[], None] | None = None) -> None:
+        self.cfg = cfg
+        self.operator = operator or OperatorSource()
+        self.mass_kg = np.asarray(cfg.mass_kg, dtype=float)
+        self.damping = np.asarray(cfg.damping_n_s_m, dtype=float)
+        self.workspace = np.asarray(cfg.workspace_m, dtype=float)
+        self.max_step_s = max_step_s
+        self.q_m = np.zeros(3)
+        self.qdot_m_s = np.zeros(3)
+        self._tau_n = np.zeros(3)
+        self._t0_s: float | None = None
+        self._t_s: float | None = None
+        self._lock = threading.Lock()
+
+    def elapsed_s(self, t_s: float) -> float:
+        return 0.0 if self._t0_s is None else t_s - self._t0_s
+
+    def poll(self, t_s: float) -> DeviceState:
+        with self._lock:
+            if self._t0_s is None:
+                self._t0_s = self._t_s = t_s
+                presses = self.operator.presses_between(-1.0, 0.0)
+                f = self.operator.force_at(0.0)
+                return DeviceState(t_s, self.q_m.copy(), self.qdot_m_s.copy(), presses, f)
+            assert self._t_s is not None
+            t_prev = self._t_s - self._t0_s
+            t_now = t_s - self._t0_s
+            t = t_prev
+            while t < t_now - 1e-12:
+                dt = min(self.max_step_s, t_now - t)
+                f = self.operator.force_at(t)
+                self.q_m, self.qdot_m_s = step_dynamics(self.q_m, self.qdot_m_s, self._tau_n + f, dt,
+                                                        self.mass_kg, self.damping)
+                self.q_m, self.qdot_m_s = clamp_workspace(self.q_m, self.qdot_m_s, self.workspace)
+                t += dt
+            self._t_s = t_s
+            presses = self.operator.presses_between(t_prev, t_now)
+            return DeviceState(t_s, self.q_m.copy(), self.qdot_m_s.copy(), presses, self.operator.force_at(t_now))
+
+    def set_force(self, force_d_n: Vec3) -> None:
+        with self._lock:
+            self._tau_n = np.where(np.isfinite(force_d_n), force_d_n, 0.0)
+
+    @property
+    def finished(self) -> bool:
+        end = self.operator.finished_at_s
+        return end is not None and self._t_s is not None and self._t0_s is not None \
+            and self._t_s - self._t0_s >= end
+
+    def close(self) -> None:
+        self.operator.close()

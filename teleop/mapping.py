@@ -1,0 +1,77 @@
+"""Device position q (frame D, NED) -> operator command, paper 000 eqs. (2)-(3). Pure.
+
+The companion turns MANUAL_CONTROL into the desired velocity of eqs. (2)-(3):
+``v_d = k_v (q_x cos a, q_x sin a, q_z)``, ``psi_d' = -k_psi q_y``. On the wire the command is
+normalized: ``x`` (forward, along alpha) and ``r`` (yaw rate) in -1000..1000, ``z`` (climb) in 0..1000
+with 500 = no climb (MAVLink's thrust-like convention: above 500 = up, so z_D down maps below 500),
+``y`` = 0 (eq. (2) allows no motion orthogonal to alpha). Full scale is the companion's maximum
+speed / yaw rate / climb rate, so the equivalent gains are ``k = max / (workspace - deadband)``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from teleop.config import DeviceConfig, MappingConfig
+
+MANUAL_CONTROL_FULL_SCALE = 1000
+MANUAL_CONTROL_Z_NEUTRAL = 500
+
+
+@dataclass(frozen=True)
+class ManualControl:
+    """One MANUAL_CONTROL command (normalized integers, MAVLink ranges)."""
+
+    x: int          # forward along alpha, -1000..1000
+    y: int          # lateral, always 0 (eq. (2))
+    z: int          # climb, 0..1000, 500 = none, > 500 = up
+    r: int          # yaw rate, -1000..1000, > 0 = clockwise (yaw right, NED)
+    buttons: int = 0
+
+
+@dataclass(frozen=True)
+class MappingGains:
+    """Equivalent gains of eqs. (2)-(3) (SI), used by the force law's q~ (eqs. (16)-(18))."""
+
+    k_v_xy_per_s: float      # m/s per m of q_x beyond the dead-band
+    k_v_z_per_s: float       # m/s per m of q_z
+    k_psi_rad_s_m: float     # rad/s per m of q_y (magnitude; the sign is yaw_sign)
+    yaw_sign: float
+
+
+def mapping_gains(mapping: MappingConfig, device: DeviceConfig) -> MappingGains:
+    span = [w - d for w, d in zip(device.workspace_m, mapping.deadband_m)]
+    if min(span) <= 0:
+        raise ValueError("dead-band must be smaller than the workspace on every axis")
+    return MappingGains(mapping.max_speed_m_s / span[0], mapping.max_climb_m_s / span[2],
+                        mapping.max_yaw_rate_rad_s / span[1], mapping.yaw_sign)
+
+
+def shape_axis(q_m: float, deadband_m: float, workspace_m: float) -> float:
+    """Dead-band then workspace scaling: -1..1, zero inside the dead-band, continuous at its edge."""
+    magnitude = abs(q_m) - deadband_m
+    if magnitude <= 0.0 or not np.isfinite(q_m):
+        return 0.0
+    return float(np.copysign(min(magnitude / (workspace_m - deadband_m), 1.0), q_m))
+
+
+def map_device_to_command(q_d_m: NDArray[np.float64], mapping: MappingConfig, device: DeviceConfig,
+                          buttons: int = 0) -> ManualControl:
+    """eqs. (2)-(3) on the normalized MANUAL_CONTROL axes."""
+    nx, ny, nz = (shape_axis(float(q_d_m[i]), mapping.deadband_m[i], device.workspace_m[i]) for i in range(3))
+    x = round(MANUAL_CONTROL_FULL_SCALE * nx)
+    r = round(MANUAL_CONTROL_FULL_SCALE * mapping.yaw_sign * ny)  # eq. (3)
+    # z_D is down: pushing the handle down (q_z > 0) commands a descent (z < 500).
+    z = round(MANUAL_CONTROL_Z_NEUTRAL - MANUAL_CONTROL_Z_NEUTRAL * nz)
+    return ManualControl(x=x, y=0, z=z, r=r, buttons=buttons)
+
+
+def command_to_velocity(cmd: ManualControl, mapping: MappingConfig) -> tuple[float, float, float]:
+    """What the companion makes of ``cmd``: (forward m/s along alpha, climb-down m/s (NED z), yaw rate rad/s)."""
+    forward = mapping.max_speed_m_s * cmd.x / MANUAL_CONTROL_FULL_SCALE
+    v_down = -mapping.max_climb_m_s * (cmd.z - MANUAL_CONTROL_Z_NEUTRAL) / MANUAL_CONTROL_Z_NEUTRAL
+    yaw_rate = mapping.max_yaw_rate_rad_s * cmd.r / MANUAL_CONTROL_FULL_SCALE
+    return forward, v_down, yaw_rate
