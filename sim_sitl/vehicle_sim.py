@@ -1,0 +1,78 @@
+"""The simulated vehicle without I/O: pybullet world + board firmware + IMU, advanced in board ticks.
+
+One board tick is 1 / ``firmware.loop_rate_hz`` (2 ms): the firmware runs on the state at the tick,
+IMU sample ``k`` is taken at board time ``k * 2 ms``, then physics advances to the next tick (in
+``physics.rate_hz / loop_rate_hz`` substeps). Time comes only from the tick counter.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from quadlink.frames import euler_from_R
+from quadlink.vehicle import VehicleConfig
+from sim_sitl.config import ScenarioConfig, SitlConfig
+from sim_sitl.firmware import AttitudeCommand, BoardSensing, Firmware, FirmwareOutput
+from sim_sitl.imu import ImuModel, ImuReading
+from sim_sitl.world import RigidState, World
+
+
+@dataclass(frozen=True)
+class TickResult:
+    tick: int  # index of the IMU sample taken at this tick
+    t_s: float
+    imu: ImuReading
+    state: RigidState  # the true state at t_s (before the physics advanced)
+    firmware: FirmwareOutput
+
+
+class SimVehicle:
+    def __init__(self, vehicle: VehicleConfig, cfg: SitlConfig, scenario: ScenarioConfig,
+                 rng: np.random.Generator) -> None:
+        self.vehicle = vehicle
+        self.cfg = cfg
+        self.tick_s = 1.0 / cfg.firmware.loop_rate_hz
+        self.substeps = max(1, round(cfg.physics.rate_hz / cfg.firmware.loop_rate_hz))
+        self.world = World(vehicle, cfg, scenario, rng)
+        # the physics step is derived from the board tick so time stays on the 2 ms grid
+        self.world.dt_s = self.tick_s / self.substeps
+        import pybullet as p
+
+        p.setTimeStep(self.world.dt_s, physicsClientId=self.world.client)
+        self.firmware = Firmware(vehicle, cfg.firmware)
+        self.imu = ImuModel(cfg.imu_noise, rng, vehicle.motor.max_thrust_n)
+        self.ticks = 0
+        self.flying_time_s = 0.0
+
+    @property
+    def t_s(self) -> float:
+        return self.ticks * self.tick_s
+
+    def on_setpoint(self, cmd: AttitudeCommand) -> None:
+        self.firmware.on_setpoint(cmd, self.t_s)
+
+    def tick(self) -> TickResult:
+        t = self.t_s
+        s = self.world.state
+        roll, pitch, yaw = euler_from_R(s.R_ned_q)
+        out = self.firmware.step(t, self.tick_s, BoardSensing(roll, pitch, yaw, s.omega_q_rad_s, float(s.v_ned_m_s[2])))
+        reading = self.imu.measure(t, self.tick_s, s.R_ned_q, s.a_ned_m_s2, s.omega_q_rad_s, s.motor_thrust_n)
+        for _ in range(self.substeps):
+            self.world.step(out.motor_cmd_n)
+        if out.armed:
+            self.flying_time_s += self.tick_s
+        result = TickResult(self.ticks, t, reading, s, out)
+        self.ticks += 1
+        return result
+
+    def battery_mv(self) -> int:
+        b = self.vehicle.battery
+        full_mv = b.cells * b.full_cell_v * 1000.0
+        empty_mv = b.cells * b.empty_cell_v * 1000.0
+        sag_mv = 60.0 * float(np.sum(self.world.motor_thrust_n))  # internal resistance under load
+        return int(max(empty_mv, full_mv - self.cfg.battery_drain_mv_per_s * self.flying_time_s - sag_mv))
+
+    def close(self) -> None:
+        self.world.close()

@@ -1,0 +1,229 @@
+"""The pybullet side of the SITL: scene, rigid body, rotor forces, distance queries (one client each).
+
+pybullet works in a z-up world; this module is the one place that converts. The pybullet world is
+the arena's NWU (x north, y west, z up) and the vehicle's pybullet body frame is FLU, so with
+``D = diag(1, -1, -1)`` (a rotation by pi about x): ``p_ned = D p_pb``, ``R_ned_frd = D R_pb_flu D``.
+Everything that leaves this module is NED / FRD.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pybullet as p
+from numpy.typing import NDArray
+
+from quadlink.frames import GRAVITY_M_S2, Rz
+from quadlink.vehicle import VehicleConfig
+from sim_sitl.config import ScenarioConfig, SitlConfig
+from sim_sitl.motors import body_wrench, motor_lag, rotor_layout
+from sim_sitl.textures import make_texture
+
+log = logging.getLogger(__name__)
+
+D = np.diag([1.0, -1.0, -1.0])  # NED <-> pybullet NWU, FRD <-> FLU
+
+SURFACE_FLOOR = "floor"
+SURFACE_CEILING = "ceiling"
+SURFACE_WALL = "wall"
+SURFACE_OBJECT = "object"
+
+
+@dataclass(frozen=True)
+class RigidState:
+    """True state of the vehicle in the arena frame (NED, origin at the centre of the floor)."""
+
+    t_s: float
+    p_ned_m: NDArray[np.float64]
+    v_ned_m_s: NDArray[np.float64]
+    R_ned_q: NDArray[np.float64]  # body FRD -> NED
+    omega_q_rad_s: NDArray[np.float64]  # body rates, FRD
+    a_ned_m_s2: NDArray[np.float64]  # kinematic acceleration over the last step
+    motor_thrust_n: NDArray[np.float64]
+
+
+def _quat_xyzw_from_R(R: NDArray[np.float64]) -> list[float]:
+    from quadlink.frames import quat_wxyz_from_R
+
+    w, x, y, z = quat_wxyz_from_R(R)
+    return [float(x), float(y), float(z), float(w)]
+
+
+class World:
+    """A pybullet ``DIRECT`` client holding one arena and one quadrotor. Not thread-safe: one owner."""
+
+    def __init__(self, vehicle: VehicleConfig, cfg: SitlConfig, scenario: ScenarioConfig,
+                 rng: np.random.Generator, texture_dir: str | Path | None = None) -> None:
+        self.vehicle = vehicle
+        self.cfg = cfg
+        self.scenario = scenario
+        self.client = p.connect(p.DIRECT)
+        self.dt_s = 1.0 / cfg.physics.rate_hz
+        self.layout = rotor_layout(vehicle)
+        self._tmp = tempfile.TemporaryDirectory(prefix="quadlink-sitl-tex-") if texture_dir is None else None
+        self._texture_dir = Path(self._tmp.name if self._tmp else texture_dir)  # type: ignore[arg-type]
+        self._rng = rng
+        self._textures: dict[tuple[str, tuple[float, float, float]], int] = {}
+        self.surfaces: dict[int, str] = {}
+        p.setGravity(0.0, 0.0, -GRAVITY_M_S2, physicsClientId=self.client)
+        p.setTimeStep(self.dt_s, physicsClientId=self.client)
+        p.setPhysicsEngineParameter(numSolverIterations=20, physicsClientId=self.client)
+        self._build_scene()
+        self._query_shape = p.createCollisionShape(p.GEOM_SPHERE, radius=1e-3, physicsClientId=self.client)
+        self._build_vehicle()
+        self.t_s = 0.0
+        self.motor_thrust_n = np.zeros(4)
+        self._v_prev_ned = np.zeros(3)
+        self._state = self._read_state(np.zeros(3))
+
+    # ------------------------------------------------------------------ scene
+    def _texture(self, kind: str, color: tuple[float, float, float]) -> int:
+        key = (kind, tuple(float(c) for c in color))
+        if key not in self._textures:
+            img = make_texture(kind, self._rng, color)
+            path = self._texture_dir / f"tex{len(self._textures)}_{kind}.png"
+            cv2.imwrite(str(path), cv2.cvtColor(img, cv2.COLOR_RGB2BGR))
+            self._textures[key] = p.loadTexture(str(path), physicsClientId=self.client)
+        return self._textures[key]
+
+    def _add_box(self, centre_ned: NDArray[np.float64], size_m: tuple[float, float, float], yaw_rad: float,
+                 texture: str, color: tuple[float, float, float], surface: str) -> int:
+        half = [s / 2.0 for s in size_m]
+        cs = p.createCollisionShape(p.GEOM_BOX, halfExtents=half, physicsClientId=self.client)
+        vs = p.createVisualShape(p.GEOM_BOX, halfExtents=half, physicsClientId=self.client)
+        body = p.createMultiBody(0.0, cs, vs, (D @ centre_ned).tolist(),
+                                 p.getQuaternionFromEuler([0.0, 0.0, -yaw_rad]), physicsClientId=self.client)
+        self._finish_static(body, texture, color, surface)
+        return body
+
+    def _finish_static(self, body: int, texture: str, color: tuple[float, float, float], surface: str) -> None:
+        p.changeVisualShape(body, -1, textureUniqueId=self._texture(texture, color), rgbaColor=[1, 1, 1, 1],
+                            physicsClientId=self.client)
+        p.changeDynamics(body, -1, lateralFriction=self.cfg.physics.ground_friction, physicsClientId=self.client)
+        self.surfaces[body] = surface
+
+    def _build_scene(self) -> None:
+        room = self.scenario.room
+        nx, ny = room.size_m
+        h = room.height_m
+        t = 0.2  # slab thickness
+        white = (0.85, 0.85, 0.85)
+        self._add_box(np.array([0.0, 0.0, t / 2]), (nx + 2 * t, ny + 2 * t, t), 0.0, room.floor_texture,
+                      (0.55, 0.35, 0.3), SURFACE_FLOOR)
+        if room.ceiling:
+            self._add_box(np.array([0.0, 0.0, -h - t / 2]), (nx + 2 * t, ny + 2 * t, t), 0.0, room.ceiling_texture,
+                          white, SURFACE_CEILING)
+        if room.walls:
+            for sx in (-1.0, 1.0):
+                self._add_box(np.array([sx * (nx / 2 + t / 2), 0.0, -h / 2]), (t, ny + 2 * t, h), 0.0,
+                              room.wall_texture, (0.75, 0.75, 0.7), SURFACE_WALL)
+            for sy in (-1.0, 1.0):
+                self._add_box(np.array([0.0, sy * (ny / 2 + t / 2), -h / 2]), (nx, t, h), 0.0,
+                              room.wall_texture, (0.7, 0.72, 0.78), SURFACE_WALL)
+        for obj in self.scenario.objects:
+            centre = np.asarray(obj.position_m, dtype=float)
+            if obj.kind == "box":
+                self._add_box(centre, obj.size_m, math.radians(obj.yaw_deg), obj.texture, obj.color, SURFACE_OBJECT)
+            else:
+                cs = p.createCollisionShape(p.GEOM_CYLINDER, radius=obj.radius_m, height=obj.height_m,
+                                            physicsClientId=self.client)
+                vs = p.createVisualShape(p.GEOM_CYLINDER, radius=obj.radius_m, length=obj.height_m,
+                                         physicsClientId=self.client)
+                body = p.createMultiBody(0.0, cs, vs, (D @ centre).tolist(), physicsClientId=self.client)
+                self._finish_static(body, obj.texture, obj.color, SURFACE_OBJECT)
+
+    def _build_vehicle(self) -> None:
+        size = self.cfg.physics.body_size_m
+        cs = p.createCollisionShape(p.GEOM_BOX, halfExtents=[s / 2 for s in size], physicsClientId=self.client)
+        start = self.scenario.start
+        self.start_p_ned_m = np.array([start.position_m[0], start.position_m[1], -size[2] / 2.0 - 1e-3])
+        R0 = Rz(math.radians(start.yaw_deg))
+        self.body = p.createMultiBody(self.vehicle.mass_kg, cs, -1, (D @ self.start_p_ned_m).tolist(),
+                                      _quat_xyzw_from_R(D @ R0 @ D), physicsClientId=self.client)
+        p.changeDynamics(self.body, -1, localInertiaDiagonal=list(self.vehicle.inertia_kg_m2), linearDamping=0.0,
+                         angularDamping=0.0, lateralFriction=self.cfg.physics.ground_friction,
+                         physicsClientId=self.client)
+
+    # ------------------------------------------------------------------ dynamics
+    def _read_state(self, a_ned: NDArray[np.float64]) -> RigidState:
+        pos, quat = p.getBasePositionAndOrientation(self.body, physicsClientId=self.client)
+        lin, ang = p.getBaseVelocity(self.body, physicsClientId=self.client)
+        R_pb = np.asarray(p.getMatrixFromQuaternion(quat), dtype=float).reshape(3, 3)
+        R_ned_q = D @ R_pb @ D
+        v_ned = D @ np.asarray(lin)
+        omega_q = R_ned_q.T @ (D @ np.asarray(ang))
+        return RigidState(self.t_s, D @ np.asarray(pos), v_ned, R_ned_q, omega_q, a_ned, self.motor_thrust_n.copy())
+
+    @property
+    def state(self) -> RigidState:
+        return self._state
+
+    def step(self, motor_cmd_n: NDArray[np.float64]) -> RigidState:
+        """Advance one physics step with the given per-motor thrust commands (N)."""
+        m = self.vehicle.motor
+        self.motor_thrust_n = motor_lag(self.motor_thrust_n, np.asarray(motor_cmd_n, dtype=float),
+                                        m.time_constant_s, self.dt_s)
+        thrust_n, torque_q = body_wrench(self.layout, self.motor_thrust_n)
+        s = self._state
+        R = s.R_ned_q
+        v_q = R.T @ s.v_ned_m_s
+        drag_q = -np.asarray(self.vehicle.linear_drag_n_s_m) * v_q
+        drag_q[:2] -= self.cfg.physics.rotor_drag_n_s_m_per_n * thrust_n * v_q[:2]  # rotor (induced) drag
+        force_ned = R @ (np.array([0.0, 0.0, -thrust_n]) + drag_q)
+        torque_ned = R @ torque_q
+        pos_pb = (D @ s.p_ned_m).tolist()
+        p.applyExternalForce(self.body, -1, (D @ force_ned).tolist(), pos_pb, p.WORLD_FRAME,
+                             physicsClientId=self.client)
+        p.applyExternalTorque(self.body, -1, (D @ torque_ned).tolist(), p.WORLD_FRAME, physicsClientId=self.client)
+        p.stepSimulation(physicsClientId=self.client)
+        self.t_s += self.dt_s
+        lin, _ = p.getBaseVelocity(self.body, physicsClientId=self.client)
+        v_new = D @ np.asarray(lin)
+        a_ned = (v_new - s.v_ned_m_s) / self.dt_s
+        self._state = self._read_state(a_ned)
+        return self._state
+
+    def reset_pose(self, p_ned_m: NDArray[np.float64], R_ned_q: NDArray[np.float64],
+                   v_ned_m_s: NDArray[np.float64] | None = None) -> None:
+        """Place the vehicle (tests and scripted starts)."""
+        v = np.zeros(3) if v_ned_m_s is None else np.asarray(v_ned_m_s, dtype=float)
+        p.resetBasePositionAndOrientation(self.body, (D @ p_ned_m).tolist(), _quat_xyzw_from_R(D @ R_ned_q @ D),
+                                          physicsClientId=self.client)
+        p.resetBaseVelocity(self.body, (D @ v).tolist(), [0.0, 0.0, 0.0], physicsClientId=self.client)
+        self._state = self._read_state(np.zeros(3))
+
+    # ------------------------------------------------------------------ queries
+    def nearest_distances(self, p_ned_m: NDArray[np.float64], max_distance_m: float = 20.0) -> tuple[float, float]:
+        """Distance from a point to the nearest surface of any kind, and excluding floor and ceiling.
+
+        ``inf`` where nothing lies within ``max_distance_m``.
+        """
+        pos = (D @ p_ned_m).tolist()
+        any_m = other_m = math.inf
+        for body, surface in self.surfaces.items():
+            pts = p.getClosestPoints(bodyA=-1, bodyB=body, distance=max_distance_m, collisionShapeA=self._query_shape,
+                                     collisionShapePositionA=pos, physicsClientId=self.client)
+            if not pts:
+                continue
+            d = max(0.0, min(pt[8] for pt in pts) + 1e-3)  # the query sphere's radius
+            any_m = min(any_m, d)
+            if surface not in (SURFACE_FLOOR, SURFACE_CEILING):
+                other_m = min(other_m, d)
+        return any_m, other_m
+
+    def close(self) -> None:
+        if self.client >= 0:
+            try:
+                p.disconnect(physicsClientId=self.client)
+            except p.error:
+                pass
+            self.client = -1
+        if self._tmp is not None:
+            self._tmp.cleanup()
+            self._tmp = None
