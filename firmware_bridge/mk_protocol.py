@@ -86,6 +86,10 @@ class DecoderStats:
     command not a letter, data/checksum outside '='..'|'). malformed: complete frames too short or with a
     data length that is not whole base64 groups. truncated: frames cut off by a new '#' before their
     '\\r' (a lost byte or a reset sender). garbage_bytes: bytes outside any frame (before a '#').
+    dropped_bytes: bytes of all rejected frames ('#' through '\\r' or up to the next '#').
+
+    Every byte fed is accounted for: ``garbage_bytes + dropped_bytes + (wire bytes of the frames returned)
+    + FrameDecoder.pending_bytes`` equals the number of bytes fed.
     """
 
     frames_ok: int = 0
@@ -95,6 +99,7 @@ class DecoderStats:
     malformed: int = 0
     truncated: int = 0
     garbage_bytes: int = 0
+    dropped_bytes: int = 0
 
     @property
     def frames_dropped(self) -> int:
@@ -215,6 +220,11 @@ class FrameDecoder:
         self._buf = b""
         self._discarding = False
 
+    @property
+    def pending_bytes(self) -> int:
+        """Bytes held for a frame that has not ended yet."""
+        return len(self._buf)
+
     def feed(self, data: bytes) -> list[Frame]:
         """Consume ``data`` (any length, any split); return the frames completed by it, in order."""
         try:
@@ -238,7 +248,9 @@ class FrameDecoder:
                 self._discarding = False
                 pos = i_hash
             else:
+                stats.dropped_bytes += len(data)
                 return frames
+            stats.dropped_bytes += pos
         if self._buf:
             buf = self._buf + data[pos:] if pos else self._buf + data
         else:
@@ -261,6 +273,7 @@ class FrameDecoder:
             nxt = buf.find(b"#", pos + 1, end if end >= 0 else limit)
             if nxt >= 0:  # a new frame starts before this one ended
                 stats.truncated += 1
+                stats.dropped_bytes += nxt - pos
                 pos = nxt
                 continue
             if end < 0:
@@ -269,12 +282,14 @@ class FrameDecoder:
                     rest = buf.find(b"#", limit)
                     cr = buf.find(b"\r", limit, rest if rest >= 0 else n)
                     if cr >= 0:
-                        pos = cr + 1
+                        new_pos = cr + 1
                     elif rest >= 0:
-                        pos = rest
+                        new_pos = rest
                     else:
                         self._discarding = True
-                        pos = n
+                        new_pos = n
+                    stats.dropped_bytes += new_pos - pos
+                    pos = new_pos
                     continue
                 self._buf = buf[pos:]  # incomplete frame: wait for more bytes
                 break
@@ -284,5 +299,6 @@ class FrameDecoder:
                 frames.append(result)
             else:
                 setattr(stats, result, getattr(stats, result) + 1)
+                stats.dropped_bytes += end + 1 - pos
             pos = end + 1
         return frames
