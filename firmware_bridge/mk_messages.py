@@ -28,6 +28,7 @@ from __future__ import annotations
 import logging
 import math
 import struct
+from collections.abc import Iterable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, ClassVar, Protocol
 
@@ -92,8 +93,8 @@ def _need(payload: bytes, size: int, cls: type) -> None:
         raise ProtocolError(f"{cls.__name__} payload needs {size} bytes, got {len(payload)}")
 
 
-def _ints(values: object, n: int, bounds: tuple[int, int], name: str) -> tuple[int, ...]:
-    seq = tuple(values)  # type: ignore[call-overload]
+def _ints(values: Iterable[float], n: int, bounds: tuple[int, int], name: str) -> tuple[int, ...]:
+    seq = tuple(values)
     if len(seq) != n:
         raise ProtocolError(f"{name} needs {n} values, got {len(seq)}")
     return tuple(_sat_int(_finite(v, name), bounds) for v in seq)
@@ -641,7 +642,12 @@ class BoardStatus:
 # Dispatch
 # --------------------------------------------------------------------------------------------------------------
 
-MESSAGE_TYPES: dict[str, type] = {
+Message = (
+    VersionRequest | Version | DebugRequest | DebugData | DebugLabelRequest | DebugLabel | Data3DRequest | Data3D
+    | ExternControl | ExternControlAck | MotorTest | ImuSample | AttitudeSetpoint | BoardStatus
+)  # fmt: skip
+
+MESSAGE_TYPES: dict[str, type[Message]] = {
     cls.COMMAND: cls
     for cls in (
         VersionRequest,
@@ -661,11 +667,6 @@ MESSAGE_TYPES: dict[str, type] = {
     )
 }
 
-Message = (
-    VersionRequest | Version | DebugRequest | DebugData | DebugLabelRequest | DebugLabel | Data3DRequest | Data3D
-    | ExternControl | ExternControlAck | MotorTest | ImuSample | AttitudeSetpoint | BoardStatus
-)  # fmt: skip
-
 
 def decode_message(frame: Frame) -> Message | None:
     """The typed message a frame carries, by its command letter (address, port and direction do not matter).
@@ -678,7 +679,7 @@ def decode_message(frame: Frame) -> Message | None:
         logger.debug("no message type for MK command %r (address %d)", frame.command, frame.address)
         return None
     try:
-        return cls.unpack(frame.payload)  # type: ignore[no-any-return]
+        return cls.unpack(frame.payload)
     except ProtocolError as exc:
         logger.debug("dropping MK %r frame: %s", frame.command, exc)
         return None
