@@ -18,6 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from firmware_bridge.mk_messages import ERROR_SETPOINT_TIMEOUT as ERR_SETPOINT_TIMEOUT
 from quadlink.vehicle import VehicleConfig
 from sim_sitl.config import FirmwareConfig
 from sim_sitl.motors import mix, rotor_layout
@@ -26,10 +27,6 @@ FLIGHT_LANDED = 0
 FLIGHT_FLYING = 1
 FLIGHT_FAILSAFE = 2
 
-ERR_SETPOINT_TIMEOUT = 0x01
-ERR_LOW_BATTERY = 0x02
-ERR_LINK_OVERFLOW = 0x04  # a telemetry frame was dropped for lack of UART buffer
-ERR_BAD_SETPOINT = 0x08  # a setpoint out of range was clamped
 
 
 @dataclass(frozen=True)
@@ -78,6 +75,7 @@ class Firmware:
         self.flight_state = FLIGHT_LANDED
         self.error_flags = 0
         self.setpoints_received = 0
+        self.rejected_setpoints = 0
         self._integ = np.zeros(3)
         self._prev_rates: NDArray[np.float64] | None = None
         self._failsafe_start_s = 0.0
@@ -91,10 +89,8 @@ class Firmware:
             float(np.clip(cmd.pitch_rad, -c.max_tilt_rad, c.max_tilt_rad)),
             float(np.clip(cmd.yaw_rate_rad_s, -c.max_yaw_rate_rad_s, c.max_yaw_rate_rad_s)),
             float(np.clip(cmd.thrust, 0.0, 1.0)), bool(cmd.armed), int(cmd.seq) & 0xFF)
-        if clamped != cmd and not (np.isnan([cmd.roll_rad, cmd.pitch_rad, cmd.yaw_rate_rad_s, cmd.thrust]).any()):
-            self.error_flags |= ERR_BAD_SETPOINT
-        if np.isnan([cmd.roll_rad, cmd.pitch_rad, cmd.yaw_rate_rad_s, cmd.thrust]).any():
-            self.error_flags |= ERR_BAD_SETPOINT
+        if not np.isfinite([cmd.roll_rad, cmd.pitch_rad, cmd.yaw_rate_rad_s, cmd.thrust]).all():
+            self.rejected_setpoints += 1
             return  # never fly a NaN
         self.command = clamped
         self.last_setpoint_t_s = t_s

@@ -159,7 +159,7 @@ def test_nan_setpoint_is_ignored(sim):
     hover = sim.vehicle.hover_thrust_fraction
     _fly(sim, 0.2, lambda t: AttitudeCommand(0.0, 0.0, 0.0, hover, True, 0))
     sim.on_setpoint(AttitudeCommand(float("nan"), 0.0, 0.0, hover, True, 1))
-    assert sim.firmware.command.seq == 0 and sim.firmware.error_flags & 0x08
+    assert sim.firmware.command.seq == 0 and sim.firmware.rejected_setpoints == 1
 
 
 def test_config_files_load():

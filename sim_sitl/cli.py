@@ -1,0 +1,67 @@
+"""``quadlink sitl``: run the simulated MK-Quadro until Ctrl-C or ``--duration``."""
+
+from __future__ import annotations
+
+import logging
+import signal
+
+import click
+
+from quadlink.errors import ConfigError, LinkError
+from sim_sitl.config import known_scenarios, load_sitl_config
+
+log = logging.getLogger(__name__)
+
+
+@click.command(help="Start the simulated MK-Quadro (pybullet) on the MK serial protocol.")
+@click.option("--scenario", default=None, help=f"scenario name ({', '.join(known_scenarios())}) or YAML path")
+@click.option("--config", "config_path", default=None, help="SITL config YAML (default configs/sitl.yaml)")
+@click.option("--lockstep", is_flag=True, help="advance in 10 ms chunks gated by setpoints and camera acks")
+@click.option("--speed", type=float, default=None, help="sim speed factor vs wall clock (default 1.0)")
+@click.option("--camera-res", default=None, help="320x240 (default) or 640x480")
+@click.option("--no-camera", is_flag=True, help="do not render or serve the RGB-D camera")
+@click.option("--pty", is_flag=True, help="also expose both MK ports as pseudo-terminals (paths are logged)")
+@click.option("--port1", type=int, default=5760, show_default=True, help="MK port 1 TCP port (commands)")
+@click.option("--port2", type=int, default=5761, show_default=True, help="MK port 2 TCP port (IMU)")
+@click.option("--camera-port", type=int, default=5762, show_default=True, help="camera stream TCP port")
+@click.option("--truth", default="udpout:127.0.0.1:14560", show_default=True,
+              help="ground-truth MAVLink endpoint (udpout:HOST:PORT, 'none' to disable)")
+@click.option("--duration", type=float, default=None, help="stop after this many simulated seconds")
+def command(scenario: str | None, config_path: str | None, lockstep: bool, speed: float | None,
+            camera_res: str | None, no_camera: bool, pty: bool, port1: int, port2: int, camera_port: int, truth: str,
+            duration: float | None) -> None:
+    from sim_sitl.runner import Sitl, SitlOptions, parse_resolution
+
+    cfg = load_sitl_config(config_path)
+    if speed is not None and speed <= 0:
+        raise ConfigError(f"--speed must be positive, got {speed}")
+    res = None
+    if camera_res:
+        try:
+            res = parse_resolution(camera_res)
+        except ValueError as exc:
+            raise ConfigError(f"--camera-res: {exc}") from exc
+    opts = SitlOptions(config=cfg, scenario=scenario, port1=port1, port2=port2, camera_port=camera_port,
+                       camera=not no_camera, camera_res=res, truth_url=None if truth == "none" else truth, pty=pty,
+                       lockstep=lockstep, speed=speed, duration_s=duration)
+    try:
+        sitl = Sitl(opts)
+    except OSError as exc:
+        raise LinkError(str(exc)) from exc
+    sitl.log_endpoints()
+    previous = signal.getsignal(signal.SIGTERM)
+    signal.signal(signal.SIGTERM, lambda *_: sitl._stop.set())
+    try:
+        sitl.run()
+    except KeyboardInterrupt:
+        log.info("Ctrl-C: stopping")
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+        sitl.stop()
+        s = sitl.stats
+        log.info("ran %.1f s sim in %.1f s wall (rtf %.2f); IMU frames %d (dropped %d), camera frames %d, "
+                 "port-1 frames dropped %d", s.sim_time_s, s.wall_time_s, s.real_time_factor, s.imu_frames_offered,
+                 s.imu_frames_dropped, s.camera_frames, sitl.line1.stats.frames_dropped)
+
+
+__all__ = ["command"]
