@@ -17,7 +17,9 @@ complete, valid frames; everything it drops is counted in ``FrameDecoder.stats``
 
 The base64 variant is the standard base64 alphabet shifted: value ``v`` is the character ``61 + v``
 instead of ``ALPHABET[v]``. Encoding and decoding therefore run through :mod:`binascii` (C) and one
-``bytes.translate`` — about 10x faster than a per-byte Python loop (``benchmarks/bench_mk_codec.py``).
+``bytes.translate``; the stream decoder finds frames with ``bytes.find``. Against a per-byte Python port of
+the firmware's code this is 2-3x faster on 22-byte IMU frames and 5-8x on 66-byte debug frames (about 3 us
+to encode and 7 us to decode an IMU frame; ``benchmarks/bench_mk_codec.py``).
 """
 
 from __future__ import annotations
