@@ -73,3 +73,65 @@ def pose(R: NDArray[np.float64], t: NDArray[np.float64] | list[float]) -> NDArra
     T[:3, :3] = R
     T[:3, 3] = t
     return T
+
+
+class SyntheticFlight:
+    """A smooth body trajectory in the room with its exact IMU and camera poses (NED-like world).
+
+    Body position ``p(t)`` and ZYX Euler angles are sums of sinusoids (a pan-scan yaw oscillation plus a
+    slow drift); gyro and specific force are derived exactly (angular rate from the rotation's derivative,
+    ``f = R^T (a - g)`` with ``g = (0, 0, 9.81)``).
+    """
+
+    def __init__(self, R_qc: NDArray[np.float64], p_qc_m: NDArray[np.float64], speed_m_s: float = 0.4,
+                 yaw_amp_rad: float = 0.5, yaw_freq_hz: float = 0.25, tilt_rad: float = 0.08) -> None:
+        self.R_qc = np.asarray(R_qc, dtype=float)
+        self.p_qc_m = np.asarray(p_qc_m, dtype=float)
+        self.speed = speed_m_s
+        self.yaw_amp = yaw_amp_rad
+        self.w_yaw = 2 * np.pi * yaw_freq_hz
+        self.tilt = tilt_rad
+
+    def position(self, t: float) -> NDArray[np.float64]:
+        w = 0.5
+        a = self.speed / w
+        return np.array([a * np.sin(w * t), 0.5 * a * (1 - np.cos(w * t)), 0.2 * np.sin(0.7 * t)])
+
+    def velocity(self, t: float) -> NDArray[np.float64]:
+        w = 0.5
+        a = self.speed / w
+        return np.array([a * w * np.cos(w * t), 0.5 * a * w * np.sin(w * t), 0.14 * np.cos(0.7 * t)])
+
+    def acceleration(self, t: float) -> NDArray[np.float64]:
+        w = 0.5
+        a = self.speed / w
+        return np.array([-a * w * w * np.sin(w * t), 0.5 * a * w * w * np.cos(w * t), -0.098 * np.sin(0.7 * t)])
+
+    def euler(self, t: float) -> tuple[float, float, float]:
+        return (self.tilt * np.sin(1.3 * t), self.tilt * np.sin(0.9 * t + 0.5),
+                self.yaw_amp * np.sin(self.w_yaw * t))
+
+    def R_wq(self, t: float) -> NDArray[np.float64]:
+        from quadlink.frames import R_from_euler
+
+        return R_from_euler(*self.euler(t))
+
+    def gyro(self, t: float, h: float = 1e-5) -> NDArray[np.float64]:
+        from perception.odometry import so3_log
+
+        return so3_log(self.R_wq(t - h).T @ self.R_wq(t + h)) / (2 * h)
+
+    def specific_force(self, t: float) -> NDArray[np.float64]:
+        from quadlink.frames import GRAVITY_M_S2
+
+        return self.R_wq(t).T @ (self.acceleration(t) - np.array([0.0, 0.0, GRAVITY_M_S2]))
+
+    def v_h(self, t: float) -> NDArray[np.float64]:
+        """True velocity in H (world velocity rotated by minus the yaw)."""
+        from quadlink.frames import Rz
+
+        return Rz(self.euler(t)[2]).T @ self.velocity(t)
+
+    def T_w_c(self, t: float) -> NDArray[np.float64]:
+        R = self.R_wq(t)
+        return pose(R @ self.R_qc, self.position(t) + R @ self.p_qc_m)

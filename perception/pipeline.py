@@ -1,0 +1,170 @@
+"""The perception façade the companion drives: IMU samples in at 500 Hz, RGB-D frames in at camera rate,
+one :class:`PerceptionOutput` per frame (paper 000 Fig. 4: attitude filter, gyro low-pass, RGB-D odometry,
+1€-filtered velocity in H, obstacle sectors and the local obstacle map; or paper 003's UKF for the
+velocity).
+
+Pure: time comes from the IMU and frame stamps (simulated time in the SITL), randomness from the injected
+generator; ``clock`` only measures the processing time reported in the output.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Literal
+
+import numpy as np
+from numpy.typing import NDArray
+
+from perception.attitude import AttitudeConfig, AttitudeFilter, so3_exp
+from perception.obstacle_map import ObstacleMap, ObstacleMapConfig, ObstacleSectors
+from perception.obstacles import ObstacleConfig, extract_obstacles
+from perception.odometry import OdometryConfig, RgbdOdometry
+from perception.ukf import Ukf, UkfConfig
+from perception.velocity import VelocityConfig, VelocityEstimator, body_pose_in_world
+from quadlink.camera import CameraIntrinsics, RgbdFrame
+from quadlink.frames import R_hq, euler_from_R
+
+log = logging.getLogger(__name__)
+
+__all__ = ["PerceptionConfig", "PerceptionOutput", "PerceptionPipeline", "ObstacleSectors"]
+
+
+@dataclass(frozen=True)
+class PerceptionConfig:
+    """All perception parameters; defaults are the paper's choices (YAML: ``configs/perception.yaml``)."""
+
+    estimator: Literal["filters", "ukf"] = "filters"   # eqs. (9)-(13) chain, or paper 003's UKF
+    imu_rotation_prior: bool = True                     # gyro rotation between frames as odometry prior
+    odometry: OdometryConfig = field(default_factory=OdometryConfig)
+    attitude: AttitudeConfig = field(default_factory=AttitudeConfig)
+    velocity: VelocityConfig = field(default_factory=VelocityConfig)
+    ukf: UkfConfig = field(default_factory=UkfConfig)
+    obstacles: ObstacleConfig = field(default_factory=ObstacleConfig)
+    obstacle_map: ObstacleMapConfig = field(default_factory=ObstacleMapConfig)
+
+
+@dataclass(frozen=True)
+class PerceptionOutput:
+    stamp_s: float
+    roll_rad: float
+    pitch_rad: float
+    yaw_rad: float                          # from VO (world = first frame, levelled, NED-like)
+    omega_q_rad_s: NDArray[np.float64]      # filtered gyro (bias-corrected, low-passed)
+    v_h_m_s: NDArray[np.float64]            # eq. (13) or UKF
+    v_h_cov: NDArray[np.float64]
+    position_m: NDArray[np.float64]         # VO position of the body in the local world
+    odometry_ok: bool
+    odometry_fitness: float
+    obstacle_points_c_m: NDArray[np.float64]  # N×3 closest points of this frame's sectors, camera frame
+    obstacle_points_h_m: NDArray[np.float64]  # M×3 local map particles in H
+    sectors: ObstacleSectors                # 72 × 5° in H about z: inf = free, nan = unknown
+    nearest_obstacle_h_m: NDArray[np.float64] | None
+    processing_time_s: float
+    yaw_rate_rad_s: float = 0.0             # Euler yaw rate from the filtered gyro and roll/pitch
+    estimator: str = "filters"
+
+
+def euler_yaw_rate(omega_q_rad_s: NDArray[np.float64], roll_rad: float, pitch_rad: float) -> float:
+    """psi_dot = (q sin(phi) + r cos(phi)) / cos(theta)."""
+    _, q, r = omega_q_rad_s
+    return float((q * math.sin(roll_rad) + r * math.cos(roll_rad)) / max(math.cos(pitch_rad), 1e-3))
+
+
+class PerceptionPipeline:
+    def __init__(self, config: PerceptionConfig, intrinsics: CameraIntrinsics, R_qc: np.ndarray, p_qc_m: np.ndarray,
+                 rng: np.random.Generator, clock: Callable[[], float] = time.perf_counter) -> None:
+        self.config = config
+        self.intrinsics = intrinsics
+        self.R_qc = np.asarray(R_qc, dtype=float)
+        self.p_qc_m = np.asarray(p_qc_m, dtype=float)
+        self._rng = rng
+        self._clock = clock
+        self._attitude = AttitudeFilter(config.attitude)
+        self._odometry = RgbdOdometry(config.odometry)
+        self._velocity = VelocityEstimator(self.R_qc, self.p_qc_m, config.velocity)
+        self._ukf = Ukf(config.ukf) if config.estimator == "ukf" else None
+        self._map = ObstacleMap(config.obstacle_map)
+        self._R_q_since_frame = np.eye(3)    # gyro-integrated body rotation since the last frame
+        self._imu_since_frame = 0
+        self._last_imu_stamp: float | None = None
+        self._R_w_q0: NDArray[np.float64] | None = None
+        self._prev_frame_stamp: float | None = None
+        self._prev_v_h = np.zeros(3)
+        self._prev_yaw_rate = 0.0
+        self.frames = 0
+        self.imu_samples = 0
+        self.rejected_imu = 0
+
+    def on_imu(self, stamp_s: float, gyro_q_rad_s: np.ndarray, accel_q_m_s2: np.ndarray) -> None:
+        gyro = np.asarray(gyro_q_rad_s, dtype=float)
+        accel = np.asarray(accel_q_m_s2, dtype=float)
+        if gyro.shape != (3,) or accel.shape != (3,) or not (np.all(np.isfinite(gyro)) and np.all(np.isfinite(accel))):
+            self.rejected_imu += 1
+            return
+        if self._last_imu_stamp is not None and stamp_s <= self._last_imu_stamp:
+            self.rejected_imu += 1       # out of order / duplicate
+            return
+        est = self._attitude.update(stamp_s, gyro, accel)
+        if self._last_imu_stamp is not None:
+            dt = min(stamp_s - self._last_imu_stamp, self.config.attitude.max_dt_s)
+            self._R_q_since_frame = self._R_q_since_frame @ so3_exp((gyro - est.gyro_bias_rad_s) * dt)
+            self._imu_since_frame += 1
+        self._last_imu_stamp = stamp_s
+        if self._ukf is not None:
+            self._ukf.on_imu(stamp_s, gyro, accel)
+        self.imu_samples += 1
+
+    def on_frame(self, frame: RgbdFrame) -> PerceptionOutput:
+        t_start = self._clock()
+        cfg = self.config
+        att = self._attitude.estimate(frame.stamp_s)
+        roll, pitch, omega = att.roll_rad, att.pitch_rad, att.omega_q_rad_s
+        K = frame.intrinsics
+        R_prior = None
+        if cfg.imu_rotation_prior and self._imu_since_frame > 0:
+            R_prior = self.R_qc.T @ self._R_q_since_frame @ self.R_qc    # camera k-1 -> k rotation
+        self._R_q_since_frame = np.eye(3)
+        self._imu_since_frame = 0
+        if frame.depth_m is not None:
+            odo = self._odometry.process(frame.stamp_s, frame.rgb, frame.depth_m, K, R_prior)
+            odometry_ok, fitness, T_c0_ck = odo.ok, odo.fitness, odo.T_c0_ck
+        else:
+            odometry_ok, fitness, T_c0_ck = False, 0.0, self._odometry.T_c0_ck
+        if self._R_w_q0 is None:
+            self._R_w_q0 = R_hq(roll, pitch)   # world: level, heading of the first frame
+        R_wq, p_w = body_pose_in_world(T_c0_ck, self.R_qc, self.p_qc_m, self._R_w_q0)
+        yaw = euler_from_R(R_wq)[2]
+        vel = self._velocity.update(frame.stamp_s, T_c0_ck, odometry_ok, omega, roll, pitch)
+        v_h, v_h_cov = vel.v_h_m_s, vel.v_h_cov
+        if self._ukf is not None:
+            if odometry_ok or not self._ukf.initialised:
+                self._ukf.on_pose(frame.stamp_s, p_w, R_wq)
+            st = self._ukf.state
+            v_h, v_h_cov = st.v_h_m_s, st.v_h_cov
+        yaw_rate = euler_yaw_rate(omega, roll, pitch)
+        # local obstacle map: time update to this frame (eq. 14), then the measurement
+        if self._prev_frame_stamp is not None:
+            dt = frame.stamp_s - self._prev_frame_stamp
+            if 0.0 < dt < 1.0:
+                self._map.predict(dt, self._prev_v_h, v_h, self._prev_yaw_rate, yaw_rate, self._rng)
+        self._prev_frame_stamp = frame.stamp_s
+        self._prev_v_h, self._prev_yaw_rate = v_h, yaw_rate
+        if frame.depth_m is not None:
+            obs = extract_obstacles(frame.depth_m, K, self.R_qc, self.p_qc_m, roll, pitch, cfg.obstacles)
+            self._map.measure(frame.stamp_s, obs)
+            points_c = obs.points_c_m
+        else:
+            points_c = np.zeros((0, 3))
+        sectors = self._map.sectors(frame.stamp_s)
+        self.frames += 1
+        return PerceptionOutput(
+            stamp_s=frame.stamp_s, roll_rad=roll, pitch_rad=pitch, yaw_rad=yaw, omega_q_rad_s=omega,
+            v_h_m_s=np.asarray(v_h, dtype=float), v_h_cov=np.asarray(v_h_cov, dtype=float), position_m=p_w,
+            odometry_ok=odometry_ok, odometry_fitness=float(fitness), obstacle_points_c_m=points_c,
+            obstacle_points_h_m=self._map.points_h_m.copy(), sectors=sectors,
+            nearest_obstacle_h_m=self._map.nearest_h(), processing_time_s=self._clock() - t_start,
+            yaw_rate_rad_s=yaw_rate, estimator=cfg.estimator)
