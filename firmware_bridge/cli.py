@@ -1,0 +1,65 @@
+"""``quadlink bridge``: the MK board's two serial ports as a MAVLink autopilot."""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import signal
+from pathlib import Path
+
+import click
+
+from quadlink.config import find_config, load_config
+from quadlink.errors import ConfigError
+from quadlink.vehicle import load_vehicle
+
+log = logging.getLogger(__name__)
+
+
+@click.command(help="Start the firmware bridge: MK board ports <-> MAVLink autopilot (PX4-style offboard).")
+@click.option("--mk-cmd", "mk_cmd", default=None, help="MK port 1 URL (commands/telemetry) "
+              "[default socket://127.0.0.1:5760; /dev/ttyUSB0:115200, pty also work]")
+@click.option("--mk-imu", "mk_imu", default=None, help="MK port 2 URL (IMU 500 Hz) [default socket://127.0.0.1:5761]")
+@click.option("--mavlink", "mavlink_urls", multiple=True, help="MAVLink endpoint, pymavlink syntax; repeatable "
+              "[default udpout:127.0.0.1:14540 and udpout:127.0.0.1:14550]")
+@click.option("--sysid", type=click.IntRange(1, 255), default=None, help="MAVLink system id [default 1]")
+@click.option("--config", "config_name", default="bridge", show_default=True,
+              help="bridge config (a path or a name under configs/)")
+@click.option("--params", "params_path", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              help="parameter file [default ~/.local/state/quadlink/bridge_params.yaml]")
+@click.option("--duration", type=float, default=None, help="stop after this many seconds (tests, benchmarks)")
+def command(mk_cmd: str | None, mk_imu: str | None, mavlink_urls: tuple[str, ...], sysid: int | None,
+            config_name: str, params_path: Path | None, duration: float | None) -> None:
+    from firmware_bridge.daemon import BridgeConfig, BridgeDaemon
+
+    try:
+        config = load_config(find_config(config_name), BridgeConfig)
+    except ConfigError:
+        if config_name != "bridge":
+            raise
+        config = BridgeConfig()
+    overrides: dict[str, object] = {}
+    if mk_cmd:
+        overrides["mk_cmd_url"] = mk_cmd
+    if mk_imu:
+        overrides["mk_imu_url"] = mk_imu
+    if mavlink_urls:
+        overrides["mavlink_urls"] = tuple(mavlink_urls)
+    if sysid is not None:
+        overrides["sysid"] = sysid
+    config = dataclasses.replace(config, **overrides)  # type: ignore[arg-type]
+    vehicle = load_vehicle(config.vehicle)
+    daemon = BridgeDaemon(config, vehicle, params_path)
+    daemon.open()  # LinkError -> one-line error, exit 2 (quadlink.cli)
+    previous = signal.signal(signal.SIGTERM, lambda *_: daemon.stop())
+    log.info("bridge running (Ctrl-C to stop)")
+    try:
+        daemon.run(duration)
+    except KeyboardInterrupt:
+        log.info("Ctrl-C: stopping")
+    finally:
+        daemon.close()
+        signal.signal(signal.SIGTERM, previous)
+        s = daemon.stats
+        log.info("bridge stopped: %d IMU samples, %d setpoints, %d MAVLink in / %d out", s.imu_samples,
+                 s.setpoints_sent, s.mavlink_in, s.mavlink_out)

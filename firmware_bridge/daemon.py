@@ -1,0 +1,416 @@
+"""The bridge process: MK ports and MAVLink endpoints wired to the pure :class:`~firmware_bridge.autopilot.Autopilot`.
+
+Concurrency model: a few reader threads (MK port 1, MK port 2, one per MAVLink endpoint) that only
+read with a timeout and put what they got on one queue; the main thread owns the autopilot and
+does all decoding, control and writing. Every wait has a timeout; :meth:`BridgeDaemon.stop` (or
+Ctrl-C in the CLI) ends all threads within ~0.2 s.
+
+Time (the system contract): the board's IMU sample counter is the clock. Sample k is at board
+time k * 2 ms (the 12-bit counter is unwrapped, and aligned with ``BoardStatus.imu_sample_count``);
+the 100 Hz control step runs on every 5th sample, so in lock-step SITL the bridge answers each 10 ms
+chunk with exactly one setpoint. Only while the IMU stream is silent does a wall-clock fallback
+advance time and clock the control step (failsafes must still run).
+"""
+
+from __future__ import annotations
+
+import logging
+import queue
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from firmware_bridge import mk_messages as mk
+from firmware_bridge.autopilot import Autopilot, BoardCommand, Outbound
+from firmware_bridge.mk_protocol import ADDR_FC, FrameDecoder, encode_frame
+from firmware_bridge.params import DEFAULT_PARAMS_PATH, ParamTable, load_param_file, save_param_file
+from quadlink.errors import LinkError, ProtocolError
+from quadlink.links import ByteStream, open_stream
+from quadlink.mavlink.connection import open_mavlink
+from quadlink.vehicle import VehicleConfig
+
+log = logging.getLogger(__name__)
+
+IMU_PERIOD_S = 0.002
+CONTROL_DECIMATION = 5  # 500 Hz IMU / 5 = 100 Hz setpoints
+COUNTER_MODULO = 4096
+
+
+@dataclass(frozen=True)
+class BridgeConfig:
+    """``configs/bridge.yaml``; the CLI's flags override the links and ids."""
+
+    mk_cmd_url: str = "socket://127.0.0.1:5760"
+    mk_imu_url: str = "socket://127.0.0.1:5761"
+    mavlink_urls: tuple[str, ...] = ("udpout:127.0.0.1:14540", "udpout:127.0.0.1:14550")
+    sysid: int = 1
+    compid: int = 1
+    vehicle: str = "vehicle"
+    params_file: str = str(DEFAULT_PARAMS_PATH)
+    imu_stale_s: float = 0.05  # no IMU for this long (wall) -> wall-clock fallback for the control step
+    reconnect_interval_s: float = 1.0
+    status_log_interval_s: float = 10.0
+    version_request_attempts: int = 5
+
+    def __post_init__(self) -> None:
+        if not 1 <= self.sysid <= 255 or not 1 <= self.compid <= 255:
+            raise ValueError("sysid and compid must be 1..255")
+
+
+class _StreamHolder:
+    """A byte stream that a reader thread may reopen after a link error; writes go to the current one."""
+
+    def __init__(self, url: str, opener: Callable[[str], ByteStream]) -> None:
+        self.url = url
+        self._opener = opener
+        self._lock = threading.Lock()
+        self.stream: ByteStream | None = opener(url)
+
+    def write(self, data: bytes) -> bool:
+        with self._lock:
+            stream = self.stream
+        if stream is None:
+            return False
+        try:
+            stream.write(data)
+            return True
+        except LinkError as exc:
+            log.warning("%s", exc)
+            return False
+
+    def reopen(self) -> bool:
+        try:
+            stream = self._opener(self.url)
+        except LinkError:
+            return False
+        with self._lock:
+            self.stream = stream
+        return True
+
+    def drop(self) -> None:
+        with self._lock:
+            stream, self.stream = self.stream, None
+        if stream is not None:
+            stream.close()
+
+
+@dataclass
+class BridgeStats:
+    imu_samples: int = 0
+    imu_gaps: int = 0
+    setpoints_sent: int = 0
+    mavlink_in: int = 0
+    mavlink_out: int = 0
+    send_errors: int = 0
+    wall_clock_steps: int = 0
+    imu_latency_s: list[float] = field(default_factory=list)  # read -> HIGHRES_IMU sent (when recording)
+
+
+class BridgeDaemon:
+    def __init__(self, config: BridgeConfig, vehicle: VehicleConfig, params_path: Path | None = None,
+                 clock: Callable[[], float] = time.monotonic, unix_clock: Callable[[], float] = time.time,
+                 stream_opener: Callable[[str], ByteStream] = open_stream,
+                 mavlink_opener: Callable[..., Any] = open_mavlink) -> None:
+        self.config = config
+        self.vehicle = vehicle
+        self.clock = clock
+        self.params_path = (params_path or Path(config.params_file)).expanduser()
+        self.params = ParamTable(load_param_file(self.params_path))
+        self.autopilot = Autopilot(vehicle, self.params, config.sysid, config.compid, unix_clock=unix_clock)
+        self._stream_opener = stream_opener
+        self._mavlink_opener = mavlink_opener
+        self.stats = BridgeStats()
+        self.record_latency = False
+        self._queue: queue.Queue[tuple[Any, ...]] = queue.Queue(maxsize=20000)
+        self._stop = threading.Event()
+        self._threads: list[threading.Thread] = []
+        self.cmd: _StreamHolder | None = None
+        self.imu: _StreamHolder | None = None
+        self.mavlinks: list[Any] = []
+        self._cmd_decoder = FrameDecoder()
+        self._imu_decoder = FrameDecoder()
+        self._mk_dropped_seen = 0
+        # clock state
+        self._imu_index: int | None = None  # unwrapped sample index
+        self._last_imu_wall: float | None = None
+        self._now_s = 0.0
+        self._wall_origin = clock()
+        self._last_control_wall = -1.0
+        self._last_tick_wall = -1.0
+        self._control_block = -1
+        self._seq = 0
+        self._version_requests = 0
+        self._last_version_request = -1e9
+        self._last_status_log = clock()
+        self._last_param_save = -1e9
+
+    # ------------------------------------------------------------------ lifecycle
+    def open(self) -> None:
+        """Open every link (raises :class:`LinkError` naming the first that fails) and start the readers."""
+        c = self.config
+        log.info("MK port 1 (commands/telemetry): %s", c.mk_cmd_url)
+        self.cmd = _StreamHolder(c.mk_cmd_url, self._stream_opener)
+        log.info("MK port 2 (IMU): %s", c.mk_imu_url)
+        try:
+            self.imu = _StreamHolder(c.mk_imu_url, self._stream_opener)
+        except LinkError:
+            self.cmd.drop()
+            raise
+        try:
+            for url in c.mavlink_urls:
+                self.mavlinks.append(self._mavlink_opener(url, c.sysid, c.compid))
+        except LinkError:
+            self.close()
+            raise
+        log.info("MAVLink endpoints: %s (sysid %d compid %d)", ", ".join(c.mavlink_urls), c.sysid, c.compid)
+        log.info("parameters: %s (%d)", self.params_path, len(self.params))
+        self._threads = [threading.Thread(target=self._read_mk, args=("cmd", self.cmd), daemon=True,
+                                          name="mk-cmd"),
+                         threading.Thread(target=self._read_mk, args=("imu", self.imu), daemon=True,
+                                          name="mk-imu")]
+        for i, conn in enumerate(self.mavlinks):
+            self._threads.append(threading.Thread(target=self._read_mavlink, args=(i, conn), daemon=True,
+                                                  name=f"mavlink-{i}"))
+        for t in self._threads:
+            t.start()
+
+    def stop(self) -> None:
+        self._stop.set()
+
+    def close(self) -> None:
+        self._stop.set()
+        for t in self._threads:
+            t.join(timeout=1.0)
+        # a last disarmed setpoint is not sent on purpose: the board's own link-loss failsafe handles a
+        # bridge that goes away in flight, and a disarm here would cut motors in the air
+        for holder in (self.cmd, self.imu):
+            if holder is not None:
+                holder.drop()
+        for conn in self.mavlinks:
+            try:
+                conn.close()
+            except OSError:
+                pass
+        self._save_params(force=True)
+
+    # ------------------------------------------------------------------ reader threads
+    def _put(self, item: tuple[Any, ...]) -> None:
+        try:
+            self._queue.put(item, timeout=0.1)
+        except queue.Full:
+            log.warning("bridge input queue full; dropping %s input", item[0])
+
+    def _read_mk(self, kind: str, holder: _StreamHolder) -> None:
+        while not self._stop.is_set():
+            stream = holder.stream
+            if stream is None:
+                if self._stop.wait(self.config.reconnect_interval_s):
+                    return
+                if holder.reopen():
+                    self._put(("link", kind, f"{holder.url}: reconnected"))
+                continue
+            try:
+                data = stream.read(4096, 0.1)
+            except LinkError as exc:
+                self._put(("link", kind, str(exc)))
+                holder.drop()
+                continue
+            if data:
+                self._put((kind, data, self.clock()))
+
+    def _read_mavlink(self, index: int, conn: Any) -> None:
+        while not self._stop.is_set():
+            try:
+                msg = conn.recv_match(blocking=True, timeout=0.1)
+            except (OSError, ValueError) as exc:  # a dead socket or pymavlink choking on bytes
+                self._put(("mavbad", index, str(exc)))
+                self._stop.wait(0.1)
+                continue
+            if msg is not None:
+                self._put(("mav", index, msg))
+
+    # ------------------------------------------------------------------ main loop
+    def run(self, duration_s: float | None = None) -> None:
+        """Process inputs until :meth:`stop` (or ``duration_s`` of wall time)."""
+        end = None if duration_s is None else self.clock() + duration_s
+        while not self._stop.is_set():
+            if end is not None and self.clock() >= end:
+                break
+            try:
+                item = self._queue.get(timeout=0.005)
+            except queue.Empty:
+                item = None
+            if item is not None:
+                self._dispatch(item)
+            self._housekeeping()
+
+    def _dispatch(self, item: tuple[Any, ...]) -> None:
+        kind = item[0]
+        if kind == "imu":
+            for frame in self._imu_decoder.feed(item[1]):
+                if frame.command == mk.ImuSample.COMMAND:
+                    self._on_imu_frame(frame.payload, item[2])
+            self._count_mk_drops()
+        elif kind == "cmd":
+            for frame in self._cmd_decoder.feed(item[1]):
+                self._on_cmd_frame(frame)
+            self._count_mk_drops()
+        elif kind == "mav":
+            self.stats.mavlink_in += 1
+            self._send(self.autopilot.handle_mavlink(self.now_s(), item[2], item[1]))
+        elif kind == "mavbad":
+            self.autopilot.note_malformed("mavlink_bad", self.now_s(), item[2])
+        elif kind == "link":
+            log.warning("MK %s link: %s", item[1], item[2])
+            if "reconnected" in item[2] and item[1] == "cmd":
+                self._version_requests = 0
+
+    def _count_mk_drops(self) -> None:
+        dropped = self._cmd_decoder.stats.frames_dropped + self._imu_decoder.stats.frames_dropped
+        while self._mk_dropped_seen < dropped:
+            self._mk_dropped_seen += 1
+            self.autopilot.note_malformed("mk_bad", self.now_s(), "MK frame dropped by the decoder")
+
+    def now_s(self) -> float:
+        """Board time: the last IMU sample's time, advanced by the wall clock only while the IMU is silent."""
+        wall = self.clock()
+        if self._imu_index is None:
+            now = wall - self._wall_origin
+        else:
+            now = self._imu_index * IMU_PERIOD_S
+            assert self._last_imu_wall is not None
+            if wall - self._last_imu_wall > self.config.imu_stale_s:
+                now += wall - self._last_imu_wall
+        self._now_s = max(self._now_s, now)
+        return self._now_s
+
+    def _on_imu_frame(self, payload: bytes, read_wall: float) -> None:
+        try:
+            sample = mk.ImuSample.unpack(payload)
+        except (ProtocolError, ValueError) as exc:
+            self.autopilot.note_malformed("mk_bad", self.now_s(), f"IMU frame: {exc}")
+            return
+        counter = sample.sample_counter
+        if self._imu_index is None:
+            status = self.autopilot.board_status
+            base = status.imu_sample_count if status is not None else counter
+            self._imu_index = _align(base, counter)
+        else:
+            delta = (counter - self._imu_index) % COUNTER_MODULO
+            if delta == 0:
+                self.autopilot.note_malformed("mk_bad", self.now_s(), "repeated IMU sample")
+                return
+            if delta > 1:
+                self.stats.imu_gaps += 1
+            self._imu_index += delta
+        self._last_imu_wall = self.clock()
+        self.stats.imu_samples += 1
+        now = self.now_s()
+        imu_cfg = self.vehicle.imu
+        out = self.autopilot.on_imu(now, self._imu_index * 2000, sample.accel_m_s2(imu_cfg),
+                                    sample.gyro_rad_s(imu_cfg))
+        self._send(out)
+        if self.record_latency and out:
+            self.stats.imu_latency_s.append(self.clock() - read_wall)
+        block = self._imu_index // CONTROL_DECIMATION
+        if block != self._control_block:
+            self._control_block = block
+            self._control(now)
+
+    def _on_cmd_frame(self, frame: Any) -> None:
+        now = self.now_s()
+        try:
+            if frame.command == mk.BoardStatus.COMMAND:
+                status = mk.BoardStatus.unpack(frame.payload)
+                if self._imu_index is not None and \
+                        abs(status.imu_sample_count - self._imu_index) > COUNTER_MODULO // 2:
+                    self._imu_index = _align(status.imu_sample_count, self._imu_index % COUNTER_MODULO)
+                self._send(self.autopilot.on_board_status(now, status))
+            elif frame.command == mk.Version.COMMAND:
+                version = mk.Version.unpack(frame.payload)
+                text = f"FlightCtrl {version.version_str} (protocol {version.proto_major}.{version.proto_minor})"
+                self._version_requests = self.config.version_request_attempts  # done
+                self.autopilot.on_board_version(
+                    text, (version.sw_major << 24) | (version.sw_minor << 16) | (version.sw_patch << 8))
+        except (ProtocolError, ValueError) as exc:
+            self.autopilot.note_malformed("mk_bad", now, f"'{frame.command}' frame: {exc}")
+
+    def _control(self, now: float) -> None:
+        command = self.autopilot.control_step(now)
+        self._write_setpoint(command)
+        self._last_control_wall = self.clock()
+
+    def _write_setpoint(self, command: BoardCommand) -> None:
+        assert self.cmd is not None
+        try:
+            sp = mk.AttitudeSetpoint(command.roll_rad, command.pitch_rad, command.yaw_rate_rad_s, command.thrust,
+                                     command.armed, self._seq)
+            frame = encode_frame(ADDR_FC, sp.COMMAND, sp.pack())
+        except (ProtocolError, ValueError) as exc:
+            log.error("cannot encode setpoint %s: %s", command, exc)
+            return
+        if self.cmd.write(frame):
+            self.stats.setpoints_sent += 1
+            self._seq = (self._seq + 1) % 256
+
+    def _housekeeping(self) -> None:
+        wall = self.clock()
+        imu_silent = self._last_imu_wall is None or wall - self._last_imu_wall > self.config.imu_stale_s
+        if imu_silent and wall - self._last_control_wall >= 0.01:
+            self.stats.wall_clock_steps += 1
+            self._control(self.now_s())
+        if wall - self._last_tick_wall >= 0.01:
+            self._last_tick_wall = wall
+            self._send(self.autopilot.tick(self.now_s()))
+            self._request_version(wall)
+            self._save_params()
+        if wall - self._last_status_log >= self.config.status_log_interval_s:
+            self._last_status_log = wall
+            ap = self.autopilot
+            log.info("t=%.1fs mode %s armed %s in_air %s odom %s board %s | imu %d (gaps %d) setpoints %d "
+                     "mav in %d out %d | bad mav %d mk %d", self.now_s(), ap.mode.name, ap.armed, ap.in_air,
+                     ap.odom_ok, ap.board_link_ok, self.stats.imu_samples, self.stats.imu_gaps,
+                     self.stats.setpoints_sent, self.stats.mavlink_in, self.stats.mavlink_out,
+                     ap.counters["mavlink_bad"], ap.counters["mk_bad"])
+
+    def _request_version(self, wall: float) -> None:
+        if self._version_requests >= self.config.version_request_attempts or wall - self._last_version_request < 2.0:
+            return
+        assert self.cmd is not None
+        self._last_version_request = wall
+        self._version_requests += 1
+        self.cmd.write(encode_frame(ADDR_FC, mk.VersionRequest.COMMAND, mk.VersionRequest().pack()))
+        if self._version_requests == self.config.version_request_attempts:
+            log.warning("board did not answer the version request (%d tries)", self._version_requests)
+
+    def _save_params(self, force: bool = False) -> None:
+        wall = self.clock()
+        if self.params.dirty and (force or wall - self._last_param_save > 1.0):
+            try:
+                save_param_file(self.params_path, self.params.values)
+                self.params.dirty = False
+                self._last_param_save = wall
+            except OSError as exc:
+                log.error("cannot save parameters to %s: %s", self.params_path, exc)
+
+    def _send(self, out: list[Outbound]) -> None:
+        for item in out:
+            targets = self.mavlinks if item.link is None else self.mavlinks[item.link:item.link + 1]
+            for conn in targets:
+                try:
+                    conn.mav.send(item.msg)
+                    self.stats.mavlink_out += 1
+                except OSError as exc:
+                    self.stats.send_errors += 1
+                    if self.stats.send_errors in (1, 100, 10000):
+                        log.warning("MAVLink send failed (%d so far): %s", self.stats.send_errors, exc)
+
+
+def _align(reference: int, counter: int) -> int:
+    """The integer closest to ``reference`` that is congruent to ``counter`` modulo 4096."""
+    base = reference - (reference % COUNTER_MODULO) + (counter % COUNTER_MODULO)
+    candidates = (base - COUNTER_MODULO, base, base + COUNTER_MODULO)
+    return min((c for c in candidates if c >= 0), key=lambda c: abs(c - reference), default=counter)

@@ -1,0 +1,376 @@
+"""The bridge's autopilot state machine (pure): identity, microservices, frames, modes, failsafes.
+
+A small point-mass vehicle (attitude follows the command with a lag, ground at z = 0) closes the loop
+through the same inputs the daemon feeds: IMU samples at 500 Hz, BoardStatus at 10 Hz, ODOMETRY at
+30 Hz (from the simulated truth, as a test may), MAVLink messages from a "GCS".
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from firmware_bridge import mk_messages as mk
+from firmware_bridge.autopilot import CAPABILITIES, Autopilot, FlightMode
+from firmware_bridge.params import PARAM_SPECS, ParamTable
+from quadlink.frames import GRAVITY_M_S2, R_from_euler, quat_wxyz_from_euler
+from quadlink.mavlink import mavlink
+from quadlink.vehicle import VehicleConfig
+
+GCS = mavlink.MAVLink(None, 255, 190)
+BODY_1479 = 1479
+
+
+def msg(encoded):
+    """A message as received: packed by the GCS codec and parsed back (sender ids set)."""
+    return GCS.decode(bytearray(encoded.pack(GCS)))
+
+
+def names(out):
+    return [o.msg.get_type() for o in out]
+
+
+class Sim:
+    """Point-mass quadrotor + board around one Autopilot; time advances in 2 ms IMU steps."""
+
+    def __init__(self, params: ParamTable | None = None, odom: bool = True, board: bool = True) -> None:
+        self.vehicle = VehicleConfig()
+        self.ap = Autopilot(self.vehicle, params or ParamTable(), unix_clock=lambda: 1.7e9)
+        self.k = 0
+        self.p = np.zeros(3)  # NED, z = 0 on the ground
+        self.v = np.zeros(3)
+        self.roll = self.pitch = self.yaw = 0.0
+        self.thrust = 0.0
+        self.odom = odom
+        self.board = board
+        self.statustext: list[str] = []
+        self.wind_n = np.zeros(3)
+
+    @property
+    def t(self) -> float:
+        return self.k * 0.002
+
+    def send(self, encoded):
+        out = self.ap.handle_mavlink(self.t, msg(encoded))
+        self._collect(out)
+        return out
+
+    def _collect(self, out):
+        self.statustext += [o.msg.text for o in out if o.msg.get_type() == "STATUSTEXT"]
+
+    def step(self, seconds: float, setpoint=None) -> None:
+        for _ in range(int(round(seconds / 0.002))):
+            self.k += 1
+            dt = 0.002
+            a = 1.0 - math.exp(-dt / 0.05)
+            cmd = self.ap.last_board_command
+            armed = cmd.armed
+            self.roll += a * (cmd.roll_rad - self.roll)
+            self.pitch += a * (cmd.pitch_rad - self.pitch)
+            self.yaw += cmd.yaw_rate_rad_s * dt
+            self.thrust = cmd.thrust if armed else 0.0
+            R = R_from_euler(self.roll, self.pitch, self.yaw)
+            f_n = -self.thrust * self.vehicle.max_total_thrust_n * R[:, 2] + self.wind_n \
+                - np.asarray(self.vehicle.linear_drag_n_s_m) * self.v
+            acc = np.array([0.0, 0.0, GRAVITY_M_S2]) + f_n / self.vehicle.mass_kg
+            on_ground = self.p[2] >= 0.0 and acc[2] >= 0.0
+            if on_ground:
+                acc[:] = 0.0
+                self.v[:] = 0.0
+                self.p[2] = 0.0
+            self.v += acc * dt
+            self.p += self.v * dt
+            if self.p[2] > 0.0:
+                self.p[2] = 0.0
+                self.v[:] = 0.0
+            specific_force_q = R.T @ (acc - np.array([0.0, 0.0, GRAVITY_M_S2]))
+            omega_q = np.array([0.0, 0.0, cmd.yaw_rate_rad_s])
+            if self.board:
+                self._collect(self.ap.on_imu(self.t, self.k * 2000, specific_force_q, omega_q))
+                if self.k % 50 == 0:
+                    status = mk.BoardStatus(armed=armed, flight_state=1 if self.thrust > 0.15 else 0,
+                                            failsafe=False, battery_mv=11800, error_flags=0,
+                                            board_time_ms=self.k * 2, imu_sample_count=self.k,
+                                            last_setpoint_seq=0)
+                    self._collect(self.ap.on_board_status(self.t, status))
+            if self.odom and self.k % 17 == 0:
+                v_q = R.T @ self.v
+                q = quat_wxyz_from_euler(self.roll, self.pitch, self.yaw)
+                self.send(GCS.odometry_encode(self.k * 2000, mavlink.MAV_FRAME_LOCAL_FRD, mavlink.MAV_FRAME_BODY_FRD,
+                                              *self.p, q, *v_q, 0.0, 0.0, 0.0, [math.nan] * 21, [math.nan] * 21))
+            if setpoint is not None and self.k % 10 == 0:
+                self.send(setpoint)
+            if self.k % 5 == 0:
+                self.ap.control_step(self.t)
+            if self.k % 10 == 0:
+                self._collect(self.ap.tick(self.t))
+
+    def command(self, command, *params):
+        p = list(params) + [0.0] * (7 - len(params))
+        out = self.send(GCS.command_long_encode(1, 1, command, 0, *p))
+        acks = [o.msg for o in out if o.msg.get_type() == "COMMAND_ACK"]
+        assert len(acks) == 1 and acks[0].command == command
+        return acks[0].result, out
+
+
+def velocity_body(vx, vy, vz, yaw_rate=0.0, frame=mavlink.MAV_FRAME_BODY_NED, mask=BODY_1479):
+    return GCS.set_position_target_local_ned_encode(0, 1, 1, frame, mask, 0, 0, 0, vx, vy, vz, 0, 0, 0, 0, yaw_rate)
+
+
+def fly_to_hover(sim: Sim) -> None:
+    sim.step(0.3)
+    assert sim.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1)[0] == mavlink.MAV_RESULT_ACCEPTED
+    sim.step(0.2)
+    assert sim.command(mavlink.MAV_CMD_NAV_TAKEOFF, *([math.nan] * 7))[0] == mavlink.MAV_RESULT_ACCEPTED
+    sim.step(6.0)
+    assert sim.ap.mode == FlightMode.LOITER
+
+
+# ---------------------------------------------------------------- identity and microservices
+def test_heartbeat_identity_and_px4_custom_modes():
+    ap = Autopilot(VehicleConfig(), ParamTable())
+    hb = ap.heartbeat()
+    assert hb.type == mavlink.MAV_TYPE_QUADROTOR and hb.autopilot == mavlink.MAV_AUTOPILOT_GENERIC
+    assert hb.base_mode & mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
+    assert not hb.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED
+    assert hb.custom_mode == 3 << 16  # POSCTL
+    assert FlightMode.OFFBOARD.custom_mode == 6 << 16
+    assert FlightMode.TAKEOFF.custom_mode == 4 << 16 | 2 << 24
+    assert FlightMode.LAND.custom_mode == 4 << 16 | 6 << 24
+    assert FlightMode.LOITER.custom_mode == 4 << 16 | 3 << 24
+    assert Autopilot.decode_set_mode(1, 6, 0) == FlightMode.OFFBOARD
+    assert Autopilot.decode_set_mode(1, 4, 6) == FlightMode.LAND
+    assert Autopilot.decode_set_mode(1, 9, 0) == FlightMode.LAND  # MAVProxy "mode LAND" (ArduCopter number)
+    assert Autopilot.decode_set_mode(0, 6, 0) is None  # custom mode flag missing
+
+
+def test_periodic_streams_and_rates():
+    sim = Sim()
+    sim.step(2.0)
+    counts: dict[str, int] = {}
+    for _ in range(100):  # 1 s more, counting what tick() and on_imu() emit
+        sim.k += 1
+        out = sim.ap.on_imu(sim.t, sim.k * 2000, np.array([0, 0, -GRAVITY_M_S2]), np.zeros(3))
+        if sim.k % 5 == 0:
+            out += sim.ap.tick(sim.t)
+        for name in names(out):
+            counts[name] = counts.get(name, 0) + 1
+    assert counts["HIGHRES_IMU"] == 100  # one per IMU sample
+    assert counts["ATTITUDE"] == pytest.approx(10, abs=1)  # 50 Hz over 0.2 s of samples
+    sys_status = sim.ap.sys_status(sim.t)
+    healthy = mavlink.MAV_SYS_STATUS_SENSOR_3D_GYRO | mavlink.MAV_SYS_STATUS_SENSOR_VISION_POSITION
+    assert sys_status.onboard_control_sensors_health & healthy == healthy
+    assert sys_status.voltage_battery == 11800
+    assert sys_status.battery_remaining == round(100 * (11.8 / 3 - 3.3) / 0.9)
+
+
+def test_highres_imu_is_si_and_stamped_with_board_time():
+    ap = Autopilot(VehicleConfig(), ParamTable())
+    imu = VehicleConfig().imu
+    sample = mk.ImuSample((512 + 10, 512, 512 - 256), (512, 512 + 100, 512), 7)
+    out = ap.on_imu(0.014, 14000, sample.accel_m_s2(imu), sample.gyro_rad_s(imu))
+    hr = [o.msg for o in out if o.msg.get_type() == "HIGHRES_IMU"][0]
+    assert hr.time_usec == 14000
+    assert hr.xacc == pytest.approx(10 * imu.accel_lsb_m_s2, rel=1e-6)
+    assert hr.zacc == pytest.approx(-256 * imu.accel_lsb_m_s2, rel=1e-6)
+    assert hr.ygyro == pytest.approx(100 * imu.gyro_lsb_rad_s, rel=1e-6)
+    assert hr.fields_updated == 0x3F
+
+
+def test_parameter_protocol_list_read_set_and_clamp():
+    sim = Sim()
+    out = sim.send(GCS.param_request_list_encode(1, 1))
+    values = [o.msg for o in out if o.msg.get_type() == "PARAM_VALUE"]
+    assert len(values) == len(PARAM_SPECS)
+    assert sorted(v.param_index for v in values) == list(range(len(PARAM_SPECS)))
+    assert all(v.param_count == len(PARAM_SPECS) for v in values)
+    out = sim.send(GCS.param_set_encode(1, 1, b"MPC_XY_VEL_P", 3.5, mavlink.MAV_PARAM_TYPE_REAL32))
+    echo = [o.msg for o in out if o.msg.get_type() == "PARAM_VALUE"]
+    assert len(echo) == 1 and echo[0].param_id == "MPC_XY_VEL_P" and echo[0].param_value == pytest.approx(3.5)
+    assert sim.ap.tracker.gains.kp_xy_1_s == pytest.approx(3.5)
+    assert sim.ap.params.dirty
+    out = sim.send(GCS.param_set_encode(1, 1, b"MPC_TILTMAX_AIR", 500.0, mavlink.MAV_PARAM_TYPE_REAL32))
+    assert out[0].msg.param_value == pytest.approx(60.0)  # clamped to the bound, and said so in the echo
+    out = sim.send(GCS.param_request_read_encode(1, 1, b"COM_OF_LOSS_T", -1))
+    assert out[0].msg.param_id == "COM_OF_LOSS_T" and out[0].msg.param_value == pytest.approx(1.0)
+    out = sim.send(GCS.param_request_read_encode(1, 1, b"", 0))
+    assert out[0].msg.param_id == PARAM_SPECS[0].name
+    assert sim.send(GCS.param_request_read_encode(1, 1, b"NO_SUCH", -1)) == []
+    assert sim.send(GCS.param_request_list_encode(7, 1)) == []  # another system's request
+
+
+def test_command_protocol_acks_everything():
+    sim = Sim(board=False)
+    result, _ = sim.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1)
+    assert result == mavlink.MAV_RESULT_TEMPORARILY_REJECTED  # no board link: honest refusal
+    result, out = sim.command(mavlink.MAV_CMD_DO_REPOSITION)
+    assert result == mavlink.MAV_RESULT_UNSUPPORTED
+    ack = out[0].msg
+    assert ack.target_system == 255 and ack.target_component == 190
+    result, out = sim.command(mavlink.MAV_CMD_REQUEST_MESSAGE, mavlink.MAVLINK_MSG_ID_AUTOPILOT_VERSION)
+    assert result == mavlink.MAV_RESULT_ACCEPTED
+    version = [o.msg for o in out if o.msg.get_type() == "AUTOPILOT_VERSION"][0]
+    assert version.capabilities == CAPABILITIES
+    assert version.capabilities & mavlink.MAV_PROTOCOL_CAPABILITY_MAVLINK2
+    assert not version.capabilities & mavlink.MAV_PROTOCOL_CAPABILITY_MISSION_INT  # no missions: not claimed
+    assert sim.command(mavlink.MAV_CMD_REQUEST_MESSAGE, 9999)[0] == mavlink.MAV_RESULT_UNSUPPORTED
+    assert sim.command(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, mavlink.MAVLINK_MSG_ID_ATTITUDE, 100000)[0] == \
+        mavlink.MAV_RESULT_ACCEPTED
+    assert sim.ap.stream_interval_s[mavlink.MAVLINK_MSG_ID_ATTITUDE] == pytest.approx(0.1)
+    # COMMAND_INT goes through the same table
+    out = sim.send(GCS.command_int_encode(1, 1, 0, mavlink.MAV_CMD_NAV_LAND, 0, 0, 0, 0, 0, 0, 0, 0, 0))
+    assert out[0].msg.result == mavlink.MAV_RESULT_ACCEPTED and sim.ap.mode == FlightMode.LAND
+
+
+def test_timesync_v2_reply_echoes_ts1():
+    sim = Sim()
+    sim.step(0.1)
+    out = sim.send(GCS.timesync_encode(0, 123456789))
+    assert out[0].msg.ts1 == 123456789 and out[0].msg.tc1 == round(sim.t * 1e9)
+    assert sim.send(GCS.timesync_encode(5, 1)) == []  # someone's reply is not a request
+
+
+def test_malformed_input_is_counted_not_fatal():
+    sim = Sim()
+    bad = GCS.decode(bytearray(GCS.param_set_encode(1, 1, b"MPC_XY_VEL_P", 1.0, 9).pack(GCS)))
+    bad.param_value = "not a number"  # a type a broken sender could produce through a custom codec
+    assert sim.ap.handle_mavlink(0.0, bad) == []
+    assert sim.ap.counters["mavlink_bad"] == 1
+    sim.send(velocity_body(math.nan, 0, 0))
+    assert sim.ap.counters["setpoint_rejected"] == 1
+
+
+# ---------------------------------------------------------------- frames
+def test_offboard_body_frame_is_yaw_aligned_and_local_ned_is_rotated_by_yaw():
+    ap = Autopilot(VehicleConfig(), ParamTable())
+    ap._on_set_position_target_local_ned(0.0, msg(velocity_body(1.0, 0.0, 0.0)), 0)
+    v_ref, _ = ap._velocity_reference(ap._vel_sp, yaw_rad=math.radians(90.0))
+    np.testing.assert_allclose(v_ref, [1.0, 0.0, 0.0], atol=1e-12)  # body: forward stays forward
+    ap._on_set_position_target_local_ned(0.0, msg(velocity_body(1.0, 0.0, 0.0, frame=mavlink.MAV_FRAME_LOCAL_NED)), 0)
+    v_ref, _ = ap._velocity_reference(ap._vel_sp, yaw_rad=math.radians(90.0))
+    np.testing.assert_allclose(v_ref, [0.0, -1.0, 0.0], atol=1e-12)  # north while facing east = left in H
+    # velocity + yaw (MAVSDK set_velocity_ned, mask 2503): yaw tracked through the yaw rate
+    sp = GCS.set_position_target_local_ned_encode(0, 1, 1, mavlink.MAV_FRAME_LOCAL_NED, 2503, 0, 0, 0, 0, 0, 0,
+                                                  0, 0, 0, 0.5, 0)
+    ap._on_set_position_target_local_ned(0.0, msg(sp), 0)
+    _, yaw_rate = ap._velocity_reference(ap._vel_sp, yaw_rad=0.0)
+    assert yaw_rate > 0
+    # positions are not accepted (no position controller): counted, not silently flown
+    pos = GCS.set_position_target_local_ned_encode(0, 1, 1, mavlink.MAV_FRAME_LOCAL_NED, 0b110111111000,
+                                                   1, 2, 3, 0, 0, 0, 0, 0, 0, 0, 0)
+    ap._on_set_position_target_local_ned(0.0, msg(pos), 0)
+    assert ap.counters["setpoint_rejected"] == 1
+
+
+def test_odometry_body_frd_velocity_is_converted_to_h_with_roll_and_pitch():
+    ap = Autopilot(VehicleConfig(), ParamTable())
+    roll, pitch, yaw = math.radians(10), math.radians(-20), math.radians(40)
+    v_h = np.array([0.7, -0.3, 0.2])
+    from quadlink.frames import R_hq
+    v_q = R_hq(roll, pitch).T @ v_h
+    odo = GCS.odometry_encode(0, mavlink.MAV_FRAME_LOCAL_FRD, mavlink.MAV_FRAME_BODY_FRD, 0, 0, -1.0,
+                              quat_wxyz_from_euler(roll, pitch, yaw), *v_q, 0, 0, 0, [math.nan] * 21,
+                              [math.nan] * 21)
+    ap.handle_mavlink(0.0, msg(odo))
+    np.testing.assert_allclose(ap.v_est_h(0.0), v_h, atol=1e-6)
+    assert ap.filter.yaw_rad == pytest.approx(yaw, abs=1e-6)
+    bad = GCS.odometry_encode(0, mavlink.MAV_FRAME_GLOBAL, mavlink.MAV_FRAME_BODY_FRD, 0, 0, 0, [1, 0, 0, 0],
+                              0, 0, 0, 0, 0, 0, [math.nan] * 21, [math.nan] * 21)
+    ap.handle_mavlink(0.0, msg(bad))
+    assert ap.counters["odometry_rejected"] == 1
+
+
+# ---------------------------------------------------------------- modes and flight
+def test_offboard_needs_a_setpoint_stream_like_px4():
+    sim = Sim()
+    sim.step(0.5)
+    assert sim.command(mavlink.MAV_CMD_DO_SET_MODE, 1, 6, 0)[0] == mavlink.MAV_RESULT_TEMPORARILY_REJECTED
+    sim.step(0.3, setpoint=velocity_body(0, 0, 0))
+    assert sim.command(mavlink.MAV_CMD_DO_SET_MODE, 1, 6, 0)[0] == mavlink.MAV_RESULT_ACCEPTED
+    assert sim.ap.heartbeat().custom_mode == 6 << 16
+
+
+def test_takeoff_offboard_body_velocity_and_land():
+    sim = Sim()
+    fly_to_hover(sim)
+    assert -sim.p[2] == pytest.approx(1.0, abs=0.15)  # MIS_TAKEOFF_ALT
+    assert any("Takeoff complete" in t for t in sim.statustext)
+    # turn to 90 deg (east), then fly "forward" in the body frame: the vehicle goes east
+    sim.step(1.0, setpoint=velocity_body(0, 0, 0, yaw_rate=math.radians(45)))
+    assert sim.command(mavlink.MAV_CMD_DO_SET_MODE, 1, 6, 0)[0] == mavlink.MAV_RESULT_ACCEPTED
+    sim.step(2.0, setpoint=velocity_body(0, 0, 0, yaw_rate=math.radians(45)))
+    assert sim.yaw == pytest.approx(math.radians(90), abs=math.radians(10))
+    start = sim.p.copy()
+    sim.step(4.0, setpoint=velocity_body(0.5, 0, 0))
+    moved = sim.p - start
+    assert moved[1] > 1.2 and abs(moved[0]) < 0.3 and abs(moved[2]) < 0.2
+    assert sim.command(mavlink.MAV_CMD_NAV_LAND)[0] == mavlink.MAV_RESULT_ACCEPTED
+    sim.step(6.0)
+    assert sim.p[2] == pytest.approx(0.0, abs=1e-6)
+    assert not sim.ap.armed_cmd and not sim.ap.armed
+    assert any("Landed" in t for t in sim.statustext)
+    assert sim.ap.landed_state() == mavlink.MAV_LANDED_STATE_ON_GROUND
+
+
+def test_integral_holds_velocity_against_wind():
+    sim = Sim()
+    fly_to_hover(sim)
+    sim.wind_n = np.array([0.8, 0.0, 0.0])
+    sim.step(8.0)
+    assert np.linalg.norm(sim.v) < 0.05  # the integral cancels the push: velocity hold, no drift
+
+
+def test_setpoint_loss_hovers_then_lands():
+    params = ParamTable({"BRG_FS_HOVER_T": 1.0})
+    sim = Sim(params)
+    fly_to_hover(sim)
+    sim.step(0.5, setpoint=velocity_body(0, 0, 0))
+    assert sim.command(mavlink.MAV_CMD_DO_SET_MODE, 1, 6, 0)[0] == mavlink.MAV_RESULT_ACCEPTED
+    sim.step(1.0, setpoint=velocity_body(0.3, 0, 0))
+    sim.step(1.2)  # the companion stops talking
+    assert sim.ap.mode == FlightMode.LOITER
+    assert any("Offboard lost" in t for t in sim.statustext)
+    sim.step(0.7)
+    assert sim.ap.mode == FlightMode.LOITER
+    assert np.linalg.norm(sim.v[:2]) < 0.1  # braked to a hover
+    sim.step(0.5)
+    assert sim.ap.mode == FlightMode.LAND
+    sim.step(6.0)
+    assert not sim.ap.armed_cmd and sim.p[2] == pytest.approx(0.0)
+
+
+def test_odometry_loss_levels_and_descends():
+    sim = Sim()
+    fly_to_hover(sim)
+    sim.odom = False
+    sim.step(1.0)
+    assert sim.ap.mode == FlightMode.LAND and sim.ap.failsafe_reason == "odometry lost"
+    cmd = sim.ap.last_board_command
+    assert cmd.roll_rad == 0.0 and cmd.pitch_rad == 0.0
+    assert any("Odometry lost" in t for t in sim.statustext)
+    sim.step(10.0)
+    assert sim.p[2] == pytest.approx(0.0) and not sim.ap.armed_cmd
+
+
+def test_board_link_loss_is_reported_and_blocks_arming():
+    sim = Sim()
+    sim.step(0.5)
+    sim.board = False
+    sim.step(1.0)
+    assert not sim.ap.board_link_ok
+    assert any("Board link lost" in t for t in sim.statustext)
+    assert sim.ap.heartbeat().system_status == mavlink.MAV_STATE_CRITICAL
+    assert sim.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1)[0] == mavlink.MAV_RESULT_TEMPORARILY_REJECTED
+    sim.board = True
+    sim.step(0.5)
+    assert sim.ap.board_link_ok and any("Board link up" in t for t in sim.statustext)
+
+
+def test_disarm_in_air_needs_force():
+    sim = Sim()
+    fly_to_hover(sim)
+    assert sim.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 0)[0] == mavlink.MAV_RESULT_DENIED
+    assert sim.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 0, 21196)[0] == mavlink.MAV_RESULT_ACCEPTED
+    assert not sim.ap.armed_cmd
