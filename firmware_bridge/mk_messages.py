@@ -94,10 +94,27 @@ def _need(payload: bytes, size: int, cls: type) -> None:
 
 
 def _ints(values: Iterable[float], n: int, bounds: tuple[int, int], name: str) -> tuple[int, ...]:
-    seq = tuple(values)
-    if len(seq) != n:
-        raise ProtocolError(f"{name} needs {n} values, got {len(seq)}")
-    return tuple(_sat_int(_finite(v, name), bounds) for v in seq)
+    """``n`` values rounded and saturated to ``bounds`` (fast path for in-range ints: the common case)."""
+    lo, hi = bounds
+    out = tuple(
+        (v if lo <= v <= hi else (lo if v < lo else hi)) if type(v) is int else _sat_int(_finite(v, name), bounds)
+        for v in values
+    )
+    if len(out) != n:
+        raise ProtocolError(f"{name} needs {n} values, got {len(out)}")
+    return out
+
+
+def _three_floats(values: Iterable[float] | np.ndarray, name: str) -> tuple[float, float, float]:
+    """Three finite floats from a sequence or array (plain Python: numpy is slow on 3 elements)."""
+    seq: Iterable[float] = values.tolist() if isinstance(values, np.ndarray) else values
+    try:
+        x, y, z = (float(v) for v in seq)
+    except (TypeError, ValueError) as exc:
+        raise ProtocolError(f"{name} needs 3 numbers, got {values!r}") from exc
+    if not (math.isfinite(x) and math.isfinite(y) and math.isfinite(z)):
+        raise ProtocolError(f"{name} values must be finite, got {values!r}")
+    return x, y, z
 
 
 # --------------------------------------------------------------------------------------------------------------
@@ -487,21 +504,29 @@ class ImuSample:
         return (np.asarray(self.gyro_counts, dtype=float) - imu_cfg.zero_count) * imu_cfg.gyro_lsb_rad_s
 
     @classmethod
-    def from_si(cls, accel_m_s2: object, gyro_rad_s: object, imu_cfg: ImuConfig, counter: int) -> ImuSample:
-        """Quantise SI values (body FRD; m/s^2 and rad/s, 3 each) to counts: round to the nearest count, saturate
-        to 0..1023 (the ADC's range), counter modulo 4096. Raises ``ProtocolError`` on NaN/inf or a wrong shape."""
-        a = np.asarray(accel_m_s2, dtype=float).reshape(-1)
-        g = np.asarray(gyro_rad_s, dtype=float).reshape(-1)
-        if a.shape != (3,) or g.shape != (3,):
-            raise ProtocolError(f"ImuSample.from_si needs 3 accel and 3 gyro values, got {a.shape} and {g.shape}")
-        if not (np.all(np.isfinite(a)) and np.all(np.isfinite(g))):
-            raise ProtocolError("ImuSample.from_si: accel/gyro values must be finite")
+    def from_si(
+        cls,
+        accel_m_s2: Iterable[float] | np.ndarray,
+        gyro_rad_s: Iterable[float] | np.ndarray,
+        imu_cfg: ImuConfig,
+        counter: int,
+    ) -> ImuSample:
+        """Quantise SI values (body FRD; 3 specific-force values in m/s^2, 3 rates in rad/s, sequences or arrays)
+        to counts: round to the nearest count, saturate to 0..1023 (the ADC's range), counter modulo 4096.
+        Raises ``ProtocolError`` on NaN/inf or a wrong number of values."""
         zero = imu_cfg.zero_count
-        ac = np.clip(np.rint(a / imu_cfg.accel_lsb_m_s2) + zero, 0, IMU_COUNT_MAX).astype(int)
-        gc = np.clip(np.rint(g / imu_cfg.gyro_lsb_rad_s) + zero, 0, IMU_COUNT_MAX).astype(int)
+        a_lsb = imu_cfg.accel_lsb_m_s2
+        g_lsb = imu_cfg.gyro_lsb_rad_s
+        ax, ay, az = _three_floats(accel_m_s2, "accel_m_s2")
+        gx, gy, gz = _three_floats(gyro_rad_s, "gyro_rad_s")
+
+        def count(value: float) -> int:
+            c = round(value) + zero
+            return 0 if c < 0 else (IMU_COUNT_MAX if c > IMU_COUNT_MAX else c)
+
         return cls(
-            accel_counts=(int(ac[0]), int(ac[1]), int(ac[2])),
-            gyro_counts=(int(gc[0]), int(gc[1]), int(gc[2])),
+            accel_counts=(count(ax / a_lsb), count(ay / a_lsb), count(az / a_lsb)),
+            gyro_counts=(count(gx / g_lsb), count(gy / g_lsb), count(gz / g_lsb)),
             sample_counter=_wrap(counter, IMU_COUNTER_MODULO, "counter"),
         )
 
