@@ -53,13 +53,19 @@ class ForceConfig:
 
 @dataclass(frozen=True)
 class MappingConfig:
-    """q -> MANUAL_CONTROL (eqs. (2)-(3)). Full scale (1000) = the companion's maximum command."""
+    """q -> MANUAL_CONTROL (eqs. (2)-(3)). Full scale (1000) = the companion's maximum command.
+
+    The ``max_*`` values and ``companion_deadband`` must match the companion's ``reference`` config
+    (k_v_m_s, k_climb_m_s, k_psi_rad_s, deadband): the force law inverts the whole chain (eqs. (16)-(18)).
+    """
 
     deadband_m: Vec3Cfg = (0.004, 0.004, 0.004)
-    max_speed_m_s: float = 1.0              # companion's speed at x = +-1000 (must match the companion)
-    max_climb_m_s: float = 0.5              # companion's climb rate at z = 0 or 1000
-    max_yaw_rate_rad_s: float = 1.0         # companion's yaw rate at r = +-1000
-    yaw_sign: float = -1.0                  # eq. (3): psi_d' = -k_psi q_y (push right -> r < 0)
+    max_speed_m_s: float = 0.6              # companion k_v_m_s: speed at x = +-1000
+    max_climb_m_s: float = 0.4              # companion k_climb_m_s: climb rate at z = 0 or 1000
+    max_yaw_rate_rad_s: float = 0.8         # companion k_psi_rad_s: yaw rate at full yaw deflection
+    companion_deadband: float = 0.03        # companion's own dead-band on the normalized axes
+    yaw_axis: Literal["y", "r"] = "y"       # MANUAL_CONTROL field carrying the yaw command (companion: y)
+    yaw_sign: float = 1.0                   # eq. (3) in NED: handle right -> turn right (positive yaw rate)
     rate_hz: float = 50.0                   # MANUAL_CONTROL rate
     target_system: int = 1
 
@@ -68,6 +74,8 @@ class MappingConfig:
             raise ValueError("rate_hz must be >= 50 (DESIGN.md operator command rate)")
         if self.yaw_sign not in (-1.0, 1.0):
             raise ValueError("yaw_sign must be -1 or 1")
+        if not 0.0 <= self.companion_deadband < 1.0:
+            raise ValueError("companion_deadband must be in [0, 1)")
 
 
 @dataclass(frozen=True)
@@ -93,7 +101,7 @@ class ViewConfig:
     jpeg_quality: int = 80
     min_frequency_hz: float = 0.05           # peak-to-peak estimator range
     max_frequency_hz: float = 3.0
-    initial_frequency_hz: float = 0.5
+    initial_frequency_hz: float = 0.25       # companion default: omega 1.5 rad/s
     bandpass_q: float = 1.5                  # quality factor of the band-pass (unit gain at f0)
     bias_periods: float = 1.0                # length of the moving-average bias low-pass, in periods
     obstacle_warning_m: float = 0.8

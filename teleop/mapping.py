@@ -1,11 +1,13 @@
 """Device position q (frame D, NED) -> operator command, paper 000 eqs. (2)-(3). Pure.
 
-The companion turns MANUAL_CONTROL into the desired velocity of eqs. (2)-(3):
-``v_d = k_v (q_x cos a, q_x sin a, q_z)``, ``psi_d' = -k_psi q_y``. On the wire the command is
-normalized: ``x`` (forward, along alpha) and ``r`` (yaw rate) in -1000..1000, ``z`` (climb) in 0..1000
-with 500 = no climb (MAVLink's thrust-like convention: above 500 = up, so z_D down maps below 500),
-``y`` = 0 (eq. (2) allows no motion orthogonal to alpha). Full scale is the companion's maximum
-speed / yaw rate / climb rate, so the equivalent gains are ``k = max / (workspace - deadband)``.
+The companion (companion/reference.py) turns MANUAL_CONTROL into the desired velocity of eqs. (2)-(3):
+``v_d = k_v (q_x cos a, q_x sin a, q_z)`` and the yaw rate ``k_psi q_y`` (the paper's -k_psi q_y
+written for NED: handle to the right -> turn right). On the wire the command is normalized: ``x``
+(forward, along alpha) and ``y`` (yaw rate; ``r`` with ``yaw_axis: r``) in -1000..1000, ``z`` (climb)
+in 0..1000 with 500 = no climb (QGroundControl's convention: above 500 = up, so z_D down maps below
+500). Eq. (2) allows no motion orthogonal to alpha, so no other axis is used. Full scale is the
+companion's maximum speed / yaw rate / climb rate, after its own dead-band ``companion_deadband``,
+see :func:`mapping_gains` for the equivalent gains k_v, k_psi.
 """
 
 from __future__ import annotations
@@ -26,9 +28,9 @@ class ManualControl:
     """One MANUAL_CONTROL command (normalized integers, MAVLink ranges)."""
 
     x: int          # forward along alpha, -1000..1000
-    y: int          # lateral, always 0 (eq. (2))
+    y: int          # yaw rate with yaw_axis 'y' (the companion's), -1000..1000, > 0 = turn right (NED)
     z: int          # climb, 0..1000, 500 = none, > 500 = up
-    r: int          # yaw rate, -1000..1000, > 0 = clockwise (yaw right, NED)
+    r: int          # yaw rate with yaw_axis 'r', else 0
     buttons: int = 0
 
 
@@ -43,11 +45,18 @@ class MappingGains:
 
 
 def mapping_gains(mapping: MappingConfig, device: DeviceConfig) -> MappingGains:
+    """Slope of velocity vs device position beyond both dead-bands: v = k (|q| - db_eff) sign(q).
+
+    The companion maps n -> (|n| - db_c) / (1 - db_c), so one metre of q beyond the device dead-band is
+    worth ``max / ((workspace - deadband) (1 - db_c))``. The offset of the two dead-bands (a few mm) is
+    not inverted in q~ (eq. (16) has no offset); it shows as a small constant cue K x offset.
+    """
     span = [w - d for w, d in zip(device.workspace_m, mapping.deadband_m)]
     if min(span) <= 0:
         raise ValueError("dead-band must be smaller than the workspace on every axis")
-    return MappingGains(mapping.max_speed_m_s / span[0], mapping.max_climb_m_s / span[2],
-                        mapping.max_yaw_rate_rad_s / span[1], mapping.yaw_sign)
+    scale = 1.0 - mapping.companion_deadband
+    return MappingGains(mapping.max_speed_m_s / (span[0] * scale), mapping.max_climb_m_s / (span[2] * scale),
+                        mapping.max_yaw_rate_rad_s / (span[1] * scale), mapping.yaw_sign)
 
 
 def shape_axis(q_m: float, deadband_m: float, workspace_m: float) -> float:
@@ -63,15 +72,24 @@ def map_device_to_command(q_d_m: NDArray[np.float64], mapping: MappingConfig, de
     """eqs. (2)-(3) on the normalized MANUAL_CONTROL axes."""
     nx, ny, nz = (shape_axis(float(q_d_m[i]), mapping.deadband_m[i], device.workspace_m[i]) for i in range(3))
     x = round(MANUAL_CONTROL_FULL_SCALE * nx)
-    r = round(MANUAL_CONTROL_FULL_SCALE * mapping.yaw_sign * ny)  # eq. (3)
+    yaw = round(MANUAL_CONTROL_FULL_SCALE * mapping.yaw_sign * ny)  # eq. (3)
     # z_D is down: pushing the handle down (q_z > 0) commands a descent (z < 500).
     z = round(MANUAL_CONTROL_Z_NEUTRAL - MANUAL_CONTROL_Z_NEUTRAL * nz)
-    return ManualControl(x=x, y=0, z=z, r=r, buttons=buttons)
+    if mapping.yaw_axis == "y":
+        return ManualControl(x=x, y=yaw, z=z, r=0, buttons=buttons)
+    return ManualControl(x=x, y=0, z=z, r=yaw, buttons=buttons)
 
 
 def command_to_velocity(cmd: ManualControl, mapping: MappingConfig) -> tuple[float, float, float]:
     """What the companion makes of ``cmd``: (forward m/s along alpha, climb-down m/s (NED z), yaw rate rad/s)."""
-    forward = mapping.max_speed_m_s * cmd.x / MANUAL_CONTROL_FULL_SCALE
-    v_down = -mapping.max_climb_m_s * (cmd.z - MANUAL_CONTROL_Z_NEUTRAL) / MANUAL_CONTROL_Z_NEUTRAL
-    yaw_rate = mapping.max_yaw_rate_rad_s * cmd.r / MANUAL_CONTROL_FULL_SCALE
+    db = mapping.companion_deadband
+
+    def shaped(n: float) -> float:   # the companion's dead-band on the normalized axis
+        n = max(-1.0, min(1.0, n))
+        return 0.0 if abs(n) <= db else float(np.copysign((abs(n) - db) / (1.0 - db), n))
+
+    yaw = cmd.y if mapping.yaw_axis == "y" else cmd.r
+    forward = mapping.max_speed_m_s * shaped(cmd.x / MANUAL_CONTROL_FULL_SCALE)
+    v_down = -mapping.max_climb_m_s * shaped((cmd.z - MANUAL_CONTROL_Z_NEUTRAL) / MANUAL_CONTROL_Z_NEUTRAL)
+    yaw_rate = mapping.max_yaw_rate_rad_s * shaped(yaw / MANUAL_CONTROL_FULL_SCALE)
     return forward, v_down, yaw_rate

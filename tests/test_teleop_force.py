@@ -47,7 +47,9 @@ def test_no_cue_when_the_vehicle_does_what_is_commanded(qx, qy, qz):
     motion = VehicleMotion((forward * math.cos(alpha), forward * math.sin(alpha), v_down), alpha, yaw_rate, 0.0)
     qt = q_tilde(motion, GAINS)
     db = np.asarray(MAP.deadband_m)
-    expected = np.sign(q) * np.maximum(np.abs(q) - db, 0.0)    # the dead-band offset of eq. (16) with k_v
+    span = np.asarray(DEV.workspace_m) - db
+    offset = db + MAP.companion_deadband * span                 # both dead-bands: eq. (16) has no offset
+    expected = np.sign(q) * np.maximum(np.abs(q) - offset, 0.0)
     # rounding of MANUAL_CONTROL to integers: 1/1000 of full scale (1/500 for z)
     tol = np.array([0.076 / 1000, 0.076 / 1000, 0.076 / 500]) + 1e-9
     assert np.all(np.abs(qt - expected) <= tol)

@@ -34,7 +34,9 @@ def test_axes_signs_and_ranges():
     back = map_device_to_command(np.array([-1.0, 0.0, 0.0]), MAP, DEV)
     assert back.x == -1000
     right = map_device_to_command(np.array([0.0, 0.06, 0.0]), MAP, DEV)
-    assert right.r == -1000 and right.y == 0          # eq. (3): psi_d' = -k_psi q_y
+    assert right.y == 1000 and right.r == 0           # eq. (3) in NED, on the companion's axis (y)
+    paper = map_device_to_command(np.array([0.0, 0.06, 0.0]), MappingConfig(yaw_sign=-1.0, yaw_axis="r"), DEV)
+    assert paper.r == -1000 and paper.y == 0          # the paper's psi_d' = -k_psi q_y on the r axis
     up = map_device_to_command(np.array([0.0, 0.0, -0.05]), MAP, DEV)   # z_D is down: lifting = climb
     assert up.z == 1000
     down = map_device_to_command(np.array([0.0, 0.0, 0.05]), MAP, DEV)
@@ -52,8 +54,8 @@ def test_mapping_is_monotonic_and_continuous():
 
 def test_gains():
     g = mapping_gains(MAP, DEV)
-    assert g.k_v_xy_per_s == pytest.approx(MAP.max_speed_m_s / 0.075)
-    assert g.k_psi_rad_s_m == pytest.approx(MAP.max_yaw_rate_rad_s / 0.056)
+    assert g.k_v_xy_per_s == pytest.approx(MAP.max_speed_m_s / (0.075 * 0.97))
+    assert g.k_psi_rad_s_m == pytest.approx(MAP.max_yaw_rate_rad_s / (0.056 * 0.97))
     with pytest.raises(ValueError):
         mapping_gains(MappingConfig(deadband_m=(0.1, 0.0, 0.0)), DEV)
 

@@ -1,0 +1,58 @@
+"""``quadlink teleop``: the ground station (device, force feedback, commands, operator view)."""
+
+from __future__ import annotations
+
+import logging
+
+import click
+
+from quadlink.errors import ConfigError
+from teleop.config import load_teleop_config
+from teleop.devices import DEVICE_NAMES, open_device
+from teleop.station import Station
+
+log = logging.getLogger(__name__)
+
+
+@click.command(name="teleop")
+@click.option("--device", "device_name", type=click.Choice(DEVICE_NAMES), default="virtual", show_default=True,
+              help="Device backend.")
+@click.option("--script", type=click.Path(dir_okay=False), default=None,
+              help="Operator script for the virtual device (configs/teleop_scripts/*.yaml).")
+@click.option("--vehicle", default=None, help="MAVLink URL of the companion [config: udpout:127.0.0.1:14555].")
+@click.option("--image-stream", default=None, help="Operator image stream [config: tcp://127.0.0.1:5770]; "
+                                                   "'none' to run without images.")
+@click.option("--http-port", type=int, default=None, help="Web page port [config: 8080]; 0 = any free port, "
+                                                          "-1 = no web page.")
+@click.option("--record", type=click.Path(dir_okay=False), default=None, help="Record the view to a video (.avi/.mp4).")
+@click.option("--config", "config_name", default="teleop", show_default=True, help="Config name or path.")
+@click.option("--log-csv", type=click.Path(dir_okay=False), default=None, help="Force/q/command log (50 Hz CSV).")
+@click.option("--duration", type=float, default=None, help="Stop after this many seconds.")
+@click.option("--exit-at-script-end/--keep-running", default=True, show_default=True,
+              help="With --script: stop when the script has played.")
+def command(device_name: str, script: str | None, vehicle: str | None, image_stream: str | None,
+            http_port: int | None, record: str | None, config_name: str, log_csv: str | None,
+            duration: float | None, exit_at_script_end: bool) -> None:
+    """Start the ground station: haptic device, force feedback, commands, operator view (issue 7)."""
+    cfg = load_teleop_config(config_name)
+    if script is not None and device_name != "virtual":
+        raise ConfigError(f"--script drives the virtual device only (got --device {device_name})")
+    vehicle_url = vehicle or cfg.network.vehicle_url
+    image_url = image_stream or cfg.network.image_stream_url
+    port = cfg.network.http_port if http_port is None else http_port
+    device = open_device(device_name, cfg.device, script)
+    station = Station(cfg, device, vehicle_url, None if image_url == "none" else image_url,
+                      None if port < 0 else port, record, log_csv, exit_at_script_end=exit_at_script_end)
+    log.info("device %s (force output: %s)%s", device.name, "yes" if device.has_force_output else "no",
+             f", script {script}" if script else "")
+    try:
+        station.start()
+        if station.server is not None:
+            log.info("open %s in a browser", station.server.url)
+        station.run(duration)
+    except KeyboardInterrupt:
+        log.info("interrupted; stopping")
+    finally:
+        station.close()
+        log.info("ground station stopped (%d MANUAL_CONTROL sent, %d view frames)", station.manual_control_sent,
+                 station.view_frames)
