@@ -1,0 +1,83 @@
+"""``quadlink companion``: the companion daemon (see companion/README.md)."""
+
+from __future__ import annotations
+
+import logging
+import signal
+import threading
+from pathlib import Path
+
+import click
+
+log = logging.getLogger("companion")
+
+
+@click.command(name="companion")
+@click.option("--config", "config_path", default="companion", show_default=True,
+              help="Companion YAML (path, or a name under configs/).")
+@click.option("--autopilot", default=None, help="Autopilot MAVLink URL [config links.autopilot: udpin:0.0.0.0:14540].")
+@click.option("--gcs", default=None, help="Ground-station MAVLink URL [config links.gcs: udpin:0.0.0.0:14555].")
+@click.option("--camera", default=None,
+              help="Camera: tcp://HOST:PORT (SITL stream) or a TUM folder [config links.camera: tcp://127.0.0.1:5762].")
+@click.option("--image-port", type=int, default=None, help="Operator image stream TCP port [config: 5770]; 0 = off.")
+@click.option("--tlog", "tlog_path", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              help="Record every MAVLink packet of both links to this .tlog.")
+@click.option("--duration", type=float, default=None, help="Stop after this many seconds (wall).")
+def command(config_path: str, autopilot: str | None, gcs: str | None, camera: str | None, image_port: int | None,
+            tlog_path: Path | None, duration: float | None) -> None:
+    """Start the companion daemon: perception, reference velocity, MAVLink to autopilot and ground station."""
+    import dataclasses
+
+    from companion.cameras import open_camera
+    from companion.config import load_companion_config
+    from companion.daemon import Companion, default_pipeline_factory
+    from quadlink.camera import CameraStreamServer
+    from quadlink.errors import LinkError
+    from quadlink.mavlink.connection import open_mavlink
+    from quadlink.mavlink.tlog import TlogWriter
+    from quadlink.vehicle import load_vehicle
+
+    cfg = load_companion_config(config_path)
+    links = dataclasses.replace(cfg.links, autopilot=autopilot or cfg.links.autopilot, gcs=gcs or cfg.links.gcs,
+                                camera=camera or cfg.links.camera,
+                                image_port=cfg.links.image_port if image_port is None else image_port)
+    cfg = dataclasses.replace(cfg, links=links)
+    vehicle = load_vehicle(cfg.vehicle)
+    factory = default_pipeline_factory(cfg, cfg.seed)
+    ident = cfg.identity
+    opened: list = []
+    try:
+        ap = open_mavlink(links.autopilot, ident.system_id, ident.component_id)
+        opened.append(ap)
+        ground = open_mavlink(links.gcs, ident.system_id, ident.component_id,
+                              udp_timeout=links.gcs_client_timeout_s) if links.gcs.startswith("udpin:") else \
+            open_mavlink(links.gcs, ident.system_id, ident.component_id)
+        opened.append(ground)
+        cam = open_camera(links.camera, R_qc=vehicle.camera.R_qc_matrix, p_qc_m=vehicle.camera.p_qc)
+        opened.append(cam)
+        try:
+            images = CameraStreamServer(links.image_host, links.image_port) if links.image_port else None
+        except OSError as exc:
+            raise LinkError(f"operator image stream tcp://{links.image_host}:{links.image_port}: {exc}") from exc
+        tlog = TlogWriter(tlog_path) if tlog_path else None
+    except BaseException:
+        for link in opened:
+            link.close()
+        raise
+    log.info("autopilot %s, ground station %s, camera %s, operator images %s, tlog %s", links.autopilot, links.gcs,
+             links.camera, f"tcp://{links.image_host}:{links.image_port}" if images else "off", tlog_path or "off")
+    daemon = Companion(cfg, ap, ground, cam, factory, image_server=images, tlog=tlog)
+    stop = threading.Event()
+    previous = signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    try:
+        daemon.run(stop, duration)
+    except KeyboardInterrupt:
+        log.info("interrupted")
+    finally:
+        stop.set()
+        signal.signal(signal.SIGTERM, previous)
+        daemon.close()
+        s = daemon.stats
+        log.info("stopped: %d frames, %d setpoints, %d feedback, routed %d to GCS / %d to autopilot",
+                 s.frames, s.setpoints, s.feedback, s.routed_to_gcs, s.routed_to_autopilot)
+

@@ -1,0 +1,108 @@
+"""Typed configuration of the companion daemon (``configs/companion.yaml``), defaults in one place."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Literal
+
+from companion.modes import ModeParams
+from companion.pan_scan import PanScanParams
+from companion.reference import ReferenceParams
+from quadlink.config import find_config, load_config
+
+
+@dataclass(frozen=True)
+class LinksConfig:
+    """Where the daemon connects (each overridable on the command line)."""
+
+    autopilot: str = "udpin:0.0.0.0:14540"  # MAVLink, where the bridge (or PX4) sends
+    gcs: str = "udpin:0.0.0.0:14555"  # MAVLink, where ground stations send to the vehicle
+    camera: str = "tcp://127.0.0.1:5762"  # SITL camera stream, or a TUM-format folder for replay
+    image_host: str = "127.0.0.1"  # operator image stream (camera record format, JPEG colour)
+    image_port: int = 5770
+    image_jpeg_quality: int = 80
+    gcs_client_timeout_s: float = 10.0  # a GCS client silent this long stops receiving telemetry
+
+
+@dataclass(frozen=True)
+class IdentityConfig:
+    """MAVLink identity: the companion uses the autopilot's system id and MAV_COMP_ID_ONBOARD_COMPUTER."""
+
+    system_id: int = 1  # used until the autopilot's HEARTBEAT tells the real one
+    component_id: int = 191
+    autopilot_component_id: int = 1
+
+
+@dataclass(frozen=True)
+class TimingConfig:
+    """Rates and timeouts. ``camera_stamps``: 'autopilot' when frame stamps are already autopilot time
+    (the SITL: both are simulated time), 'local' when they are this computer's monotonic clock (a real
+    camera) and are converted with the TIMESYNC offset."""
+
+    feedback_rate_hz: float = 50.0
+    heartbeat_rate_hz: float = 1.0
+    timesync_period_s: float = 1.0
+    camera_stamps: Literal["autopilot", "local"] = "autopilot"
+    imu_wait_s: float = 0.01  # wait this long for the IMU to catch up with a frame before processing it
+    camera_timeout_s: float = 0.3  # no frame for this long (wall): obstacle data stale, odometry failed
+    fallback_setpoint_rate_hz: float = 10.0  # setpoints sent while the camera is silent
+    poll_s: float = 0.004  # main loop wait per iteration
+
+
+@dataclass(frozen=True)
+class PanScanConfig:
+    """Pan-scan carrier (eq. 4) and how its closed-loop response (eq. 5) is obtained.
+
+    ``response``: 'model' computes A'_omega, phi_omega from the first-order yaw model
+    (yaw_time_constant_s, yaw_delay_s); 'fixed' uses gain and phase_rad as given (e.g. identified from
+    a logged flight with ``companion.identification.identify_from_log``).
+    """
+
+    enabled: bool = True
+    amplitude_rad_s: float = 0.6
+    omega_rad_s: float = 1.5
+    response: Literal["model", "fixed"] = "model"
+    yaw_time_constant_s: float = 0.15
+    yaw_delay_s: float = 0.02
+    gain: float = 1.0
+    phase_rad: float = -math.pi
+
+
+@dataclass(frozen=True)
+class ObstacleConfig:
+    """OBSTACLE_DISTANCE ranges (cm, the camera's 0.5-3.5 m) and the unknown-sector policy."""
+
+    min_distance_cm: int = 50
+    max_distance_cm: int = 350
+    allow_unknown_when_fresh: bool = True  # like PX4 CP_GO_NO_DATA=1 while the data are fresh
+
+
+@dataclass(frozen=True)
+class CompanionConfig:
+    links: LinksConfig = field(default_factory=LinksConfig)
+    identity: IdentityConfig = field(default_factory=IdentityConfig)
+    timing: TimingConfig = field(default_factory=TimingConfig)
+    reference: ReferenceParams = field(default_factory=ReferenceParams)
+    pan_scan: PanScanConfig = field(default_factory=PanScanConfig)
+    modes: ModeParams = field(default_factory=ModeParams)
+    obstacles: ObstacleConfig = field(default_factory=ObstacleConfig)
+    vehicle: str = "vehicle"  # vehicle config (camera mount R_qc, p_qc) by name or path
+    perception_config: str | None = None  # YAML for perception.pipeline.PerceptionConfig; None = defaults
+    seed: int = 0
+
+
+def load_companion_config(path: str | Path = "companion") -> CompanionConfig:
+    return load_config(find_config(str(path)), CompanionConfig)
+
+
+def pan_scan_params(cfg: PanScanConfig) -> PanScanParams:
+    """The pan-scan parameters with the closed-loop response (eq. 5) from the model or as given."""
+    from companion.identification import identify_first_order
+
+    gain, phase = cfg.gain, cfg.phase_rad
+    if cfg.response == "model" and cfg.omega_rad_s > 0:
+        r = identify_first_order(cfg.yaw_time_constant_s, cfg.omega_rad_s, cfg.yaw_delay_s)
+        gain, phase = r.gain, r.phase_rad
+    return PanScanParams(cfg.enabled, cfg.amplitude_rad_s, cfg.omega_rad_s, gain, phase)

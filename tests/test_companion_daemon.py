@@ -1,0 +1,303 @@
+"""The companion daemon end to end on loopback: fake autopilot and ground station (pymavlink over UDP on
+ephemeral ports), the real camera stream (synthetic frames, lock-step acks), a stand-in perception."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from companion.cameras import StreamCamera
+from companion.config import CompanionConfig, LinksConfig, ModeParams, PanScanConfig, TimingConfig
+from companion.daemon import Companion
+from companion.messages import TYPE_MASK_VELOCITY_YAW_RATE, UINT16_UNKNOWN
+from companion.modes import Mode
+from perception.synthetic import pose, qvga_intrinsics, render
+from quadlink.camera import CameraStreamServer, RgbdFrame
+from quadlink.mavlink import mavlink
+from quadlink.mavlink.connection import open_mavlink
+from quadlink.mavlink.tlog import TlogWriter, read_tlog
+from quadlink.vehicle import CameraConfig
+
+FPS = 30.0
+IMU_HZ = 500
+
+
+@dataclass
+class FakeOutput:
+    """Same fields as perception.pipeline.PerceptionOutput."""
+
+    stamp_s: float
+    roll_rad: float = 0.0
+    pitch_rad: float = 0.0
+    yaw_rad: float = 0.0
+    omega_q_rad_s: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    v_h_m_s: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    v_h_cov: np.ndarray = field(default_factory=lambda: np.eye(3) * 1e-3)
+    position_m: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    odometry_ok: bool = True
+    odometry_fitness: float = 0.9
+    obstacle_points_c_m: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    obstacle_points_h_m: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    sectors: np.ndarray = field(default_factory=lambda: np.full(72, np.nan))
+    nearest_obstacle_h_m: np.ndarray | None = None
+    processing_time_s: float = 0.001
+
+
+class FakePipeline:
+    """Stands in for PerceptionPipeline: counts IMU samples, reports a fixed scene."""
+
+    def __init__(self) -> None:
+        self.imu = 0
+        self.frames = 0
+        self.points_h = np.zeros((0, 3))
+
+    def on_imu(self, stamp_s: float, gyro: np.ndarray, accel: np.ndarray) -> None:
+        self.imu += 1
+
+    def on_frame(self, frame: RgbdFrame) -> FakeOutput:
+        self.frames += 1
+        sectors = np.full(72, np.nan)
+        sectors[60:72] = np.inf
+        sectors[0:12] = np.inf
+        return FakeOutput(frame.stamp_s, obstacle_points_h_m=self.points_h, sectors=sectors)
+
+
+class FakeAutopilot:
+    """A PX4-like MAVLink autopilot: heartbeat, HIGHRES_IMU, acks arm/takeoff/land/set-mode."""
+
+    def __init__(self, port: int) -> None:
+        self.link = open_mavlink(f"udpout:127.0.0.1:{port}", 1, 1)
+        self.armed = False
+        self.landed_state = mavlink.MAV_LANDED_STATE_ON_GROUND
+        self.custom_mode = 0
+        self.received: list[Any] = []
+
+    def send_state(self) -> None:
+        base = mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | (mavlink.MAV_MODE_FLAG_SAFETY_ARMED if self.armed else 0)
+        self.link.mav.heartbeat_send(mavlink.MAV_TYPE_QUADROTOR, mavlink.MAV_AUTOPILOT_PX4, base, self.custom_mode,
+                                     mavlink.MAV_STATE_ACTIVE)
+        self.link.mav.extended_sys_state_send(0, self.landed_state)
+
+    def send_imu(self, t_s: float) -> None:
+        self.link.mav.highres_imu_send(int(t_s * 1e6), 0.0, 0.0, -9.81, 0.0, 0.0, 0.1, 0, 0, 0, 0, 0, 0, 20.0, 0x3F)
+
+    def poll(self) -> None:
+        while (m := self.link.recv_msg()) is not None:
+            if m.get_type() == "BAD_DATA":
+                continue
+            self.received.append(m)
+            if m.get_type() == "COMMAND_LONG" and m.target_system == 1:
+                if m.command == mavlink.MAV_CMD_COMPONENT_ARM_DISARM:
+                    self.armed = m.param1 > 0.5
+                elif m.command == mavlink.MAV_CMD_NAV_TAKEOFF:
+                    self.landed_state = mavlink.MAV_LANDED_STATE_IN_AIR
+                elif m.command == mavlink.MAV_CMD_NAV_LAND:
+                    self.landed_state = mavlink.MAV_LANDED_STATE_LANDING
+                elif m.command == mavlink.MAV_CMD_DO_SET_MODE:
+                    self.custom_mode = int(m.param2) << 16
+                self.link.mav.command_ack_send(m.command, mavlink.MAV_RESULT_ACCEPTED, 0, 0, m.get_srcSystem(),
+                                               m.get_srcComponent())
+
+    def of_type(self, kind: str) -> list[Any]:
+        return [m for m in self.received if m.get_type() == kind]
+
+
+class FakeGcs:
+    def __init__(self, port: int) -> None:
+        self.link = open_mavlink(f"udpout:127.0.0.1:{port}", 255, 190)
+        self.received: list[Any] = []
+
+    def poll(self) -> None:
+        while (m := self.link.recv_msg()) is not None:
+            if m.get_type() != "BAD_DATA":
+                self.received.append(m)
+
+    def of_type(self, kind: str, src_comp: int | None = None) -> list[Any]:
+        return [m for m in self.received
+                if m.get_type() == kind and (src_comp is None or m.get_srcComponent() == src_comp)]
+
+
+class Rig:
+    """Daemon in a thread + fakes driven from the test thread in lock-step with the frames."""
+
+    def __init__(self, tmp_path: Path) -> None:
+        cfg = CompanionConfig(
+            links=LinksConfig(autopilot="udpin:127.0.0.1:0", gcs="udpin:127.0.0.1:0"),
+            timing=TimingConfig(camera_timeout_s=1.0),
+            pan_scan=PanScanConfig(enabled=False),
+            modes=ModeParams(gcs_timeout_s=0.5, gcs_land_timeout_s=1.5, takeoff_min_s=0.3),
+        )
+        self.server = CameraStreamServer("127.0.0.1", 0)
+        ap_link = open_mavlink(cfg.links.autopilot, 1, 191)
+        gcs_link = open_mavlink(cfg.links.gcs, 1, 191)
+        self.pipeline = FakePipeline()
+        self.tlog_path = tmp_path / "companion.tlog"
+        self.daemon = Companion(cfg, ap_link, gcs_link, StreamCamera(f"tcp://127.0.0.1:{self.server.port}"),
+                                lambda frame: self.pipeline, tlog=TlogWriter(self.tlog_path))
+        self.ap = FakeAutopilot(ap_link.port.getsockname()[1])
+        self.gcs = FakeGcs(gcs_link.port.getsockname()[1])
+        self.stop = threading.Event()
+        self.thread = threading.Thread(target=self.daemon.run, args=(self.stop,), daemon=True)
+        self.thread.start()
+        K = qvga_intrinsics()
+        R_qc = CameraConfig().R_qc_matrix
+        rgb, depth = render(pose(np.eye(3), [0.0, 0.0, 0.0]), K)
+        self.template = RgbdFrame(0, 0.0, rgb, depth, K, R_qc, np.zeros(3))
+        self.seq = 0
+        self.t_s = 0.0
+        assert self.server.wait_for_client(5.0), "daemon did not connect to the camera stream"
+        self.ap.send_state()
+        self.gcs.link.mav.heartbeat_send(mavlink.MAV_TYPE_GCS, mavlink.MAV_AUTOPILOT_INVALID, 0, 0, 0)
+
+    def frame(self, manual: tuple[int, int, int] | None = None, pace: bool = True) -> None:
+        """One camera period: IMU at 500 Hz, state, optional MANUAL_CONTROL, the frame, wait for its ack."""
+        for k in range(int(IMU_HZ / FPS)):
+            self.ap.send_imu(self.t_s + k / IMU_HZ)
+        if self.seq % 10 == 0:
+            self.ap.send_state()
+        if manual is not None:
+            self.gcs.link.mav.manual_control_send(1, manual[0], manual[1], manual[2], 0, 0)
+        self.t_s += 1.0 / FPS
+        self.seq += 1
+        f = dataclasses.replace(self.template, seq=self.seq, stamp_s=self.t_s)
+        self.server.publish(f)
+        assert self.server.wait_acks(self.seq, 3.0), f"frame {self.seq} not acknowledged"
+        if pace:
+            time.sleep(1.0 / FPS)
+        self.ap.poll()
+        self.gcs.poll()
+
+    def close(self) -> None:
+        self.stop.set()
+        self.thread.join(5.0)
+        self.daemon.close()
+        self.server.close()
+        self.ap.link.close()
+        self.gcs.link.close()
+
+
+@pytest.fixture
+def rig(tmp_path: Path) -> Any:
+    r = Rig(tmp_path)
+    yield r
+    r.close()
+
+
+def _setpoints(ap: FakeAutopilot) -> list[Any]:
+    return ap.of_type("SET_POSITION_TARGET_LOCAL_NED")
+
+
+def test_daemon_flies_teleop_routes_and_fails_safe(rig: Rig) -> None:
+    # --- idle: setpoints flow at camera rate, zero velocity, stamped with the frame time --------------
+    for _ in range(15):
+        rig.frame(manual=(0, 0, 500))
+    time.sleep(0.05)
+    rig.ap.poll()
+    sp = _setpoints(rig.ap)
+    assert 13 <= len(sp) <= 16
+    assert all(m.type_mask == TYPE_MASK_VELOCITY_YAW_RATE == 1479 for m in sp)
+    assert all(m.coordinate_frame == mavlink.MAV_FRAME_BODY_OFFSET_NED for m in sp)
+    stamps = sorted(m.time_boot_ms for m in sp)
+    assert stamps[-1] == pytest.approx(rig.t_s * 1e3, abs=2)
+    assert np.median(np.diff(stamps)) == pytest.approx(1e3 / FPS, abs=2)
+    assert all(abs(m.vx) < 1e-6 and abs(m.vy) < 1e-6 for m in sp)
+    assert rig.pipeline.imu >= 15 * int(IMU_HZ / FPS) - 20  # HIGHRES_IMU reaches perception
+    odo = rig.ap.of_type("ODOMETRY")
+    assert odo and odo[-1].frame_id == mavlink.MAV_FRAME_LOCAL_FRD
+    assert odo[-1].child_frame_id == mavlink.MAV_FRAME_BODY_FRD
+
+    # --- routing: autopilot -> GCS, GCS -> autopilot, companion identity --------------------------------
+    assert rig.gcs.of_type("HEARTBEAT", src_comp=1), "autopilot heartbeat not routed to the GCS"
+    for _ in range(40):  # the companion's own 1 Hz heartbeat
+        if rig.gcs.of_type("HEARTBEAT", src_comp=191):
+            break
+        rig.frame(manual=(0, 0, 500))
+    hb = rig.gcs.of_type("HEARTBEAT", src_comp=191)
+    assert hb and hb[-1].type == mavlink.MAV_TYPE_ONBOARD_CONTROLLER
+    assert hb[-1].autopilot == mavlink.MAV_AUTOPILOT_INVALID
+    assert hb[-1].get_srcSystem() == 1
+    rig.gcs.link.mav.param_request_read_send(1, 1, b"MPC_XY_VEL_MAX", -1)
+    rig.gcs.link.mav.param_set_send(1, 191, b"PS_AMP", 0.4, mavlink.MAV_PARAM_TYPE_REAL32)
+    rig.frame(manual=(0, 0, 500))
+    rig.frame(manual=(0, 0, 500))
+    reads = rig.ap.of_type("PARAM_REQUEST_READ")
+    assert reads and reads[-1].get_srcSystem() == 255, "GCS message not routed to the autopilot"
+    assert not rig.ap.of_type("MANUAL_CONTROL"), "MANUAL_CONTROL is the companion's, not routed"
+    pv = [m for m in rig.gcs.of_type("PARAM_VALUE", src_comp=191) if m.param_id == "PS_AMP"]
+    assert pv and pv[-1].param_value == pytest.approx(0.4)
+    assert rig.gcs.of_type("OBSTACLE_DISTANCE")[-1].distances[30] == UINT16_UNKNOWN
+    assert rig.gcs.of_type("OBSTACLE_DISTANCE")[-1].distances[0] == 351
+
+    # --- takeoff from the ground station, through the companion ---------------------------------------
+    rig.gcs.link.mav.command_long_send(1, 191, mavlink.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, 0, 0, 0, 1.0)
+    for _ in range(40):
+        rig.frame(manual=(0, 0, 500))
+        if rig.daemon.modes.mode == Mode.TELEOP:
+            break
+    acks = [m for m in rig.gcs.of_type("COMMAND_ACK", src_comp=191) if m.command == mavlink.MAV_CMD_NAV_TAKEOFF]
+    assert acks and acks[-1].result == mavlink.MAV_RESULT_ACCEPTED
+    sent = [m.command for m in rig.ap.of_type("COMMAND_LONG")]
+    assert sent[:3] == [mavlink.MAV_CMD_COMPONENT_ARM_DISARM, mavlink.MAV_CMD_NAV_TAKEOFF, mavlink.MAV_CMD_DO_SET_MODE]
+    assert rig.daemon.modes.mode == Mode.TELEOP
+    assert any("TAKEOFF -> TELEOP" in m.text for m in rig.gcs.of_type("STATUSTEXT"))
+
+    # --- forward on the handle -> velocity along alpha (camera yaw, 45 deg) at k_v ---------------------
+    n0 = len(_setpoints(rig.ap))
+    for _ in range(10):
+        rig.frame(manual=(1000, 0, 500))
+    sp = _setpoints(rig.ap)[n0 + 3:]
+    k_v = rig.daemon.ref_params.k_v_m_s
+    a = math.radians(45.0)
+    assert sp and all(m.vx == pytest.approx(k_v * math.cos(a), abs=1e-4) and
+                      m.vy == pytest.approx(k_v * math.sin(a), abs=1e-4) and abs(m.vz) < 1e-6 for m in sp)
+
+    # --- an obstacle ahead along alpha, inside the safe distance: no component toward it ----------------
+    rig.pipeline.points_h = np.array([[0.4 * math.cos(a), 0.4 * math.sin(a), 0.0]])
+    n0 = len(_setpoints(rig.ap))
+    for _ in range(5):
+        rig.frame(manual=(1000, 0, 500))
+    sp = _setpoints(rig.ap)[n0 + 2:]
+    assert sp and all(m.vx * math.cos(a) + m.vy * math.sin(a) < 0.0 for m in sp)
+    fb = rig.gcs.of_type("TELEOP_FEEDBACK")
+    assert fb[-1].obstacle_distance == -1.0 or fb[-1].mode == Mode.TELEOP
+    assert fb[-1].vx_rep < 0 and fb[-1].mode == int(Mode.TELEOP)
+    rig.pipeline.points_h = np.zeros((0, 3))
+
+    # --- TELEOP_FEEDBACK at >= 50 Hz of autopilot time ---------------------------------------------------
+    t_fb = sorted(m.time_usec * 1e-6 for m in fb if m.time_usec * 1e-6 > 1.0)
+    span = t_fb[-1] - t_fb[0]
+    assert span > 0.3 and (len(t_fb) - 1) / span >= 49.0
+
+    # --- ground station silent: hover (zero command), then land -----------------------------------------
+    t_silent = time.monotonic()
+    while rig.daemon.modes.mode == Mode.TELEOP and time.monotonic() - t_silent < 3.0:
+        rig.frame()
+    assert rig.daemon.modes.mode == Mode.HOLD
+    n0 = len(_setpoints(rig.ap))
+    for _ in range(5):
+        rig.frame()
+    sp = _setpoints(rig.ap)[n0 + 1:]
+    assert sp and all(abs(m.vx) < 1e-6 and abs(m.vy) < 1e-6 and abs(m.yaw_rate) < 1e-6 for m in sp)
+    while rig.daemon.modes.mode == Mode.HOLD and time.monotonic() - t_silent < 5.0:
+        rig.frame()
+    assert rig.daemon.modes.mode == Mode.LAND
+    assert 1.3 <= time.monotonic() - t_silent <= 3.5
+    rig.frame()
+    rig.frame()
+    assert rig.ap.of_type("COMMAND_LONG")[-1].command == mavlink.MAV_CMD_NAV_LAND
+    texts = [m.text for m in rig.gcs.of_type("STATUSTEXT")]
+    assert any("link lost" in t for t in texts) and any("-> LAND" in t for t in texts)
+
+    # --- the tlog has both links, readable ---------------------------------------------------------------
+    rig.close()
+    kinds = {m.get_type() for _, m in read_tlog(rig.tlog_path)}
+    assert {"HIGHRES_IMU", "SET_POSITION_TARGET_LOCAL_NED", "MANUAL_CONTROL", "TELEOP_FEEDBACK",
+            "COMMAND_LONG", "ODOMETRY"} <= kinds
