@@ -50,7 +50,7 @@ class BridgeConfig:
     compid: int = 1
     vehicle: str = "vehicle"
     params_file: str = str(DEFAULT_PARAMS_PATH)
-    imu_stale_s: float = 0.05  # no IMU for this long (wall) -> wall-clock fallback for the control step
+    imu_stale_s: float = 0.25  # no IMU for this long (wall) -> wall-clock fallback for the control step
     reconnect_interval_s: float = 1.0
     status_log_interval_s: float = 10.0
     version_request_attempts: int = 5
@@ -137,6 +137,7 @@ class BridgeDaemon:
         self._imu_index: int | None = None  # unwrapped sample index
         self._last_imu_wall: float | None = None
         self._now_s = 0.0
+        self._time_offset_s = 0.0
         self._wall_origin = clock()
         self._last_control_wall = -1.0
         self._last_tick_wall = -1.0
@@ -275,17 +276,24 @@ class BridgeDaemon:
             self.autopilot.note_malformed("mk_bad", self.now_s(), "MK frame dropped by the decoder")
 
     def now_s(self) -> float:
-        """Board time: the last IMU sample's time, advanced by the wall clock only while the IMU is silent."""
+        """Board time: the last IMU sample's time, advanced by the wall clock only while the IMU is silent.
+
+        Time handed to the autopilot never goes back: after a silent spell the board time carries the
+        offset the wall clock added (``_time_offset_s``), so timers stay continuous.
+        """
         wall = self.clock()
         if self._imu_index is None:
             now = wall - self._wall_origin
         else:
-            now = self._imu_index * IMU_PERIOD_S
+            now = self._imu_index * IMU_PERIOD_S + self._time_offset_s
             assert self._last_imu_wall is not None
             if wall - self._last_imu_wall > self.config.imu_stale_s:
                 now += wall - self._last_imu_wall
-        self._now_s = max(self._now_s, now)
-        return self._now_s
+        if now < self._now_s:
+            self._time_offset_s += self._now_s - now
+            now = self._now_s
+        self._now_s = now
+        return now
 
     def _on_imu_frame(self, payload: bytes, read_wall: float) -> None:
         try:
@@ -358,7 +366,12 @@ class BridgeDaemon:
 
     def _housekeeping(self) -> None:
         wall = self.clock()
-        imu_silent = self._last_imu_wall is None or wall - self._last_imu_wall > self.config.imu_stale_s
+        # wall-clock fallback: the IMU went silent (or never spoke while we are armed); failsafes must run.
+        # Not before the first sample otherwise, so a lock-step SITL gets exactly one setpoint per chunk.
+        if self._last_imu_wall is None:
+            imu_silent = self.autopilot.armed_cmd
+        else:
+            imu_silent = wall - self._last_imu_wall > self.config.imu_stale_s
         if imu_silent and wall - self._last_control_wall >= 0.01:
             self.stats.wall_clock_steps += 1
             self._control(self.now_s())

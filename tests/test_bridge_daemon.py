@@ -1,0 +1,206 @@
+"""The bridge daemon against a fake MK board over loopback TCP, with a pymavlink client over UDP.
+
+The fake board speaks the stack's firmware protocol on two TCP ports (port 1: BoardStatus, Version,
+setpoints in; port 2: IMU at 500 Hz) and runs lock-step like the SITL: it sends 10 ms of IMU (5
+samples), then waits for one AttitudeSetpoint before the next chunk.
+"""
+
+from __future__ import annotations
+
+import socket
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from firmware_bridge import mk_messages as mk
+from firmware_bridge.daemon import BridgeConfig, BridgeDaemon, _align
+from firmware_bridge.mk_protocol import ADDR_FC, FrameDecoder, encode_frame
+from quadlink.errors import LinkError
+from quadlink.frames import GRAVITY_M_S2
+from quadlink.mavlink.connection import open_mavlink
+from quadlink.vehicle import VehicleConfig
+
+
+def free_udp_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+class FakeBoard:
+    """Two TCP listeners on ephemeral ports; lock-step IMU chunks answered by setpoints."""
+
+    def __init__(self, chunks: int, garbage: bool = False) -> None:
+        self.cmd_srv = socket.create_server(("127.0.0.1", 0))
+        self.imu_srv = socket.create_server(("127.0.0.1", 0))
+        self.chunks = chunks
+        self.garbage = garbage
+        self.setpoints: list[mk.AttitudeSetpoint] = []
+        self.version_requests = 0
+        self.waits_timed_out = 0
+        self.imu_cfg = VehicleConfig().imu
+        self._stop = threading.Event()
+        self.thread = threading.Thread(target=self._run, daemon=True)
+        self.thread.start()
+
+    @property
+    def cmd_url(self) -> str:
+        return f"socket://127.0.0.1:{self.cmd_srv.getsockname()[1]}"
+
+    @property
+    def imu_url(self) -> str:
+        return f"socket://127.0.0.1:{self.imu_srv.getsockname()[1]}"
+
+    def _run(self) -> None:
+        self.cmd_srv.settimeout(5.0)
+        self.imu_srv.settimeout(5.0)
+        cmd, _ = self.cmd_srv.accept()
+        imu, _ = self.imu_srv.accept()
+        cmd.settimeout(0.5)
+        decoder = FrameDecoder()
+        armed = False
+        k = 0
+        for chunk in range(self.chunks):
+            if self._stop.is_set():
+                break
+            data = b""
+            for _ in range(5):
+                sample = mk.ImuSample.from_si([0.0, 0.0, -GRAVITY_M_S2], [0.0, 0.0, 0.1], self.imu_cfg, k)
+                data += encode_frame(ADDR_FC, "I", sample.pack())
+                k += 1
+            if self.garbage and chunk % 20 == 3:
+                data += b"#bI==garbage\r" + b"\x00\xff" * 5
+            imu.sendall(data)
+            if chunk % 10 == 0:
+                status = mk.BoardStatus(armed, 0, False, 12000, 0, k * 2, k, 0)
+                cmd.sendall(encode_frame(ADDR_FC, "S", status.pack()))
+            got = False
+            deadline = time.monotonic() + 2.0
+            while not got and time.monotonic() < deadline:
+                try:
+                    raw = cmd.recv(4096)
+                except TimeoutError:
+                    continue
+                if not raw:
+                    return
+                for frame in decoder.feed(raw):
+                    if frame.command == "s":
+                        sp = mk.AttitudeSetpoint.unpack(frame.payload)
+                        self.setpoints.append(sp)
+                        armed = sp.armed
+                        got = True
+                    elif frame.command == "v":
+                        self.version_requests += 1
+                        cmd.sendall(encode_frame(ADDR_FC, "V", mk.Version(2, 10, 11, 0, 0).pack()))
+            if not got:
+                self.waits_timed_out += 1
+        self._stop.wait(5.0)
+        cmd.close()
+        imu.close()
+
+    def close(self) -> None:
+        self._stop.set()
+        self.thread.join(timeout=5.0)
+        self.cmd_srv.close()
+        self.imu_srv.close()
+
+
+@pytest.fixture
+def gcs_port():
+    return free_udp_port()
+
+
+def start(board: FakeBoard, gcs_port: int, tmp_path: Path):
+    config = BridgeConfig(mk_cmd_url=board.cmd_url, mk_imu_url=board.imu_url,
+                          mavlink_urls=(f"udpout:127.0.0.1:{gcs_port}",), params_file=str(tmp_path / "p.yaml"))
+    daemon = BridgeDaemon(config, VehicleConfig())
+    gcs = open_mavlink(f"udpin:127.0.0.1:{gcs_port}", 255, 190)
+    daemon.open()
+    thread = threading.Thread(target=daemon.run, kwargs={"duration_s": 30.0}, daemon=True)
+    thread.start()
+    return daemon, thread, gcs
+
+
+def stop(daemon, thread, gcs, board) -> None:
+    daemon.stop()
+    thread.join(timeout=5.0)
+    daemon.close()
+    gcs.close()
+    board.close()
+
+
+def test_daemon_lockstep_telemetry_params_and_version(gcs_port, tmp_path):
+    board = FakeBoard(chunks=300)  # 3 s of board time
+    daemon, thread, gcs = start(board, gcs_port, tmp_path)
+    try:
+        hb = gcs.recv_match(type="HEARTBEAT", blocking=True, timeout=5.0)
+        assert hb is not None and hb.get_srcSystem() == 1 and hb.autopilot == 0
+        imu_stamps = []
+        deadline = time.monotonic() + 10.0
+        while len(imu_stamps) < 200 and time.monotonic() < deadline:
+            m = gcs.recv_match(type="HIGHRES_IMU", blocking=True, timeout=1.0)
+            if m is not None:
+                imu_stamps.append(m.time_usec)
+        assert len(imu_stamps) == 200
+        assert set(np.diff(imu_stamps)) == {2000}  # board time, one message per sample, in order
+        # parameter download over the same link (the bridge answers on the link it was asked on)
+        gcs.mav.param_request_list_send(1, 1)
+        got = {}
+        deadline = time.monotonic() + 5.0
+        while len(got) < len(daemon.params) and time.monotonic() < deadline:
+            m = gcs.recv_match(type="PARAM_VALUE", blocking=True, timeout=1.0)
+            if m is not None:
+                got[m.param_id] = m.param_value
+        assert len(got) == len(daemon.params)
+        gcs.mav.param_set_send(1, 1, b"MIS_TAKEOFF_ALT", 1.7, 9)
+        echo = gcs.recv_match(type="PARAM_VALUE", blocking=True, timeout=3.0)
+        assert echo is not None and echo.param_id == "MIS_TAKEOFF_ALT" and echo.param_value == pytest.approx(1.7)
+        board.thread.join(timeout=15.0)
+    finally:
+        stop(daemon, thread, gcs, board)
+    # lock-step contract: every 10 ms chunk got exactly one setpoint, in sequence
+    assert board.waits_timed_out == 0
+    assert len(board.setpoints) == 300
+    seqs = [sp.seq for sp in board.setpoints]
+    assert all((b - a) % 256 == 1 for a, b in zip(seqs, seqs[1:]))
+    assert not any(sp.armed for sp in board.setpoints)
+    assert board.version_requests >= 1 and daemon.autopilot.board_version.startswith("FlightCtrl 2.10a")
+    # persisted
+    assert "MIS_TAKEOFF_ALT: 1.7" in (tmp_path / "p.yaml").read_text()
+
+
+def test_daemon_survives_garbage_on_the_mk_port(gcs_port, tmp_path):
+    board = FakeBoard(chunks=200, garbage=True)
+    daemon, thread, gcs = start(board, gcs_port, tmp_path)
+    try:
+        board.thread.join(timeout=15.0)
+        status = None
+        deadline = time.monotonic() + 5.0
+        while time.monotonic() < deadline:
+            status = gcs.recv_match(type="SYS_STATUS", blocking=True, timeout=1.5)
+            if status is not None and status.errors_count2 > 0:
+                break
+    finally:
+        stop(daemon, thread, gcs, board)
+    assert len(board.setpoints) == 200 and board.waits_timed_out == 0
+    assert daemon.autopilot.counters["mk_bad"] >= 5
+    assert status is not None and status.errors_count2 > 0  # reported in SYS_STATUS
+
+
+def test_missing_port_is_a_link_error(tmp_path):
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]  # nothing listens after close
+    config = BridgeConfig(mk_cmd_url=f"socket://127.0.0.1:{port}", params_file=str(tmp_path / "p.yaml"))
+    with pytest.raises(LinkError, match="cannot open"):
+        BridgeDaemon(config, VehicleConfig()).open()
+
+
+def test_counter_alignment_unwraps_the_12_bit_counter():
+    assert _align(10000, 10000 % 4096) == 10000
+    assert _align(10000, (10000 + 3) % 4096) == 10003
+    assert _align(8193, 4095) == 8191
+    assert _align(0, 5) == 5
