@@ -453,11 +453,12 @@ class Companion:
         if out is not None:
             self.last_output = out
         points = None if out is None else out.obstacle_points_h_m
-        sectors = None if out is None else out.sectors
+        sectors, _, offset_deg = msgs.sector_arrays(None if out is None else out.sectors)
         block = out is None or not self.cfg.obstacles.allow_unknown_when_fresh
         ref = reference_velocity(self.op, self._R_qc, self._scan_state(stamp), points, self.ref_params,
                                  sectors_m=sectors, block_unknown=block,
-                                 operator_enabled=self.modes.operator_enabled)
+                                 operator_enabled=self.modes.operator_enabled,
+                                 sector_offset_rad=math.radians(offset_deg))
         self.last_ref = ref
         self._send_setpoint(stamp, ref)
         self.stats.latencies_s.append(self.clock() - t_in)

@@ -9,8 +9,9 @@ Conventions stated once here:
   child_frame_id MAV_FRAME_BODY_FRD; position in the world frame, quaternion [w, x, y, z] body->world,
   velocity and rates in body FRD (as PX4's vision interface expects). quality 0 = odometry failed
   (consumers must not use the estimate), else 1..100.
-* OBSTACLE_DISTANCE: 72 sectors of 5 deg in MAV_FRAME_BODY_FRD (yaw-aligned), sector i centred on
-  ``angle_offset + 5 i`` deg clockwise from the heading, cm; unknown = UINT16_MAX, free = max_distance + 1.
+* OBSTACLE_DISTANCE: 72 sectors of 5 deg in MAV_FRAME_BODY_FRD (yaw-aligned, i.e. perception's H), sector
+  i centred on ``angle_offset + 5 i`` deg clockwise from the heading (angle_offset 0 from perception), cm;
+  unknown = UINT16_MAX, free = max_distance + 1.
 * Times: autopilot time (SITL: simulated time), ms or us as each message asks.
 """
 
@@ -99,6 +100,17 @@ def attitude_message(time_s: float, roll_rad: float, pitch_rad: float, yaw_rad: 
                                             float(w[0]), float(w[1]), float(w[2]))
 
 
+def sector_arrays(sectors: Any) -> tuple[NDArray[np.float64] | None, float, float]:
+    """(distances_m, increment_deg, angle_offset_deg) of perception's ObstacleSectors or of a bare array
+    (72 sectors of 5 deg, sector 0 centred on the heading)."""
+    if sectors is None:
+        return None, SECTOR_DEG, 0.0
+    if hasattr(sectors, "distances_m"):
+        return (np.asarray(sectors.distances_m, dtype=float), float(sectors.increment_deg),
+                float(sectors.angle_offset_deg))
+    return np.asarray(sectors, dtype=float), SECTOR_DEG, 0.0
+
+
 def obstacle_distances_cm(sectors_m: ArrayLike | None, min_cm: int, max_cm: int) -> list[int]:
     """72 sector distances in cm: NaN (unknown) -> UINT16_MAX, inf/beyond range (free) -> max + 1."""
     out = [UINT16_UNKNOWN] * N_SECTORS
@@ -113,10 +125,12 @@ def obstacle_distances_cm(sectors_m: ArrayLike | None, min_cm: int, max_cm: int)
     return out
 
 
-def obstacle_distance_message(time_s: float, sectors_m: ArrayLike | None, min_cm: int, max_cm: int) -> Any:
+def obstacle_distance_message(time_s: float, sectors: Any, min_cm: int, max_cm: int) -> Any:
+    """OBSTACLE_DISTANCE from perception's ObstacleSectors (or a bare 72-array, sector 0 centred ahead)."""
+    distances, inc_deg, offset_deg = sector_arrays(sectors)
     return mavlink.MAVLink_obstacle_distance_message(
-        _us(time_s), mavlink.MAV_DISTANCE_SENSOR_INFRARED, obstacle_distances_cm(sectors_m, min_cm, max_cm),
-        int(SECTOR_DEG), min_cm, max_cm, SECTOR_DEG, SECTOR_DEG / 2.0, mavlink.MAV_FRAME_BODY_FRD)
+        _us(time_s), mavlink.MAV_DISTANCE_SENSOR_INFRARED, obstacle_distances_cm(distances, min_cm, max_cm),
+        int(round(inc_deg)), min_cm, max_cm, inc_deg, offset_deg, mavlink.MAV_FRAME_BODY_FRD)
 
 
 FLAG_PAN_SCAN = 1

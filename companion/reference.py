@@ -166,17 +166,18 @@ def remove_toward_close_obstacles(v_h_m_s: NDArray[np.float64], points_h_m: Arra
     return v, changed
 
 
-def sector_index(angle_rad: float, n_sectors: int) -> int:
-    """Sector of a direction in H (0 = +x, increasing toward +y), sectors of 2 pi / n starting at 0."""
+def sector_index(angle_rad: float, n_sectors: int, offset_rad: float = 0.0) -> int:
+    """Sector of a direction in H (azimuth from +x toward +y); sector i is centred on offset + i 2 pi / n."""
     width = 2.0 * math.pi / n_sectors
-    return int((angle_rad % (2.0 * math.pi)) // width) % n_sectors
+    return int(math.floor((angle_rad - offset_rad + width / 2.0) / width)) % n_sectors
 
 
 def remove_toward_unknown(v_h_m_s: NDArray[np.float64], sectors_m: ArrayLike | None,
-                          guard_rad: float) -> tuple[NDArray[np.float64], bool]:
+                          guard_rad: float, offset_rad: float = 0.0) -> tuple[NDArray[np.float64], bool]:
     """Zero the horizontal velocity if it points (within ``guard_rad``) into a sector of unknown distance.
 
-    ``sectors_m`` is the 360 deg sector array (NaN = unknown, inf = free); None means nothing is known.
+    ``sectors_m`` is the 360 deg sector array in H (NaN = unknown, inf = free), sector i centred on
+    azimuth ``offset_rad + i 2 pi / n`` (perception's ObstacleSectors); None means nothing is known.
     Like PX4's collision prevention without CP_GO_NO_DATA: no motion toward where nothing is known.
     """
     v = np.array(v_h_m_s, dtype=float)
@@ -195,7 +196,7 @@ def remove_toward_unknown(v_h_m_s: NDArray[np.float64], sectors_m: ArrayLike | N
     width = 2.0 * math.pi / n
     steps = int(math.ceil(guard_rad / width))
     for k in range(-steps, steps + 1):
-        if np.isnan(s[sector_index(heading + k * width, n)]):
+        if np.isnan(s[sector_index(heading + k * width, n, offset_rad)]):
             v[:2] = 0.0
             return v, True
     return v, False
@@ -204,7 +205,7 @@ def remove_toward_unknown(v_h_m_s: NDArray[np.float64], sectors_m: ArrayLike | N
 def reference_velocity(op: OperatorInput, R_qc: ArrayLike, scan: PanScanState,
                        obstacle_points_h_m: ArrayLike | None, params: ReferenceParams,
                        sectors_m: ArrayLike | None = None, block_unknown: bool = False,
-                       operator_enabled: bool = True) -> ReferenceOutput:
+                       operator_enabled: bool = True, sector_offset_rad: float = 0.0) -> ReferenceOutput:
     """Eqs. (2)-(8) with the safety constraints (see module doc).
 
     ``operator_enabled`` False (hold, link lost) zeroes the operator part but keeps the repulsion;
@@ -217,7 +218,7 @@ def reference_velocity(op: OperatorInput, R_qc: ArrayLike, scan: PanScanState,
     v_d, yaw_rate_d = operator_velocity(op, alpha, params)  # eqs. (2)-(3)
     constrained = False
     if block_unknown:
-        v_d, constrained = remove_toward_unknown(v_d, sectors_m, params.unknown_sector_guard_rad)
+        v_d, constrained = remove_toward_unknown(v_d, sectors_m, params.unknown_sector_guard_rad, sector_offset_rad)
     v_o = repulsion_velocity(obstacle_points_h_m, params)
     v_r = v_d + v_o  # eq. (7)
     v_r, removed = remove_toward_close_obstacles(v_r, obstacle_points_h_m, params.safe_distance_m)
