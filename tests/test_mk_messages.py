@@ -7,7 +7,7 @@ import struct
 
 import numpy as np
 import pytest
-from hypothesis import given
+from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from firmware_bridge.mk_messages import (
@@ -112,6 +112,7 @@ count10 = st.integers(0, 1023)
 angle = st.floats(-math.radians(327.0), math.radians(327.0), allow_nan=False)
 
 
+@settings(deadline=None)
 @given(count10, count10, count10, count10, count10, count10, st.integers(0, 4095))
 def test_imu_round_trip(ax: int, ay: int, az: int, gx: int, gy: int, gz: int, counter: int) -> None:
     msg = ImuSample((ax, ay, az), (gx, gy, gz), counter)
@@ -129,6 +130,7 @@ def test_imu_ignores_reserved_bits() -> None:
     assert ImuSample.unpack(payload) == ImuSample((5, 6, 7), (8, 9, 10), 63)
 
 
+@settings(deadline=None)
 @given(angle, angle, st.floats(-50.0, 50.0), st.floats(0.0, 1.0), st.booleans(), u8)
 def test_setpoint_round_trip(roll: float, pitch: float, yaw_rate: float, thrust: float, armed: bool, seq: int) -> None:
     msg = AttitudeSetpoint(roll, pitch, yaw_rate, thrust, armed, seq)
@@ -143,6 +145,7 @@ def test_setpoint_round_trip(roll: float, pitch: float, yaw_rate: float, thrust:
     assert AttitudeSetpoint.unpack(got.pack()) == got  # decoded values are exact fixed points
 
 
+@settings(deadline=None)
 @given(st.booleans(), st.integers(0, 2), st.booleans(), st.integers(0, 65535), st.integers(0, 65535),
        st.integers(0, 2**32 - 1), st.integers(0, 2**32 - 1), u8)  # fmt: skip
 def test_status_round_trip(
@@ -152,6 +155,7 @@ def test_status_round_trip(
     assert wire_round_trip(msg) == msg
 
 
+@settings(deadline=None)
 @given(angle, angle, st.floats(-math.pi, math.pi * 0.999, allow_nan=False), st.tuples(u8, u8, u8))
 def test_data3d_round_trip(roll: float, pitch: float, yaw: float, centroid: tuple[int, int, int]) -> None:
     msg = Data3D(roll, pitch, yaw, centroid)
@@ -175,23 +179,27 @@ def test_data3d_nick_is_pitch_and_heading_wraps() -> None:
     assert struct.unpack_from("<3h", Data3D(0.0, 0.0, math.radians(270.0)).pack()) == (0, 0, -900)
 
 
+@settings(deadline=None)
 @given(st.builds(ExternControl, st.tuples(u8, u8), u8, i8, i8, i8, u8, i8, u8, u8, u8))
 def test_extern_control_round_trip(msg: ExternControl) -> None:
     assert wire_round_trip(msg) == msg
 
 
+@settings(deadline=None)
 @given(st.tuples(u8, u8), st.lists(i16, min_size=32, max_size=32).map(tuple))
 def test_debug_data_round_trip(status: tuple[int, int], analog: tuple[int, ...]) -> None:
     msg = DebugData(status, analog)
     assert wire_round_trip(msg) == msg
 
 
+@settings(deadline=None)
 @given(u8, u8, u8, u8, u8, st.tuples(u8, u8, u8, u8, u8))
 def test_version_round_trip(a: int, b: int, c: int, d: int, e: int, hw: tuple[int, int, int, int, int]) -> None:
     msg = Version(a, b, c, d, e, hw)
     assert wire_round_trip(msg, ADDR_ANY) == msg
 
 
+@settings(deadline=None)
 @given(u8, st.text(st.characters(min_codepoint=33, max_codepoint=126), max_size=16))
 def test_small_messages_round_trip(value: int, label: str) -> None:
     for msg in [DebugRequest(value), Data3DRequest(value), DebugLabelRequest(value), ExternControlAck(value),
@@ -251,6 +259,7 @@ def test_imu_si_conversion_at_rest() -> None:
     np.testing.assert_array_equal(sample.gyro_rad_s(IMU), np.zeros(3))
 
 
+@settings(deadline=None)
 @given(
     st.lists(st.floats(-15.0, 15.0), min_size=3, max_size=3),
     st.lists(st.floats(-4.0, 4.0), min_size=3, max_size=3),

@@ -129,6 +129,7 @@ def test_version_request_all_addresses_match_reference() -> None:
 # --- base64
 
 
+@settings(deadline=None)
 @given(st.binary(max_size=200))
 def test_b64_matches_spec_formula_and_round_trips(payload: bytes) -> None:
     chars = mk_b64encode(payload)
@@ -151,6 +152,7 @@ def test_b64_decode_rejects_bad_input(chars: bytes) -> None:
         mk_b64decode(chars)
 
 
+@settings(deadline=None)
 @given(frames_st)
 def test_encode_frame_matches_reference(frame: Frame) -> None:
     wire = encode_frame(frame.address, frame.command, frame.payload)
@@ -195,7 +197,7 @@ def assert_accounted(decoder: FrameDecoder, frames: list[Frame], fed: int) -> No
     assert s.frames_ok == len(frames)
 
 
-@settings(max_examples=150, suppress_health_check=[HealthCheck.too_slow])
+@settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(st.lists(frames_st, max_size=12), st.data())
 def test_stream_random_chunking(frames: list[Frame], data: st.DataObject) -> None:
     stream = b"".join(f.encode() for f in frames)
@@ -232,7 +234,7 @@ garbage_st = st.lists(st.sampled_from([b"#", b"\r", b"=", b"a", b"\x00", b"\xff"
 )
 
 
-@settings(max_examples=150, suppress_health_check=[HealthCheck.too_slow])
+@settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(st.lists(st.tuples(garbage_st, frames_st), max_size=10), garbage_st, st.data())
 def test_garbage_between_frames(pairs: list[tuple[bytes, Frame]], tail: bytes, data: st.DataObject) -> None:
     stream = b"".join(g + f.encode() for g, f in pairs) + tail
@@ -250,7 +252,7 @@ def test_garbage_between_frames(pairs: list[tuple[bytes, Frame]], tail: bytes, d
     assert_accounted(decoder, out, len(stream))
 
 
-@settings(max_examples=200)
+@settings(max_examples=200, deadline=None)
 @given(st.binary(max_size=600), st.integers(6, 300))
 def test_feed_never_raises(noise: bytes, max_len: int) -> None:
     decoder = FrameDecoder(max_frame_len=max_len)
