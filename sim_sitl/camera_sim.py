@@ -24,13 +24,17 @@ R_OPTICAL_GL = np.diag([1.0, -1.0, -1.0])  # optical (x right, y down, z fwd) ->
 
 
 def projection_matrix_gl(k: CameraIntrinsics, near_m: float, far_m: float) -> list[float]:
-    """OpenGL projection (column-major, 16 floats) that reproduces the pinhole ``k`` exactly."""
+    """OpenGL projection (column-major, 16 floats) that reproduces the pinhole ``k`` exactly.
+
+    Pixel (u, v) of the rendered image is the ray ((u - cx)/fx, (v - cy)/fy, 1), as for the real sensor;
+    ``test_default_portrait_mount_matches_ray_casts`` checks it against pybullet ray casts.
+    """
     W, H = k.width, k.height
     P = np.zeros((4, 4))
     P[0, 0] = 2.0 * k.fx / W
-    P[0, 2] = 1.0 - (2.0 * k.cx + 1.0) / W
+    P[0, 2] = 1.0 - 2.0 * k.cx / W  # the tiny renderer samples columns at their left edge (checked by ray casts)
     P[1, 1] = 2.0 * k.fy / H
-    P[1, 2] = -(1.0 - (2.0 * k.cy + 1.0) / H)
+    P[1, 2] = -(1.0 - (2.0 * k.cy + 2.0) / H)  # and rows half a pixel below their centre
     P[2, 2] = -(far_m + near_m) / (far_m - near_m)
     P[2, 3] = -2.0 * far_m * near_m / (far_m - near_m)
     P[3, 2] = -1.0
@@ -51,32 +55,60 @@ def linearize_depth(buffer: NDArray[np.float64], near_m: float, far_m: float) ->
     return (far_m * near_m / (far_m - (far_m - near_m) * np.asarray(buffer, dtype=np.float64))).astype(np.float32)
 
 
-def incidence_cos(z_m: NDArray[np.float32], k: CameraIntrinsics) -> NDArray[np.float64]:
-    """|cos| of the angle between the viewing ray and the surface normal (normals from depth gradients)."""
-    H, W = z_m.shape
-    u = (np.arange(W) - k.cx) / k.fx
-    v = (np.arange(H) - k.cy) / k.fy
-    X = z_m * u[None, :]
-    Y = z_m * v[:, None]
-    Z = z_m.astype(np.float64)
-    dXu, dYu, dZu = np.gradient(X, axis=1), np.gradient(Y, axis=1), np.gradient(Z, axis=1)
-    dXv, dYv, dZv = np.gradient(X, axis=0), np.gradient(Y, axis=0), np.gradient(Z, axis=0)
-    nx = dYu * dZv - dZu * dYv
-    ny = dZu * dXv - dXu * dZv
-    nz = dXu * dYv - dYu * dXv
-    n_norm = np.sqrt(nx * nx + ny * ny + nz * nz) + 1e-12
-    r_norm = np.sqrt(u[None, :] ** 2 + v[:, None] ** 2 + 1.0)
-    dot = nx * u[None, :] + ny * v[:, None] + nz
-    return np.abs(dot) / (n_norm * r_norm)
+def incidence_cos(z_m: NDArray[np.float32], k: CameraIntrinsics) -> NDArray[np.float32]:
+    """|cos| of the angle between the viewing ray and the surface normal, from the depth map alone.
+
+    With P = z r, r = ((x - cx)/fx, (y - cy)/fy, 1), the tangents P_x, P_y give the normal
+    n ~ (-a, -b, a u + b v + z) with a = fx dz/dx, b = fy dz/dy (per pixel), and n . r = z, so
+    cos = z / (|n| |r|). Central differences; depth edges come out grazing (invalid), as on the sensor.
+    """
+    z = np.asarray(z_m, dtype=np.float32)
+    H, W = z.shape
+    u = ((np.arange(W, dtype=np.float32) - k.cx) / k.fx)[None, :]
+    v = ((np.arange(H, dtype=np.float32) - k.cy) / k.fy)[:, None]
+    dz_x = np.empty_like(z)
+    dz_x[:, 1:-1] = (z[:, 2:] - z[:, :-2]) * 0.5
+    dz_x[:, 0] = z[:, 1] - z[:, 0]
+    dz_x[:, -1] = z[:, -1] - z[:, -2]
+    dz_y = np.empty_like(z)
+    dz_y[1:-1] = (z[2:] - z[:-2]) * 0.5
+    dz_y[0] = z[1] - z[0]
+    dz_y[-1] = z[-1] - z[-2]
+    a = np.float32(k.fx) * dz_x
+    b = np.float32(k.fy) * dz_y
+    c = a * u + b * v + z
+    n2 = a * a + b * b + c * c
+    r2 = u * u + v * v + np.float32(1.0)
+    return z / np.sqrt(n2 * r2 + np.float32(1e-12))
+
+
+class NoiseBank:
+    """Standard normal noise for whole images at a fraction of the cost: a pre-drawn field twice the
+    image size, read at a random offset each frame (consecutive frames are uncorrelated in practice)."""
+
+    def __init__(self, rng: np.random.Generator, shape: tuple[int, ...]) -> None:
+        self.rng = rng
+        self.shape = shape
+        big = (2 * shape[0], 2 * shape[1], *shape[2:])
+        self.field = rng.standard_normal(big, dtype=np.float32)
+
+    def draw(self) -> NDArray[np.float32]:
+        i = int(self.rng.integers(0, self.shape[0]))
+        j = int(self.rng.integers(0, self.shape[1]))
+        return self.field[i:i + self.shape[0], j:j + self.shape[1]]
 
 
 def depth_noise_model(z_m: NDArray[np.float32], k: CameraIntrinsics, cfg: CameraNoiseConfig, min_range_m: float,
-                      max_range_m: float, rng: np.random.Generator) -> NDArray[np.float32]:
-    """Noisy, quantised depth with 0 for invalid pixels (see module doc)."""
-    z = z_m.astype(np.float64)
-    noisy = z + cfg.depth_sigma_per_m2 * z * z * rng.standard_normal(z.shape)
+                      max_range_m: float, rng: np.random.Generator,
+                      noise: NDArray[np.float32] | None = None) -> NDArray[np.float32]:
+    """Noisy, quantised depth with 0 for invalid pixels (see module doc); ``noise``: N(0, 1) per pixel."""
+    z = np.asarray(z_m, dtype=np.float32)
+    if noise is None:
+        noise = rng.standard_normal(z.shape, dtype=np.float32)
+    noisy = z + np.float32(cfg.depth_sigma_per_m2) * z * z * noise
     if cfg.depth_quantum_m > 0:
-        noisy = np.round(noisy / cfg.depth_quantum_m) * cfg.depth_quantum_m
+        q = np.float32(cfg.depth_quantum_m)
+        noisy = np.round(noisy / q) * q
     valid = (z >= min_range_m) & (z <= max_range_m)
     valid &= incidence_cos(z_m, k) >= math.cos(math.radians(cfg.max_incidence_deg))
     return np.where(valid, noisy, 0.0).astype(np.float32)
@@ -95,6 +127,8 @@ class RgbdCamera:
         self._proj = projection_matrix_gl(self.intrinsics, noise.near_clip_m, noise.far_clip_m)
         self.R_qc = mount.R_qc_matrix
         self.p_qc_m = mount.p_qc
+        self._depth_noise = NoiseBank(rng, (h, w))
+        self._rgb_noise = NoiseBank(rng, (h, w, 3))
 
     def pose_ned(self, state: RigidState) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """Camera position (arena NED) and R_ned_c (optical -> NED)."""
@@ -116,10 +150,9 @@ class RgbdCamera:
     def render(self, state: RigidState, seq: int, stamp_s: float) -> RgbdFrame:
         rgb, z = self.render_raw(state)
         depth = depth_noise_model(z, self.intrinsics, self.noise, self.mount.min_range_m, self.mount.max_range_m,
-                                  self.rng)
+                                  self.rng, self._depth_noise.draw())
         if self.noise.rgb_noise_levels > 0:
-            noisy = rgb.astype(np.float32) + self.noise.rgb_noise_levels * self.rng.standard_normal(rgb.shape,
-                                                                                                   dtype=np.float32)
+            noisy = rgb.astype(np.float32) + np.float32(self.noise.rgb_noise_levels) * self._rgb_noise.draw()
             rgb = np.clip(noisy, 0, 255).astype(np.uint8)
         return RgbdFrame(seq=seq, stamp_s=stamp_s, rgb=rgb, depth_m=depth, intrinsics=self.intrinsics,
                          R_qc=self.R_qc, p_qc_m=self.p_qc_m, meta={"source": "sitl", "clock": "sim"})

@@ -107,6 +107,7 @@ class SceneObject:
     yaw_deg: float = 0.0
     texture: str = "noise"  # procedural: carpet, wood, concrete, noise, checker, plain
     color: tuple[float, float, float] = (0.7, 0.7, 0.7)
+    surface: Literal["object", "floor", "wall", "ceiling"] = "object"  # a rug counts as floor for truth id 1
 
 
 @dataclass(frozen=True)

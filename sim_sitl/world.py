@@ -129,14 +129,14 @@ class World:
         for obj in self.scenario.objects:
             centre = np.asarray(obj.position_m, dtype=float)
             if obj.kind == "box":
-                self._add_box(centre, obj.size_m, math.radians(obj.yaw_deg), obj.texture, obj.color, SURFACE_OBJECT)
+                self._add_box(centre, obj.size_m, math.radians(obj.yaw_deg), obj.texture, obj.color, obj.surface)
             else:
                 cs = p.createCollisionShape(p.GEOM_CYLINDER, radius=obj.radius_m, height=obj.height_m,
                                             physicsClientId=self.client)
                 vs = p.createVisualShape(p.GEOM_CYLINDER, radius=obj.radius_m, length=obj.height_m,
                                          physicsClientId=self.client)
                 body = p.createMultiBody(0.0, cs, vs, (D @ centre).tolist(), physicsClientId=self.client)
-                self._finish_static(body, obj.texture, obj.color, SURFACE_OBJECT)
+                self._finish_static(body, obj.texture, obj.color, obj.surface)
 
     def _build_vehicle(self) -> None:
         size = self.cfg.physics.body_size_m
