@@ -19,14 +19,14 @@ from typing import Literal
 import numpy as np
 from numpy.typing import NDArray
 
-from perception.attitude import AttitudeConfig, AttitudeFilter, so3_exp
+from perception.attitude import AttitudeConfig, AttitudeFilter, orthonormalise, qmul_exp
 from perception.obstacle_map import ObstacleMap, ObstacleMapConfig, ObstacleSectors
 from perception.obstacles import ObstacleConfig, extract_obstacles
 from perception.odometry import OdometryConfig, RgbdOdometry
 from perception.ukf import Ukf, UkfConfig
 from perception.velocity import VelocityConfig, VelocityEstimator, body_pose_in_world
 from quadlink.camera import CameraIntrinsics, RgbdFrame
-from quadlink.frames import R_hq, euler_from_R
+from quadlink.frames import R_from_quat_wxyz, R_hq, euler_from_R
 
 log = logging.getLogger(__name__)
 
@@ -79,7 +79,7 @@ class PerceptionPipeline:
                  rng: np.random.Generator, clock: Callable[[], float] = time.perf_counter) -> None:
         self.config = config
         self.intrinsics = intrinsics
-        self.R_qc = np.asarray(R_qc, dtype=float)
+        self.R_qc = orthonormalise(np.asarray(R_qc, dtype=float))   # configs carry ~6 decimals
         self.p_qc_m = np.asarray(p_qc_m, dtype=float)
         self._rng = rng
         self._clock = clock
@@ -88,7 +88,7 @@ class PerceptionPipeline:
         self._velocity = VelocityEstimator(self.R_qc, self.p_qc_m, config.velocity)
         self._ukf = Ukf(config.ukf) if config.estimator == "ukf" else None
         self._map = ObstacleMap(config.obstacle_map)
-        self._R_q_since_frame = np.eye(3)    # gyro-integrated body rotation since the last frame
+        self._q_since_frame = [1.0, 0.0, 0.0, 0.0]  # gyro-integrated body rotation since the last frame
         self._imu_since_frame = 0
         self._last_imu_stamp: float | None = None
         self._R_w_q0: NDArray[np.float64] | None = None
@@ -108,10 +108,11 @@ class PerceptionPipeline:
         if self._last_imu_stamp is not None and stamp_s <= self._last_imu_stamp:
             self.rejected_imu += 1       # out of order / duplicate
             return
-        est = self._attitude.update(stamp_s, gyro, accel)
+        self._attitude.update(stamp_s, gyro, accel)
         if self._last_imu_stamp is not None:
             dt = min(stamp_s - self._last_imu_stamp, self.config.attitude.max_dt_s)
-            self._R_q_since_frame = self._R_q_since_frame @ so3_exp((gyro - est.gyro_bias_rad_s) * dt)
+            w = (gyro - self._attitude.gyro_bias_rad_s) * dt
+            self._q_since_frame = qmul_exp(self._q_since_frame, float(w[0]), float(w[1]), float(w[2]))
             self._imu_since_frame += 1
         self._last_imu_stamp = stamp_s
         if self._ukf is not None:
@@ -126,8 +127,9 @@ class PerceptionPipeline:
         K = frame.intrinsics
         R_prior = None
         if cfg.imu_rotation_prior and self._imu_since_frame > 0:
-            R_prior = self.R_qc.T @ self._R_q_since_frame @ self.R_qc    # camera k-1 -> k rotation
-        self._R_q_since_frame = np.eye(3)
+            R_q = R_from_quat_wxyz(self._q_since_frame)
+            R_prior = self.R_qc.T @ R_q @ self.R_qc    # camera k-1 -> k rotation
+        self._q_since_frame = [1.0, 0.0, 0.0, 0.0]
         self._imu_since_frame = 0
         if frame.depth_m is not None:
             odo = self._odometry.process(frame.stamp_s, frame.rgb, frame.depth_m, K, R_prior)

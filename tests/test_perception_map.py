@@ -1,0 +1,173 @@
+"""Obstacle sectors (section III) and the local obstacle map (section V, eq. 14)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from perception.obstacle_map import ObstacleMap, ObstacleMapConfig
+from perception.obstacles import ObstacleConfig, extract_obstacles
+from quadlink.camera import CameraIntrinsics
+from quadlink.frames import R_hq, Rz
+
+K = CameraIntrinsics.from_fov(320, 240, 58.0, 45.0)
+# camera looking forward along body x: optical z -> body x, optical x -> body y, optical y -> body z
+R_QC_FWD = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+
+
+def _wall_depth(distance_m: float) -> np.ndarray:
+    """Depth image of a fronto-parallel wall at ``distance_m`` (depth = z for every pixel)."""
+    return np.full((K.height, K.width), distance_m, np.float32)
+
+
+def test_sector_closest_points_of_a_wall_lie_on_it_and_at_the_sector_corners_nearest_the_axis() -> None:
+    cfg = ObstacleConfig(rows=4, cols=4, max_range_m=5.0)
+    obs = extract_obstacles(_wall_depth(2.0), K, np.eye(3), np.zeros(3), 0.0, 0.0, cfg)
+    assert obs.points_c_m.shape == (16, 3)
+    assert np.allclose(obs.points_c_m[:, 2], 2.0)
+    # closest point of a fronto-parallel wall in a sector: the pixel of the sector nearest the optical axis
+    for s, p in enumerate(obs.points_c_m):
+        i, j = divmod(s, 4)
+        u = K.fx * p[0] / p[2] + K.cx
+        v = K.fy * p[1] / p[2] + K.cy
+        u_lo, u_hi = j * 80, (j + 1) * 80 - 1
+        v_lo, v_hi = i * 60, (i + 1) * 60 - 1
+        assert u == pytest.approx(np.clip(K.cx, u_lo, u_hi), abs=0.51)
+        assert v == pytest.approx(np.clip(K.cy, v_lo, v_hi), abs=0.51)
+    assert np.allclose(obs.ranges_m, np.linalg.norm(obs.points_c_m, axis=1))
+
+
+def test_sector_points_transform_to_h_with_extrinsics_and_roll_pitch() -> None:
+    p_qc = np.array([0.1, 0.0, 0.05])
+    roll, pitch = 0.1, -0.2
+    obs = extract_obstacles(_wall_depth(2.0), K, R_QC_FWD, p_qc, roll, pitch, ObstacleConfig())
+    expected = (obs.points_c_m @ R_QC_FWD.T + p_qc) @ R_hq(roll, pitch).T
+    assert np.allclose(obs.points_h_m, expected)
+    assert np.allclose(obs.R_hc, R_hq(roll, pitch) @ R_QC_FWD)
+
+
+def test_free_and_unobserved_sectors() -> None:
+    cfg = ObstacleConfig(rows=2, cols=2, max_range_m=3.0)
+    depth = _wall_depth(5.0)              # beyond range everywhere -> free
+    depth[:120, :160] = 0.0               # top-left sector: no valid pixel -> unobserved
+    depth[120:, 160:] = 1.5               # bottom-right: an obstacle
+    obs = extract_obstacles(depth, K, np.eye(3), np.zeros(3), 0.0, 0.0, cfg)
+    assert math.isnan(obs.ranges_m[0])
+    assert obs.ranges_m[1] == math.inf and obs.ranges_m[2] == math.inf
+    assert 1.5 <= obs.ranges_m[3] < 1.6
+    assert obs.points_c_m.shape == (1, 3)
+
+
+def test_time_update_matches_eq_14_without_noise(rng: np.random.Generator) -> None:
+    m = ObstacleMap(ObstacleMapConfig(velocity_noise_m_s=0.0, yaw_rate_noise_rad_s=0.0, max_age_s=100.0))
+    p0 = np.array([[2.0, 0.5, -0.3], [-1.0, 1.5, 0.2], [0.5, -2.0, 0.0]])
+    m.points_h_m = p0.copy()
+    m.ages_s = np.zeros(3)
+    v_k, v_k1 = np.array([0.4, -0.1, 0.05]), np.array([0.6, 0.1, -0.05])
+    r_k, r_k1 = 0.3, 0.5
+    dt = 0.1
+    m.predict(dt, v_k, v_k1, r_k, r_k1, rng)
+    u = dt * (v_k + v_k1) / 2.0
+    psi = dt * (r_k + r_k1) / 2.0
+    expected = (p0 - u) @ Rz(psi)          # rows: Rz(psi)^T (p - u)
+    assert np.allclose(m.points_h_m, expected, atol=1e-12)
+    assert np.allclose(m.ages_s, dt)
+
+
+def test_time_update_of_a_static_obstacle_over_a_known_motion(rng: np.random.Generator) -> None:
+    """Flying a circle-free path with constant v_h and yaw rate: the map point follows the analytic H position."""
+    m = ObstacleMap(ObstacleMapConfig(velocity_noise_m_s=0.0, yaw_rate_noise_rad_s=0.0, max_age_s=100.0,
+                                      radius_m=100.0))
+    obstacle_w = np.array([3.0, 1.0, 0.0])
+    m.points_h_m = obstacle_w[None].copy()
+    m.ages_s = np.zeros(1)
+    v_h = np.array([0.5, 0.0, 0.0])        # forward in H; the heading rotates at r
+    r = 0.2
+    dt = 1 / 30
+    pos_w, yaw = np.zeros(3), 0.0
+    for _ in range(90):
+        m.predict(dt, v_h, v_h, r, r, rng)
+        # exact motion: v_h constant in the rotating frame -> integrate finely
+        for _ in range(100):
+            pos_w = pos_w + Rz(yaw) @ v_h * (dt / 100)
+            yaw += r * dt / 100
+    expected_h = Rz(yaw).T @ (obstacle_w - pos_w)
+    assert np.allclose(m.points_h_m[0], expected_h, atol=5e-3)
+
+
+def test_time_update_noise_statistics(rng: np.random.Generator) -> None:
+    cfg = ObstacleMapConfig(velocity_noise_m_s=0.1, yaw_rate_noise_rad_s=0.0, max_age_s=100.0)
+    m = ObstacleMap(cfg)
+    m.points_h_m = np.tile([2.0, 0.0, 0.0], (4000, 1))
+    m.ages_s = np.zeros(4000)
+    dt = 0.1
+    m.predict(dt, np.zeros(3), np.zeros(3), 0.0, 0.0, rng)
+    # u = dt n_v / 2 -> std dt * 0.1 / 2 = 0.005 per axis
+    assert m.points_h_m.std(axis=0) == pytest.approx([0.005] * 3, rel=0.1)
+    assert np.allclose(m.points_h_m.mean(axis=0), [2.0, 0.0, 0.0], atol=5e-4)
+
+
+def _observe(m: ObstacleMap, stamp: float, depth: np.ndarray) -> None:
+    obs = extract_obstacles(depth, K, R_QC_FWD, np.zeros(3), 0.0, 0.0, ObstacleConfig(rows=2, cols=4))
+    m.measure(stamp, obs)
+
+
+def test_measurement_overwrites_cells_with_copies_and_sectors_report_distance() -> None:
+    m = ObstacleMap(ObstacleMapConfig(copies=4))
+    sec = m.sectors(0.0)
+    assert sec.distances_m.shape == (72,) and np.all(np.isnan(sec.distances_m))   # never observed: unknown
+    _observe(m, 0.0, _wall_depth(2.0))
+    assert len(m) == 8 * 4
+    _observe(m, 0.1, _wall_depth(1.5))   # same cells, nearer: overwritten, not accumulated
+    assert len(m) == 8 * 4
+    assert np.all(np.abs(m.points_h_m[:, 0] - 1.5) < 1e-6)
+    sec = m.sectors(0.1)
+    assert sec.distances_m[0] == pytest.approx(1.5, abs=0.01)    # straight ahead
+    behind = sec.distances_m[36]
+    assert math.isnan(behind)
+    nearest = m.nearest_h()
+    assert nearest is not None and nearest[0] == pytest.approx(1.5)
+
+
+def test_free_space_is_carved_and_free_sectors_are_inf() -> None:
+    m = ObstacleMap()
+    _observe(m, 0.0, _wall_depth(2.0))
+    assert len(m) > 0
+    _observe(m, 0.1, _wall_depth(6.0))   # the wall is gone: everything in view beyond range
+    assert len(m) == 0
+    sec = m.sectors(0.1)
+    assert sec.distances_m[0] == math.inf
+    assert np.isinf(sec.distances_m[[71, 0, 1]]).all()
+
+
+def test_particles_age_out_and_leave_the_radius(rng: np.random.Generator) -> None:
+    cfg = ObstacleMapConfig(max_age_s=1.0, radius_m=3.0, velocity_noise_m_s=0.0, yaw_rate_noise_rad_s=0.0)
+    m = ObstacleMap(cfg)
+    _observe(m, 0.0, _wall_depth(2.0))
+    n0 = len(m)
+    m.predict(0.5, np.array([-1.0, 0, 0]), np.array([-1.0, 0, 0]), 0.0, 0.0, rng)   # backing away 0.5 m
+    assert len(m) == n0
+    m.predict(0.6, np.array([-1.0, 0, 0]), np.array([-1.0, 0, 0]), 0.0, 0.0, rng)   # older than 1 s
+    assert len(m) == 0
+    _observe(m, 2.0, _wall_depth(2.0))
+    m.predict(0.2, np.array([-8.0, 0, 0]), np.array([-8.0, 0, 0]), 0.0, 0.0, rng)   # 1.6 m back: beyond 3 m
+    assert len(m) == 0
+    # the observation expires too: free becomes unknown
+    assert math.isinf(m.sectors(2.5).distances_m[0])
+    assert math.isnan(m.sectors(3.1).distances_m[0])
+
+
+def test_obstacle_kept_while_out_of_view_during_a_yaw_sweep(rng: np.random.Generator) -> None:
+    """Pan-scan: seen ahead, then the vehicle yaws 60° right; the particles stay, now at -60° azimuth."""
+    cfg = ObstacleMapConfig(velocity_noise_m_s=0.0, yaw_rate_noise_rad_s=0.0)
+    m = ObstacleMap(cfg)
+    _observe(m, 0.0, _wall_depth(2.0))
+    for _ in range(30):
+        m.predict(1 / 30, np.zeros(3), np.zeros(3), math.radians(60), math.radians(60), rng)
+    az = np.degrees(np.arctan2(m.points_h_m[:, 1], m.points_h_m[:, 0]))
+    assert len(m) == 8 * cfg.copies
+    assert np.median(az) == pytest.approx(-60.0, abs=3.0)
+    sec = m.sectors(1.0)
+    assert np.isfinite(sec.distances_m[72 - 12])   # sector at -60°
