@@ -35,6 +35,7 @@ from companion import messages as msgs
 from companion.cameras import CameraInput
 from companion.commands import (
     PX4_CUSTOM_MAIN_MODE_AUTO,
+    PX4_CUSTOM_SUB_MODE_AUTO_LAND,
     PX4_CUSTOM_SUB_MODE_AUTO_TAKEOFF,
     CommandQueue,
 )
@@ -78,7 +79,7 @@ class Pipeline(Protocol):
 PipelineFactory = Callable[[RgbdFrame], Pipeline]
 
 # Companion parameters (PARAM_* to compid 191; also MAV_CMD_DO_SET_PARAMETER param1 = index).
-PARAM_NAMES = ("PS_ENABLE", "PS_AMP", "PS_OMEGA", "CMP_K_V", "CMP_K_PSI", "CMP_SAFE_DIST")
+PARAM_NAMES = ("PANSCAN_EN", "PANSCAN_AMP", "PANSCAN_OMEGA", "CMP_K_V", "CMP_K_PSI", "CMP_SAFE_DIST")
 MAX_ROUTED_PER_STEP = 2000
 MAX_IMAGE_POINTS = 400
 PROGRESS_EVERY_S = 5.0
@@ -113,7 +114,9 @@ class _Vehicle:
             in_air = self.armed
         taking_off = (self.landed_state == mavlink.MAV_LANDED_STATE_TAKEOFF
                       or (main == PX4_CUSTOM_MAIN_MODE_AUTO and sub == PX4_CUSTOM_SUB_MODE_AUTO_TAKEOFF))
-        return VehicleStatus(self.armed, in_air, taking_off)
+        landing = (self.landed_state == mavlink.MAV_LANDED_STATE_LANDING
+                   or (main == PX4_CUSTOM_MAIN_MODE_AUTO and sub == PX4_CUSTOM_SUB_MODE_AUTO_LAND))
+        return VehicleStatus(self.armed, in_air, taking_off, landing)
 
 
 def default_pipeline_factory(cfg: CompanionConfig, seed: int = 0) -> PipelineFactory:
@@ -392,20 +395,21 @@ class Companion:
 
     def param_values(self) -> dict[str, float]:
         s, r = self.scan_params, self.ref_params
-        return {"PS_ENABLE": 1.0 if s.enabled else 0.0, "PS_AMP": s.amplitude_rad_s, "PS_OMEGA": s.omega_rad_s,
+        return {"PANSCAN_EN": 1.0 if s.enabled else 0.0, "PANSCAN_AMP": s.amplitude_rad_s,
+                "PANSCAN_OMEGA": s.omega_rad_s,
                 "CMP_K_V": r.k_v_m_s, "CMP_K_PSI": r.k_psi_rad_s, "CMP_SAFE_DIST": r.safe_distance_m}
 
     def set_param(self, name: str, value: float) -> bool:
         if not math.isfinite(value):
             return False
         old = self.param_values()[name]
-        if name == "PS_ENABLE":
+        if name == "PANSCAN_EN":
             self.scan_params = dataclasses.replace(self.scan_params, enabled=value >= 0.5)
-        elif name in ("PS_AMP", "PS_OMEGA"):
-            if value < 0 or (name == "PS_OMEGA" and value == 0):
+        elif name in ("PANSCAN_AMP", "PANSCAN_OMEGA"):
+            if value < 0 or (name == "PANSCAN_OMEGA" and value == 0):
                 return False
-            amp = value if name == "PS_AMP" else self.scan_params.amplitude_rad_s
-            omega = value if name == "PS_OMEGA" else self.scan_params.omega_rad_s
+            amp = value if name == "PANSCAN_AMP" else self.scan_params.amplitude_rad_s
+            omega = value if name == "PANSCAN_OMEGA" else self.scan_params.omega_rad_s
             cfg = dataclasses.replace(self.cfg.pan_scan, enabled=self.scan_params.enabled, amplitude_rad_s=amp,
                                       omega_rad_s=omega)
             self.scan_params = pan_scan_params(cfg)  # the response depends on omega

@@ -3,7 +3,9 @@
 Modes (TELEOP_FEEDBACK.mode numbering): IDLE 0, TAKEOFF 1, TELEOP 2, HOLD 3, LAND 4.
 
 * IDLE: on the ground or not in control. Ground-station ``takeoff`` -> arm + takeoff commands to the
-  autopilot -> TAKEOFF. ``arm`` / ``disarm`` are passed on as commands.
+  autopilot -> TAKEOFF. ``arm`` / ``disarm`` are passed on as commands. A takeoff commanded to the
+  autopilot directly (a ground station talking to compid 1 through the routing) is followed too: the
+  autopilot reporting its takeoff -> TAKEOFF.
 * TAKEOFF: waits for the autopilot to finish its takeoff (in air and no longer in its takeoff mode, or
   armed for ``takeoff_timeout_s``), then asks for offboard mode -> TELEOP. Disarm or a refused
   command -> IDLE.
@@ -12,7 +14,8 @@ Modes (TELEOP_FEEDBACK.mode numbering): IDLE 0, TAKEOFF 1, TELEOP 2, HOLD 3, LAN
   lost (no MANUAL_CONTROL for ``gcs_timeout_s``) or the odometry fails; left to TELEOP when both are
   good again (odometry good for ``odometry_recover_s``); -> LAND when the link stays lost for
   ``gcs_land_timeout_s`` or the odometry stays bad for ``odometry_land_timeout_s``.
-* LAND: land command to the autopilot; -> IDLE when the autopilot reports landed or disarmed.
+* LAND: land command to the autopilot; -> IDLE when the autopilot reports landed or disarmed. The
+  autopilot reporting that it lands (commanded by someone else, or its own failsafe) -> LAND.
 
 Every transition returns a :class:`StatusText` action (the daemon logs it and sends STATUSTEXT) and
 the autopilot commands to send as :class:`AutopilotRequest` actions (the daemon sends them with acks
@@ -51,6 +54,7 @@ class VehicleStatus:
     armed: bool = False
     in_air: bool = False
     taking_off: bool = False
+    landing: bool = False
 
 
 @dataclass(frozen=True)
@@ -171,7 +175,11 @@ class ModeMachine:
         odo_good = self._odometry_ok_since_s is not None and now_s - self._odometry_ok_since_s >= p.odometry_recover_s
         in_mode = now_s - self._entered_s
 
-        if self.mode == Mode.TAKEOFF:
+        if self.mode == Mode.IDLE and status.armed and status.taking_off:
+            actions += self._go(Mode.TAKEOFF, now_s, "autopilot taking off")
+        elif self.mode in (Mode.TAKEOFF, Mode.TELEOP, Mode.HOLD) and status.armed and status.landing:
+            actions += self._go(Mode.LAND, now_s, "autopilot landing", SEVERITY_NOTICE)
+        elif self.mode == Mode.TAKEOFF:
             if not status.armed and in_mode > 2.0:
                 actions += self._go(Mode.IDLE, now_s, "disarmed during takeoff", SEVERITY_WARNING)
             elif status.armed and ((status.in_air and not status.taking_off and in_mode >= p.takeoff_min_s)

@@ -227,13 +227,13 @@ def test_daemon_flies_teleop_routes_and_fails_safe(rig: Rig) -> None:
     assert hb[-1].autopilot == mavlink.MAV_AUTOPILOT_INVALID
     assert hb[-1].get_srcSystem() == 1
     rig.gcs.link.mav.param_request_read_send(1, 1, b"MPC_XY_VEL_MAX", -1)
-    rig.gcs.link.mav.param_set_send(1, 191, b"PS_AMP", 0.4, mavlink.MAV_PARAM_TYPE_REAL32)
+    rig.gcs.link.mav.param_set_send(1, 191, b"PANSCAN_AMP", 0.4, mavlink.MAV_PARAM_TYPE_REAL32)
     rig.frame(manual=(0, 0, 500))
     rig.frame(manual=(0, 0, 500))
     reads = rig.ap.of_type("PARAM_REQUEST_READ")
     assert reads and reads[-1].get_srcSystem() == 255, "GCS message not routed to the autopilot"
     assert not rig.ap.of_type("MANUAL_CONTROL"), "MANUAL_CONTROL is the companion's, not routed"
-    pv = [m for m in rig.gcs.of_type("PARAM_VALUE", src_comp=191) if m.param_id == "PS_AMP"]
+    pv = [m for m in rig.gcs.of_type("PARAM_VALUE", src_comp=191) if m.param_id == "PANSCAN_AMP"]
     assert pv and pv[-1].param_value == pytest.approx(0.4)
     assert rig.gcs.of_type("OBSTACLE_DISTANCE")[-1].distances[30] == UINT16_UNKNOWN
     assert rig.gcs.of_type("OBSTACLE_DISTANCE")[-1].distances[0] == 351

@@ -143,3 +143,18 @@ def test_offboard_is_px4_do_set_mode() -> None:
     c = command_for(AutopilotRequest("offboard"))
     assert c.command == mavlink.MAV_CMD_DO_SET_MODE
     assert c.params[0] == mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED and c.params[1] == 6
+
+
+def test_follows_takeoff_and_landing_commanded_to_the_autopilot_directly() -> None:
+    m = ModeMachine(ModeParams(takeoff_min_s=0.5))
+    m.on_manual_control(0.0)
+    actions = m.update(0.0, VehicleStatus(armed=True, in_air=True, taking_off=True), True)
+    assert m.mode == Mode.TAKEOFF and _requests(actions) == []
+    m.on_manual_control(1.0)
+    actions = m.update(1.0, FLYING, True)
+    assert m.mode == Mode.TELEOP and _requests(actions) == ["offboard"]
+    m.on_manual_control(1.1)
+    actions = m.update(1.1, VehicleStatus(armed=True, in_air=True, landing=True), True)
+    assert m.mode == Mode.LAND and _requests(actions) == []
+    m.update(3.0, VehicleStatus(armed=False), True)
+    assert m.mode == Mode.IDLE
