@@ -25,6 +25,7 @@ class DeviceConfig:
     force_limit_n: float = 12.0                        # omega.6 continuous force limit
     force_rate_hz: float = 1000.0                      # force loop rate
     spin_s: float = 0.0002                             # busy-wait before each tick (precise sleep)
+    realtime_priority: int = 20                        # SCHED_FIFO priority of the force thread; 0 = normal
 
     def __post_init__(self) -> None:
         if min(self.mass_kg) <= 0 or min(self.damping_n_s_m) < 0 or min(self.workspace_m) <= 0:
@@ -104,6 +105,7 @@ class ViewConfig:
     initial_frequency_hz: float = 0.25       # companion default: omega 1.5 rad/s
     bandpass_q: float = 1.5                  # quality factor of the band-pass (unit gain at f0)
     bias_periods: float = 1.0                # length of the moving-average bias low-pass, in periods
+    operator_yaw_time_constant_s: float = 0.15  # yaw-loop model for removing the operator's turns (0 = step)
     obstacle_warning_m: float = 0.8
     battery_warning_v: float = 10.5
 

@@ -18,6 +18,7 @@ from __future__ import annotations
 import csv
 import logging
 import math
+import os
 import queue
 import sys
 import threading
@@ -268,6 +269,7 @@ class Station:
 
     # ---- force loop (1 kHz) ----------------------------------------------------------------
     def _force_loop(self) -> None:
+        _try_realtime(self.cfg.device.realtime_priority)
         period = 1.0 / self.cfg.device.force_rate_hz
         fade = LinkFade(self.cfg.force.fade_time_s)
         spin = self.cfg.device.spin_s
@@ -299,9 +301,10 @@ class Station:
     def _network_loop(self) -> None:
         period = 1.0 / self.cfg.mapping.rate_hz
         conn = self._conn
-        estimator = PanScanEstimator(self.cfg.view.initial_frequency_hz, self.cfg.view.min_frequency_hz,
-                                     self.cfg.view.max_frequency_hz, self.cfg.view.bandpass_q,
-                                     self.cfg.view.bias_periods)
+        vcfg = self.cfg.view
+        estimator = PanScanEstimator(vcfg.initial_frequency_hz, vcfg.min_frequency_hz, vcfg.max_frequency_hz,
+                                     vcfg.bandpass_q, vcfg.bias_periods,
+                                     operator_yaw_time_constant_s=vcfg.operator_yaw_time_constant_s)
         ap = (self.cfg.commands.autopilot_system, self.cfg.commands.autopilot_component)
         csv_file: TextIO | None = None
         writer = None
@@ -331,7 +334,8 @@ class Station:
                     tel = apply_message(tel, msg, t, ap, self.cfg.commands.companion_component)
                     if mtype == "TELEOP_FEEDBACK" and tel.feedback is not None:
                         fb = tel.feedback
-                        est = estimator.update(fb.gyro_yaw_rate_rad_s, fb.time_usec * 1e-6, fb.pan_scan_on)
+                        est = estimator.update(fb.gyro_yaw_rate_rad_s, fb.time_usec * 1e-6, fb.pan_scan_on,
+                                               fb.yaw_rate_cmd_rad_s - fb.pan_scan_yaw_rate_rad_s)
                         self._pan_scan_hz = est.frequency_hz
                         ps = (est.yaw_rate_rad_s if self.cfg.force.pan_scan_source == "estimated"
                               else fb.pan_scan_yaw_rate_rad_s if fb.pan_scan_on else 0.0)
@@ -431,7 +435,8 @@ class Station:
         vcfg = self.cfg.view
         renderer = OperatorViewRenderer(vcfg.canvas_width_px, vcfg.canvas_height_px, vcfg.background_decay_s)
         estimator = PanScanEstimator(vcfg.initial_frequency_hz, vcfg.min_frequency_hz, vcfg.max_frequency_hz,
-                                     vcfg.bandpass_q, vcfg.bias_periods)
+                                     vcfg.bandpass_q, vcfg.bias_periods,
+                                     operator_yaw_time_constant_s=vcfg.operator_yaw_time_constant_s)
         client = CameraStreamClient(self.image_stream_url) if self.image_stream_url else None
         if client is not None:
             log.info("operator view: image stream %s", self.image_stream_url)
@@ -452,7 +457,8 @@ class Station:
                     continue
                 meta = frame.meta or {}
                 gyro = _meta_float(meta, "gyro_yaw_rate_rad_s")
-                est = estimator.update(gyro, frame.stamp_s, bool(meta.get("pan_scan_on", True)))
+                est = estimator.update(gyro, frame.stamp_s, bool(meta.get("pan_scan_on", True)),
+                                       self._operator_yaw_rate_cmd())
                 img = renderer.render(frame.rgb, frame.intrinsics, frame.R_qc, _meta_float(meta, "roll_rad"),
                                       _meta_float(meta, "pitch_rad"), est.yaw_rad, frame.stamp_s,
                                       self._overlay(meta, ()))
@@ -488,10 +494,30 @@ class Station:
                        force_limit_n=self.cfg.device.force_limit_n, obstacle_points_c_m=pts,  # type: ignore[arg-type]
                        status_lines=lines, warnings=tuple(s["warnings"]) + extra_warnings)
 
+    def _operator_yaw_rate_cmd(self) -> float:
+        """The operator's part of the commanded yaw rate (latest TELEOP_FEEDBACK), 0 without a link."""
+        fb = self.telemetry.feedback
+        if fb is None or not link_ok(fb.t_recv_s, self.clock(), self.cfg.force.link_timeout_s):
+            return 0.0
+        return fb.yaw_rate_cmd_rad_s - fb.pan_scan_yaw_rate_rad_s
+
     def _publish(self, img: NDArray[np.uint8]) -> None:
         ok, buf = cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, self.cfg.view.jpeg_quality])
         if ok:
             self.hub.publish(buf.tobytes())
+
+
+def _try_realtime(priority: int) -> None:
+    """SCHED_FIFO for the calling (force) thread: on a loaded machine the normal scheduler lets it miss
+    ticks by several ms. The loop sleeps most of each period, so it cannot starve the machine."""
+    if priority <= 0:
+        return
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
+        log.info("force loop: real-time priority SCHED_FIFO %d", priority)
+    except (AttributeError, OSError) as exc:
+        log.warning("force loop: no real-time priority (%s); expect ms jitter under load "
+                    "(allow it with 'ulimit -r %d' or CAP_SYS_NICE)", exc, priority)
 
 
 def _meta_float(meta: dict[str, Any], key: str) -> float:

@@ -12,6 +12,12 @@ The measured yaw rate (gyro: operator command + pan-scan oscillation + bias + no
 
 The image is then shifted by p_x = k_px psi_s (view/compensation.py). Pure: samples and their
 times in, estimates out; non-uniform sample times are handled by re-tuning on the mean step.
+
+Beyond the paper: the operator's own yaw command is known to the ground station (TELEOP_FEEDBACK:
+yaw_rate_cmd - pan_scan_yaw_rate). Its expected response (a first-order yaw loop, time constant
+``operator_yaw_time_constant_s``) is subtracted from the gyro before the band-pass, so the transients
+of the operator's turns do not leak into psi_s (benchmarks/bench_teleop.py: 15 % -> 2 % residual
+with frequent turns). With no operator yaw input this is exactly the paper's scheme.
 """
 
 from __future__ import annotations
@@ -118,8 +124,11 @@ class PanScanEstimator:
     """Band-pass + peak-to-peak tuning + integration + moving-average bias removal (section VI-B)."""
 
     def __init__(self, initial_hz: float = 0.5, min_hz: float = 0.05, max_hz: float = 3.0, q: float = 1.5,
-                 bias_periods: float = 1.0, fade_time_s: float = 1.0) -> None:
+                 bias_periods: float = 1.0, fade_time_s: float = 1.0,
+                 operator_yaw_time_constant_s: float = 0.15) -> None:
         self.freq = PeakToPeakFrequency(initial_hz, min_hz, max_hz)
+        self.operator_yaw_time_constant_s = operator_yaw_time_constant_s
+        self._operator_rate = 0.0        # modelled response of the yaw loop to the operator's command
         self.q = q
         self.bias_periods = bias_periods
         self.fade_time_s = fade_time_s
@@ -134,12 +143,17 @@ class PanScanEstimator:
 
     def reset(self) -> None:
         self.__init__(self.freq.frequency_hz, self.freq.min_hz, self.freq.max_hz, self.q,  # type: ignore[misc]
-                      self.bias_periods, self.fade_time_s)
+                      self.bias_periods, self.fade_time_s, self.operator_yaw_time_constant_s)
 
-    def update(self, gyro_yaw_rate_rad_s: float, t_s: float, enabled: bool = True) -> PanScanEstimate:
+    def update(self, gyro_yaw_rate_rad_s: float, t_s: float, enabled: bool = True,
+               operator_yaw_rate_cmd_rad_s: float = 0.0) -> PanScanEstimate:
+        """One gyro sample at ``t_s``; ``operator_yaw_rate_cmd_rad_s``: the operator's yaw command (0 if unknown)."""
         gyro_yaw_rate_rad_s = float(gyro_yaw_rate_rad_s)
+        operator = float(operator_yaw_rate_cmd_rad_s)
         if not math.isfinite(gyro_yaw_rate_rad_s):
             return self.last
+        if not math.isfinite(operator):
+            operator = 0.0
         if self._t_prev is None:
             self._t_prev = t_s
             return self.last
@@ -152,13 +166,15 @@ class PanScanEstimator:
             return self.last
         self._t_prev = t_s
         self._dt_mean = dt if self._dt_mean is None else 0.95 * self._dt_mean + 0.05 * dt
+        tau = self.operator_yaw_time_constant_s
+        self._operator_rate += (1.0 - math.exp(-dt / tau) if tau > 0 else 1.0) * (operator - self._operator_rate)
         fs = 1.0 / self._dt_mean
         f0 = self.freq.frequency_hz
         if self._bp is None:
             self._bp = BandPass(f0, self.q, fs)
         elif abs(f0 - self._bp.f0_hz) > 0.01 * self._bp.f0_hz or abs(fs - self._bp.fs_hz) > 0.05 * self._bp.fs_hz:
             self._bp.tune(f0, fs)
-        y = self._bp.step(gyro_yaw_rate_rad_s)
+        y = self._bp.step(gyro_yaw_rate_rad_s - self._operator_rate)
         self.freq.update(y, t_s)
         self._psi_int += 0.5 * (y + self._y_prev) * dt      # trapezoidal integration
         self._y_prev = y
