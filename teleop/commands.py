@@ -1,7 +1,8 @@
 """Buttons -> vehicle commands with acknowledgements checked (pure: time passed in).
 
-arm / disarm / takeoff / land are COMMAND_LONG to the autopilot (sysid 1 compid 1), acknowledged by
-COMMAND_ACK; pan-scan on/off is a PARAM_SET of ``PANSCAN_EN`` on the companion (compid 191),
+arm / disarm / takeoff / land are COMMAND_LONG to the vehicle (sysid 1; compid 191, the companion, whose
+mode machine forwards them to the autopilot; ``commands.command_component``), acknowledged by COMMAND_ACK;
+pan-scan on/off is a PARAM_SET of ``PANSCAN_EN`` on the companion (compid 191),
 acknowledged by the PARAM_VALUE echo. Unacknowledged requests are re-sent (COMMAND_LONG with the
 ``confirmation`` counter incremented, as MAVLink's command protocol asks) and reported as timed out
 after the last retry.
@@ -55,7 +56,7 @@ class CommandTracker:
 
     def build(self, button: str, pan_scan_on: bool | None = None) -> OutgoingCommand | None:
         c = self.cfg
-        ap = (c.autopilot_system, c.autopilot_component)
+        ap = (c.autopilot_system, c.command_component)
         if button == "arm":
             return OutgoingCommand("arm", "command_long", *ap, mavlink.MAV_CMD_COMPONENT_ARM_DISARM,
                                    (1.0, 0, 0, 0, 0, 0, 0))

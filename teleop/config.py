@@ -81,11 +81,17 @@ class MappingConfig:
 
 @dataclass(frozen=True)
 class CommandsConfig:
-    """Buttons -> COMMAND_LONG / PARAM_SET, with acks."""
+    """Buttons -> COMMAND_LONG / PARAM_SET, with acks.
+
+    arm/disarm/takeoff/land go to ``command_component``: the companion (191) runs them through its mode
+    machine (checks, autonomous take-off, then the autopilot); 1 would send them to the autopilot directly,
+    bypassing the companion's modes.
+    """
 
     autopilot_system: int = 1
     autopilot_component: int = 1
     companion_component: int = 191
+    command_component: int = 191
     pan_scan_param: str = "PANSCAN_EN"
     takeoff_altitude_m: float = 1.0
     ack_timeout_s: float = 1.0

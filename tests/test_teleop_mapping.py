@@ -64,7 +64,7 @@ def test_buttons_to_commands_with_acks_and_retries():
     tracker = CommandTracker(CommandsConfig(ack_timeout_s=1.0, retries=2))
     arm = tracker.build("arm")
     assert arm is not None and arm.command == mavlink.MAV_CMD_COMPONENT_ARM_DISARM and arm.params[0] == 1.0
-    assert (arm.target_system, arm.target_component) == (1, 1)
+    assert (arm.target_system, arm.target_component) == (1, 191)     # through the companion's modes
     tracker.submit(arm, 0.0)
     assert tracker.poll(0.5) == ([], [])
     resend, failed = tracker.poll(1.1)
