@@ -58,7 +58,9 @@ def _inv(T: NDArray[np.float64]) -> NDArray[np.float64]:
 
 
 def _angle(R: NDArray[np.float64]) -> float:
-    return math.acos(max(-1.0, min(1.0, (float(np.trace(R)) - 1.0) / 2.0)))
+    """Rotation angle, accurate near zero (atan2 of the skew part and the trace, not acos alone)."""
+    s = 0.5 * math.sqrt((R[2, 1] - R[1, 2]) ** 2 + (R[0, 2] - R[2, 0]) ** 2 + (R[1, 0] - R[0, 1]) ** 2)
+    return math.atan2(s, (float(np.trace(R)) - 1.0) / 2.0)
 
 
 def rpe(stamps: NDArray[np.float64], est: Poses, gt: Poses, delta_s: float | None = None) -> RpeResult:

@@ -36,7 +36,7 @@ class OdometryConfig:
 
     levels: int = 3                                  # pyramid levels (finest = input resolution)
     iterations: tuple[int, ...] = (10, 6, 3)         # Gauss-Newton iterations per level, coarse -> fine
-    max_points: tuple[int, ...] = (600, 1200, 1500)  # selected reference pixels per level, coarse -> fine
+    max_points: tuple[int, ...] = (600, 1200, 4000)  # selected reference pixels per level, coarse -> fine
     working_width_px: int = 320                      # frames wider than this are downscaled first (QVGA)
     min_depth_m: float = 0.2
     max_depth_m: float = 6.0

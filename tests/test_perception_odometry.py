@@ -1,0 +1,212 @@
+"""RGB-D odometry on synthetic pairs with known motion and on real TUM frames; metrics, sources, vo-eval."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from perception import metrics
+from perception.cli import command as vo_eval
+from perception.odometry import OdometryConfig, RgbdOdometry, inv_T, prepare_frame, se3_exp, so3_log
+from perception.sources import (
+    SourceUnavailable,
+    TumFolderSource,
+    associate,
+    read_tum_trajectory,
+    write_tum_trajectory,
+)
+from perception.synthetic import pose, qvga_intrinsics, render
+from quadlink.errors import ConfigError
+from quadlink.frames import R_from_euler
+
+K = qvga_intrinsics()
+
+
+def _pair_error(T_w_c0: np.ndarray, T_w_c1: np.ndarray, R_prior: np.ndarray | None = None,
+                config: OdometryConfig | None = None) -> tuple[float, float, bool]:
+    cfg = config or OdometryConfig()
+    f0, f1 = render(T_w_c0, K), render(T_w_c1, K)
+    odo = RgbdOdometry(cfg)
+    res = odo.align(prepare_frame(*f0, K, cfg), prepare_frame(*f1, K, cfg), R_prior)
+    truth = inv_T(T_w_c1) @ T_w_c0      # T_c1_c0
+    E = inv_T(truth) @ res.T_ck_ckm1
+    return float(np.linalg.norm(E[:3, 3])), math.degrees(np.linalg.norm(so3_log(E[:3, :3]))), res.ok
+
+
+@pytest.mark.parametrize("name,R,t", [
+    ("pure translation", np.eye(3), [0.02, -0.01, 0.015]),
+    ("pure rotation", R_from_euler(0.01, -0.015, 0.02), [0.0, 0.0, 0.0]),
+    ("combined", R_from_euler(-0.01, 0.012, -0.02), [-0.015, 0.01, 0.02]),
+])
+def test_synthetic_pair_known_motion(name: str, R: np.ndarray, t: list[float]) -> None:
+    T0 = pose(R_from_euler(0.05, -0.1, 0.2), [0.1, 0.2, -0.1])
+    T1 = T0 @ pose(R, t)
+    err_t, err_r, ok = _pair_error(T0, T1)
+    motion = max(np.linalg.norm(t), 1e-3)
+    assert ok
+    assert err_t < 0.03 * motion + 3e-4, name   # sub-millimetre (texture edges, interpolation)
+    assert err_r < 0.02, name
+
+
+def test_imu_rotation_prior_rescues_a_fast_rotation() -> None:
+    """A 12° rotation between frames: beyond the pyramid's basin without help, fine with the gyro prior."""
+    T0 = pose(np.eye(3), [0.0, 0.0, 0.0])
+    R_rel = R_from_euler(0.05, 0.12, 0.17)
+    T1 = T0 @ pose(R_rel, [0.01, 0.0, 0.0])
+    err_no, _, _ = _pair_error(T0, T1)
+    # the prior is the camera rotation k-1 -> k (as integrated from the gyro), slightly wrong (0.3°)
+    noisy_prior = R_rel @ se3_exp(np.array([0, 0, 0, 0.003, -0.003, 0.002]))[:3, :3]
+    err_prior, err_r, ok = _pair_error(T0, T1, noisy_prior)
+    assert ok
+    assert err_prior < 2e-3
+    assert err_r < 0.1
+    assert err_no > 10 * err_prior
+
+
+def test_invalid_depth_and_textureless_frames_do_not_crash() -> None:
+    odo = RgbdOdometry()
+    rgb = np.full((240, 320, 3), 128, np.uint8)
+    depth = np.zeros((240, 320), np.float32)
+    r0 = odo.process(0.0, rgb, depth, K)
+    r1 = odo.process(0.033, rgb, depth, K)
+    assert r0.ok and not r1.ok
+    assert np.allclose(r1.T_c0_ck, np.eye(4))
+    depth_nan = np.full((240, 320), np.nan, np.float32)
+    r2 = odo.process(0.066, rgb, depth_nan, K)
+    assert not r2.ok and np.all(np.isfinite(r2.T_c0_ck))
+
+
+def test_chained_poses_on_a_synthetic_sequence() -> None:
+    odo = RgbdOdometry()
+    poses_true, poses_est, stamps = [], [], []
+    for k in range(8):
+        t = k / 30
+        T = pose(R_from_euler(0.05 * math.sin(3 * t), 0.1 * t, 0.2 * t), [0.3 * t, -0.1 * t, 0.05 * math.sin(4 * t)])
+        rgb, depth = render(T, K)
+        res = odo.process(t, rgb, depth, K)
+        assert res.ok
+        poses_true.append(T)
+        poses_est.append(res.T_c0_ck)
+        stamps.append(t)
+    gt = np.array([inv_T(poses_true[0]) @ T for T in poses_true])
+    est = np.array(poses_est)
+    rpe = metrics.rpe(np.array(stamps), est, gt)
+    assert rpe.trans_rmse_m_s < 0.02            # < 0.7 mm per frame at 30 Hz
+    assert rpe.rot_rmse_deg_s < 0.5
+    assert metrics.ate(est, gt).rmse_m < 2e-3
+
+
+def test_tum_frames_against_ground_truth(tum_head: Path) -> None:
+    src = TumFolderSource(tum_head, resize_to=(320, 240))
+    assert len(src) == 10
+    odo = RgbdOdometry()
+    st, est = [], []
+    for f in src.frames():
+        res = odo.process(f.stamp_s, f.rgb, f.depth_m, f.intrinsics)
+        assert res.ok
+        st.append(f.stamp_s)
+        est.append(res.T_c0_ck)
+    gs, gp = read_tum_trajectory(tum_head / "groundtruth.txt")
+    ie, ig = metrics.associate_stamps(np.array(st), gs)
+    assert len(ie) == 10
+    gt_rel = np.array([inv_T(gp[ig[0]]) @ gp[j] for j in ig])
+    est = np.array(est)[ie]
+    # 7.6 cm of real motion in 0.3 s; ground-truth stamps are approximate (README): a few mm per frame
+    travelled_gt = np.linalg.norm(gt_rel[-1][:3, 3])
+    travelled_est = np.linalg.norm(est[-1][:3, 3])
+    assert travelled_est == pytest.approx(travelled_gt, rel=0.15)
+    cos = est[-1][:3, 3] @ gt_rel[-1][:3, 3] / (travelled_est * travelled_gt)
+    assert cos > 0.97
+    r = metrics.rpe(np.array(st)[ie], est, gt_rel)
+    assert r.trans_rmse_m_s < 0.2 and r.rot_rmse_deg_s < 10.0
+    assert metrics.ate(est, gt_rel).rmse_m < 0.01
+    # a motionless estimate is much worse: the metric discriminates
+    still = np.repeat(np.eye(4)[None], len(est), axis=0)
+    assert metrics.rpe(np.array(st)[ie], still, gt_rel).trans_rmse_m_s > 0.2
+
+
+def test_metrics_horn_alignment_and_rpe() -> None:
+    rng = np.random.default_rng(3)
+    n = 20
+    gt = np.array([pose(R_from_euler(*rng.normal(0, 0.3, 3)), rng.normal(0, 1, 3)) for _ in range(n)])
+    G = pose(R_from_euler(0.3, -0.2, 1.0), [1.0, 2.0, 3.0])
+    est = np.array([G @ T for T in gt])         # same trajectory in another world frame
+    assert metrics.ate(est, gt).rmse_m < 1e-9
+    stamps = np.arange(n) * 0.1
+    r = metrics.rpe(stamps, est, gt)
+    assert r.trans_rmse_m_s < 1e-9 and r.rot_rmse_deg_s < 1e-9
+    # a 1 cm offset on every other pose: consecutive RPE 1 cm per 0.1 s
+    est2 = est.copy()
+    est2[1::2, :3, 3] += np.array([0.01, 0.0, 0.0])
+    r2 = metrics.rpe(stamps, est2, gt)
+    assert r2.trans_median_m_s == pytest.approx(0.1, rel=1e-6)
+    assert metrics.rpe(stamps, est, gt, delta_s=1.0).pairs == n - 10
+
+
+def test_tum_association_and_trajectory_round_trip(tmp_path: Path) -> None:
+    pairs = associate([0.0, 0.033, 0.066, 0.1], [0.001, 0.035, 0.2])
+    assert pairs == [(0, 0), (1, 1)]
+    stamps = np.array([1.0, 2.0])
+    poses = np.array([pose(R_from_euler(0.1, 0.2, 0.3), [1, 2, 3]), np.eye(4)])
+    write_tum_trajectory(tmp_path / "t.txt", stamps, poses)
+    s2, p2 = read_tum_trajectory(tmp_path / "t.txt")
+    assert np.allclose(s2, stamps) and np.allclose(p2, poses, atol=1e-5)
+
+
+def _write_sequence(folder: Path, jpeg: bool, camera_yaml: str | None) -> None:
+    (folder / "rgb").mkdir(parents=True)
+    (folder / "depth").mkdir()
+    rgb_lines, depth_lines = [], []
+    for k in range(3):
+        T = pose(np.eye(3), [0.01 * k, 0.0, 0.0])
+        rgb, depth = render(T, K)
+        name = f"{k:03d}.{'jpg' if jpeg else 'png'}"
+        cv2.imwrite(str(folder / "rgb" / name), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
+        cv2.imwrite(str(folder / "depth" / f"{k:03d}.png"), (depth * 1000).astype(np.uint16))
+        rgb_lines.append(f"{k / 30:.6f} rgb/{name}")
+        depth_lines.append(f"{k / 30 + 0.002:.6f} depth/{k:03d}.png")
+    (folder / "rgb.txt").write_text("# rgb\n" + "\n".join(rgb_lines) + "\n")
+    (folder / "depth.txt").write_text("\n".join(depth_lines) + "\n")
+    if camera_yaml is not None:
+        (folder / "camera.yaml").write_text(camera_yaml)
+
+
+def test_tum_folder_source_camera_yaml_jpeg_and_overrides(tmp_path: Path) -> None:
+    yaml_text = f"fx: {K.fx}\nfy: {K.fy}\ncx: {K.cx}\ncy: {K.cy}\ndepth_scale: 1000\n"
+    _write_sequence(tmp_path / "seq", jpeg=True, camera_yaml=yaml_text)
+    src = TumFolderSource(tmp_path / "seq")
+    frames = list(src.frames())
+    assert len(frames) == 3
+    assert frames[0].intrinsics.fx == pytest.approx(K.fx) and frames[0].rgb.shape == (240, 320, 3)
+    assert float(np.median(frames[0].depth_m[frames[0].depth_m > 0])) > 1.0       # metres, scale 1000
+    src2 = TumFolderSource(tmp_path / "seq", {"fx": 100.0, "depth_scale": 5000.0})
+    assert src2.params.fx == 100.0 and src2.params.fy == pytest.approx(K.fy) and src2.params.depth_scale == 5000.0
+    (tmp_path / "seq" / "camera.yaml").write_text("fx: 1\nfocal: 2\n")
+    with pytest.raises(ConfigError, match="focal"):
+        TumFolderSource(tmp_path / "seq")
+    with pytest.raises(SourceUnavailable):
+        TumFolderSource(tmp_path / "missing")
+
+
+def test_vo_eval_cli_prints_metrics_and_writes_trajectory(tum_head: Path, tmp_path: Path) -> None:
+    out = tmp_path / "traj.txt"
+    res = CliRunner().invoke(vo_eval, [str(tum_head), "--out", str(out), "--max-frames", "5"])
+    assert res.exit_code == 0, res.output
+    assert "RPE" in res.output and "ATE" in res.output and "time per frame" in res.output
+    s, p = read_tum_trajectory(out)
+    assert len(s) == 5 and np.allclose(p[0], np.eye(4))
+
+
+def test_vo_eval_cli_without_groundtruth_and_bad_path(tmp_path: Path) -> None:
+    _write_sequence(tmp_path / "seq", jpeg=False, camera_yaml=f"fx: {K.fx}\nfy: {K.fy}\ncx: {K.cx}\ncy: {K.cy}\n"
+                    "depth_scale: 1000\n")
+    res = CliRunner().invoke(vo_eval, [str(tmp_path / "seq")])
+    assert res.exit_code == 0, res.output
+    assert "metrics skipped" in res.output
+    res = CliRunner().invoke(vo_eval, [str(tmp_path / "nope")])
+    assert res.exit_code != 0
