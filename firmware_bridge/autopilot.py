@@ -641,7 +641,7 @@ class Autopilot:
             return []
         try:
             out = handler(self, now_s, msg, link)
-        except (ValueError, TypeError, OverflowError, KeyError) as exc:
+        except (ValueError, TypeError, OverflowError, KeyError, AttributeError) as exc:
             self.note_malformed("mavlink_bad", now_s, f"{mtype}: {exc}")
             return []
         return out + self._flush_events()

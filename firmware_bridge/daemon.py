@@ -223,15 +223,19 @@ class BridgeDaemon:
                 self._put((kind, data, self.clock()))
 
     def _read_mavlink(self, index: int, conn: Any) -> None:
+        # Raw bytes only: pymavlink's MAVLink object is not thread-safe (a parse in this thread while the
+        # main thread packs a message loses messages), so all parsing and packing happen in the main thread.
         while not self._stop.is_set():
             try:
-                msg = conn.recv_match(blocking=True, timeout=0.1)
-            except (OSError, ValueError) as exc:  # a dead socket or pymavlink choking on bytes
+                if not conn.select(0.1):
+                    continue
+                data = conn.recv(65535)
+            except (OSError, ValueError) as exc:  # a dead socket or a closed serial port
                 self._put(("mavbad", index, str(exc)))
                 self._stop.wait(0.1)
                 continue
-            if msg is not None:
-                self._put(("mav", index, msg))
+            if data:
+                self._put(("mav", index, bytes(data)))
 
     # ------------------------------------------------------------------ main loop
     def run(self, duration_s: float | None = None) -> None:
@@ -260,8 +264,15 @@ class BridgeDaemon:
                 self._on_cmd_frame(frame)
             self._count_mk_drops()
         elif kind == "mav":
-            self.stats.mavlink_in += 1
-            self._send(self.autopilot.handle_mavlink(self.now_s(), item[2], item[1]))
+            conn = self.mavlinks[item[1]]
+            try:
+                msgs = conn.mav.parse_buffer(item[2]) or []
+            except Exception as exc:  # noqa: BLE001 - pymavlink raises bare MAVError/struct.error/...: never fatal
+                self.autopilot.note_malformed("mavlink_bad", self.now_s(), f"{type(exc).__name__}: {exc}")
+                msgs = []
+            for msg in msgs:
+                self.stats.mavlink_in += 1
+                self._send(self.autopilot.handle_mavlink(self.now_s(), msg, item[1]))
         elif kind == "mavbad":
             self.autopilot.note_malformed("mavlink_bad", self.now_s(), item[2])
         elif kind == "link":
@@ -416,7 +427,7 @@ class BridgeDaemon:
                 try:
                     conn.mav.send(item.msg)
                     self.stats.mavlink_out += 1
-                except OSError as exc:
+                except (OSError, RuntimeError) as exc:  # RuntimeError: pymavlink udpin's client set changed
                     self.stats.send_errors += 1
                     if self.stats.send_errors in (1, 100, 10000):
                         log.warning("MAVLink send failed (%d so far): %s", self.stats.send_errors, exc)

@@ -1,0 +1,291 @@
+"""The bridge on the pybullet SITL (lock-step, real-time paced), driven by pymavlink like MAVProxy would.
+
+The companion does not exist in these tests, so the velocity source is ODOMETRY built from the SITL's
+ground truth (allowed in a test; the flight code never reads truth). Everything runs on free ports.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import queue
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from quadlink.frames import R_from_quat_wxyz, euler_from_R
+from quadlink.mavlink import mavlink
+from quadlink.mavlink.connection import open_mavlink
+
+pytestmark = [pytest.mark.sitl, pytest.mark.timeout(240)]
+
+REPO = Path(__file__).resolve().parent.parent
+PX4_OFFBOARD = 6 << 16
+PX4_LOITER = 4 << 16 | 3 << 24
+
+
+def free_port(kind: int = socket.SOCK_STREAM) -> int:
+    with socket.socket(socket.AF_INET, kind) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def quadlink(*args: str, log_path: Path) -> subprocess.Popen:
+    with open(log_path, "w") as log_file:  # the child keeps its own descriptor
+        return subprocess.Popen([sys.executable, "-m", "quadlink.cli", *args], cwd=REPO, stdout=log_file,
+                                stderr=subprocess.STDOUT, start_new_session=True)
+
+
+def wait_port(port: int, timeout_s: float) -> None:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        try:
+            socket.create_connection(("127.0.0.1", port), timeout=0.5).close()
+            return
+        except OSError:
+            time.sleep(0.2)
+    raise TimeoutError(f"port {port} did not open")
+
+
+class Stack:
+    def __init__(self, tmp: Path) -> None:
+        self.p1, self.p2 = free_port(), free_port()
+        self.truth_port = free_port(socket.SOCK_DGRAM)
+        self.gcs_port = free_port(socket.SOCK_DGRAM)
+        self.tmp = tmp
+        self.sitl = quadlink("sitl", "--no-camera", "--lockstep", "--speed", "1", "--port1", str(self.p1),
+                             "--port2", str(self.p2), "--camera-port", str(free_port()),
+                             "--truth", f"udpout:127.0.0.1:{self.truth_port}", log_path=tmp / "sitl.log")
+        wait_port(self.p2, 30.0)
+        self.params_file = tmp / "bridge_params.yaml"
+        self.bridge = quadlink("bridge", "--mk-cmd", f"socket://127.0.0.1:{self.p1}", "--mk-imu",
+                               f"socket://127.0.0.1:{self.p2}", "--mavlink", f"udpout:127.0.0.1:{self.gcs_port}",
+                               "--params", str(self.params_file), log_path=tmp / "bridge.log")
+        self.truth = open_mavlink(f"udpin:127.0.0.1:{self.truth_port}", 255, 191)
+        self.truth_lock = threading.Lock()
+        self.p_ned = np.zeros(3)
+        self.v_ned = np.zeros(3)
+        self.q_wxyz = np.array([1.0, 0.0, 0.0, 0.0])
+        self.truth_count = 0
+        self._stop = threading.Event()
+        self._truth_thread = threading.Thread(target=self._read_truth, daemon=True)
+        self._truth_thread.start()
+
+    def _read_truth(self) -> None:
+        while not self._stop.is_set():
+            m = self.truth.recv_match(type=["LOCAL_POSITION_NED", "ATTITUDE_QUATERNION"], blocking=True,
+                                      timeout=0.2)
+            if m is None:
+                continue
+            with self.truth_lock:
+                if m.get_type() == "LOCAL_POSITION_NED":
+                    self.p_ned = np.array([m.x, m.y, m.z])
+                    self.v_ned = np.array([m.vx, m.vy, m.vz])
+                    self.truth_count += 1
+                else:
+                    self.q_wxyz = np.array([m.q1, m.q2, m.q3, m.q4])
+
+    def state(self):
+        with self.truth_lock:
+            return self.p_ned.copy(), self.v_ned.copy(), self.q_wxyz.copy()
+
+    def close(self) -> None:
+        self._stop.set()
+        self._truth_thread.join(timeout=2.0)
+        self.truth.close()
+        for proc in (self.bridge, self.sitl):
+            if proc.poll() is None:
+                os.killpg(proc.pid, signal.SIGINT)
+        for proc in (self.bridge, self.sitl):
+            try:
+                proc.wait(timeout=10.0)
+            except subprocess.TimeoutExpired:
+                os.killpg(proc.pid, signal.SIGKILL)
+                proc.wait(timeout=5.0)
+
+
+@pytest.fixture(scope="module")
+def stack(tmp_path_factory):
+    s = Stack(tmp_path_factory.mktemp("bridge_sitl"))
+    yield s
+    s.close()
+
+
+class Gcs:
+    """A pymavlink client: one thread parses (pymavlink's mavfile is not thread-safe), sends use their own
+    encoder under a lock and go out of the same UDP socket to the bridge's address."""
+
+    def __init__(self, port: int) -> None:
+        self.conn = open_mavlink(f"udpin:127.0.0.1:{port}", 255, 190)
+        self.encoder = mavlink.MAVLink(None, 255, 190)
+        self.lock = threading.Lock()
+        self.inbox: queue.Queue = queue.Queue()
+        self._stop = threading.Event()
+        self._reader = threading.Thread(target=self._read, daemon=True)
+        self._reader.start()
+
+    def _read(self) -> None:
+        while not self._stop.is_set():
+            m = self.conn.recv_match(blocking=True, timeout=0.1)
+            if m is not None and m.get_srcSystem() == 1 and m.get_type() not in ("HIGHRES_IMU", "ATTITUDE"):
+                self.inbox.put(m)
+
+    def send(self, msg) -> None:
+        with self.lock:
+            buf = msg.pack(self.encoder)
+            self.encoder.seq = (self.encoder.seq + 1) % 256
+        for address in list(self.conn.clients):  # the bridge's udpout socket, learnt by the reader
+            self.conn.port.sendto(buf, address)
+
+    def recv(self, type_, timeout_s: float, cond=lambda m: True):
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            try:
+                m = self.inbox.get(timeout=0.1)
+            except queue.Empty:
+                continue
+            if m.get_type() == type_ and cond(m):
+                return m
+        return None
+
+    def command(self, command: int, *params: float) -> int:
+        p = list(params) + [0.0] * (7 - len(params))
+        self.send(self.encoder.command_long_encode(1, 1, command, 0, *p))
+        ack = self.recv("COMMAND_ACK", 3.0, lambda m: m.command == command)
+        assert ack is not None, f"no COMMAND_ACK for {command}"
+        return ack.result
+
+    def close(self) -> None:
+        self._stop.set()
+        self._reader.join(timeout=2.0)
+        self.conn.close()
+
+
+def test_heartbeat_and_parameter_download(stack, tmp_path):
+    gcs = Gcs(stack.gcs_port)
+    try:
+        hb = gcs.recv("HEARTBEAT", 20.0)
+        assert hb is not None and hb.type == mavlink.MAV_TYPE_QUADROTOR
+        gcs.send(gcs.encoder.param_request_list_encode(1, 1))
+        values = {}
+        deadline = time.monotonic() + 10.0
+        count = None
+        while (count is None or len(values) < count) and time.monotonic() < deadline:
+            m = gcs.recv("PARAM_VALUE", 1.0)
+            if m is not None:
+                values[m.param_id] = m.param_value
+                count = m.param_count
+        assert count is not None and len(values) == count
+        gcs.send(gcs.encoder.param_set_encode(1, 1, b"MPC_LAND_SPEED", 0.5, mavlink.MAV_PARAM_TYPE_REAL32))
+        echo = gcs.recv("PARAM_VALUE", 3.0, lambda m: m.param_id == "MPC_LAND_SPEED")
+        assert echo is not None and echo.param_value == pytest.approx(0.5)
+        gcs.send(gcs.encoder.param_request_read_encode(1, 1, b"MPC_LAND_SPEED", -1))
+        again = gcs.recv("PARAM_VALUE", 3.0, lambda m: m.param_id == "MPC_LAND_SPEED")
+        assert again is not None and again.param_value == pytest.approx(0.5)  # it sticks
+        deadline = time.monotonic() + 5.0
+        while "MPC_LAND_SPEED: 0.5" not in (stack.params_file.read_text() if stack.params_file.exists() else ""):
+            assert time.monotonic() < deadline, "parameter not persisted"
+            time.sleep(0.2)
+    finally:
+        gcs.close()
+
+
+class Odometry(threading.Thread):
+    """ODOMETRY at ~30 Hz from the SITL truth: local FRD frame, velocity in body FRD."""
+
+    def __init__(self, stack: Stack, gcs: Gcs) -> None:
+        super().__init__(daemon=True)
+        self.stack, self.gcs = stack, gcs
+        self.stop = threading.Event()
+
+    def run(self) -> None:
+        while not self.stop.wait(1.0 / 30.0):
+            p, v, q = self.stack.state()
+            R = R_from_quat_wxyz(q)
+            v_q = R.T @ v
+            self.gcs.send(self.gcs.encoder.odometry_encode(
+                int(time.monotonic() * 1e6), mavlink.MAV_FRAME_LOCAL_FRD, mavlink.MAV_FRAME_BODY_FRD,
+                *p, q, *v_q, 0, 0, 0, [math.nan] * 21, [math.nan] * 21))
+
+
+class Setpoints(threading.Thread):
+    """SET_POSITION_TARGET_LOCAL_NED (type_mask 1479, MAV_FRAME_BODY_NED) at 20 Hz, like MAVSDK."""
+
+    def __init__(self, gcs: Gcs) -> None:
+        super().__init__(daemon=True)
+        self.gcs = gcs
+        self.v_body = (0.0, 0.0, 0.0)
+        self.yaw_rate = 0.0
+        self.stop = threading.Event()
+
+    def run(self) -> None:
+        while not self.stop.wait(0.05):
+            self.gcs.send(self.gcs.encoder.set_position_target_local_ned_encode(
+                0, 1, 1, mavlink.MAV_FRAME_BODY_NED, 1479, 0, 0, 0, *self.v_body, 0, 0, 0, 0, self.yaw_rate))
+
+
+def wait_for(pred, timeout_s: float, what: str) -> None:
+    deadline = time.monotonic() + timeout_s
+    while not pred():
+        assert time.monotonic() < deadline, f"timed out waiting for {what}"
+        time.sleep(0.1)
+
+
+def test_arm_takeoff_offboard_body_velocity_and_land(stack):
+    gcs = Gcs(stack.gcs_port)
+    odom = Odometry(stack, gcs)
+    sps = Setpoints(gcs)
+    try:
+        assert gcs.recv("HEARTBEAT", 20.0) is not None
+        wait_for(lambda: stack.truth_count > 10, 10.0, "truth")
+        odom.start()
+        time.sleep(1.0)
+        assert gcs.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1) == mavlink.MAV_RESULT_ACCEPTED
+        assert gcs.recv("HEARTBEAT", 3.0, lambda m: m.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED) is not None
+        assert gcs.command(mavlink.MAV_CMD_NAV_TAKEOFF, *([math.nan] * 7)) == mavlink.MAV_RESULT_ACCEPTED
+        assert gcs.recv("HEARTBEAT", 20.0, lambda m: m.custom_mode == PX4_LOITER) is not None
+        p, _, _ = stack.state()
+        assert -p[2] == pytest.approx(1.0, abs=0.25)  # MIS_TAKEOFF_ALT, per the truth
+
+        sps.start()
+        time.sleep(1.0)
+        assert gcs.command(mavlink.MAV_CMD_DO_SET_MODE, 1, 6, 0) == mavlink.MAV_RESULT_ACCEPTED
+        assert gcs.recv("HEARTBEAT", 3.0, lambda m: m.custom_mode == PX4_OFFBOARD) is not None
+        # a 90 degree turn, then "forward" and "right" in the body frame
+        sps.yaw_rate = math.radians(30)
+        time.sleep(3.0)
+        sps.yaw_rate = 0.0
+        time.sleep(1.0)
+        for v_body, name in (((0.5, 0.0, 0.0), "forward"), ((0.0, 0.5, 0.0), "right")):
+            p0, _, q = stack.state()
+            yaw = euler_from_R(R_from_quat_wxyz(q))[2]
+            expected = np.array([math.cos(yaw), math.sin(yaw)]) if name == "forward" else \
+                np.array([-math.sin(yaw), math.cos(yaw)])
+            sps.v_body = v_body
+            time.sleep(4.0)
+            sps.v_body = (0.0, 0.0, 0.0)
+            time.sleep(1.5)
+            p1, _, _ = stack.state()
+            d = (p1 - p0)[:2]
+            along = float(d @ expected)
+            across = float(abs(d[0] * expected[1] - d[1] * expected[0]))
+            assert along > 1.2, f"{name}: moved {d} along {expected}"
+            assert across < 0.5 * along, f"{name}: moved {d}, off the commanded direction {expected}"
+            assert abs(p1[2] - p0[2]) < 0.3
+        sps.stop.set()
+        assert gcs.command(mavlink.MAV_CMD_NAV_LAND) == mavlink.MAV_RESULT_ACCEPTED
+        assert gcs.recv("HEARTBEAT", 25.0, lambda m: not m.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED) \
+            is not None
+        p, _, _ = stack.state()
+        assert abs(p[2]) < 0.15
+    finally:
+        sps.stop.set()
+        odom.stop.set()
+        gcs.close()
