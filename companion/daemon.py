@@ -380,7 +380,12 @@ class Companion:
         name = {mavlink.MAV_CMD_NAV_TAKEOFF: "takeoff", mavlink.MAV_CMD_NAV_LAND: "land"}.get(cmd)
         if cmd == mavlink.MAV_CMD_COMPONENT_ARM_DISARM:
             name = "arm" if msg.param1 >= 0.5 else "disarm"
-        if name is not None:
+        camera_fresh = self.last_frame_wall_s is not None and \
+            self.clock() - self.last_frame_wall_s <= self.cfg.timing.camera_timeout_s
+        if name == "takeoff" and not camera_fresh:
+            self._status_text(StatusText(4, "companion: takeoff refused: no camera frames (perception not running)"))
+            result = mavlink.MAV_RESULT_TEMPORARILY_REJECTED
+        elif name is not None:
             ok, actions = self.modes.request(name, self.clock(), self.vehicle.status())
             self._actions(actions)
             result = mavlink.MAV_RESULT_ACCEPTED if ok else mavlink.MAV_RESULT_TEMPORARILY_REJECTED
