@@ -126,6 +126,12 @@ class Port1Protocol:
     def rx_frames_dropped(self) -> int:
         return int(self.decoder.stats.frames_dropped)
 
+    def anything_due(self, t_s: float, armed: bool) -> bool:
+        """Cheap check before building a telemetry snapshot for :meth:`poll`."""
+        return (armed != self._last_armed or t_s + 1e-9 >= self._next_status_s
+                or (self._debug.interval_s > 0 and t_s + 1e-9 >= self._debug.next_s)
+                or (self._data3d.interval_s > 0 and t_s + 1e-9 >= self._data3d.next_s))
+
     def poll(self, telem: BoardTelemetry) -> list[bytes]:
         """Periodic frames due at ``telem.t_s`` (status at 10 Hz and on arm change, requested streams)."""
         out: list[bytes] = []

@@ -385,8 +385,9 @@ class Sitl:
         self.stats.imu_frames_offered += 1
         if not self.line2.offer(encode_message(sample), t):
             self.stats.imu_frames_dropped += 1
-        for frame in self.protocol.poll(self._telemetry(res)):
-            self.line1.offer(frame, t)
+        if self.protocol.anything_due(t, res.firmware.armed):
+            for frame in self.protocol.poll(self._telemetry(res)):
+                self.line1.offer(frame, t)
         if self.camera is not None and t + 1e-9 >= self._next_camera_s:
             self._next_camera_s += self._camera_period_s
             self._render_camera(res.state, t)
