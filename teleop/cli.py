@@ -30,9 +30,12 @@ log = logging.getLogger(__name__)
 @click.option("--duration", type=float, default=None, help="Stop after this many seconds.")
 @click.option("--exit-at-script-end/--keep-running", default=True, show_default=True,
               help="With --script: stop when the script has played.")
+@click.option("--script-clock", type=click.Choice(["wall", "vehicle"]), default="wall", show_default=True,
+              help="Time the script follows: wall clock, or the vehicle's (TELEOP_FEEDBACK; for a lock-stepped "
+                   "SITL slower than real time; the script waits for the first feedback).")
 def command(device_name: str, script: str | None, vehicle: str | None, image_stream: str | None,
             http_port: int | None, record: str | None, config_name: str, log_csv: str | None,
-            duration: float | None, exit_at_script_end: bool) -> None:
+            duration: float | None, exit_at_script_end: bool, script_clock: str) -> None:
     """Start the ground station: haptic device, force feedback, commands, operator view (issue 7)."""
     cfg = load_teleop_config(config_name)
     if script is not None and device_name != "virtual":
@@ -40,11 +43,17 @@ def command(device_name: str, script: str | None, vehicle: str | None, image_str
     vehicle_url = vehicle or cfg.network.vehicle_url
     image_url = image_stream or cfg.network.image_stream_url
     port = cfg.network.http_port if http_port is None else http_port
-    device = open_device(device_name, cfg.device, script)
+    stations: list[Station] = []
+
+    def vehicle_clock() -> float | None:
+        return stations[0].vehicle_time_s() if stations else None
+
+    device = open_device(device_name, cfg.device, script, vehicle_clock if script_clock == "vehicle" else None)
     station = Station(cfg, device, vehicle_url, None if image_url == "none" else image_url,
                       None if port < 0 else port, record, log_csv, exit_at_script_end=exit_at_script_end)
+    stations.append(station)
     log.info("device %s (force output: %s)%s", device.name, "yes" if device.has_force_output else "no",
-             f", script {script}" if script else "")
+             f", script {script} on the {script_clock} clock" if script else "")
     try:
         station.start()
         if station.server is not None:

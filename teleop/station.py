@@ -192,8 +192,8 @@ class Station:
             if self.exit_at_script_end and self.device.finished:
                 log.info("script finished")
                 break
-            with self._lock:
-                warnings = list(self._warnings)
+            with self._lock:   # STATUSTEXTs are logged when they arrive; the others when they appear
+                warnings = [w for w in self._warnings if not w.startswith("vehicle: ")]
             for w in set(warnings) - shown_warnings:
                 log.warning("%s", w)
             shown_warnings = set(warnings)
@@ -218,6 +218,11 @@ class Station:
             self._conn.close()
 
     # ---- snapshots -------------------------------------------------------------------------
+    def vehicle_time_s(self) -> float | None:
+        """The vehicle's clock (TELEOP_FEEDBACK time_usec, simulated time in the SITL), None before any."""
+        fb = self.telemetry.feedback
+        return None if fb is None else fb.time_usec * 1e-6
+
     @property
     def telemetry(self) -> Telemetry:
         with self._lock:

@@ -147,3 +147,32 @@ def test_unavailable_backends_are_one_line_errors():
             dev.close()
     with pytest.raises(ConfigError):
         open_device("gamepad", DeviceConfig(), script="x.yaml")
+
+
+def test_script_on_the_vehicle_clock_waits_and_follows_it(tmp_path):
+    """--script-clock vehicle: nothing happens before the first feedback; then the script follows vehicle time
+    (here running at a quarter of the device's wall time, like a lock-stepped SITL)."""
+    script = load_script(write_script(tmp_path, "steps:\n  - wait_s: 1.0\n  - button: arm\n"
+                                                "  - push: forward\n    force_n: 1.0\n    duration_s: 1.0\n"))
+    vehicle_t: list[float | None] = [None]
+    op = ScriptedOperator(script, lambda: vehicle_t[0])
+    dev = VirtualDevice(DeviceConfig(), op)
+    presses: list[str] = []
+    t = 0.0
+    for _ in range(100):                      # 1 s of wall time without feedback: the script waits
+        presses += dev.poll(t).buttons
+        t += 0.01
+    assert presses == [] and not dev.finished
+    np.testing.assert_allclose(op.force_at(t), 0.0)
+    vehicle_t[0] = 50.0
+    forces = []
+    while not dev.finished and t < 20.0:
+        vehicle_t[0] += 0.0025                # vehicle time at 1/4 of wall time
+        state = dev.poll(t)
+        presses += state.buttons
+        forces.append((vehicle_t[0] - 50.0, state.operator_force_n[0]))
+        t += 0.01
+    assert presses == ["arm"]
+    assert dev.finished and t == pytest.approx(1.0 + 8.0, abs=0.05)    # 2 s of vehicle time = 8 s of wall time
+    pushing = [tv for tv, f in forces if f > 0.5]
+    assert min(pushing) == pytest.approx(1.0, abs=0.01) and max(pushing) == pytest.approx(2.0, abs=0.01)

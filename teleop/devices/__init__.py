@@ -6,6 +6,7 @@ pushed from the terminal), ``omega`` (Force Dimension SDK), ``gamepad`` (SDL joy
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
 
 from quadlink.errors import ConfigError
@@ -19,12 +20,16 @@ DEVICE_NAMES = ("virtual", "keyboard", "omega", "gamepad")
 __all__ = ["BUTTONS", "DEVICE_NAMES", "DeviceState", "HapticDevice", "open_device"]
 
 
-def open_device(name: str, cfg: DeviceConfig, script: str | Path | None = None) -> HapticDevice:
-    """Open a backend; QuadlinkError (one line naming what is missing) if it cannot be."""
+def open_device(name: str, cfg: DeviceConfig, script: str | Path | None = None,
+                script_clock: Callable[[], float | None] | None = None) -> HapticDevice:
+    """Open a backend; QuadlinkError (one line naming what is missing) if it cannot be.
+
+    ``script_clock``: the time the script follows (None: the device's wall time); see ScriptedOperator.
+    """
     if script is not None and name != "virtual":
         raise ConfigError(f"--script drives the virtual device only (got --device {name})")
     if name == "virtual":
-        operator: OperatorSource = ScriptedOperator(load_script(script)) if script else OperatorSource()
+        operator: OperatorSource = ScriptedOperator(load_script(script), script_clock) if script else OperatorSource()
         return VirtualDevice(cfg, operator)
     if name == "keyboard":
         from teleop.devices.keyboard import KeyboardOperator

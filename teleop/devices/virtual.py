@@ -51,7 +51,7 @@ def clamp_workspace(q_m: Vec3, qdot_m_s: Vec3, workspace_m: Vec3) -> tuple[Vec3,
 
 
 class OperatorSource:
-    """Where the virtual device's operator force and button presses come from."""
+    """Where the virtual device's operator force and button presses come from (times: since the first poll)."""
 
     def force_at(self, t_s: float) -> Vec3:
         return np.zeros(3)
@@ -59,27 +59,53 @@ class OperatorSource:
     def presses_between(self, t0_s: float, t1_s: float) -> tuple[str, ...]:
         return ()
 
-    @property
-    def finished_at_s(self) -> float | None:
-        return None
+    def finished(self, t_s: float) -> bool:
+        return False
 
     def close(self) -> None:
         pass
 
 
 class ScriptedOperator(OperatorSource):
-    def __init__(self, script: OperatorScript) -> None:
+    """Plays an :class:`OperatorScript`.
+
+    ``script_clock=None``: the script runs on the device's (wall) time. Otherwise ``script_clock()``
+    returns another time in seconds (e.g. the vehicle's, from TELEOP_FEEDBACK, so a script keeps step
+    with a lock-stepped SITL that runs slower than real time) or None while that time is unknown (the
+    script then waits at its start).
+    """
+
+    def __init__(self, script: OperatorScript, script_clock: Callable[[], float | None] | None = None) -> None:
         self.script = script
+        self.script_clock = script_clock
+        self._origin_s: float | None = None
+        self._last_s = -1.0
+
+    def script_time(self, t_s: float) -> float:
+        if self.script_clock is None:
+            return t_s
+        now = self.script_clock()
+        if now is None:
+            return 0.0
+        if self._origin_s is None:
+            self._origin_s = now
+        return max(now - self._origin_s, 0.0)
 
     def force_at(self, t_s: float) -> Vec3:
-        return self.script.force_at(t_s)
+        return self.script.force_at(self.script_time(t_s))
 
     def presses_between(self, t0_s: float, t1_s: float) -> tuple[str, ...]:
-        return self.script.presses_between(t0_s, t1_s)
+        if self.script_clock is None:
+            return self.script.presses_between(t0_s, t1_s)
+        now = self.script_time(t1_s)
+        if self._origin_s is None:
+            return ()
+        presses = self.script.presses_between(self._last_s, now)
+        self._last_s = now
+        return presses
 
-    @property
-    def finished_at_s(self) -> float | None:
-        return self.script.end_s
+    def finished(self, t_s: float) -> bool:
+        return self.script_time(t_s) >= self.script.end_s and (self.script_clock is None or self._origin_s is not None)
 
 
 class VirtualDevice(HapticDevice):
@@ -134,9 +160,7 @@ class VirtualDevice(HapticDevice):
 
     @property
     def finished(self) -> bool:
-        end = self.operator.finished_at_s
-        return end is not None and self._t_s is not None and self._t0_s is not None \
-            and self._t_s - self._t0_s >= end
+        return self._t_s is not None and self._t0_s is not None and self.operator.finished(self._t_s - self._t0_s)
 
     def close(self) -> None:
         self.operator.close()
