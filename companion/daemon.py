@@ -116,7 +116,7 @@ class _Vehicle:
                       or (main == PX4_CUSTOM_MAIN_MODE_AUTO and sub == PX4_CUSTOM_SUB_MODE_AUTO_TAKEOFF))
         landing = (self.landed_state == mavlink.MAV_LANDED_STATE_LANDING
                    or (main == PX4_CUSTOM_MAIN_MODE_AUTO and sub == PX4_CUSTOM_SUB_MODE_AUTO_LAND))
-        return VehicleStatus(self.armed, in_air, taking_off, landing)
+        return VehicleStatus(self.armed, in_air, taking_off, landing, self.landed_state is not None)
 
 
 def default_pipeline_factory(cfg: CompanionConfig, seed: int = 0) -> PipelineFactory:

@@ -6,8 +6,9 @@ Modes (TELEOP_FEEDBACK.mode numbering): IDLE 0, TAKEOFF 1, TELEOP 2, HOLD 3, LAN
   autopilot -> TAKEOFF. ``arm`` / ``disarm`` are passed on as commands. A takeoff commanded to the
   autopilot directly (a ground station talking to compid 1 through the routing) is followed too: the
   autopilot reporting its takeoff -> TAKEOFF.
-* TAKEOFF: waits for the autopilot to finish its takeoff (in air and no longer in its takeoff mode, or
-  armed for ``takeoff_timeout_s``), then asks for offboard mode -> TELEOP. Disarm or a refused
+* TAKEOFF: waits for the autopilot to finish its takeoff (in air and no longer in its takeoff mode; or,
+  for an autopilot without EXTENDED_SYS_STATE, armed for ``takeoff_timeout_s``), then asks for offboard
+  mode -> TELEOP. Disarmed (after having armed, or never armed within the timeout) or a refused
   command -> IDLE.
 * TELEOP: operator command + pan-scan + repulsion.
 * HOLD: zero operator command, repulsion still active (hover). Entered when the ground-station link is
@@ -55,6 +56,7 @@ class VehicleStatus:
     in_air: bool = False
     taking_off: bool = False
     landing: bool = False
+    reports_landed_state: bool = False  # EXTENDED_SYS_STATE seen: no need to guess the end of the takeoff
 
 
 @dataclass(frozen=True)
@@ -95,6 +97,7 @@ class ModeMachine:
         self._odometry_bad_since_s: float | None = None
         self.gcs_ok = False
         self.odometry_ok = False
+        self._armed_in_takeoff = False
 
     # --- inputs -----------------------------------------------------------------------------
     def on_manual_control(self, now_s: float) -> None:
@@ -114,6 +117,7 @@ class ModeMachine:
 
     def _go(self, mode: Mode, now_s: float, reason: str, severity: int = SEVERITY_INFO) -> list[Action]:
         old = self.mode
+        self._armed_in_takeoff = False
         self.mode, self.reason, self._entered_s = mode, reason, now_s
         return [StatusText(severity, f"companion: {old.name} -> {mode.name} ({reason})")]
 
@@ -180,10 +184,11 @@ class ModeMachine:
         elif self.mode in (Mode.TAKEOFF, Mode.TELEOP, Mode.HOLD) and status.armed and status.landing:
             actions += self._go(Mode.LAND, now_s, "autopilot landing", SEVERITY_NOTICE)
         elif self.mode == Mode.TAKEOFF:
-            if not status.armed and in_mode > 2.0:
+            self._armed_in_takeoff = self._armed_in_takeoff or status.armed
+            if not status.armed and (self._armed_in_takeoff or in_mode > p.takeoff_timeout_s):
                 actions += self._go(Mode.IDLE, now_s, "disarmed during takeoff", SEVERITY_WARNING)
             elif status.armed and ((status.in_air and not status.taking_off and in_mode >= p.takeoff_min_s)
-                                   or in_mode >= p.takeoff_timeout_s):
+                                   or (in_mode >= p.takeoff_timeout_s and not status.reports_landed_state)):
                 actions.append(AutopilotRequest("offboard"))
                 actions += self._go(Mode.TELEOP, now_s, "takeoff complete")
         elif self.mode in (Mode.TELEOP, Mode.HOLD):

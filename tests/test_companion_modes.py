@@ -51,12 +51,28 @@ def test_takeoff_needs_idle_and_falls_back_when_refused() -> None:
     assert m.mode == Mode.IDLE and any("IDLE" in s for s in _texts(actions))
 
 
-def test_takeoff_timeout_goes_to_teleop_if_armed() -> None:
+def test_takeoff_timeout_goes_to_teleop_if_armed_without_landed_state() -> None:
     m = ModeMachine(ModeParams(takeoff_timeout_s=3.0))
     m.request("takeoff", 0.0, GROUND)
     assert m.update(2.9, CLIMBING, True) == [] or m.mode == Mode.TAKEOFF
     m.update(3.0, CLIMBING, True)
     assert m.mode == Mode.TELEOP
+    # an autopilot reporting its landed state is waited for (slow simulation: no guessing)
+    m = ModeMachine(ModeParams(takeoff_timeout_s=3.0))
+    m.request("takeoff", 0.0, GROUND)
+    climbing = VehicleStatus(armed=True, in_air=True, taking_off=True, reports_landed_state=True)
+    m.update(10.0, climbing, True)
+    assert m.mode == Mode.TAKEOFF
+
+
+def test_takeoff_waits_for_the_arm_report_then_falls_back_on_disarm() -> None:
+    m = ModeMachine(ModeParams(takeoff_timeout_s=8.0))
+    m.request("takeoff", 0.0, GROUND)
+    m.update(3.0, GROUND, True)  # the armed HEARTBEAT is late: keep waiting
+    assert m.mode == Mode.TAKEOFF
+    m.update(3.5, CLIMBING, True)
+    m.update(4.0, GROUND, True)  # armed, then disarmed
+    assert m.mode == Mode.IDLE
 
 
 def test_gcs_loss_holds_then_lands_and_recovery_resumes() -> None:
