@@ -49,14 +49,19 @@ def command(scenario: str | None, config_path: str | None, lockstep: bool, speed
     except OSError as exc:
         raise LinkError(str(exc)) from exc
     sitl.log_endpoints()
-    previous = signal.getsignal(signal.SIGTERM)
-    signal.signal(signal.SIGTERM, lambda *_: sitl._stop.set())
+    def _request_stop(signum: int, _frame: object) -> None:
+        log.info("%s: stopping", signal.Signals(signum).name)
+        sitl.request_stop()
+
+    # explicit handlers: a SITL started in the background by a script has SIGINT ignored by default
+    previous = {sig: signal.signal(sig, _request_stop) for sig in (signal.SIGINT, signal.SIGTERM)}
     try:
         sitl.run()
     except KeyboardInterrupt:
         log.info("Ctrl-C: stopping")
     finally:
-        signal.signal(signal.SIGTERM, previous)
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
         sitl.stop()
         s = sitl.stats
         log.info("ran %.1f s sim in %.1f s wall (rtf %.2f); IMU frames %d (dropped %d), camera frames %d, "
