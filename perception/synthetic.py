@@ -57,18 +57,15 @@ def _cast(T_w_c: NDArray[np.float64], K: CameraIntrinsics, u: NDArray[np.float64
     rays_c = np.stack([(u - K.cx) / K.fx, (v - K.cy) / K.fy, np.ones_like(u)], axis=-1)  # z = 1
     R, o = T_w_c[:3, :3], T_w_c[:3, 3]
     d = rays_c @ R.T
-    best_t = np.full(u.shape, np.inf)
-    face = np.zeros(u.shape, dtype=np.intp)
+    # the wall each ray leaves the box through: per axis the bound in the ray's direction, nearest wins
     with np.errstate(divide="ignore", invalid="ignore"):
-        for axis in range(3):
-            for side, bound in enumerate((ROOM_MIN[axis], ROOM_MAX[axis])):
-                t = (bound - o[axis]) / d[..., axis]
-                t = np.where(t > 1e-6, t, np.inf)
-                better = t < best_t
-                best_t = np.where(better, t, best_t)
-                face = np.where(better, 2 * axis + side, face)
+        bounds = np.where(d > 0, ROOM_MAX, ROOM_MIN)
+        t_axes = (bounds - o) / d
+    t_axes = np.where(np.isfinite(t_axes) & (t_axes > 1e-6), t_axes, np.inf)
+    axis = np.argmin(t_axes, axis=-1)
+    best_t = np.take_along_axis(t_axes, axis[..., None], axis=-1)[..., 0]
+    face = 2 * axis + (np.take_along_axis(d, axis[..., None], axis=-1)[..., 0] > 0)
     p = o + d * best_t[..., None]
-    axis = face // 2
     a = np.where(axis == 0, p[..., 1], p[..., 0])
     b = np.where(axis == 2, p[..., 1], p[..., 2])
     depth = best_t.astype(np.float32)  # rays have unit z in the camera frame: t is the depth

@@ -31,9 +31,9 @@ N_ERR = 12  # p(3) v(3) dtheta(3) b_a(3)
 class UkfConfig:
     predict_period_s: float = 0.01        # 100 Hz prediction/output
     gyro_noise_rad_s: float = 0.02        # white noise std of the gyro (per sample, 500 Hz)
-    accel_noise_m_s2: float = 0.3
+    accel_noise_m_s2: float = 0.5
     accel_bias_walk_m_s3: float = 0.01
-    position_noise_m: float = 0.01        # VO position noise (1 sigma)
+    position_noise_m: float = 0.003       # VO position noise (1 sigma; frame-to-frame VO is ~1 mm)
     attitude_noise_rad: float = 0.02      # VO attitude noise (1 sigma)
     imu_rate_hz: float = 500.0
     alpha: float = 1.0                    # unscented transform spread
