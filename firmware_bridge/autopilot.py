@@ -123,6 +123,8 @@ CAPABILITIES = (mavlink.MAV_PROTOCOL_CAPABILITY_MAVLINK2 | mavlink.MAV_PROTOCOL_
                 | mavlink.MAV_PROTOCOL_CAPABILITY_PARAM_ENCODE_BYTEWISE)
 
 BOARD_FLIGHT_LANDED, BOARD_FLIGHT_FLYING, BOARD_FLIGHT_FAILSAFE = 0, 1, 2
+# BoardStatus.error_flags (mk_messages.ERROR_*; the autopilot stays free of the MK codec)
+BOARD_ERROR_SETPOINT_TIMEOUT, BOARD_ERROR_BATTERY_LOW, BOARD_ERROR_IMU_SATURATED = 0x0001, 0x0002, 0x0004
 TOUCHDOWN_HOLD_S = 0.5
 SETPOINT_FRESH_FOR_OFFBOARD_S = 0.5  # PX4 wants the stream running before the switch
 IMU_PREDICTION_HORIZON_S = 0.3
@@ -578,9 +580,11 @@ class Autopilot:
         return min(max((cell_v - b.empty_cell_v) / (b.full_cell_v - b.empty_cell_v), 0.0), 1.0)
 
     def sys_status(self, now_s: float) -> Any:
-        imu_ok = self._fresh(self.imu_time_s, now_s, self.params["BRG_BOARD_LOSS_T"])
+        flags = self.board_status.error_flags if self.board_status is not None else 0
+        imu_ok = self._fresh(self.imu_time_s, now_s, self.params["BRG_BOARD_LOSS_T"]) \
+            and not flags & BOARD_ERROR_IMU_SATURATED
         board_ok = self.board_link_ok and self.board_status is not None and not self.board_status.failsafe \
-            and self.board_status.error_flags == 0
+            and not flags & BOARD_ERROR_SETPOINT_TIMEOUT
         health = 0
         if imu_ok:
             health |= mavlink.MAV_SYS_STATUS_SENSOR_3D_GYRO | mavlink.MAV_SYS_STATUS_SENSOR_3D_ACCEL
@@ -591,7 +595,7 @@ class Autopilot:
             health |= mavlink.MAV_SYS_STATUS_SENSOR_ANGULAR_RATE_CONTROL | \
                 mavlink.MAV_SYS_STATUS_SENSOR_ATTITUDE_STABILIZATION | mavlink.MAV_SYS_STATUS_SENSOR_MOTOR_OUTPUTS
         frac = self.battery_fraction()
-        if frac is not None and frac > 0.05:
+        if frac is not None and frac > 0.05 and not flags & BOARD_ERROR_BATTERY_LOW:
             health |= mavlink.MAV_SYS_STATUS_SENSOR_BATTERY
         voltage_mv = int(self.board_status.battery_mv) if self.board_status is not None else 0xFFFF
         remaining = int(round(frac * 100)) if frac is not None else -1
@@ -721,8 +725,8 @@ class Autopilot:
         ACCEPTED, DENIED = mavlink.MAV_RESULT_ACCEPTED, mavlink.MAV_RESULT_DENIED
         TEMP = mavlink.MAV_RESULT_TEMPORARILY_REJECTED
         if command == mavlink.MAV_CMD_COMPONENT_ARM_DISARM:
-            force = int(round(p[1])) == 21196
-            if p[0] >= 0.5:
+            force = _int_param(p[1]) == 21196  # MAVSDK sends NaN for unused params
+            if _int_param(p[0]) == 1:
                 if not self.board_link_ok:
                     self._event(mavlink.MAV_SEVERITY_CRITICAL, "Arming denied: no board link")
                     return TEMP, []
@@ -734,6 +738,8 @@ class Autopilot:
                     self.in_air = False
                     self._z_ground_m = self._odom_z_m
                     self.height_m = 0.0
+                    if self.mode in (FlightMode.LAND, FlightMode.TAKEOFF):
+                        self.set_mode(FlightMode.POSCTL, now_s, "armed on the ground")  # else LAND disarms at once
                     self._event(mavlink.MAV_SEVERITY_INFO, "Armed")
                 return ACCEPTED, []
             if self.in_air and not force:
@@ -756,14 +762,14 @@ class Autopilot:
         if command == mavlink.MAV_CMD_NAV_LAND:
             return self._request_mode(FlightMode.LAND, now_s), []
         if command in (mavlink.MAV_CMD_REQUEST_MESSAGE, mavlink.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES):
-            msg_id = int(p[0]) if command == mavlink.MAV_CMD_REQUEST_MESSAGE else \
+            msg_id = _int_param(p[0], -1) if command == mavlink.MAV_CMD_REQUEST_MESSAGE else \
                 mavlink.MAVLINK_MSG_ID_AUTOPILOT_VERSION
             reply = self._message_by_id(msg_id, now_s)
             if reply is None:
                 return mavlink.MAV_RESULT_UNSUPPORTED, []
             return ACCEPTED, [reply]
         if command == mavlink.MAV_CMD_SET_MESSAGE_INTERVAL:
-            msg_id, interval_us = int(p[0]), p[1]
+            msg_id, interval_us = _int_param(p[0], -1), (p[1] if math.isfinite(p[1]) else 0.0)
             if msg_id not in self.stream_interval_s:
                 return mavlink.MAV_RESULT_UNSUPPORTED, []
             if interval_us < -0.5:
@@ -784,9 +790,9 @@ class Autopilot:
     @staticmethod
     def decode_set_mode(base_mode: float, custom_main: float, custom_sub: float) -> FlightMode | None:
         """DO_SET_MODE params -> mode: PX4's (main, sub) first, ArduCopter's numbers where unambiguous."""
-        if not int(base_mode) & mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED:
+        if not _int_param(base_mode) & mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED:
             return None
-        main, sub = int(custom_main), int(custom_sub)
+        main, sub = _int_param(custom_main), _int_param(custom_sub)
         mode = FlightMode.from_px4(main, sub)
         if mode is not None:
             return mode
@@ -938,6 +944,11 @@ class Autopilot:
         "SET_ATTITUDE_TARGET": _on_set_attitude_target,
         "ODOMETRY": _on_odometry,
     }
+
+
+def _int_param(value: float, default: int = 0) -> int:
+    """A command parameter as an integer; NaN/inf (MAVLink's "unused") -> ``default``."""
+    return int(round(value)) if math.isfinite(value) else default
 
 
 def _param_name(raw: Any) -> str:

@@ -6,6 +6,7 @@ ground truth (allowed in a test; the flight code never reads truth). Everything 
 
 from __future__ import annotations
 
+import asyncio
 import math
 import os
 import queue
@@ -59,6 +60,7 @@ class Stack:
         self.p1, self.p2 = free_port(), free_port()
         self.truth_port = free_port(socket.SOCK_DGRAM)
         self.gcs_port = free_port(socket.SOCK_DGRAM)
+        self.mavsdk_port = free_port(socket.SOCK_DGRAM)
         self.tmp = tmp
         self.sitl = quadlink("sitl", "--no-camera", "--lockstep", "--speed", "1", "--port1", str(self.p1),
                              "--port2", str(self.p2), "--camera-port", str(free_port()),
@@ -67,6 +69,7 @@ class Stack:
         self.params_file = tmp / "bridge_params.yaml"
         self.bridge = quadlink("bridge", "--mk-cmd", f"socket://127.0.0.1:{self.p1}", "--mk-imu",
                                f"socket://127.0.0.1:{self.p2}", "--mavlink", f"udpout:127.0.0.1:{self.gcs_port}",
+                               "--mavlink", f"udpout:127.0.0.1:{self.mavsdk_port}",
                                "--params", str(self.params_file), log_path=tmp / "bridge.log")
         self.truth = open_mavlink(f"udpin:127.0.0.1:{self.truth_port}", 255, 191)
         self.truth_lock = threading.Lock()
@@ -74,6 +77,7 @@ class Stack:
         self.v_ned = np.zeros(3)
         self.q_wxyz = np.array([1.0, 0.0, 0.0, 0.0])
         self.truth_count = 0
+        self.sim_time_s = 0.0
         self._stop = threading.Event()
         self._truth_thread = threading.Thread(target=self._read_truth, daemon=True)
         self._truth_thread.start()
@@ -88,6 +92,7 @@ class Stack:
                 if m.get_type() == "LOCAL_POSITION_NED":
                     self.p_ned = np.array([m.x, m.y, m.z])
                     self.v_ned = np.array([m.vx, m.vy, m.vz])
+                    self.sim_time_s = m.time_boot_ms * 1e-3
                     self.truth_count += 1
                 else:
                     self.q_wxyz = np.array([m.q1, m.q2, m.q3, m.q4])
@@ -268,15 +273,18 @@ def test_arm_takeoff_offboard_body_velocity_and_land(stack):
             yaw = euler_from_R(R_from_quat_wxyz(q))[2]
             expected = np.array([math.cos(yaw), math.sin(yaw)]) if name == "forward" else \
                 np.array([-math.sin(yaw), math.cos(yaw)])
+            t0 = stack.sim_time_s
             sps.v_body = v_body
-            time.sleep(4.0)
+            wait_for(lambda t0=t0: stack.sim_time_s - t0 >= 4.0, 30.0, "4 s of simulated time")
+            commanded_m = 0.5 * (stack.sim_time_s - t0)  # simulated time: lock-step may run slower than wall
             sps.v_body = (0.0, 0.0, 0.0)
             time.sleep(1.5)
             p1, _, _ = stack.state()
             d = (p1 - p0)[:2]
             along = float(d @ expected)
             across = float(abs(d[0] * expected[1] - d[1] * expected[0]))
-            assert along > 1.2, f"{name}: moved {d} along {expected}"
+            assert commanded_m > 1.0
+            assert along > 0.7 * commanded_m, f"{name}: moved {d} along {expected}, commanded {commanded_m:.2f} m"
             assert across < 0.5 * along, f"{name}: moved {d}, off the commanded direction {expected}"
             assert abs(p1[2] - p0[2]) < 0.3
         sps.stop.set()
@@ -289,3 +297,77 @@ def test_arm_takeoff_offboard_body_velocity_and_land(stack):
         sps.stop.set()
         odom.stop.set()
         gcs.close()
+
+
+async def _mavsdk_flight(stack: Stack) -> dict:
+    from mavsdk.asyncio import ComponentType, Configuration, Mavsdk
+    from mavsdk.asyncio.plugins.action.action import ActionAsync
+    from mavsdk.asyncio.plugins.offboard.offboard import OffboardAsync, VelocityBodyYawspeed
+    from mavsdk.asyncio.plugins.telemetry.telemetry import FlightMode, TelemetryAsync
+
+    async def first(gen, timeout_s=5.0):
+        return await asyncio.wait_for(anext(gen), timeout_s)
+
+    async def until(gen, pred, timeout_s):
+        async def scan():
+            async for value in gen:
+                if pred(value):
+                    return value
+        return await asyncio.wait_for(scan(), timeout_s)
+
+    seen: dict = {}
+    config = Configuration.create_with_component_type(ComponentType.GROUND_STATION)
+    async with Mavsdk(config) as mavsdk:
+        await mavsdk.add_any_connection(f"udpin://127.0.0.1:{stack.mavsdk_port}")
+        system = await mavsdk.first_autopilot(timeout_s=20.0)
+        assert system is not None, "MAVSDK did not discover the bridge"
+        telemetry, action, offboard = TelemetryAsync(system), ActionAsync(system), OffboardAsync(system)
+        seen["attitude"] = await first(telemetry.subscribe_attitude_euler())
+        seen["battery"] = await first(telemetry.subscribe_battery())
+        seen["mode0"] = await first(telemetry.subscribe_flight_mode())
+        await action.arm()
+        await until(telemetry.subscribe_armed(), bool, 5.0)
+        await action.takeoff()
+        await until(telemetry.subscribe_flight_mode(), lambda m: m == FlightMode.HOLD, 25.0)
+        seen["takeoff_p"], _, _ = stack.state()
+        await offboard.set_velocity_body(VelocityBodyYawspeed(0.0, 0.0, 0.0, 0.0))
+        await offboard.start()
+        seen["offboard_mode"] = await until(telemetry.subscribe_flight_mode(),
+                                            lambda m: m == FlightMode.OFFBOARD, 5.0)
+        p0, _, q = stack.state()
+        seen["yaw0"] = euler_from_R(R_from_quat_wxyz(q))[2]
+        t0 = stack.sim_time_s
+        await offboard.set_velocity_body(VelocityBodyYawspeed(-0.5, 0.0, 0.0, 0.0))  # backwards
+        while stack.sim_time_s - t0 < 4.0:  # simulated time: a loaded machine runs the lock-step SITL slower
+            await asyncio.sleep(0.1)
+        seen["commanded_m"] = 0.5 * (stack.sim_time_s - t0)
+        await offboard.set_velocity_body(VelocityBodyYawspeed(0.0, 0.0, 0.0, 0.0))
+        await asyncio.sleep(1.5)
+        seen["moved"] = (stack.state()[0] - p0)
+        await action.land()
+        await until(telemetry.subscribe_armed(), lambda armed: not armed, 30.0)
+        seen["landed_p"], _, _ = stack.state()
+    return seen
+
+
+def test_mavsdk_arm_takeoff_offboard_velocity_body_land(stack):
+    gcs = Gcs(stack.gcs_port)
+    odom = Odometry(stack, gcs)  # the velocity source, from the truth (no companion in this test)
+    try:
+        assert gcs.recv("HEARTBEAT", 20.0) is not None
+        wait_for(lambda: stack.truth_count > 10, 10.0, "truth")
+        odom.start()
+        seen = asyncio.run(asyncio.wait_for(_mavsdk_flight(stack), 150.0))
+    finally:
+        odom.stop.set()
+        gcs.close()
+    assert abs(seen["attitude"].roll_deg) < 5.0 and abs(seen["attitude"].pitch_deg) < 5.0
+    assert seen["battery"].voltage_v > 9.0 and 0 <= seen["battery"].remaining_percent <= 100
+    assert -seen["takeoff_p"][2] > 0.7
+    yaw = seen["yaw0"]
+    backwards = -np.array([math.cos(yaw), math.sin(yaw)])
+    d = seen["moved"][:2]
+    assert seen["commanded_m"] > 1.0
+    assert float(d @ backwards) > 0.7 * seen["commanded_m"], f"moved {d}, expected along {backwards}"
+    assert abs(d[0] * backwards[1] - d[1] * backwards[0]) < 0.5 * float(d @ backwards)
+    assert abs(seen["landed_p"][2]) < 0.15
