@@ -44,6 +44,7 @@ class ForceConfig:
     link_timeout_s: float = 0.5                        # no TELEOP_FEEDBACK for this long = link lost
     fade_time_s: float = 1.0                           # force fades 1 -> 0 over this time (rate-limited)
     pan_scan_source: Literal["estimated", "commanded"] = "estimated"  # the psi_s' removed in eq. (17)
+    cue_modes: tuple[int, ...] = (2, 3)                # companion modes with the cue K (q - q~): teleop, hold
 
     def __post_init__(self) -> None:
         if min(self.B_n_s_m + self.K_f_n_m + self.K_n_m) < 0:

@@ -56,12 +56,17 @@ def saturate(force_n: Vec3, limit_n: float) -> Vec3:
 
 
 def force_law(q_m: Vec3, qdot_m_s: Vec3, q_tilde_m: Vec3 | None, cfg: ForceConfig, force_limit_n: float,
-              link_gain: float = 1.0) -> Vec3:
-    """eq. (15), saturated, times the link gain in [0, 1]. ``q_tilde_m=None``: no feedback yet (no cue)."""
+              link_gain: float = 1.0, cue_gain: float = 1.0) -> Vec3:
+    """eq. (15), saturated, times the link gain in [0, 1]. ``q_tilde_m=None``: no feedback yet (no cue).
+
+    ``cue_gain`` in [0, 1] scales the haptic-cue term K (q - q~): the station fades it out while the
+    companion flies autonomously (take-off, landing), where the vehicle's motion is not the operator's
+    command and feeding it back would pull the handle (and, through the mapping, the next command).
+    """
     B, K_f, K = (np.asarray(g, dtype=float) for g in (cfg.B_n_s_m, cfg.K_f_n_m, cfg.K_n_m))
     tau = -B * qdot_m_s - K_f * q_m
     if q_tilde_m is not None:
-        tau = tau - K * (q_m - q_tilde_m)
+        tau = tau - min(max(cue_gain, 0.0), 1.0) * K * (q_m - q_tilde_m)
     return saturate(tau, force_limit_n) * min(max(link_gain, 0.0), 1.0)
 
 

@@ -68,6 +68,7 @@ class ForceSnapshot:
     tau_d_n: NDArray[np.float64]
     q_tilde_m: NDArray[np.float64] | None
     link_gain: float
+    cue_gain: float = 1.0
 
 
 def precise_sleep_until(deadline_s: float, clock: Callable[[], float], spin_s: float) -> None:
@@ -135,7 +136,7 @@ class Station:
         self.stop_event = threading.Event()
         self._lock = threading.Lock()
         self._force: ForceSnapshot | None = None
-        self._motion: tuple[float, VehicleMotion] | None = None
+        self._motion: tuple[float, VehicleMotion, bool] | None = None   # (receive time, motion, cue wanted)
         self._telemetry = Telemetry()
         self._command = ManualControl(0, 0, 500, 0)
         self._buttons: queue.Queue[str] = queue.Queue(maxsize=100)
@@ -254,7 +255,7 @@ class Station:
             "min_obstacle_m": min_obstacle_m(tel),
             "pan_scan_on": bool(fb and fb.pan_scan_on),
             "pan_scan_hz": self._pan_scan_hz,
-            "command": f"x {cmd.x:+5d} z {cmd.z:4d} r {cmd.r:+5d}",
+            "command": f"x {cmd.x:+5d} y {cmd.y:+5d} z {cmd.z:4d} r {cmd.r:+5d}",
             "force_n": [round(float(v), 3) for v in force.tau_d_n] if force else [0.0, 0.0, 0.0],
             "q_m": [round(float(v), 4) for v in force.device.q_m] if force else [0.0, 0.0, 0.0],
             "link_gain": force.link_gain if force else 0.0,
@@ -277,6 +278,7 @@ class Station:
         _try_realtime(self.cfg.device.realtime_priority)
         period = 1.0 / self.cfg.device.force_rate_hz
         fade = LinkFade(self.cfg.force.fade_time_s)
+        cue_fade = LinkFade(self.cfg.force.fade_time_s)
         spin = self.cfg.device.spin_s
         next_t = self.clock()
         while not self.stop_event.is_set():
@@ -286,10 +288,11 @@ class Station:
             motion = self._motion
             ok = motion is not None and link_ok(motion[0], t, self.cfg.force.link_timeout_s)
             gain = fade.update(ok, t)
+            cue = cue_fade.update(ok and motion is not None and motion[2], t)
             qt = q_tilde(motion[1], self.gains) if motion is not None else None
-            tau = force_law(state.q_m, state.qdot_m_s, qt, self.cfg.force, self.cfg.device.force_limit_n, gain)
+            tau = force_law(state.q_m, state.qdot_m_s, qt, self.cfg.force, self.cfg.device.force_limit_n, gain, cue)
             self.device.set_force(tau)
-            snap = ForceSnapshot(state, tau, qt, gain)
+            snap = ForceSnapshot(state, tau, qt, gain, cue)
             with self._lock:
                 self._force = snap
             for button in state.buttons:
@@ -344,7 +347,8 @@ class Station:
                         self._pan_scan_hz = est.frequency_hz
                         ps = (est.yaw_rate_rad_s if self.cfg.force.pan_scan_source == "estimated"
                               else fb.pan_scan_yaw_rate_rad_s if fb.pan_scan_on else 0.0)
-                        self._motion = (t, VehicleMotion(fb.v_h_m_s, fb.alpha_rad, fb.gyro_yaw_rate_rad_s, ps))
+                        self._motion = (t, VehicleMotion(fb.v_h_m_s, fb.alpha_rad, fb.gyro_yaw_rate_rad_s, ps),
+                                        fb.mode in self.cfg.force.cue_modes)
                     elif mtype == "COMMAND_ACK":
                         self._ack(self.commands.on_command_ack(msg.command, msg.result, t))
                     elif mtype == "PARAM_VALUE":
@@ -497,6 +501,7 @@ class Station:
                  f"battery {bat}  obstacle {obst}  pan-scan {'on' if s['pan_scan_on'] else 'off'}")
         return Overlay(v_cmd_h_m_s=v_cmd, v_est_h_m_s=v_est, force_d_n=tuple(s["force_n"]),  # type: ignore[arg-type]
                        force_limit_n=self.cfg.device.force_limit_n, obstacle_points_c_m=pts,  # type: ignore[arg-type]
+                       obstacle_warning_m=self.cfg.view.obstacle_warning_m,
                        status_lines=lines, warnings=tuple(s["warnings"]) + extra_warnings)
 
     def _operator_yaw_rate_cmd(self) -> float:

@@ -114,3 +114,13 @@ def test_fade_back_in_when_link_returns():
     assert fade.update(False, 0.35) == pytest.approx(0.15)
     assert fade.update(True, 10.0) == 1.0
     assert not link_ok(None, 1.0, 0.5)
+
+
+def test_cue_gain_scales_only_the_haptic_cue():
+    q = np.array([0.03, -0.01, 0.02])
+    qd = np.array([0.05, 0.0, -0.1])
+    qt = np.array([0.01, 0.0, 0.0])
+    B, Kf, K = (np.array(v) for v in (FORCE.B_n_s_m, FORCE.K_f_n_m, FORCE.K_n_m))
+    np.testing.assert_allclose(force_law(q, qd, qt, FORCE, 100.0, cue_gain=0.0), -B * qd - Kf * q)
+    np.testing.assert_allclose(force_law(q, qd, qt, FORCE, 100.0, cue_gain=0.5),
+                               -B * qd - Kf * q - 0.5 * K * (q - qt))

@@ -75,7 +75,7 @@ def test_points_behind_are_not_projected():
 def test_renderer_draws_image_points_and_decays_background():
     renderer = OperatorViewRenderer(560, 420, decay_time_s=0.5)
     rgb = np.full((240, 320, 3), 200, np.uint8)
-    ov = Overlay(obstacle_points_c_m=((0.0, 0.0, 1.5),))
+    ov = Overlay(obstacle_points_c_m=((0.0, 0.0, 0.6),), obstacle_warning_m=1.0)   # near: red
     img = renderer.render(rgb, CAM, R_QC_FORWARD, 0.0, 0.0, 0.0, 10.0, ov)
     assert img.shape == (420, 560, 3)
     cx, cy = 280, 210

@@ -28,6 +28,7 @@ class Overlay:
     force_d_n: tuple[float, float, float] = (0.0, 0.0, 0.0)
     force_limit_n: float = 12.0
     obstacle_points_c_m: tuple[tuple[float, float, float], ...] = ()
+    obstacle_warning_m: float = 1.0          # nearer points are red, the others orange
     status_lines: tuple[str, ...] = ()
     warnings: tuple[str, ...] = field(default_factory=tuple)
 
@@ -66,7 +67,7 @@ class OperatorViewRenderer:
         img = np.clip(self._background, 0, 255).astype(np.uint8)
         if screen is not None:
             img = self._draw_current_border(img, camera, screen, R)  # type: ignore[arg-type]
-            self._draw_obstacles(img, overlay.obstacle_points_c_m, R, screen)
+            self._draw_obstacles(img, overlay.obstacle_points_c_m, R, screen, overlay.obstacle_warning_m)
         self._draw_centre(img)
         self._draw_velocity_inset(img, overlay)
         self._draw_force_inset(img, overlay)
@@ -83,7 +84,7 @@ class OperatorViewRenderer:
         return img
 
     def _draw_obstacles(self, img: NDArray[np.uint8], points: tuple[tuple[float, float, float], ...],
-                        R: NDArray[np.float64], screen: CameraIntrinsics) -> None:
+                        R: NDArray[np.float64], screen: CameraIntrinsics, warning_m: float = 1.0) -> None:
         if not points:
             return
         p = np.asarray(points, dtype=float).reshape(-1, 3)
@@ -92,9 +93,10 @@ class OperatorViewRenderer:
         for (u, v), d in zip(uv, dist):
             if not (np.isfinite(u) and np.isfinite(v)):
                 continue
-            radius = int(np.clip(12.0 / max(d, 0.3), 3, 14))
-            cv2.circle(img, (int(round(u)), int(round(v))), radius, RED, -1, cv2.LINE_AA)
-            cv2.circle(img, (int(round(u)), int(round(v))), radius, WHITE, 1, cv2.LINE_AA)
+            radius = int(np.clip(6.0 / max(d, 0.3), 2, 8))      # nearer points are bigger
+            colour = RED if d < warning_m else ORANGE
+            cv2.circle(img, (int(round(u)), int(round(v))), radius + 1, (0, 0, 0), -1, cv2.LINE_AA)
+            cv2.circle(img, (int(round(u)), int(round(v))), radius, colour, -1, cv2.LINE_AA)
 
     def _draw_centre(self, img: NDArray[np.uint8]) -> None:
         cx, cy = self.width_px // 2, self.height_px // 2
