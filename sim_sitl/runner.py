@@ -333,10 +333,12 @@ class Sitl:
         cfg = self.options.config
         speed = o.speed if o.speed is not None else 1.0
         chunk_ticks = max(1, round(cfg.lockstep_chunk_s / self.sim.tick_s)) if o.lockstep else 1
-        wall0 = time.monotonic()
+        wall0 = start_wall = time.monotonic()
         sim0 = self.sim.t_s
         last_progress = wall0
         last_progress_stats = (0.0, 0, 0)
+        was_gated = False
+        behind_warned = False
         while not self._stop.is_set():
             if o.duration_s is not None and self.sim.t_s >= o.duration_s - 1e-9:
                 break
@@ -344,14 +346,23 @@ class Sitl:
                 self._tick()
             now = time.monotonic()
             self.stats.sim_time_s = self.sim.t_s
-            self.stats.wall_time_s = now - wall0
+            self.stats.wall_time_s = now - start_wall
             gated = o.lockstep and (self._lockstep_gated or
                                     (self.camera_server is not None and self.camera_server.client_count > 0))
             if o.lockstep and self._lockstep_gated:
                 self._wait_for_setpoint()
+            if gated and o.speed is None:
+                was_gated = True
+            elif was_gated:  # consumers left: pace from here, do not sleep off the time gained while gated
+                was_gated = False
+                wall0, sim0 = now, self.sim.t_s
             if not gated or o.speed is not None:
                 target = wall0 + (self.sim.t_s - sim0) / speed
                 if target - now < -0.5:  # cannot keep up: do not try to catch up in a burst
+                    if not behind_warned:
+                        log.warning("cannot keep %.1fx real time (sim %.2f s behind); continuing as fast as possible",
+                                    speed, (now - target) * speed)
+                        behind_warned = True
                     wall0, sim0 = now, self.sim.t_s
                     target = now
                 self._service_io(max(0.0, target - time.monotonic()))
@@ -361,7 +372,7 @@ class Sitl:
                 self._progress(now - last_progress, last_progress_stats)
                 last_progress = now
                 last_progress_stats = (self.sim.t_s, self.stats.imu_frames_offered, self.stats.camera_frames)
-        self.stats.wall_time_s = time.monotonic() - wall0 if self.stats.wall_time_s == 0 else self.stats.wall_time_s
+        self.stats.wall_time_s = time.monotonic() - start_wall
         log.info("SITL stopped at sim time %.2f s (real-time factor %.2f)", self.sim.t_s,
                  self.stats.real_time_factor)
 
@@ -484,7 +495,7 @@ class Sitl:
             remaining = deadline - time.monotonic()
             if remaining <= 0:
                 break
-            self._select(remaining)
+            self._select(min(remaining, 0.1))  # a signal handler only sets the stop flag: look at it often
             self._handle_rx()
 
     def _wait_for_setpoint(self) -> None:
