@@ -46,9 +46,9 @@ class TruthEncoder:
             ).pack(self.mav))
         p, v = np.asarray(p_local_ned_m, dtype=float), np.asarray(v_ned_m_s, dtype=float)
         out.append(mavlink.MAVLink_local_position_ned_message(ms, *map(float, p), *map(float, v)).pack(self.mav))
-        q = quat_wxyz_from_R(R_ned_q)
-        w = np.asarray(omega_q_rad_s, dtype=float)
-        out.append(mavlink.MAVLink_attitude_quaternion_message(ms, *map(float, q), *map(float, w),
+        q = [float(x) for x in quat_wxyz_from_R(R_ned_q)]
+        w = [float(x) for x in np.asarray(omega_q_rad_s, dtype=float)]
+        out.append(mavlink.MAVLink_attitude_quaternion_message(ms, q[0], q[1], q[2], q[3], w[0], w[1], w[2],
                                                                [0.0, 0.0, 0.0, 0.0]).pack(self.mav))
         for sensor_id, d_m in ((0, nearest_any_m), (1, nearest_obstacle_m)):
             d_cm = DISTANCE_MAX_CM + 1 if not math.isfinite(d_m) else min(int(round(d_m * 100.0)), DISTANCE_MAX_CM + 1)

@@ -69,7 +69,7 @@ class World:
         self._tmp = tempfile.TemporaryDirectory(prefix="quadlink-sitl-tex-") if texture_dir is None else None
         self._texture_dir = Path(self._tmp.name if self._tmp else texture_dir)  # type: ignore[arg-type]
         self._rng = rng
-        self._textures: dict[tuple[str, tuple[float, float, float]], int] = {}
+        self._textures: dict[tuple[str, tuple[float, ...]], int] = {}
         self.surfaces: dict[int, str] = {}
         p.setGravity(0.0, 0.0, -GRAVITY_M_S2, physicsClientId=self.client)
         p.setTimeStep(self.dt_s, physicsClientId=self.client)
