@@ -79,8 +79,7 @@ class World:
         self._build_vehicle()
         self.t_s = 0.0
         self.motor_thrust_n = np.zeros(4)
-        self._v_prev_ned = np.zeros(3)
-        self._state = self._read_state(np.zeros(3))
+        self._state = self._read_state(None)
 
     # ------------------------------------------------------------------ scene
     def _texture(self, kind: str, color: tuple[float, float, float]) -> int:
@@ -151,13 +150,15 @@ class World:
                          physicsClientId=self.client)
 
     # ------------------------------------------------------------------ dynamics
-    def _read_state(self, a_ned: NDArray[np.float64]) -> RigidState:
+    def _read_state(self, v_prev_ned: NDArray[np.float64] | None) -> RigidState:
+        """The body's state; the acceleration is the velocity change since ``v_prev_ned`` over one step."""
         pos, quat = p.getBasePositionAndOrientation(self.body, physicsClientId=self.client)
         lin, ang = p.getBaseVelocity(self.body, physicsClientId=self.client)
         R_pb = np.asarray(p.getMatrixFromQuaternion(quat), dtype=float).reshape(3, 3)
         R_ned_q = D @ R_pb @ D
         v_ned = D @ np.asarray(lin)
         omega_q = R_ned_q.T @ (D @ np.asarray(ang))
+        a_ned = np.zeros(3) if v_prev_ned is None else (v_ned - v_prev_ned) / self.dt_s
         return RigidState(self.t_s, D @ np.asarray(pos), v_ned, R_ned_q, omega_q, a_ned, self.motor_thrust_n.copy())
 
     @property
@@ -183,10 +184,7 @@ class World:
         p.applyExternalTorque(self.body, -1, (D @ torque_ned).tolist(), p.WORLD_FRAME, physicsClientId=self.client)
         p.stepSimulation(physicsClientId=self.client)
         self.t_s += self.dt_s
-        lin, _ = p.getBaseVelocity(self.body, physicsClientId=self.client)
-        v_new = D @ np.asarray(lin)
-        a_ned = (v_new - s.v_ned_m_s) / self.dt_s
-        self._state = self._read_state(a_ned)
+        self._state = self._read_state(s.v_ned_m_s)
         return self._state
 
     def reset_pose(self, p_ned_m: NDArray[np.float64], R_ned_q: NDArray[np.float64],
@@ -196,7 +194,7 @@ class World:
         p.resetBasePositionAndOrientation(self.body, (D @ p_ned_m).tolist(), _quat_xyzw_from_R(D @ R_ned_q @ D),
                                           physicsClientId=self.client)
         p.resetBaseVelocity(self.body, (D @ v).tolist(), [0.0, 0.0, 0.0], physicsClientId=self.client)
-        self._state = self._read_state(np.zeros(3))
+        self._state = self._read_state(None)
 
     # ------------------------------------------------------------------ queries
     def nearest_distances(self, p_ned_m: NDArray[np.float64], max_distance_m: float = 20.0) -> tuple[float, float]:
