@@ -62,7 +62,7 @@ def build_specs(scenario: str, script: Path, out_dir: Path, ports: Ports, lockst
                                "--vehicle", f"udpout:127.0.0.1:{ports.vehicle}",
                                "--image-stream", f"tcp://127.0.0.1:{ports.image}",
                                "--http-port", str(ports.http), "--log-csv", str(out_dir / "teleop.csv"),
-                               "--exit-when-done"), ready_after_s=0.5),
+                               "--exit-at-script-end"), ready_after_s=0.5),
     ]
 
 
