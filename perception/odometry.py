@@ -43,7 +43,7 @@ class OdometryConfig:
     depth_weight: float = 0.3                        # lambda_Z: weight of the (normalised) depth term
     t_dof: float = 5.0                               # nu of the t-distribution weights (DVO)
     min_intensity_sigma: float = 0.004               # floors of the robust scales (about one grey level and
-    min_depth_sigma_m: float = 0.002                 # a structured-light sensor's noise at 1 m) so exact
+    min_depth_sigma_m: float = 0.0002                # a structured-light sensor's noise at 1 m) so exact
                                                      # data cannot make one term drown the other
     gradient_fraction: float = 0.75                  # share of the points picked by intensity gradient
     imu_prior_sigma_rad: float = 0.01                # std of the gyro rotation prior between frames
