@@ -334,23 +334,28 @@ async def _mavsdk_flight(stack: Stack) -> dict:
         await offboard.start()
         seen["offboard_mode"] = await until(telemetry.subscribe_flight_mode(),
                                             lambda m: m == FlightMode.OFFBOARD, 5.0)
-        p0, _, q = stack.state()
+        _, _, q = stack.state()
         seen["yaw0"] = euler_from_R(R_from_quat_wxyz(q))[2]
-        t0 = stack.sim_time_s
-        await offboard.set_velocity_body(VelocityBodyYawspeed(-0.5, 0.0, 0.0, 0.0))  # backwards
-        while stack.sim_time_s - t0 < 4.0:  # simulated time: a loaded machine runs the lock-step SITL slower
-            await asyncio.sleep(0.1)
-        seen["commanded_m"] = 0.5 * (stack.sim_time_s - t0)
+        # a velocity square in the body frame: forward, right, backward, left, 0.5 m/s for 4 s each
+        seen["corners"] = [stack.state()[0]]
+        seen["commanded_m"] = []
+        for forward, right in ((0.5, 0.0), (0.0, 0.5), (-0.5, 0.0), (0.0, -0.5)):
+            t0 = stack.sim_time_s
+            await offboard.set_velocity_body(VelocityBodyYawspeed(forward, right, 0.0, 0.0))
+            while stack.sim_time_s - t0 < 4.0:  # simulated time: a loaded machine runs the lock-step SITL slower
+                await asyncio.sleep(0.05)
+            seen["commanded_m"].append(0.5 * (stack.sim_time_s - t0))
+            seen["corners"].append(stack.state()[0])
         await offboard.set_velocity_body(VelocityBodyYawspeed(0.0, 0.0, 0.0, 0.0))
         await asyncio.sleep(1.5)
-        seen["moved"] = (stack.state()[0] - p0)
+        seen["end"] = stack.state()[0]
         await action.land()
         await until(telemetry.subscribe_armed(), lambda armed: not armed, 30.0)
         seen["landed_p"], _, _ = stack.state()
     return seen
 
 
-def test_mavsdk_arm_takeoff_offboard_velocity_body_land(stack):
+def test_mavsdk_arm_takeoff_offboard_velocity_square_land(stack):
     gcs = Gcs(stack.gcs_port)
     odom = Odometry(stack, gcs)  # the velocity source, from the truth (no companion in this test)
     try:
@@ -365,9 +370,19 @@ def test_mavsdk_arm_takeoff_offboard_velocity_body_land(stack):
     assert seen["battery"].voltage_v > 9.0 and 0 <= seen["battery"].remaining_percent <= 100
     assert -seen["takeoff_p"][2] > 0.7
     yaw = seen["yaw0"]
-    backwards = -np.array([math.cos(yaw), math.sin(yaw)])
-    d = seen["moved"][:2]
-    assert seen["commanded_m"] > 1.0
-    assert float(d @ backwards) > 0.7 * seen["commanded_m"], f"moved {d}, expected along {backwards}"
-    assert abs(d[0] * backwards[1] - d[1] * backwards[0]) < 0.5 * float(d @ backwards)
+    forward = np.array([math.cos(yaw), math.sin(yaw)])
+    right = np.array([-math.sin(yaw), math.cos(yaw)])
+    corners = np.array(seen["corners"])[:, :2]
+    for leg, (expected, commanded_m) in enumerate(zip((forward, right, -forward, -right), seen["commanded_m"])):
+        d = corners[leg + 1] - corners[leg]
+        along = float(d @ expected)
+        assert commanded_m > 1.0
+        # the leg's corner is sampled while the vehicle is still turning the previous corner: generous bounds
+        assert along > 0.6 * commanded_m, f"leg {leg}: moved {d}, expected {commanded_m:.2f} m along {expected}"
+        assert abs(d[0] * expected[1] - d[1] * expected[0]) < 0.6 * along, f"leg {leg}: moved {d}"
+    side = float(np.mean(seen["commanded_m"]))
+    closure = float(np.linalg.norm(seen["end"][:2] - corners[0]))
+    legs = np.linalg.norm(np.diff(corners, axis=0), axis=1)
+    print(f"square: legs {np.round(legs, 2)} m for {side:.2f} m commanded, closure {closure:.2f} m")
+    assert closure < 0.4 * side, f"the square does not close: {closure:.2f} m for {side:.2f} m sides"
     assert abs(seen["landed_p"][2]) < 0.15
