@@ -80,7 +80,7 @@ def child(sim_s: float, camera: bool, res: tuple[int, int], scenario: str, pin: 
     if pin and hasattr(os, "sched_setaffinity"):
         os.sched_setaffinity(0, {min(os.sched_getaffinity(0))})
     opts = SitlOptions(config=load_sitl_config(), scenario=scenario, port1=0, port2=0, camera_port=0, camera=camera,
-                       camera_res=res, truth_url="udpout:127.0.0.1:9", speed=1e6, duration_s=sim_s,
+                       camera_res=res, truth_url="udpout:127.0.0.1:9", speed=0.0, duration_s=sim_s,
                        progress_every_s=1e9)
     sitl = Sitl(opts)
     print(json.dumps({"port2": sitl.port2.address[1],

@@ -17,7 +17,8 @@ log = logging.getLogger(__name__)
 @click.option("--scenario", default=None, help=f"scenario name ({', '.join(known_scenarios())}) or YAML path")
 @click.option("--config", "config_path", default=None, help="SITL config YAML (default configs/sitl.yaml)")
 @click.option("--lockstep", is_flag=True, help="advance in 10 ms chunks gated by setpoints and camera acks")
-@click.option("--speed", type=float, default=None, help="sim speed factor vs wall clock (default 1.0)")
+@click.option("--speed", type=float, default=None,
+              help="sim speed factor vs wall clock (default 1.0; 0 = as fast as possible)")
 @click.option("--camera-res", default=None, help="320x240 (default) or 640x480")
 @click.option("--no-camera", is_flag=True, help="do not render or serve the RGB-D camera")
 @click.option("--pty", is_flag=True, help="also expose both MK ports as pseudo-terminals (paths are logged)")
@@ -33,8 +34,8 @@ def command(scenario: str | None, config_path: str | None, lockstep: bool, speed
     from sim_sitl.runner import Sitl, SitlOptions, parse_resolution
 
     cfg = load_sitl_config(config_path)
-    if speed is not None and speed <= 0:
-        raise ConfigError(f"--speed must be positive, got {speed}")
+    if speed is not None and speed < 0:
+        raise ConfigError(f"--speed must be positive (or 0 for as fast as possible), got {speed}")
     res = None
     if camera_res:
         try:

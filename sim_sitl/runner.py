@@ -58,7 +58,7 @@ class SitlOptions:
     truth_url: str | None = "udpout:127.0.0.1:14560"
     pty: bool = False
     lockstep: bool = False
-    speed: float | None = None  # None: real time (1.0), or unpaced while lock-step consumers gate
+    speed: float | None = None  # None: real time (1.0), or unpaced while lock-step consumers gate; 0: unpaced
     duration_s: float | None = None  # sim seconds
     progress_every_s: float = 5.0
 
@@ -332,6 +332,7 @@ class Sitl:
         o = self.options
         cfg = self.options.config
         speed = o.speed if o.speed is not None else 1.0
+        unpaced = o.speed is not None and (o.speed <= 0 or math.isinf(o.speed))  # as fast as possible
         chunk_ticks = max(1, round(cfg.lockstep_chunk_s / self.sim.tick_s)) if o.lockstep else 1
         wall0 = start_wall = time.monotonic()
         sim0 = self.sim.t_s
@@ -356,7 +357,9 @@ class Sitl:
             elif was_gated:  # consumers left: pace from here, do not sleep off the time gained while gated
                 was_gated = False
                 wall0, sim0 = now, self.sim.t_s
-            if not gated or o.speed is not None:
+            if unpaced:
+                self._service_io(0.0)
+            elif not gated or o.speed is not None:
                 target = wall0 + (self.sim.t_s - sim0) / speed
                 if target - now < -0.5:  # cannot keep up: do not try to catch up in a burst
                     if not behind_warned:
