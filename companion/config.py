@@ -22,7 +22,6 @@ class LinksConfig:
     camera: str = "tcp://127.0.0.1:5762"  # SITL camera stream, or a TUM-format folder for replay
     image_host: str = "127.0.0.1"  # operator image stream (camera record format, JPEG colour)
     image_port: int = 5770
-    image_jpeg_quality: int = 80
     gcs_client_timeout_s: float = 10.0  # a GCS client silent this long stops receiving telemetry
 
 
@@ -45,7 +44,8 @@ class TimingConfig:
     heartbeat_rate_hz: float = 1.0
     timesync_period_s: float = 1.0
     camera_stamps: Literal["autopilot", "local"] = "autopilot"
-    imu_wait_s: float = 0.01  # wait this long for the IMU to catch up with a frame before processing it
+    imu_wait_s: float = 0.005  # wait at most this long for the IMU to catch up with a frame ...
+    imu_slack_s: float = 0.005  # ... when its last sample is older than the frame by more than this
     camera_timeout_s: float = 0.3  # no frame for this long (wall): obstacle data stale, odometry failed
     fallback_setpoint_rate_hz: float = 10.0  # setpoints sent while the camera is silent
     poll_s: float = 0.004  # main loop wait per iteration

@@ -174,6 +174,7 @@ class Companion:
         self._imu_stamp_s: float | None = None
         self._imu_wall_s: float | None = None
         self._gyro_q = np.zeros(3)
+        self._imu_wait_misses = 0
         self._next_feedback_s = 0.0
         self._next_feedback_wall_s = 0.0
         self._next_heartbeat_wall_s = 0.0
@@ -254,13 +255,26 @@ class Companion:
                 self._on_gcs(msg)
 
     def _wait_for_imu(self, stamp_s: float) -> None:
-        """Let the IMU stream catch up with the frame (bounded), if it is flowing at all."""
-        if self._imu_stamp_s is None or stamp_s - self._imu_stamp_s > 0.2:
+        """Let the IMU stream catch up with the frame (bounded), if it is flowing at all.
+
+        If the wait keeps timing out the IMU structurally lags the frames on this setup (a producer that
+        emits them later): stop waiting rather than add latency to every frame (the attitude filter
+        extrapolates the last few ms).
+        """
+        t = self.cfg.timing
+        if self._imu_stamp_s is None or stamp_s - self._imu_stamp_s > 0.2 or self._imu_wait_misses >= 30:
             return
-        deadline = self.clock() + self.cfg.timing.imu_wait_s
-        while self._imu_stamp_s < stamp_s - 0.0021 and self.clock() < deadline:
+        deadline = self.clock() + t.imu_wait_s
+        while self._imu_stamp_s < stamp_s - t.imu_slack_s:
+            if self.clock() >= deadline:
+                self._imu_wait_misses += 1
+                if self._imu_wait_misses == 30:
+                    log.info("IMU lags the camera frames by more than %.0f ms: not waiting for it any more",
+                             t.imu_slack_s * 1e3)
+                return
             self._drain_autopilot()
             time.sleep(0.0005)
+        self._imu_wait_misses = 0
 
     # ------------------------------------------------------------------ autopilot side
     def _on_autopilot(self, msg: Any) -> None:

@@ -49,14 +49,16 @@ class ReferenceParams:
 
     k_v_m_s: horizontal speed at full handle deflection (eq. 2); k_climb_m_s: climb speed at full
     deflection; k_psi_rad_s: yaw rate at full deflection (eq. 3). Repulsion (eq. 7): eta gain
-    [m^3/s], influence distance d_0, limit on |v_o|; safe distance (paper Fig. 8: 0.45 m) inside which
-    the reference has no component toward the obstacle.
+    [m^3/s], influence distance d_0, limit on |v_o|, the weight of each map point in the sum
+    (1 / particles per measured point, so a point's copies count once); safe distance (paper Fig. 8:
+    0.45 m) inside which the reference has no component toward the obstacle.
     """
 
     k_v_m_s: float = 0.6
     k_climb_m_s: float = 0.4
     k_psi_rad_s: float = 0.8
     deadband: float = 0.03
+    point_weight: float = 1.0
     repulsion_gain_m3_s: float = 0.15
     influence_distance_m: float = 0.9
     max_repulsion_m_s: float = 1.0
@@ -127,7 +129,7 @@ def repulsion_velocity(points_h_m: ArrayLike | None, params: ReferenceParams) ->
     if not np.any(near):
         return np.zeros(3)
     p, d = p[near], d[near]
-    magnitude = params.repulsion_gain_m3_s * (1.0 / d - 1.0 / params.influence_distance_m) / d**2
+    magnitude = params.point_weight * params.repulsion_gain_m3_s * (1.0 / d - 1.0 / params.influence_distance_m) / d**2
     v = np.sum((-p / d[:, None]) * magnitude[:, None], axis=0)
     speed = float(np.linalg.norm(v))
     if speed > params.max_repulsion_m_s:
