@@ -10,7 +10,9 @@ import click
 
 from quadlink.errors import ConfigError
 from teleop.config import load_teleop_config
-from teleop.devices import DEVICE_NAMES, open_device
+from teleop.devices import DEVICE_NAMES, HapticDevice, open_device
+from teleop.devices.script import load_script
+from teleop.force_loop import DeviceSpec
 from teleop.station import Station
 
 log = logging.getLogger(__name__)
@@ -50,18 +52,24 @@ def command(device_name: str, script: str | None, vehicle: str | None, image_str
     def vehicle_clock() -> float | None:
         return stations[0].vehicle_time_s() if stations else None
 
-    device = open_device(device_name, cfg.device, script, vehicle_clock if script_clock == "vehicle" else None)
+    device: HapticDevice | DeviceSpec
+    if device_name == "keyboard":   # reads this terminal: the force loop runs in a thread of this process
+        device = open_device(device_name, cfg.device, script, vehicle_clock if script_clock == "vehicle" else None)
+    else:                           # the force loop runs in its own process (force_loop.py: why)
+        if script is not None:
+            load_script(script)     # bad scripts fail here, with one line, before anything starts
+        device = DeviceSpec(device_name, script, script_clock)
     station = Station(cfg, device, vehicle_url, None if image_url == "none" else image_url,
                       None if port < 0 else port, record, log_csv, exit_at_script_end=exit_at_script_end)
     stations.append(station)
-    log.info("device %s (force output: %s)%s", device.name, "yes" if device.has_force_output else "no",
-             f", script {script} on the {script_clock} clock" if script else "")
+    log.info("device %s%s", device_name, f", script {script} on the {script_clock} clock" if script else "")
+
     def on_sigterm(signum: int, frame: FrameType | None) -> None:
         raise KeyboardInterrupt   # SIGTERM stops as cleanly as Ctrl-C (force off, CSV and video closed)
 
     previous = signal.signal(signal.SIGTERM, on_sigterm)
     try:
-        station.start()
+        station.start()   # opens the device (its own process) first: a missing backend is a one-line error
         if station.server is not None:
             log.info("open %s in a browser", station.server.url)
         station.run(duration)

@@ -18,14 +18,12 @@ from __future__ import annotations
 import csv
 import logging
 import math
-import os
 import queue
 import sys
 import threading
 import time
 from collections import deque
 from collections.abc import Callable
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, TextIO
 
@@ -39,9 +37,10 @@ from quadlink.mavlink import mavlink
 from quadlink.mavlink.connection import open_mavlink
 from teleop.commands import CommandResult, CommandTracker, OutgoingCommand
 from teleop.config import TeleopConfig
-from teleop.devices.base import DeviceState, HapticDevice
-from teleop.force import LinkFade, VehicleMotion, force_law, link_ok, q_tilde
-from teleop.mapping import ManualControl, map_device_to_command, mapping_gains
+from teleop.devices.base import HapticDevice
+from teleop.force import VehicleMotion, link_ok
+from teleop.force_loop import DeviceSpec, ForceProcess, ForceSnapshot, MotionInput, PeriodRecorder, run_force_loop
+from teleop.mapping import ManualControl, map_device_to_command
 from teleop.telemetry import (
     FLAG_GCS_LINK_OK,
     FLAG_ODOMETRY_OK,
@@ -60,42 +59,6 @@ CSV_FIELDS = ["t_s", "qx_m", "qy_m", "qz_m", "qdx_m_s", "qdy_m_s", "qdz_m_s", "f
               "tau_x_n", "tau_y_n", "tau_z_n", "qtx_m", "qty_m", "qtz_m", "link_gain", "cmd_x", "cmd_z", "cmd_r",
               "vx_h", "vy_h", "vz_h", "vx_cmd", "vy_cmd", "vz_cmd", "vx_rep", "vy_rep", "vz_rep", "alpha_rad",
               "yaw_rate", "pan_scan_rate_used", "obstacle_m", "mode", "flags", "armed"]
-
-
-@dataclass(frozen=True)
-class ForceSnapshot:
-    device: DeviceState
-    tau_d_n: NDArray[np.float64]
-    q_tilde_m: NDArray[np.float64] | None
-    link_gain: float
-    cue_gain: float = 1.0
-
-
-def precise_sleep_until(deadline_s: float, clock: Callable[[], float], spin_s: float) -> None:
-    remaining = deadline_s - clock()
-    if remaining > spin_s:
-        time.sleep(remaining - spin_s)
-    while clock() < deadline_s:
-        pass
-
-
-class PeriodRecorder:
-    """Ring buffer of loop periods (for the jitter figure)."""
-
-    def __init__(self, size: int = 120_000) -> None:
-        self._buf = np.zeros(size)
-        self._n = 0
-        self._t_prev: float | None = None
-
-    def record(self, t_s: float) -> None:
-        if self._t_prev is not None:
-            self._buf[self._n % len(self._buf)] = t_s - self._t_prev
-            self._n += 1
-        self._t_prev = t_s
-
-    def periods_s(self) -> NDArray[np.float64]:
-        n = min(self._n, len(self._buf))
-        return self._buf[:n].copy()
 
 
 def warnings_for(tel: Telemetry, link_is_ok: bool, t_s: float, cfg: TeleopConfig) -> list[str]:
@@ -120,7 +83,8 @@ def warnings_for(tel: Telemetry, link_is_ok: bool, t_s: float, cfg: TeleopConfig
 
 
 class Station:
-    def __init__(self, cfg: TeleopConfig, device: HapticDevice, vehicle_url: str, image_stream_url: str | None,
+    def __init__(self, cfg: TeleopConfig, device: HapticDevice | DeviceSpec, vehicle_url: str,
+                 image_stream_url: str | None,
                  http_port: int | None, record_path: str | None = None, log_csv: str | None = None,
                  clock: Callable[[], float] = time.perf_counter, exit_at_script_end: bool = True) -> None:
         self.cfg = cfg
@@ -132,11 +96,11 @@ class Station:
         self.log_csv = log_csv
         self.clock = clock
         self.exit_at_script_end = exit_at_script_end
-        self.gains = mapping_gains(cfg.mapping, cfg.device)
         self.stop_event = threading.Event()
         self._lock = threading.Lock()
         self._force: ForceSnapshot | None = None
-        self._motion: tuple[float, VehicleMotion, bool] | None = None   # (receive time, motion, cue wanted)
+        self._motion: MotionInput | None = None
+        self._force_proc: ForceProcess | None = None
         self._telemetry = Telemetry()
         self._command = ManualControl(0, 0, 500, 0)
         self._buttons: queue.Queue[str] = queue.Queue(maxsize=100)
@@ -156,14 +120,17 @@ class Station:
 
     # ---- lifecycle -------------------------------------------------------------------------
     def start(self) -> None:
+        if isinstance(self.device, DeviceSpec):   # before any thread: the force loop in its own process
+            self._force_proc = ForceProcess(self.device, self.cfg)
         self._conn = open_mavlink(self.vehicle_url, self.cfg.network.source_system, self.cfg.network.source_component)
         log.info("vehicle link %s (MANUAL_CONTROL at %.0f Hz to sysid %d)", self.vehicle_url, self.cfg.mapping.rate_hz,
                  self.cfg.mapping.target_system)
         if self.http_port is not None:
             period_ms = max(int(1000 / 30), 20)
             self.server = ViewServer(self.hub, self.cfg.network.http_host, self.http_port, period_ms)
-        sys.setswitchinterval(0.0005)
-        self._spawn("force-loop", self._force_loop)
+        if self._force_proc is None:
+            sys.setswitchinterval(0.0005)   # the force thread waits at most this long for the GIL
+            self._spawn("force-loop", self._force_thread)
         self._spawn("network-loop", self._network_loop)
         if self.image_stream_url is not None or self.server is not None or self.record_path:
             self._spawn("view-loop", self._view_loop)
@@ -190,7 +157,9 @@ class Station:
             t = self.clock()
             if duration_s is not None and t - t0 >= duration_s:
                 break
-            if self.exit_at_script_end and self.device.finished:
+            if self._force_proc is not None and not self._force_proc.alive:
+                raise QuadlinkError("the force process died (see its log above)")
+            if self.exit_at_script_end and self.device_finished:
                 log.info("script finished")
                 break
             with self._lock:   # STATUSTEXTs are logged when they arrive; the others when they appear
@@ -209,10 +178,13 @@ class Station:
         for thread in self._threads:
             thread.join(timeout=3.0)
         sys.setswitchinterval(self._switch_interval)
-        try:
-            self.device.set_force(np.zeros(3))
-        finally:
-            self.device.close()
+        if self._force_proc is not None:
+            self._force_proc.close()
+        elif isinstance(self.device, HapticDevice):
+            try:
+                self.device.set_force(np.zeros(3))
+            finally:
+                self.device.close()
         if self.server is not None:
             self.server.close()
         if self._conn is not None:
@@ -231,8 +203,20 @@ class Station:
 
     @property
     def force(self) -> ForceSnapshot | None:
+        if self._force_proc is not None:
+            return self._force_proc.snapshot()
         with self._lock:
             return self._force
+
+    @property
+    def device_finished(self) -> bool:
+        if self._force_proc is not None:
+            return self._force_proc.finished
+        return isinstance(self.device, HapticDevice) and self.device.finished
+
+    def force_periods_s(self) -> NDArray[np.float64]:
+        """Periods of the force loop so far (s), for the jitter figure."""
+        return self._force_proc.periods_s() if self._force_proc is not None else self.force_periods.periods_s()
 
     @property
     def command(self) -> ManualControl:
@@ -241,9 +225,9 @@ class Station:
 
     def status(self) -> dict[str, Any]:
         t = self.clock()
+        force = self.force
         with self._lock:
-            tel, force, cmd, warnings, acks = self._telemetry, self._force, self._command, list(self._warnings), \
-                list(self._acks)
+            tel, cmd, warnings, acks = self._telemetry, self._command, list(self._warnings), list(self._acks)
         fb = tel.feedback
         ok = link_ok(fb.t_recv_s if fb else None, t, self.cfg.force.link_timeout_s)
         return {
@@ -273,37 +257,10 @@ class Station:
                 f"obstacle {obst} | {s['command']} | q [{s['q_m'][0]:+.3f} {s['q_m'][1]:+.3f} {s['q_m'][2]:+.3f}] m"
                 f" | force [{f[0]:+.2f} {f[1]:+.2f} {f[2]:+.2f}] N")
 
-    # ---- force loop (1 kHz) ----------------------------------------------------------------
-    def _force_loop(self) -> None:
-        _try_realtime(self.cfg.device.realtime_priority)
-        period = 1.0 / self.cfg.device.force_rate_hz
-        fade = LinkFade(self.cfg.force.fade_time_s)
-        cue_fade = LinkFade(self.cfg.force.fade_time_s)
-        spin = self.cfg.device.spin_s
-        next_t = self.clock()
-        while not self.stop_event.is_set():
-            t = self.clock()
-            self.force_periods.record(t)
-            state = self.device.poll(t)
-            motion = self._motion
-            ok = motion is not None and link_ok(motion[0], t, self.cfg.force.link_timeout_s)
-            gain = fade.update(ok, t)
-            cue = cue_fade.update(ok and motion is not None and motion[2], t)
-            qt = q_tilde(motion[1], self.gains) if motion is not None else None
-            tau = force_law(state.q_m, state.qdot_m_s, qt, self.cfg.force, self.cfg.device.force_limit_n, gain, cue)
-            self.device.set_force(tau)
-            snap = ForceSnapshot(state, tau, qt, gain, cue)
-            with self._lock:
-                self._force = snap
-            for button in state.buttons:
-                try:
-                    self._buttons.put_nowait(button)
-                except queue.Full:
-                    log.warning("button %s dropped (queue full)", button)
-            next_t += period
-            if self.clock() - next_t > 50 * period:   # fell far behind (suspended?): resynchronise
-                next_t = self.clock()
-            precise_sleep_until(next_t, self.clock, spin)
+    # ---- force loop (1 kHz): in-process variant ------------------------------------------
+    def _force_thread(self) -> None:
+        assert isinstance(self.device, HapticDevice)
+        run_force_loop(self.device, self.cfg, _ThreadIO(self), self.clock)
 
     # ---- network loop (50 Hz) --------------------------------------------------------------
     def _network_loop(self) -> None:
@@ -347,8 +304,11 @@ class Station:
                         self._pan_scan_hz = est.frequency_hz
                         ps = (est.yaw_rate_rad_s if self.cfg.force.pan_scan_source == "estimated"
                               else fb.pan_scan_yaw_rate_rad_s if fb.pan_scan_on else 0.0)
-                        self._motion = (t, VehicleMotion(fb.v_h_m_s, fb.alpha_rad, fb.gyro_yaw_rate_rad_s, ps),
-                                        fb.mode in self.cfg.force.cue_modes)
+                        self._motion = MotionInput(t, VehicleMotion(fb.v_h_m_s, fb.alpha_rad,
+                                                                    fb.gyro_yaw_rate_rad_s, ps),
+                                                   fb.mode in self.cfg.force.cue_modes)
+                        if self._force_proc is not None:
+                            self._force_proc.set_motion(self._motion, fb.time_usec * 1e-6)
                     elif mtype == "COMMAND_ACK":
                         self._ack(self.commands.on_command_ack(msg.command, msg.result, t))
                     elif mtype == "PARAM_VALUE":
@@ -357,11 +317,13 @@ class Station:
                     elif mtype == "STATUSTEXT" and msg.severity <= mavlink.MAV_SEVERITY_WARNING:
                         log.warning("vehicle says: %s", tel.last_statustext)
                 # buttons -> commands
+                presses = self._force_proc.buttons() if self._force_proc is not None else []
                 while True:
                     try:
-                        button = self._buttons.get_nowait()
+                        presses.append(self._buttons.get_nowait())
                     except queue.Empty:
                         break
+                for button in presses:
                     if button == "quit":
                         log.info("quit pressed")
                         self.stop_event.set()
@@ -432,7 +394,7 @@ class Station:
         if fb is not None:
             row += [*(f"{v:.4f}" for v in fb.v_h_m_s), *(f"{v:.4f}" for v in fb.v_cmd_h_m_s),
                     *(f"{v:.4f}" for v in fb.v_rep_h_m_s), f"{fb.alpha_rad:.4f}", f"{fb.gyro_yaw_rate_rad_s:.4f}",
-                    f"{motion[1].pan_scan_yaw_rate_rad_s if motion else 0.0:.4f}",
+                    f"{motion.motion.pan_scan_yaw_rate_rad_s if motion else 0.0:.4f}",
                     "" if fb.obstacle_distance_m is None else f"{fb.obstacle_distance_m:.3f}", fb.mode, fb.flags]
         else:
             row += [""] * 15
@@ -517,17 +479,30 @@ class Station:
             self.hub.publish(buf.tobytes())
 
 
-def _try_realtime(priority: int) -> None:
-    """SCHED_FIFO for the calling (force) thread: on a loaded machine the normal scheduler lets it miss
-    ticks by several ms. The loop sleeps most of each period, so it cannot starve the machine."""
-    if priority <= 0:
-        return
-    try:
-        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
-        log.info("force loop: real-time priority SCHED_FIFO %d", priority)
-    except (AttributeError, OSError) as exc:
-        log.warning("force loop: no real-time priority (%s); expect ms jitter under load "
-                    "(allow it with 'ulimit -r %d' or CAP_SYS_NICE)", exc, priority)
+class _ThreadIO:
+    """The in-process force loop's link to the station."""
+
+    def __init__(self, station: Station) -> None:
+        self.station = station
+
+    def motion(self) -> MotionInput | None:
+        return self.station._motion
+
+    def publish(self, snapshot: ForceSnapshot) -> None:
+        with self.station._lock:
+            self.station._force = snapshot
+
+    def button(self, name: str) -> None:
+        try:
+            self.station._buttons.put_nowait(name)
+        except queue.Full:
+            log.warning("button %s dropped (queue full)", name)
+
+    def record_period(self, t_s: float) -> None:
+        self.station.force_periods.record(t_s)
+
+    def stop_requested(self) -> bool:
+        return self.station.stop_event.is_set()
 
 
 def _meta_float(meta: dict[str, Any], key: str) -> float:

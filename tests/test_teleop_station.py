@@ -206,3 +206,40 @@ def test_page_screenshot_shows_compensated_view_with_obstacles(running, tmp_path
     greenish = (g > 100) & (g > r + 10)
     assert greenish.sum() > 5000, "no camera image in the view"
     assert view.std() > 20
+
+
+def test_force_process_shares_state_and_buttons(tmp_path):
+    """The force loop in its own process (quadlink teleop's default): motion in, force/q out, presses through."""
+    from teleop.force import VehicleMotion
+    from teleop.force_loop import DeviceSpec, ForceProcess, MotionInput
+
+    script = tmp_path / "s.yaml"
+    script.write_text("steps:\n  - button: arm\n  - push: forward\n    force_n: 2.0\n    duration_s: 600\n")
+    cfg = TeleopConfig()
+    proc = ForceProcess(DeviceSpec("virtual", str(script)), cfg)
+    try:
+        assert proc.name == "virtual" and proc.has_force_output
+        blocked = MotionInput(0.0, VehicleMotion((0.0, 0.0, 0.0), 0.0, 0.0, 0.0), cue_wanted=True)
+        deadline = time.monotonic() + 20.0
+        presses: list[str] = []
+        snap = None
+        while time.monotonic() < deadline:
+            proc.set_motion(MotionInput(time.perf_counter(), blocked.motion, True), 12.5)
+            presses += proc.buttons()
+            snap = proc.snapshot()
+            if snap is not None and snap.link_gain == 1.0 and snap.cue_gain == 1.0 and presses:
+                break
+            time.sleep(0.02)
+        time.sleep(0.5)
+        proc.set_motion(MotionInput(time.perf_counter(), blocked.motion, True), 13.0)
+        snap = proc.snapshot()
+        assert presses == ["arm"]
+        assert snap is not None and snap.q_tilde_m is not None
+        q_eq = 2.0 / (cfg.force.K_f_n_m[0] + cfg.force.K_n_m[0])
+        assert snap.device.q_m[0] == pytest.approx(q_eq, rel=0.05)
+        assert snap.tau_d_n[0] == pytest.approx(-2.0, rel=0.05)
+        np.testing.assert_allclose(snap.device.operator_force_n, [2.0, 0.0, 0.0])
+        assert proc.periods_s().size > 100 and not proc.finished
+    finally:
+        proc.close()
+    assert not proc.alive
