@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import signal
+import sys
 from pathlib import Path
 
 import click
@@ -14,6 +15,8 @@ from quadlink.errors import ConfigError
 from quadlink.vehicle import load_vehicle
 
 log = logging.getLogger(__name__)
+
+SWITCH_INTERVAL_S = 0.0005
 
 
 @click.command(help="Start the firmware bridge: MK board ports <-> MAVLink autopilot (PX4-style offboard).")
@@ -49,6 +52,9 @@ def command(mk_cmd: str | None, mk_imu: str | None, mavlink_urls: tuple[str, ...
         overrides["sysid"] = sysid
     config = dataclasses.replace(config, **overrides)  # type: ignore[arg-type]
     vehicle = load_vehicle(config.vehicle)
+    # The readers hand bytes to the main thread; with CPython's default 5 ms GIL switch interval a reader
+    # that wakes while the main thread computes waits up to 5 ms, which is the whole IMU latency budget.
+    sys.setswitchinterval(SWITCH_INTERVAL_S)
     daemon = BridgeDaemon(config, vehicle, params_path)
     daemon.open()  # LinkError -> one-line error, exit 2 (quadlink.cli)
     previous = signal.signal(signal.SIGTERM, lambda *_: daemon.stop())
