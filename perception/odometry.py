@@ -51,7 +51,7 @@ class OdometryConfig:
     min_points: int = 100
     max_translation_m: float = 0.5                   # per-frame sanity bounds
     max_rotation_rad: float = 0.6
-    convergence_eps: float = 2e-5                    # |delta| (m, rad) below which a level stops
+    convergence_eps: float = 2e-5                    # |delta| (m, rad) below which the finest level stops
 
 
 @dataclass(frozen=True)
@@ -152,14 +152,22 @@ def _downsample_depth(depth: NDArray[np.float32]) -> NDArray[np.float32]:
 
 
 _KERNEL3 = np.ones((3, 3), np.uint8)
+_ONES: dict[tuple[int, ...], NDArray[np.float32]] = {}
+
+
+def _ones(shape: tuple[int, ...]) -> NDArray[np.float32]:
+    if shape not in _ONES:
+        _ONES[shape] = np.ones(shape, np.float32)
+    return _ONES[shape]
 
 
 def prepare_frame(rgb: NDArray[np.uint8], depth_m: NDArray[np.float32], K: CameraIntrinsics,
                   config: OdometryConfig) -> PreparedFrame:
     """Pyramids, gradients and remap textures of one frame (finest level first)."""
     gray = _gray01(rgb)
-    depth = np.nan_to_num(np.asarray(depth_m, dtype=np.float32), nan=0.0, posinf=0.0, neginf=0.0)
-    depth[(depth < config.min_depth_m) | (depth > config.max_depth_m)] = 0.0
+    d = np.asarray(depth_m, dtype=np.float32)
+    # NaN and inf fail both comparisons: one pass turns them and out-of-range depths into 0 (invalid)
+    depth = np.where((d >= config.min_depth_m) & (d <= config.max_depth_m), d, np.float32(0.0))
     if gray.shape[1] > config.working_width_px:
         factor = config.working_width_px / gray.shape[1]
         size = (config.working_width_px, round(gray.shape[0] * factor))
@@ -180,16 +188,14 @@ def prepare_frame(rgb: NDArray[np.uint8], depth_m: NDArray[np.float32], K: Camer
             K = K.scaled(0.5)
         gx = cv2.Sobel(gray, cv2.CV_32F, 1, 0, ksize=3, scale=0.125)
         gy = cv2.Sobel(gray, cv2.CV_32F, 0, 1, ksize=3, scale=0.125)
-        valid = depth > 0
-        valid_e = cv2.erode(valid.astype(np.uint8), _KERNEL3).astype(np.float32)
-        zx = cv2.Sobel(depth, cv2.CV_32F, 1, 0, ksize=3, scale=0.125) * valid_e
-        zy = cv2.Sobel(depth, cv2.CV_32F, 0, 1, ksize=3, scale=0.125) * valid_e
-        one = np.ones_like(gray)
+        valid_e = cv2.erode((depth > 0).view(np.uint8), _KERNEL3).astype(np.float32)
+        zx = cv2.multiply(cv2.Sobel(depth, cv2.CV_32F, 1, 0, ksize=3, scale=0.125), valid_e)
+        zy = cv2.multiply(cv2.Sobel(depth, cv2.CV_32F, 0, 1, ksize=3, scale=0.125), valid_e)
         out.levels.append(_Level(
             K=K,
-            intensity_tex=np.ascontiguousarray(np.dstack([gray, gx, gy, one])),
-            depth_tex=np.ascontiguousarray(np.dstack([depth, zx, zy, valid_e])),
-            gray=gray, depth=depth, grad_mag=np.abs(gx) + np.abs(gy)))
+            intensity_tex=cv2.merge([gray, gx, gy, _ones(gray.shape)]),
+            depth_tex=cv2.merge([depth, zx, zy, valid_e]),
+            gray=gray, depth=depth, grad_mag=cv2.add(cv2.absdiff(gx, 0), cv2.absdiff(gy, 0))))
     return out
 
 
@@ -242,37 +248,30 @@ def _sample(tex: NDArray[np.float32], u: NDArray[np.float32], v: NDArray[np.floa
     return out.reshape(rows * width, -1)[:n]
 
 
-def _t_weights(r: NDArray[np.float64], nu: float, s2_start: float, s2_min: float
-               ) -> tuple[NDArray[np.float64], float]:
-    """t-distribution weights and scale (fixed point of DVO's scale estimate, warm-started, floored)."""
+def _t_weights_masked(r: NDArray[np.float64], n_valid: int, nu: float, s2_start: float, s2_min: float
+                      ) -> tuple[NDArray[np.float64], float]:
+    """:func:`_t_weights` over the valid entries of ``r`` (invalid ones are 0 and do not count)."""
     r2 = r * r
-    s2 = s2_start if s2_start > 0 else max(float(r2.mean()), s2_min)
+    s2 = s2_start if s2_start > 0 else max(float(r2.sum()) / n_valid, s2_min)
     for _ in range(2 if s2_start > 0 else 4):
         w = (nu + 1.0) / (nu + r2 / s2)
-        s2 = max(float((w * r2).mean()), s2_min)
+        s2 = max(float((w * r2).sum()) / n_valid, s2_min)
     return (nu + 1.0) / (nu + r2 / s2), s2
 
 
-def _rows(P: NDArray[np.float64], gu: NDArray[np.float64], gv: NDArray[np.float64], K: CameraIntrinsics,
-          dz: float | NDArray[np.float64]) -> NDArray[np.float64]:
-    """Jacobian rows d r / d xi (left increment) for a residual with image gradient (gu, gv) at pi(P).
-
-    ``dz`` is the residual's direct derivative w.r.t. the point's z (-1 for the depth residual, 0 for
-    intensity).
-    """
-    x, y, z = P[:, 0], P[:, 1], P[:, 2]
-    iz = 1.0 / z
-    a = gu * K.fx * iz
-    b = gv * K.fy * iz
-    c = -(a * x + b * y) * iz + dz
-    J = np.empty((P.shape[0], 6))
-    J[:, 0] = a
-    J[:, 1] = b
-    J[:, 2] = c
-    J[:, 3] = y * c - z * b      # P x g
-    J[:, 4] = z * a - x * c
-    J[:, 5] = x * b - y * a
-    return J
+def _fill_rows(out: NDArray[np.float64], x: NDArray[np.float64], y: NDArray[np.float64], z: NDArray[np.float64],
+               iz: NDArray[np.float64], a: NDArray[np.float64], b: NDArray[np.float64], dz: float) -> None:
+    """Write the 6 × N Jacobian rows (left se(3) increment) of a residual with pixel gradient scaled by
+    ``f/z``: ``a = g_u f_x / z``, ``b = g_v f_y / z``; ``dz`` is the residual's direct d/dz (-1 for depth)."""
+    c = -(a * x + b * y) * iz
+    if dz:
+        c += dz
+    out[0] = a
+    out[1] = b
+    out[2] = c
+    out[3] = y * c - z * b      # P x g
+    out[4] = z * a - x * c
+    out[5] = x * b - y * a
 
 
 class RgbdOdometry:
@@ -339,39 +338,50 @@ class RgbdOdometry:
             if n_points < cfg.min_points:
                 continue
             K = lc.K
-            h, w = lc.gray.shape
             s2_i = s2_z = 0.0
+            eps_level = cfg.convergence_eps * (2.0**li)   # coarse levels only need to land in the basin
+            N = n_points
+            P0t = np.ascontiguousarray(P0.T)              # 3×N rows: contiguous vector ops
+            I0f = I0.astype(np.float64)
+            # one Jacobian for both residual kinds: rows [0, N) photometric, [N, 2N) depth (6 × 2N, row-major)
+            J = np.empty((6, 2 * N))
+            r = np.empty(2 * N)
+            wr = np.empty(2 * N)
             for _ in range(iters):
                 total_iters += 1
-                P = P0 @ T[:3, :3].T + T[:3, 3]
-                z = np.maximum(P[:, 2], 1e-3)
-                u = (K.fx * P[:, 0] / z + K.cx).astype(np.float32)
-                v = (K.fy * P[:, 1] / z + K.cy).astype(np.float32)
+                P = T[:3, :3] @ P0t + T[:3, 3:4]
+                x, y, z = P[0], P[1], P[2]
+                front = z > 1e-3
+                iz = 1.0 / np.maximum(z, 1e-3)
+                u = (K.fx * x * iz + K.cx).astype(np.float32)
+                v = (K.fy * y * iz + K.cy).astype(np.float32)
                 si = _sample(lc.intensity_tex, u, v)
                 sd = _sample(lc.depth_tex, u, v)
-                ok_i = (si[:, 3] > 0.999) & (P[:, 2] > 1e-3)
-                ok_z = ok_i & (sd[:, 3] > 0.999)
-                if int(np.count_nonzero(ok_i)) < cfg.min_points:
+                ok_i = (si[:, 3] > 0.999) & front
+                n_i = int(np.count_nonzero(ok_i))
+                if n_i < cfg.min_points:
                     break
-                sel_i = np.flatnonzero(ok_i)
-                sel_z = np.flatnonzero(ok_z) if use_depth else sel_i[:0]
-                r_i = si[sel_i, 0] - I0[sel_i]
-                w_i, s2_i = _t_weights(r_i, cfg.t_dof, s2_i, cfg.min_intensity_sigma**2)
-                if sel_z.size >= cfg.min_points:
-                    r_z = sd[sel_z, 0] - P[sel_z, 2]
-                    w_z, s2_z = _t_weights(r_z, cfg.t_dof, s2_z, cfg.min_depth_sigma_m**2)
-                    Pc = np.concatenate([P[sel_i], P[sel_z]])
-                    gu = np.concatenate([si[sel_i, 1], sd[sel_z, 1]])
-                    gv = np.concatenate([si[sel_i, 2], sd[sel_z, 2]])
-                    dz = np.concatenate([np.zeros(sel_i.size), np.full(sel_z.size, -1.0)])
-                    wr = np.concatenate([w_i / s2_i, w_z * (cfg.depth_weight / s2_z)])
-                    r = np.concatenate([r_i, r_z])
+                ok_z = ok_i & (sd[:, 3] > 0.999) if use_depth else np.zeros(N, bool)
+                n_z = int(np.count_nonzero(ok_z))
+                r_i = np.where(ok_i, si[:, 0] - I0f, 0.0)
+                w_i, s2_i = _t_weights_masked(r_i, n_i, cfg.t_dof, s2_i, cfg.min_intensity_sigma**2)
+                r[:N] = r_i
+                wr[:N] = w_i * ok_i / s2_i
+                fx_iz, fy_iz = K.fx * iz, K.fy * iz
+                _fill_rows(J[:, :N], x, y, z, iz, si[:, 1] * fx_iz, si[:, 2] * fy_iz, 0.0)
+                if n_z >= cfg.min_points:
+                    r_z = np.where(ok_z, sd[:, 0] - z, 0.0)
+                    w_z, s2_z = _t_weights_masked(r_z, n_z, cfg.t_dof, s2_z, cfg.min_depth_sigma_m**2)
+                    r[N:] = r_z
+                    wr[N:] = w_z * ok_z * (cfg.depth_weight / s2_z)
+                    _fill_rows(J[:, N:], x, y, z, iz, sd[:, 1] * fx_iz, sd[:, 2] * fy_iz, -1.0)
                 else:
-                    Pc, gu, gv, dz, wr, r = P[sel_i], si[sel_i, 1], si[sel_i, 2], 0.0, w_i / s2_i, r_i
-                J = _rows(Pc, gu, gv, K, dz)
-                Jw = J * wr[:, None]
-                H = Jw.T @ J
-                g = Jw.T @ r
+                    r[N:] = 0.0
+                    wr[N:] = 0.0
+                    J[:, N:] = 0.0
+                Jw = J * wr
+                H = Jw @ J.T
+                g = Jw @ r
                 if R_prior is not None:
                     r_p = so3_log(T[:3, :3] @ R_prior.T)
                     H[3:, 3:] += info_prior * np.eye(3)
@@ -383,7 +393,7 @@ class RgbdOdometry:
                 if not np.all(np.isfinite(delta)):
                     break
                 T = se3_exp(delta) @ T
-                if float(delta @ delta) < cfg.convergence_eps**2:
+                if float(delta @ delta) < eps_level**2:
                     break
             if li == 0:
                 fitness, rmse_i = self._quality(P0, I0, lc, T)
