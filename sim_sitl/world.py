@@ -141,7 +141,15 @@ class World:
         size = self.cfg.physics.body_size_m
         cs = p.createCollisionShape(p.GEOM_BOX, halfExtents=[s / 2 for s in size], physicsClientId=self.client)
         start = self.scenario.start
-        self.start_p_ned_m = np.array([start.position_m[0], start.position_m[1], -size[2] / 2.0 - 1e-3])
+        # rest on whatever is below the start point (floor, or a rug lying on it)
+        hits = p.rayTestBatch([
+            [start.position_m[0] + dx, -(start.position_m[1] + dy), self.scenario.room.height_m - 0.01]
+            for dx in (-size[0] / 2, size[0] / 2) for dy in (-size[1] / 2, size[1] / 2)],
+            [[start.position_m[0] + dx, -(start.position_m[1] + dy), -1.0]
+             for dx in (-size[0] / 2, size[0] / 2) for dy in (-size[1] / 2, size[1] / 2)],
+            physicsClientId=self.client)
+        support_up_m = max((h[3][2] for h in hits if h[0] >= 0), default=0.0)
+        self.start_p_ned_m = np.array([start.position_m[0], start.position_m[1], -support_up_m - size[2] / 2.0 - 1e-3])
         R0 = Rz(math.radians(start.yaw_deg))
         self.body = p.createMultiBody(self.vehicle.mass_kg, cs, -1, (D @ self.start_p_ned_m).tolist(),
                                       _quat_xyzw_from_R(D @ R0 @ D), physicsClientId=self.client)
