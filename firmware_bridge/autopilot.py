@@ -132,14 +132,20 @@ ODOM_LOST_VZ_LEAK_TAU_S = 3.0
 
 
 class BoardStatusLike(Protocol):
-    armed: bool
-    flight_state: int
-    failsafe: bool
-    battery_mv: int
-    error_flags: int
-    board_time_ms: int
-    imu_sample_count: int
-    last_setpoint_seq: int
+    """What the autopilot reads of ``mk_messages.BoardStatus`` (kept free of the MK codec)."""
+
+    @property
+    def armed(self) -> bool: ...
+    @property
+    def flight_state(self) -> int: ...
+    @property
+    def failsafe(self) -> bool: ...
+    @property
+    def battery_mv(self) -> int: ...
+    @property
+    def error_flags(self) -> int: ...
+    @property
+    def imu_sample_count(self) -> int: ...
 
 
 @dataclass(frozen=True)
@@ -312,9 +318,10 @@ class Autopilot:
                                                          est.rollspeed_rad_s, est.pitchspeed_rad_s,
                                                          est.yawspeed_rad_s)))
         if self._stream_due(mavlink.MAVLINK_MSG_ID_ATTITUDE_QUATERNION, now_s):
-            q = quat_wxyz_from_euler(est.roll_rad, est.pitch_rad, est.yaw_rad)
+            q = quat_wxyz_from_euler(est.roll_rad, est.pitch_rad, est.yaw_rad)  # [w, x, y, z], as MAVLink
             out.append(Outbound(self.mav.attitude_quaternion_encode(
-                boot_ms, *(float(x) for x in q), est.rollspeed_rad_s, est.pitchspeed_rad_s, est.yawspeed_rad_s)))
+                boot_ms, float(q[0]), float(q[1]), float(q[2]), float(q[3]), est.rollspeed_rad_s,
+                est.pitchspeed_rad_s, est.yawspeed_rad_s)))
         return out
 
     def on_board_status(self, now_s: float, status: BoardStatusLike) -> list[Outbound]:
@@ -863,7 +870,7 @@ class Autopilot:
             yaw_rate = 0.0
         if yaw is not None and not math.isfinite(yaw):
             yaw = None
-        v = tuple(float(x) for x in velocity)
+        v = (float(velocity[0]), float(velocity[1]), float(velocity[2]))
         self._vel_sp = _VelocitySetpoint(v if frame in BODY_FRAMES else None,
                                          v if frame in LOCAL_FRAMES else None, yaw_rate, yaw)
         self._att_sp = None
