@@ -19,6 +19,7 @@ import csv
 import logging
 import math
 import queue
+import re
 import sys
 import threading
 import time
@@ -163,9 +164,9 @@ class Station:
                 log.info("script finished")
                 break
             with self._lock:   # STATUSTEXTs are logged when they arrive; the others when they appear
-                warnings = [w for w in self._warnings if not w.startswith("vehicle: ")]
-            for w in set(warnings) - shown_warnings:
-                log.warning("%s", w)
+                warnings = {_warning_kind(w): w for w in self._warnings if not w.startswith("vehicle: ")}
+            for kind in set(warnings) - shown_warnings:
+                log.warning("%s", warnings[kind])
             shown_warnings = set(warnings)
             if t >= next_status:
                 next_status = t + status_period_s
@@ -477,6 +478,11 @@ class Station:
         ok, buf = cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, self.cfg.view.jpeg_quality])
         if ok:
             self.hub.publish(buf.tobytes())
+
+
+def _warning_kind(text: str) -> str:
+    """A warning without its numbers ('OBSTACLE 0.41 m' and 'OBSTACLE 0.39 m' are one warning)."""
+    return re.sub(r"[-+]?\d+(\.\d+)?", "#", text)
 
 
 class _ThreadIO:

@@ -166,13 +166,19 @@ def test_script_on_the_vehicle_clock_waits_and_follows_it(tmp_path):
     np.testing.assert_allclose(op.force_at(t), 0.0)
     vehicle_t[0] = 50.0
     forces = []
+    k = 0
     while not dev.finished and t < 20.0:
         vehicle_t[0] += 0.0025                # vehicle time at 1/4 of wall time
+        k += 1
+        if k % 50 == 0:                       # a clock that sometimes jumps back must not replay the script
+            vehicle_t[0] -= 0.3
+            presses += dev.poll(t).buttons
+            vehicle_t[0] += 0.3
         state = dev.poll(t)
         presses += state.buttons
         forces.append((vehicle_t[0] - 50.0, state.operator_force_n[0]))
         t += 0.01
     assert presses == ["arm"]
-    assert dev.finished and t == pytest.approx(1.0 + 8.0, abs=0.05)    # 2 s of vehicle time = 8 s of wall time
+    assert dev.finished and t == pytest.approx(1.0 + 8.0, abs=0.1)    # 2 s of vehicle time = 8 s of wall time
     pushing = [tv for tv, f in forces if f > 0.5]
     assert min(pushing) == pytest.approx(1.0, abs=0.01) and max(pushing) == pytest.approx(2.0, abs=0.01)

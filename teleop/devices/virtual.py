@@ -79,17 +79,20 @@ class ScriptedOperator(OperatorSource):
         self.script = script
         self.script_clock = script_clock
         self._origin_s: float | None = None
+        self._script_s = 0.0
         self._last_s = -1.0
 
     def script_time(self, t_s: float) -> float:
+        """Seconds into the script; never goes back (a clock that jumps back holds the script)."""
         if self.script_clock is None:
             return t_s
         now = self.script_clock()
-        if now is None:
-            return 0.0
+        if now is None or not np.isfinite(now):
+            return max(self._script_s, 0.0)
         if self._origin_s is None:
             self._origin_s = now
-        return max(now - self._origin_s, 0.0)
+        self._script_s = max(self._script_s, now - self._origin_s)
+        return self._script_s
 
     def force_at(self, t_s: float) -> Vec3:
         return self.script.force_at(self.script_time(t_s))
@@ -101,7 +104,7 @@ class ScriptedOperator(OperatorSource):
         if self._origin_s is None:
             return ()
         presses = self.script.presses_between(self._last_s, now)
-        self._last_s = now
+        self._last_s = max(self._last_s, now)
         return presses
 
     def finished(self, t_s: float) -> bool:
