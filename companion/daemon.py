@@ -499,8 +499,9 @@ class Companion:
         return stamp_s
 
     def _send_setpoint(self, stamp_s: float, ref: ReferenceOutput) -> None:
-        self.send_autopilot(msgs.setpoint_message(stamp_s, self.sysid, self.ap_compid, ref.v_ref_h_m_s,
-                                                  ref.yaw_rate_ref_rad_s))
+        # Outside TELEOP/HOLD the autopilot flies its own mode; the stream (zero) only keeps offboard ready.
+        v, yaw_rate = (ref.v_ref_h_m_s, ref.yaw_rate_ref_rad_s) if self.modes.in_control else (np.zeros(3), 0.0)
+        self.send_autopilot(msgs.setpoint_message(stamp_s, self.sysid, self.ap_compid, v, yaw_rate))
         self.stats.setpoints += 1
 
     def _send_odometry(self, stamp_s: float, out: Any) -> None:

@@ -51,7 +51,11 @@ class ReferenceParams:
     deflection; k_psi_rad_s: yaw rate at full deflection (eq. 3). Repulsion (eq. 7): eta gain
     [m^3/s], influence distance d_0, limit on |v_o|, the weight of each map point in the sum
     (1 / particles per measured point, so a point's copies count once); safe distance (paper Fig. 8:
-    0.45 m) inside which the reference has no component toward the obstacle.
+    0.45 m) inside which the reference has no component toward the obstacle. ``horizontal_only``:
+    repulsion and the safe distance act in the horizontal plane, on the points within
+    ``vertical_band_m`` of the vehicle's height (the camera looks down, so it samples tall obstacles
+    mostly below the vehicle: in 3D their sum would push the vehicle up, and the floor is not an
+    obstacle to horizontal motion); False is the paper's 3D form.
     """
 
     k_v_m_s: float = 0.6
@@ -65,6 +69,8 @@ class ReferenceParams:
     safe_distance_m: float = 0.45
     max_speed_m_s: float = 1.5
     unknown_sector_guard_rad: float = math.radians(15.0)
+    horizontal_only: bool = True
+    vertical_band_m: float = 0.6
 
 
 @dataclass(frozen=True)
@@ -112,16 +118,21 @@ def operator_velocity(op: OperatorInput, alpha_rad: float, params: ReferencePara
     return v, params.k_psi_rad_s * op.qy  # eq. (3), NED sign (see module doc)
 
 
-def _points(points_h_m: ArrayLike | None) -> NDArray[np.float64]:
+def _points(points_h_m: ArrayLike | None, params: ReferenceParams | None = None) -> NDArray[np.float64]:
+    """Finite points; with ``params.horizontal_only`` those within the height band, projected to z = 0."""
     if points_h_m is None:
         return np.zeros((0, 3))
     p = np.asarray(points_h_m, dtype=float).reshape(-1, 3)
-    return p[np.all(np.isfinite(p), axis=1)]
+    p = p[np.all(np.isfinite(p), axis=1)]
+    if params is not None and params.horizontal_only:
+        p = p[np.abs(p[:, 2]) <= params.vertical_band_m].copy()
+        p[:, 2] = 0.0
+    return p
 
 
 def repulsion_velocity(points_h_m: ArrayLike | None, params: ReferenceParams) -> NDArray[np.float64]:
     """v_o of eq. (7): summed repulsive-potential gradients of the map points (vehicle at the origin of H)."""
-    p = _points(points_h_m)
+    p = _points(points_h_m, params)
     if p.size == 0:
         return np.zeros(3)
     d = np.linalg.norm(p, axis=1)
@@ -138,13 +149,15 @@ def repulsion_velocity(points_h_m: ArrayLike | None, params: ReferenceParams) ->
 
 
 def remove_toward_close_obstacles(v_h_m_s: NDArray[np.float64], points_h_m: ArrayLike | None,
-                                  safe_distance_m: float) -> tuple[NDArray[np.float64], bool]:
+                                  safe_distance_m: float, params: ReferenceParams | None = None
+                                  ) -> tuple[NDArray[np.float64], bool]:
     """Remove from v every component toward an obstacle point closer than ``safe_distance_m``.
 
     Projection onto the half-spaces {v . u_j <= 0}, repeated so that removing one component cannot leave
     another one pointing at a close obstacle (converges in a few passes for a handful of directions).
+    With ``params.horizontal_only`` the points are those of the height band, projected horizontally.
     """
-    p = _points(points_h_m)
+    p = _points(points_h_m, params)
     v = np.array(v_h_m_s, dtype=float)
     if p.size == 0:
         return v, False
@@ -223,7 +236,7 @@ def reference_velocity(op: OperatorInput, R_qc: ArrayLike, scan: PanScanState,
         v_d, constrained = remove_toward_unknown(v_d, sectors_m, params.unknown_sector_guard_rad, sector_offset_rad)
     v_o = repulsion_velocity(obstacle_points_h_m, params)
     v_r = v_d + v_o  # eq. (7)
-    v_r, removed = remove_toward_close_obstacles(v_r, obstacle_points_h_m, params.safe_distance_m)
+    v_r, removed = remove_toward_close_obstacles(v_r, obstacle_points_h_m, params.safe_distance_m, params)
     speed = float(np.linalg.norm(v_r))
     if speed > params.max_speed_m_s:
         v_r *= params.max_speed_m_s / speed

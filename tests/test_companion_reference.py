@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -65,7 +66,8 @@ def test_operator_forward_moves_along_alpha_and_climb_is_minus_z() -> None:
 
 
 def test_obstacle_straight_ahead_repels_along_minus_x_with_potential_gradient() -> None:
-    params = ReferenceParams(repulsion_gain_m3_s=0.2, influence_distance_m=1.0, max_repulsion_m_s=10.0)
+    params = ReferenceParams(repulsion_gain_m3_s=0.2, influence_distance_m=1.0, max_repulsion_m_s=10.0,
+                             horizontal_only=False)
     for d in (0.3, 0.5, 0.8):
         v = repulsion_velocity([[d, 0.0, 0.0]], params)
         expected = 0.2 * (1.0 / d - 1.0) / d**2  # -dU/dd of U = eta/2 (1/d - 1/d0)^2
@@ -212,3 +214,19 @@ def test_sinusoid_fit_recovers_amplitude_phase_offset() -> None:
         fit_sinusoid(t[:5], t[:5], 2.0)
     with pytest.raises(IdentificationError):
         identify_from_log(t, np.zeros_like(t), np.sin(t), 2.0)
+
+
+def test_horizontal_only_ignores_floor_and_flattens_points() -> None:
+    params = ReferenceParams(repulsion_gain_m3_s=0.2, influence_distance_m=1.0, max_repulsion_m_s=10.0,
+                             vertical_band_m=0.5)
+    # a point 0.4 m ahead and 0.3 m below: repelled horizontally as if at 0.4 m, no vertical push
+    v = repulsion_velocity([[0.4, 0.0, 0.3]], params)
+    assert v == pytest.approx([-0.2 * (1 / 0.4 - 1.0) / 0.4**2, 0.0, 0.0])
+    # the floor 0.8 m below is outside the band: nothing (in 3D it would push up)
+    assert repulsion_velocity([[0.0, 0.1, 0.8]], params) == pytest.approx([0, 0, 0])
+    assert repulsion_velocity([[0.0, 0.1, 0.8]], dataclasses.replace(params, horizontal_only=False))[2] < 0
+    # descending onto a point below is not blocked by the horizontal safe distance
+    out, changed = remove_toward_close_obstacles(np.array([0.0, 0.0, 0.5]), [[0.0, 0.0, 0.3]], 0.45, params)
+    assert not changed and out == pytest.approx([0.0, 0.0, 0.5])
+    out, changed = remove_toward_close_obstacles(np.array([0.5, 0.0, 0.0]), [[0.3, 0.0, 0.2]], 0.45, params)
+    assert changed and out == pytest.approx([0.0, 0.0, 0.0])
