@@ -11,6 +11,8 @@ ignore the IMU prior.
 
 from __future__ import annotations
 
+from typing import Any
+
 import cv2
 import numpy as np
 from numpy.typing import NDArray
@@ -20,8 +22,8 @@ from quadlink.camera import CameraIntrinsics
 from quadlink.errors import QuadlinkError
 
 
-def _to_working(rgb: NDArray[np.uint8], depth_m: NDArray[np.float32], K: CameraIntrinsics, width: int
-                ) -> tuple[NDArray[np.uint8], NDArray[np.float32], CameraIntrinsics]:
+def _to_working(rgb: NDArray[Any], depth_m: NDArray[Any], K: CameraIntrinsics, width: int
+                ) -> tuple[NDArray[Any], NDArray[Any], CameraIntrinsics]:
     if rgb.shape[1] <= width:
         return rgb, depth_m, K
     f = width / rgb.shape[1]
@@ -78,7 +80,7 @@ class OpenCvOdometry:
         self.working_width_px = working_width_px
         self._odo: cv2.Odometry | None = None
         self._K: CameraIntrinsics | None = None
-        self._ref = None
+        self._ref: Any = None
         self._T = np.eye(4)
 
     def process(self, stamp_s: float, rgb: NDArray[np.uint8], depth_m: NDArray[np.float32], K: CameraIntrinsics,

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -159,7 +160,7 @@ class ObstacleMap:
         rel = (az - centre + math.pi) % (2 * math.pi) - math.pi
         return centre + float(rel.min()), centre + float(rel.max())
 
-    def _sector_index(self, az_rad: NDArray[np.float64]) -> NDArray[np.intp]:
+    def _sector_index(self, az_rad: NDArray[np.floating[Any]]) -> NDArray[np.intp]:
         n = self.config.sectors
         inc = 2 * math.pi / n
         return (np.floor((az_rad + inc / 2) / inc).astype(np.intp)) % n

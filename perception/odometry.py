@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import Any
 
 import cv2
 import numpy as np
@@ -107,7 +108,7 @@ def so3_log(R: NDArray[np.float64]) -> NDArray[np.float64]:
         return 0.5 * w
     if math.pi - theta < 1e-5:
         rv, _ = cv2.Rodrigues(R)
-        return rv.ravel()
+        return np.asarray(rv, dtype=float).ravel()
     return theta / (2.0 * math.sin(theta)) * w
 
 
@@ -118,14 +119,17 @@ def inv_T(T: Mat4) -> Mat4:
     return out
 
 
+Image = NDArray[Any]   # float32 images (OpenCV's stubs type them loosely)
+
+
 @dataclass
 class _Level:
     K: CameraIntrinsics
-    intensity_tex: NDArray[np.float32]   # H×W×4: I, dI/du, dI/dv, 1
-    depth_tex: NDArray[np.float32]       # H×W×4: Z, dZ/du, dZ/dv, valid (eroded)
-    gray: NDArray[np.float32]
-    depth: NDArray[np.float32]
-    grad_mag: NDArray[np.float32]
+    intensity_tex: Image   # H×W×4: I, dI/du, dI/dv, 1
+    depth_tex: Image       # H×W×4: Z, dZ/du, dZ/dv, valid (eroded)
+    gray: Image
+    depth: Image
+    grad_mag: Image
 
 
 @dataclass
@@ -135,11 +139,11 @@ class PreparedFrame:
     levels: list[_Level] = field(default_factory=list)
 
 
-def _gray01(rgb: NDArray[np.uint8]) -> NDArray[np.float32]:
+def _gray01(rgb: NDArray[np.uint8]) -> Image:
     return cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY).astype(np.float32) * np.float32(1.0 / 255.0)
 
 
-def _downsample_depth(depth: NDArray[np.float32]) -> NDArray[np.float32]:
+def _downsample_depth(depth: Image) -> Image:
     """Half resolution: mean of the valid depths in each 2x2 block (DVO's rule), 0 if none is valid."""
     h, w = depth.shape[0] // 2 * 2, depth.shape[1] // 2 * 2
     d = depth[:h, :w]
@@ -195,12 +199,12 @@ def prepare_frame(rgb: NDArray[np.uint8], depth_m: NDArray[np.float32], K: Camer
             K=K,
             intensity_tex=cv2.merge([gray, gx, gy, _ones(gray.shape)]),
             depth_tex=cv2.merge([depth, zx, zy, valid_e]),
-            gray=gray, depth=depth, grad_mag=cv2.add(cv2.absdiff(gx, 0), cv2.absdiff(gy, 0))))
+            gray=gray, depth=depth, grad_mag=np.abs(gx) + np.abs(gy)))
     return out
 
 
 def _select_points(level: _Level, max_points: int, gradient_fraction: float
-                   ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+                   ) -> tuple[NDArray[np.float64], Image]:
     """Reference points (N×3, camera frame) and their intensities: strongest gradients plus an even spread."""
     d = level.depth
     valid = d > 0
@@ -228,7 +232,7 @@ def _select_points(level: _Level, max_points: int, gradient_fraction: float
     return pts, level.gray.ravel()[idx]
 
 
-def _sample(tex: NDArray[np.float32], u: NDArray[np.float32], v: NDArray[np.float32]) -> NDArray[np.float32]:
+def _sample(tex: Image, u: NDArray[np.float32], v: NDArray[np.float32]) -> Image:
     """Bilinear samples (N×C) of a texture at pixel coordinates; outside the image every channel is 0.
 
     cv2.remap wants maps shorter than 32767 per side, so long point lists are folded into rows.

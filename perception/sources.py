@@ -83,8 +83,8 @@ def associate(stamps_a: list[float], stamps_b: list[float], max_dt_s: float = MA
         if b.size == 0:
             break
         d = np.abs(b - ta)
-        for j in np.flatnonzero(d <= max_dt_s):
-            candidates.append((float(d[j]), i, int(j)))
+        for j in np.flatnonzero(d <= max_dt_s).tolist():
+            candidates.append((float(d[j]), i, j))
     candidates.sort()
     used_a: set[int] = set()
     used_b: set[int] = set()
@@ -161,10 +161,10 @@ class TumFolderSource:
             raw = _read_image(self.folder / depth_name, cv2.IMREAD_UNCHANGED)
             if raw.ndim != 2:
                 raise SourceUnavailable(f"{self.folder / depth_name}: depth must be single-channel 16-bit")
-            depth_m = raw.astype(np.float32) / np.float32(p.depth_scale)
+            depth_m: NDArray[Any] = raw.astype(np.float32) / np.float32(p.depth_scale)
             h, w = depth_m.shape
             k = CameraIntrinsics(p.fx, p.fy, p.cx, p.cy, w, h)
-            rgb = cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
+            rgb: NDArray[Any] = cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
             if self.resize_to is not None and (w, h) != self.resize_to:
                 factor = self.resize_to[0] / w
                 rgb = cv2.resize(rgb, self.resize_to, interpolation=cv2.INTER_AREA)
