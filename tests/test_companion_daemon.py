@@ -303,3 +303,17 @@ def test_daemon_flies_teleop_routes_and_fails_safe(rig: Rig) -> None:
     kinds = {m.get_type() for _, m in read_tlog(rig.tlog_path)}
     assert {"HIGHRES_IMU", "SET_POSITION_TARGET_LOCAL_NED", "MANUAL_CONTROL", "TELEOP_FEEDBACK",
             "COMMAND_LONG", "ODOMETRY"} <= kinds
+
+
+def test_cli_rejects_bad_input_with_status_2(tmp_path: Path) -> None:
+    from click.testing import CliRunner
+
+    from quadlink.cli import main
+
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("reference:\n  k_v: 1.0\n")
+    runner = CliRunner()
+    result = runner.invoke(main, ["companion", "--config", str(bad)])
+    assert result.exit_code == 2
+    result = runner.invoke(main, ["companion", "--autopilot", "bogus:1"])
+    assert result.exit_code == 2
