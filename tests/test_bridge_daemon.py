@@ -176,6 +176,12 @@ def test_daemon_survives_garbage_on_the_mk_port(gcs_port, tmp_path):
     board = FakeBoard(chunks=200, garbage=True)
     daemon, thread, gcs = start(board, gcs_port, tmp_path)
     try:
+        # garbage on the MAVLink side too: random datagrams to the bridge's socket
+        gcs.recv_match(type="HEARTBEAT", blocking=True, timeout=5.0)
+        rng = np.random.default_rng(7)
+        for _ in range(20):
+            for address in list(gcs.clients):
+                gcs.port.sendto(rng.integers(0, 256, 64, dtype=np.uint8).tobytes() + b"\xfd\x09", address)
         board.thread.join(timeout=15.0)
         status = None
         deadline = time.monotonic() + 5.0
@@ -187,6 +193,7 @@ def test_daemon_survives_garbage_on_the_mk_port(gcs_port, tmp_path):
         stop(daemon, thread, gcs, board)
     assert len(board.setpoints) == 200 and board.waits_timed_out == 0
     assert daemon.autopilot.counters["mk_bad"] >= 5
+    assert daemon.autopilot.counters["mavlink_bad"] >= 1  # counted, not fatal: the board kept getting setpoints
     assert status is not None and status.errors_count2 > 0  # reported in SYS_STATUS
 
 

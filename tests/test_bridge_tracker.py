@@ -6,6 +6,9 @@ import math
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from hypothesis.extra.numpy import arrays
 
 from firmware_bridge.velocity_tracker import TrackerGains, VelocityTracker
 from quadlink.frames import GRAVITY_M_S2, R_hq
@@ -126,3 +129,20 @@ def test_non_finite_estimate_is_a_safe_fallback():
     tracker = VelocityTracker(MASS_KG, T_MAX_N)
     cmd = tracker.update(DT_S, np.zeros(3), 0.0, np.array([np.nan, 0.0, 0.0]), 0.0, 0.0)
     assert all(math.isfinite(x) for x in (cmd.roll_rad, cmd.pitch_rad, cmd.thrust_fraction))
+
+
+@settings(max_examples=200, deadline=None)
+@given(v_ref=arrays(np.float64, 3, elements=st.floats(-50, 50)),
+       v_est=arrays(np.float64, 3, elements=st.floats(-50, 50)),
+       yaw_rate=st.floats(-20, 20), roll=st.floats(-1.2, 1.2), pitch=st.floats(-1.2, 1.2),
+       dt=st.floats(0.0, 1.0))
+def test_output_always_finite_and_within_limits(v_ref, v_est, yaw_rate, roll, pitch, dt):
+    gains = TrackerGains()
+    tracker = VelocityTracker(MASS_KG, T_MAX_N, gains)
+    for _ in range(3):
+        cmd = tracker.update(dt, v_ref, yaw_rate, v_est, roll, pitch)
+        assert all(math.isfinite(x) for x in (cmd.roll_rad, cmd.pitch_rad, cmd.yaw_rate_rad_s, cmd.thrust_fraction))
+        assert math.acos(math.cos(cmd.roll_rad) * math.cos(cmd.pitch_rad)) <= gains.max_tilt_rad + 1e-6
+        assert gains.thrust_min_fraction <= cmd.thrust_fraction <= gains.thrust_max_fraction
+        assert abs(cmd.yaw_rate_rad_s) <= gains.max_yaw_rate_rad_s + 1e-12
+    assert np.all(np.abs(tracker.integral_h_m_s2) <= [gains.integral_max_xy_m_s2] * 2 + [gains.integral_max_z_m_s2])
