@@ -78,11 +78,11 @@ class ObstacleMap:
     def cells_of(self, points_h_m: NDArray[np.float64]) -> NDArray[np.intp]:
         """Cell index (azimuth-major) of points in H."""
         cfg = self.config
-        az = np.arctan2(points_h_m[:, 1], points_h_m[:, 0])                       # (-pi, pi]
-        rho = np.linalg.norm(points_h_m, axis=1)
-        zen = np.arccos(np.clip(-points_h_m[:, 2] / np.maximum(rho, 1e-9), -1.0, 1.0))  # from "up" (-z)
-        ia = np.clip(((az + math.pi) / (2 * math.pi) * cfg.az_bins).astype(np.intp), 0, cfg.az_bins - 1)
-        iz = np.clip((zen / math.pi * cfg.zen_bins).astype(np.intp), 0, cfg.zen_bins - 1)
+        x, y, z = points_h_m[:, 0], points_h_m[:, 1], points_h_m[:, 2]
+        az = np.arctan2(y, x)                                  # [-pi, pi]
+        zen = np.arctan2(np.hypot(x, y), -z)                   # zenith distance from "up" (-z in NED), [0, pi]
+        ia = np.minimum((az + math.pi) * (cfg.az_bins / (2 * math.pi)), cfg.az_bins - 1).astype(np.intp)
+        iz = np.minimum(zen * (cfg.zen_bins / math.pi), cfg.zen_bins - 1).astype(np.intp)
         return ia * cfg.zen_bins + iz
 
     def predict(self, dt_s: float, v_h_k: NDArray[np.float64], v_h_k1: NDArray[np.float64], yaw_rate_k: float,
@@ -131,7 +131,9 @@ class ObstacleMap:
         if pts.shape[0]:
             cells = self.cells_of(pts)
             if len(self):
-                drop = np.isin(self.cells_of(self.points_h_m), cells)
+                measured = np.zeros(cfg.az_bins * cfg.zen_bins, dtype=bool)
+                measured[cells] = True
+                drop = measured[self.cells_of(self.points_h_m)]
                 self.points_h_m = self.points_h_m[~drop]
                 self.ages_s = self.ages_s[~drop]
             new = np.repeat(pts, cfg.copies, axis=0)

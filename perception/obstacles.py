@@ -51,8 +51,8 @@ class SectorObservation:
         v = K.fy * pc[:, 1] / zs + K.cy
         bw, bh = K.width // self.cols, K.height // self.rows
         ok &= (u >= 0) & (v >= 0) & (u < bw * self.cols) & (v < bh * self.rows)
-        si = np.clip((v // bh).astype(np.intp), 0, self.rows - 1)
-        sj = np.clip((u // bw).astype(np.intp), 0, self.cols - 1)
+        si = np.minimum(np.maximum(v, 0.0) // bh, self.rows - 1).astype(np.intp)
+        sj = np.minimum(np.maximum(u, 0.0) // bw, self.cols - 1).astype(np.intp)
         return np.where(ok, si * self.cols + sj, -1)
 
 
