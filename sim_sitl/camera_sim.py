@@ -118,6 +118,7 @@ class RgbdCamera:
     def __init__(self, world: World, mount: CameraConfig, noise: CameraNoiseConfig, rng: np.random.Generator,
                  width_px: int | None = None, height_px: int | None = None) -> None:
         self.world = world
+        world.load_textures()
         self.mount = mount
         self.noise = noise
         self.rng = rng

@@ -29,6 +29,8 @@ log = logging.getLogger(__name__)
 
 D = np.diag([1.0, -1.0, -1.0])  # NED <-> pybullet NWU, FRD <-> FLU
 
+TEXEL_M = 0.01  # target texture resolution on large surfaces (textures up to 1024 px)
+
 SURFACE_FLOOR = "floor"
 SURFACE_CEILING = "ceiling"
 SURFACE_WALL = "wall"
@@ -71,6 +73,7 @@ class World:
         self._rng = rng
         self._textures: dict[tuple[str, tuple[float, ...]], int] = {}
         self.surfaces: dict[int, str] = {}
+        self._pending_textures: list[tuple[int, str, tuple[float, float, float], int]] = []
         p.setGravity(0.0, 0.0, -GRAVITY_M_S2, physicsClientId=self.client)
         p.setTimeStep(self.dt_s, physicsClientId=self.client)
         p.setPhysicsEngineParameter(numSolverIterations=20, physicsClientId=self.client)
@@ -82,28 +85,31 @@ class World:
         self._state = self._read_state(None)
 
     # ------------------------------------------------------------------ scene
-    def _texture(self, kind: str, color: tuple[float, float, float]) -> int:
-        key = (kind, tuple(float(c) for c in color))
+    def _texture(self, kind: str, color: tuple[float, float, float], size_px: int = 256) -> int:
+        key = (kind, tuple(float(c) for c in color) + (float(size_px),))
         if key not in self._textures:
-            img = make_texture(kind, self._rng, color)
-            path = self._texture_dir / f"tex{len(self._textures)}_{kind}.png"
+            img = make_texture(kind, self._rng, color, size_px)
+            path = self._texture_dir / f"tex{len(self._textures)}_{kind}.bmp"  # uncompressed: fast to write and load
             cv2.imwrite(str(path), cv2.cvtColor(img, cv2.COLOR_RGB2BGR))
             self._textures[key] = p.loadTexture(str(path), physicsClientId=self.client)
         return self._textures[key]
 
     def _add_box(self, centre_ned: NDArray[np.float64], size_m: tuple[float, float, float], yaw_rad: float,
                  texture: str, color: tuple[float, float, float], surface: str) -> int:
+        """A static textured box; the texture spans each face, so large boxes get a finer one."""
         half = [s / 2.0 for s in size_m]
         cs = p.createCollisionShape(p.GEOM_BOX, halfExtents=half, physicsClientId=self.client)
         vs = p.createVisualShape(p.GEOM_BOX, halfExtents=half, physicsClientId=self.client)
         body = p.createMultiBody(0.0, cs, vs, (D @ centre_ned).tolist(),
                                  p.getQuaternionFromEuler([0.0, 0.0, -yaw_rad]), physicsClientId=self.client)
-        self._finish_static(body, texture, color, surface)
+        size_px = int(min(1024, max(256, 2 ** math.ceil(math.log2(max(size_m) / TEXEL_M)))))
+        self._finish_static(body, texture, color, surface, size_px)
         return body
 
-    def _finish_static(self, body: int, texture: str, color: tuple[float, float, float], surface: str) -> None:
-        p.changeVisualShape(body, -1, textureUniqueId=self._texture(texture, color), rgbaColor=[1, 1, 1, 1],
-                            physicsClientId=self.client)
+    def _finish_static(self, body: int, texture: str, color: tuple[float, float, float], surface: str,
+                       size_px: int = 256) -> None:
+        p.changeVisualShape(body, -1, rgbaColor=[*color, 1.0], physicsClientId=self.client)
+        self._pending_textures.append((body, texture, color, size_px))
         p.changeDynamics(body, -1, lateralFriction=self.cfg.physics.ground_friction, physicsClientId=self.client)
         self.surfaces[body] = surface
 
@@ -156,6 +162,13 @@ class World:
         p.changeDynamics(self.body, -1, localInertiaDiagonal=list(self.vehicle.inertia_kg_m2), linearDamping=0.0,
                          angularDamping=0.0, lateralFriction=self.cfg.physics.ground_friction,
                          physicsClientId=self.client)
+
+    def load_textures(self) -> None:
+        """Generate and apply the procedural textures (only a camera needs them: they take a moment)."""
+        for body, texture, color, size_px in self._pending_textures:
+            p.changeVisualShape(body, -1, textureUniqueId=self._texture(texture, color, size_px),
+                                rgbaColor=[1, 1, 1, 1], physicsClientId=self.client)
+        self._pending_textures = []
 
     # ------------------------------------------------------------------ dynamics
     def _read_state(self, v_prev_ned: NDArray[np.float64] | None) -> RigidState:
