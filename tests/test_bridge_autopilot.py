@@ -374,3 +374,38 @@ def test_disarm_in_air_needs_force():
     assert sim.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 0)[0] == mavlink.MAV_RESULT_DENIED
     assert sim.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 0, 21196)[0] == mavlink.MAV_RESULT_ACCEPTED
     assert not sim.ap.armed_cmd
+
+
+def test_offboard_attitude_target_passes_angles_and_thrust():
+    sim = Sim()
+    fly_to_hover(sim)
+    q = quat_wxyz_from_euler(math.radians(5), math.radians(-3), 0.0)
+    att = GCS.set_attitude_target_encode(0, 1, 1, 0, q, 0, 0, 0.2, 0.55)  # yaw rate used, thrust 0.55
+    sim.step(0.3, setpoint=att)
+    assert sim.command(mavlink.MAV_CMD_DO_SET_MODE, 1, 6, 0)[0] == mavlink.MAV_RESULT_ACCEPTED
+    sim.step(0.2, setpoint=att)
+    cmd = sim.ap.last_board_command
+    assert cmd.roll_rad == pytest.approx(math.radians(5), abs=1e-4)
+    assert cmd.pitch_rad == pytest.approx(math.radians(-3), abs=1e-4)
+    assert cmd.yaw_rate_rad_s == pytest.approx(0.2) and cmd.thrust == pytest.approx(0.55)
+    big = GCS.set_attitude_target_encode(0, 1, 1, 0, quat_wxyz_from_euler(1.2, 0, 0), 0, 0, 0, 0.5)
+    sim.step(0.1, setpoint=big)
+    assert sim.ap.last_board_command.roll_rad == pytest.approx(math.radians(25.0))  # MPC_TILTMAX_AIR
+
+
+def test_parameter_file_round_trip(tmp_path):
+    from firmware_bridge.params import load_param_file, save_param_file
+    from quadlink.errors import ConfigError
+
+    table = ParamTable()
+    table.set("MPC_XY_VEL_P", 2.5)
+    table.set("COM_OF_LOSS_T", 0.5)
+    path = tmp_path / "sub" / "params.yaml"
+    save_param_file(path, table.values)
+    loaded = ParamTable(load_param_file(path) | {"NOT_A_PARAM": 3.0, "MPC_TILTMAX_AIR": 1000.0})
+    assert loaded["MPC_XY_VEL_P"] == 2.5 and loaded["COM_OF_LOSS_T"] == 0.5
+    assert loaded["MPC_TILTMAX_AIR"] == 60.0  # clamped on load too
+    assert load_param_file(tmp_path / "missing.yaml") == {}
+    (tmp_path / "bad.yaml").write_text("- just\n- a list\n")
+    with pytest.raises(ConfigError, match="bad.yaml"):
+        load_param_file(tmp_path / "bad.yaml")
