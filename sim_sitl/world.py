@@ -83,6 +83,7 @@ class World:
         self.t_s = 0.0
         self.motor_thrust_n = np.zeros(4)
         self._state = self._read_state(None)
+        self._settle(0.5)
 
     # ------------------------------------------------------------------ scene
     def _texture(self, kind: str, color: tuple[float, float, float], size_px: int = 256) -> int:
@@ -181,6 +182,14 @@ class World:
         omega_q = R_ned_q.T @ (D @ np.asarray(ang))
         a_ned = np.zeros(3) if v_prev_ned is None else (v_ned - v_prev_ned) / self.dt_s
         return RigidState(self.t_s, D @ np.asarray(pos), v_ned, R_ned_q, omega_q, a_ned, self.motor_thrust_n.copy())
+
+    def _settle(self, seconds: float) -> None:
+        """Let the vehicle come to rest on its support before time starts (the board boots on the ground)."""
+        for _ in range(round(seconds / self.dt_s)):
+            self.step(np.zeros(4))
+        self.t_s = 0.0
+        self._state = self._read_state(None)
+        self.start_p_ned_m = self._state.p_ned_m.copy()
 
     @property
     def state(self) -> RigidState:
