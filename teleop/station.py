@@ -299,17 +299,17 @@ class Station:
                         continue
                     tel = apply_message(tel, msg, t, ap, self.cfg.commands.companion_component)
                     if mtype == "TELEOP_FEEDBACK" and tel.feedback is not None:
-                        fb = tel.feedback
-                        est = estimator.update(fb.gyro_yaw_rate_rad_s, fb.time_usec * 1e-6, fb.pan_scan_on,
-                                               fb.yaw_rate_cmd_rad_s - fb.pan_scan_yaw_rate_rad_s)
+                        new_fb = tel.feedback
+                        est = estimator.update(new_fb.gyro_yaw_rate_rad_s, new_fb.time_usec * 1e-6, new_fb.pan_scan_on,
+                                               new_fb.yaw_rate_cmd_rad_s - new_fb.pan_scan_yaw_rate_rad_s)
                         self._pan_scan_hz = est.frequency_hz
                         ps = (est.yaw_rate_rad_s if self.cfg.force.pan_scan_source == "estimated"
-                              else fb.pan_scan_yaw_rate_rad_s if fb.pan_scan_on else 0.0)
-                        self._motion = MotionInput(t, VehicleMotion(fb.v_h_m_s, fb.alpha_rad,
-                                                                    fb.gyro_yaw_rate_rad_s, ps),
-                                                   fb.mode in self.cfg.force.cue_modes)
+                              else new_fb.pan_scan_yaw_rate_rad_s if new_fb.pan_scan_on else 0.0)
+                        self._motion = MotionInput(t, VehicleMotion(new_fb.v_h_m_s, new_fb.alpha_rad,
+                                                                    new_fb.gyro_yaw_rate_rad_s, ps),
+                                                   new_fb.mode in self.cfg.force.cue_modes)
                         if self._force_proc is not None:
-                            self._force_proc.set_motion(self._motion, fb.time_usec * 1e-6)
+                            self._force_proc.set_motion(self._motion, new_fb.time_usec * 1e-6)
                     elif mtype == "COMMAND_ACK":
                         self._ack(self.commands.on_command_ack(msg.command, msg.result, t))
                     elif mtype == "PARAM_VALUE":
@@ -348,8 +348,7 @@ class Station:
                     next_heartbeat = t + 1.0
                     conn.mav.heartbeat_send(mavlink.MAV_TYPE_GCS, mavlink.MAV_AUTOPILOT_INVALID, 0, 0,
                                             mavlink.MAV_STATE_ACTIVE)
-                fb = tel.feedback
-                ok = link_ok(fb.t_recv_s if fb else None, t, self.cfg.force.link_timeout_s)
+                ok = link_ok(tel.feedback.t_recv_s if tel.feedback else None, t, self.cfg.force.link_timeout_s)
                 warnings = warnings_for(tel, ok, t, self.cfg)
                 with self._lock:
                     self._telemetry, self._command, self._warnings = tel, cmd, warnings
@@ -524,7 +523,7 @@ def _meta_vec(meta: dict[str, Any], key: str) -> tuple[float, float, float] | No
 
 
 def _open_video(path: str, width: int, height: int, fps: float = 30.0) -> cv2.VideoWriter:
-    fourcc = cv2.VideoWriter_fourcc(*("MJPG" if Path(path).suffix.lower() == ".avi" else "mp4v"))
+    fourcc = cv2.VideoWriter.fourcc(*("MJPG" if Path(path).suffix.lower() == ".avi" else "mp4v"))
     writer = cv2.VideoWriter(path, fourcc, fps, (width, height))
     if not writer.isOpened():
         raise LinkError(f"--record {path}: OpenCV cannot open a video writer (use .avi or .mp4)")

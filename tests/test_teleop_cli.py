@@ -33,11 +33,11 @@ def test_short_run_without_vehicle_logs_and_exits(tmp_path):
     log_csv = tmp_path / "log.csv"
     result = CliRunner().invoke(main, ["teleop", "--script", str(script), "--vehicle", "udpout:127.0.0.1:9",
                                        "--image-stream", "none", "--http-port", "-1", "--log-csv", str(log_csv),
-                                       "--duration", "10"])
+                                       "--keep-running", "--duration", "3"])
     assert result.exit_code == 0, result.output
     with log_csv.open() as f:
         rows = list(csv.DictReader(f))
-    assert len(rows) >= 20
+    assert len(rows) >= 5
     assert max(float(r["qx_m"]) for r in rows) > 0.01            # the script pushed the handle forward
     assert max(int(r["cmd_x"]) for r in rows) > 0                 # and that was commanded
     assert all(float(r["link_gain"]) == 0.0 for r in rows)        # no vehicle: no force feedback

@@ -172,7 +172,9 @@ class ViewServer:
         except OSError as exc:
             raise LinkError(f"operator view: cannot listen on http://{host}:{port}: {exc}") from exc
         self._server.daemon_threads = True
-        self.host, self.port = self._server.server_address[:2]
+        host_addr, port_num = self._server.server_address[:2]
+        self.host = host_addr.decode() if isinstance(host_addr, bytes) else str(host_addr)
+        self.port = int(port_num)
         self._thread = threading.Thread(target=self._server.serve_forever, kwargs={"poll_interval": 0.2},
                                         name="view-http", daemon=True)
         self._thread.start()
