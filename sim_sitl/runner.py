@@ -261,6 +261,7 @@ class Sitl:
         self._last_imu_counts = (512,) * 6
         self._lockstep_gated = False
         self._setpoint_credit = 0
+        self._reported_drops = (0, 0)
 
     # ------------------------------------------------------------------ endpoints
     @property
@@ -385,6 +386,11 @@ class Sitl:
         imu_hz = (self.stats.imu_frames_offered - prev[1]) / sim_dt if sim_dt > 0 else 0.0
         cam_hz = (self.stats.camera_frames - prev[2]) / sim_dt if sim_dt > 0 else 0.0
         self.stats.port1_frames_dropped = self.line1.stats.frames_dropped
+        drops = (self.line1.stats.frames_dropped, self.line2.stats.frames_dropped)
+        if drops != self._reported_drops:
+            log.warning("serial link over budget: %d port-1 and %d port-2 frames dropped so far (TX buffer full at "
+                        "%d baud); ask for fewer or slower streams", drops[0], drops[1], self.options.config.link.baud)
+            self._reported_drops = drops
         log.info("sim %.1f s  rtf %.2f  imu %.0f Hz  camera %.1f Hz  setpoints %d  link drops p1 %d p2 %d "
                  "(late p1 %d)  clients p1 %d p2 %d cam %d", self.sim.t_s, rtf, imu_hz, cam_hz, self.stats.setpoints,
                  self.line1.stats.frames_dropped, self.line2.stats.frames_dropped, self.line1.stats.frames_late,

@@ -203,3 +203,26 @@ def test_lockstep_waits_for_setpoints_and_flies_them():
         p2.close()
     finally:
         sitl.stop()
+
+
+@pytest.mark.sitl
+def test_port1_over_budget_drops_frames_and_reports_them(caplog):
+    """Debug + 3D data every 10 ms plus status need ~12.3 kB/s: more than 115200 Bd carries."""
+    from firmware_bridge.mk_messages import DebugData, DebugRequest
+
+    sitl = Sitl(_options(progress_every_s=0.5)).start()
+    try:
+        p1 = socket.create_connection(sitl.port1.address, timeout=5)
+        with caplog.at_level("WARNING"):
+            p1.sendall(encode_message(DebugRequest(1)) + encode_message(Data3DRequest(1)))
+            t0 = time.monotonic()
+            msgs = _read_frames(p1, lambda m: time.monotonic() - t0 > 2.0, timeout_s=2.5)
+            time.sleep(0.6)
+        debug = [m for m in msgs if isinstance(m, DebugData)]
+        assert len(debug) > 20
+        assert sitl.line1.stats.frames_dropped > 10
+        assert sitl.line1.stats.bytes_sent <= sitl.line1.bytes_per_s * (sitl.sim.t_s + 0.01)
+        assert "serial link over budget" in caplog.text
+        p1.close()
+    finally:
+        sitl.stop()
