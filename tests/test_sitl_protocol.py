@@ -220,7 +220,7 @@ def test_port1_over_budget_drops_frames_and_reports_them(caplog):
             time.sleep(0.6)
         debug = [m for m in msgs if isinstance(m, DebugData)]
         assert len(debug) > 20
-        assert sitl.line1.stats.frames_dropped > 10
+        assert sitl.line1.stats.frames_dropped > 0 and sitl.line1.stats.frames_late > 0
         assert sitl.line1.stats.bytes_sent <= sitl.line1.bytes_per_s * (sitl.sim.t_s + 0.01)
         assert "serial link over budget" in caplog.text
         p1.close()
