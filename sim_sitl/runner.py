@@ -152,10 +152,11 @@ class _Port:
         if c.sock is not None:
             c.sock.close()
 
-    def read_all(self) -> bytes:
+    def read_all(self, readable: set[int] | None = None) -> bytes:
+        """Bytes from every client (only those in ``readable`` when given, as reported by select)."""
         data = bytearray()
         for c in self.conns:
-            if not c.alive:
+            if not c.alive or (readable is not None and c.fd not in readable):
                 continue
             while True:
                 try:
@@ -466,12 +467,23 @@ class Sitl:
                                                   state.omega_q_rad_s, any_m, obstacle_m))
 
     # ------------------------------------------------------------------ I/O
-    def _handle_rx(self) -> int:
-        """Read port 1 (and discard what is written to port 2); returns the number of setpoints taken."""
+    def _handle_rx(self, timeout_s: float = 0.0) -> int:
+        """Wait up to ``timeout_s`` for input, accept clients, read port 1 (port 2 input is discarded).
+
+        Returns the number of setpoints taken.
+        """
+        fds = [fd for port in self._ports for fd in port.fds()]
+        try:
+            readable = set(select.select(fds, [], [], timeout_s)[0])
+        except (OSError, ValueError):  # a descriptor closed under us: look at everything once
+            readable = set(fds)
+        if not readable:
+            return 0
         for port in self._ports:
-            port.accept()
-        self.port2.read_all()
-        data = self.port1.read_all()
+            if port.listener.fileno() in readable:
+                port.accept()
+        self.port2.read_all(readable)
+        data = self.port1.read_all(readable)
         if not data:
             return 0
         t = self.sim.t_s
@@ -489,13 +501,6 @@ class Sitl:
                 self._lockstep_gated = True
         return len(commands)
 
-    def _select(self, timeout_s: float) -> None:
-        fds = [fd for port in self._ports for fd in port.fds()]
-        try:
-            select.select(fds, [], [], timeout_s)
-        except (OSError, ValueError):
-            time.sleep(min(timeout_s, 0.01))
-
     def _service_io(self, wait_s: float) -> None:
         """Handle I/O now and keep handling it for ``wait_s`` seconds (real-time pacing)."""
         deadline = time.monotonic() + wait_s
@@ -504,8 +509,7 @@ class Sitl:
             remaining = deadline - time.monotonic()
             if remaining <= 0:
                 break
-            self._select(min(remaining, 0.1))  # a signal handler only sets the stop flag: look at it often
-            self._handle_rx()
+            self._handle_rx(min(remaining, 0.1))  # a signal handler only sets the stop flag: look at it often
 
     def _wait_for_setpoint(self) -> None:
         deadline = time.monotonic() + self.options.config.lockstep_timeout_s
@@ -521,8 +525,7 @@ class Sitl:
                 log.warning("lock-step: no setpoint within %.1f s at sim time %.2f s; proceeding without waiting "
                             "until setpoints resume", self.options.config.lockstep_timeout_s, self.sim.t_s)
                 return
-            self._select(min(remaining, 0.05))
-            self._handle_rx()
+            self._handle_rx(min(remaining, 0.05))
         self._setpoint_credit = max(0, self._setpoint_credit - 1)
 
 
