@@ -13,6 +13,8 @@ Run: ``.venv/bin/python benchmarks/bench_perception.py [--passes N] [--synthetic
   Target: RPE no worse than the best reference, time <= 0.7x the faster reference.
 * Obstacle map: sector extraction + eq. (14) time update + measurement + 72-sector summary per QVGA frame.
   Target <= 2 ms.
+* ``--sitl-seconds 60``: velocity in H vs SITL truth on an in-process SITL flight (pybullet, IMU and depth
+  noise models), both estimators. Target: RMSE per axis <= 0.05 m/s.
 * Pipeline: ``PerceptionPipeline`` on a synthetic pan-scanning flight (500 Hz IMU + 30 Hz QVGA frames),
   CPU seconds per second of flight for both estimators, and the per-call costs of the IMU-rate parts.
 """
@@ -196,11 +198,83 @@ def bench_pipeline(seconds: float = 3.0) -> None:
     print(f"  UKF predict (100 Hz): {t_pred * 1e6:.0f} us, pose update: {t_upd * 1e6:.0f} us")
 
 
+def sitl_flight(seconds: float, estimator: str, seed: int = 0) -> None:
+    """In-process SITL (pybullet world, firmware, IMU and camera models with noise; no sockets): a pan-scanning
+    flight flown on the *true* state (so the estimate is only measured, not in the loop), perception vs truth."""
+    from quadlink.frames import Rz, euler_from_R
+    from sim_sitl.camera_sim import RgbdCamera
+    from sim_sitl.config import load_scenario, load_sitl_config
+    from sim_sitl.firmware import AttitudeCommand
+    from sim_sitl.vehicle_sim import SimVehicle
+
+    veh = load_vehicle()
+    cfg = load_sitl_config()
+    sim = SimVehicle(veh, cfg, load_scenario("paper-arena"), np.random.default_rng(seed))
+    cam = RgbdCamera(sim.world, veh.camera, cfg.camera_noise, np.random.default_rng(seed + 1))
+    pipe = PerceptionPipeline(PerceptionConfig(estimator=estimator), cam.intrinsics, cam.R_qc, np.asarray(cam.p_qc_m),
+                              np.random.default_rng(seed + 2))
+    hover = veh.hover_thrust_fraction
+    g = 9.81
+    errs, t_cpu, n_frames, ok = [], 0.0, 0, 0
+    truth, yaws = [], []
+    frame_every = round(500 / veh.camera.rate_hz)
+    seq = 0
+    try:
+        while sim.t_s < seconds:
+            res = sim.tick()
+            s, t = res.state, res.t_s
+            pipe.on_imu(t, res.imu.gyro_q_rad_s, res.imu.accel_q_m_s2)
+            if res.tick % 5 == 0:   # 100 Hz truth-based controller: altitude 1.2 m, slow figure, pan-scan
+                roll, pitch, yaw = euler_from_R(s.R_ned_q)
+                z_ref = -1.2
+                climb = t > 1.0
+                if t < 4.0:
+                    v_ref_w = np.zeros(3)
+                else:
+                    v_ref_w = np.array([0.35 * math.sin(0.25 * (t - 4)), 0.35 * math.sin(0.17 * (t - 4)), 0.0])
+                a_w = 1.5 * (v_ref_w - s.v_ned_m_s) + 0.6 * (np.array([-3.0, 0.0, 0.0]) - s.p_ned_m) * (t < 4.0)
+                a_h = Rz(yaw).T @ a_w
+                pitch_sp = float(np.clip(-a_h[0] / g, -0.3, 0.3))
+                roll_sp = float(np.clip(a_h[1] / g, -0.3, 0.3))
+                thrust = hover * (1 + 0.25 * (s.p_ned_m[2] - z_ref) + 0.35 * s.v_ned_m_s[2]) if climb else 0.3 * hover
+                yaw_rate = 0.6 * math.sin(2 * math.pi * 0.2 * t) if t > 4.0 else 0.0
+                sim.on_setpoint(AttitudeCommand(roll_sp, pitch_sp, yaw_rate, float(np.clip(thrust, 0, 1)), True,
+                                                (res.tick // 5) & 0xFF))
+            if res.tick % frame_every == 0:
+                frame = cam.render(s, seq, t)
+                seq += 1
+                c0 = time.process_time()
+                out = pipe.on_frame(frame)
+                t_cpu += time.process_time() - c0
+                n_frames += 1
+                ok += out.odometry_ok
+                if t > 6.0:
+                    v_h_true = Rz(euler_from_R(s.R_ned_q)[2]).T @ s.v_ned_m_s
+                    errs.append(out.v_h_m_s - v_h_true)
+                    truth.append(v_h_true)
+                    yaws.append(euler_from_R(s.R_ned_q)[2])
+    finally:
+        sim.close()
+    if not errs:
+        print(f"  {estimator}: flight too short (errors are taken after 6 s)")
+        return
+    e = np.array(errs)
+    rmse = np.sqrt(np.mean(e**2, axis=0))
+    v_rms = np.sqrt(np.mean(np.square(truth), axis=0))
+    print(f"  {estimator:7s}: v_h RMSE x/y/z {rmse[0]:.3f}/{rmse[1]:.3f}/{rmse[2]:.3f} m/s (target <= 0.05), "
+          f"max |err| {np.abs(e).max():.3f}; true v_h rms {v_rms[0]:.2f}/{v_rms[1]:.2f}/{v_rms[2]:.2f} m/s, "
+          f"yaw swept {np.degrees(np.ptp(np.unwrap(yaws))):.0f} deg; odometry ok {ok / max(n_frames, 1):.1%} of "
+          f"{n_frames} frames; {t_cpu / max(n_frames, 1) * 1e3:.1f} CPU ms/frame")
+
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--passes", type=int, default=3)
     ap.add_argument("--synthetic-frames", type=int, default=45)
     ap.add_argument("--skip-odometry", action="store_true")
+    ap.add_argument("--sitl-seconds", type=float, default=0.0,
+                    help="also fly an in-process SITL pan-scan flight this long (issue: 60 s; minutes each)")
     args = ap.parse_args()
     cv2.setNumThreads(1)
     print(f"load average at start: {os.getloadavg()[0]:.2f} (shared machine; times are CPU time of this process)")
@@ -208,6 +282,11 @@ def main() -> None:
         bench_odometry(args.passes, args.synthetic_frames)
     bench_obstacle_map()
     bench_pipeline()
+    if args.sitl_seconds > 0:
+        print(f"== velocity in H vs SITL truth, {args.sitl_seconds:.0f} s pan-scanning flight with sensor noise "
+              "(paper-arena, errors after 6 s)")
+        for est in ("filters", "ukf"):
+            sitl_flight(args.sitl_seconds, est)
 
 
 if __name__ == "__main__":
