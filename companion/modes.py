@@ -12,7 +12,8 @@ Modes (TELEOP_FEEDBACK.mode numbering): IDLE 0, TAKEOFF 1, TELEOP 2, HOLD 3, LAN
   command -> IDLE.
 * TELEOP: operator command + pan-scan + repulsion.
 * HOLD: zero operator command, repulsion still active (hover). Entered when the ground-station link is
-  lost (no MANUAL_CONTROL for ``gcs_timeout_s``) or the odometry fails; left to TELEOP when both are
+  lost (no MANUAL_CONTROL for ``gcs_timeout_s``) or the odometry fails (bad for ``odometry_fail_s``:
+  single bad frames are bridged by the estimator); left to TELEOP when both are
   good again (odometry good for ``odometry_recover_s``); -> LAND when the link stays lost for
   ``gcs_land_timeout_s`` or the odometry stays bad for ``odometry_land_timeout_s``.
 * LAND: land command to the autopilot; -> IDLE when the autopilot reports landed or disarmed. The
@@ -41,6 +42,7 @@ class Mode(IntEnum):
 class ModeParams:
     gcs_timeout_s: float = 0.5
     gcs_land_timeout_s: float = 10.0
+    odometry_fail_s: float = 0.2  # failed this long (consecutive) before it counts: one bad frame is no failure
     odometry_recover_s: float = 0.5
     odometry_land_timeout_s: float = 5.0
     takeoff_altitude_m: float = 1.0
@@ -172,10 +174,12 @@ class ModeMachine:
             self._odometry_ok_since_s = None
             if self._odometry_bad_since_s is None:
                 self._odometry_bad_since_s = now_s
-        if odometry_ok != self.odometry_ok:
-            actions.append(StatusText(SEVERITY_NOTICE if odometry_ok else SEVERITY_CRITICAL,
-                                      "companion: odometry " + ("ok" if odometry_ok else "failed")))
-        self.odometry_ok = odometry_ok
+        failed = self._odometry_bad_since_s is not None and now_s - self._odometry_bad_since_s >= p.odometry_fail_s
+        usable = not failed
+        if usable != self.odometry_ok:
+            actions.append(StatusText(SEVERITY_NOTICE if usable else SEVERITY_CRITICAL,
+                                      "companion: odometry " + ("ok" if usable else "failed")))
+        self.odometry_ok = usable
         odo_good = self._odometry_ok_since_s is not None and now_s - self._odometry_ok_since_s >= p.odometry_recover_s
         in_mode = now_s - self._entered_s
 
@@ -194,7 +198,7 @@ class ModeMachine:
         elif self.mode in (Mode.TELEOP, Mode.HOLD):
             if not status.armed:
                 actions += self._go(Mode.IDLE, now_s, "autopilot disarmed", SEVERITY_WARNING)
-            elif self.mode == Mode.TELEOP and not odometry_ok:
+            elif self.mode == Mode.TELEOP and failed:
                 actions += self._go(Mode.HOLD, now_s, "odometry failed", SEVERITY_CRITICAL)
             elif self.mode == Mode.TELEOP and not gcs_ok:
                 actions += self._go(Mode.HOLD, now_s, "ground-station link lost", SEVERITY_WARNING)
@@ -204,7 +208,7 @@ class ModeMachine:
                 if not gcs_ok and lost_for >= p.gcs_land_timeout_s:
                     actions.append(AutopilotRequest("land"))
                     actions += self._go(Mode.LAND, now_s, "ground-station link lost too long", SEVERITY_CRITICAL)
-                elif not odometry_ok and bad_for >= p.odometry_land_timeout_s:
+                elif failed and bad_for >= p.odometry_land_timeout_s:
                     actions.append(AutopilotRequest("land"))
                     actions += self._go(Mode.LAND, now_s, "odometry failed too long", SEVERITY_CRITICAL)
                 elif gcs_ok and odo_good:

@@ -100,8 +100,17 @@ def test_gcs_loss_holds_then_lands_and_recovery_resumes() -> None:
 
 
 def test_odometry_failure_holds_and_recovers_after_a_good_period() -> None:
-    params = ModeParams(odometry_recover_s=0.5, odometry_land_timeout_s=3.0)
+    params = ModeParams(odometry_fail_s=0.2, odometry_recover_s=0.5, odometry_land_timeout_s=3.0)
     m, t = _flying_machine(params)
+    m.on_manual_control(t + 0.05)
+    m.update(t + 0.05, FLYING, False)  # one bad frame: bridged
+    m.on_manual_control(t + 0.08)
+    m.update(t + 0.08, FLYING, True)
+    assert m.mode == Mode.TELEOP
+    m.on_manual_control(t + 0.1)
+    m.update(t + 0.1, FLYING, False)
+    assert m.mode == Mode.TELEOP
+    t += 0.25
     m.on_manual_control(t + 0.1)
     actions = m.update(t + 0.1, FLYING, False)
     assert m.mode == Mode.HOLD and "companion: odometry failed" in _texts(actions)
