@@ -281,7 +281,8 @@ class Sitl:
         o = self.options
         log.info("SITL scenario %s, vehicle %s (%s frame, %.2f kg), %s", self.scenario.name, self.vehicle.name,
                  self.vehicle.frame, self.vehicle.mass_kg,
-                 "lock-step" if o.lockstep else f"real time x{o.speed or 1.0:g}")
+                 "lock-step" if o.lockstep else ("as fast as possible" if o.speed is not None and o.speed <= 0
+                                                  else f"real time x{o.speed or 1.0:g}"))
         for name, url in self.endpoints.items():
             log.info("  %-10s %s", name, url)
 
