@@ -36,7 +36,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from firmware_bridge.attitude_filter import ComplementaryAttitudeFilter
+from firmware_bridge.attitude_filter import BridgeAttitude
 from firmware_bridge.params import ParamTable
 from firmware_bridge.velocity_tracker import AttitudeCommand, VelocityTracker
 from quadlink import __version__
@@ -128,6 +128,7 @@ BOARD_ERROR_SETPOINT_TIMEOUT, BOARD_ERROR_BATTERY_LOW, BOARD_ERROR_IMU_SATURATED
 TOUCHDOWN_HOLD_S = 0.5
 SETPOINT_FRESH_FOR_OFFBOARD_S = 0.5  # PX4 wants the stream running before the switch
 IMU_PREDICTION_HORIZON_S = 0.3
+MAX_HEADING_ERROR_RAD = 0.5
 ODOM_LOST_VZ_LEAK_TAU_S = 3.0
 
 
@@ -193,7 +194,7 @@ class Autopilot:
         self._unix_clock = unix_clock  # injected (time.time in the daemon); SYSTEM_TIME only
         self.mav = mavlink.MAVLink(None, sysid, compid)  # encoder only, no file
         self.tracker = VelocityTracker(vehicle.mass_kg, vehicle.max_total_thrust_n, params.tracker_gains())
-        self.filter = ComplementaryAttitudeFilter(tau_s=params["BRG_ATT_TAU"])
+        self.filter = BridgeAttitude(tau_s=params["BRG_ATT_TAU"])
         self.mode = FlightMode.POSCTL
         self.armed_cmd = False
         self.in_air = False
@@ -234,6 +235,7 @@ class Autopilot:
         self.last_command: AttitudeCommand | None = None
         self.last_board_command = BoardCommand(0.0, 0.0, 0.0, 0.0, False)
         self._control_time_s: float | None = None
+        self._yaw_sp_rad: float | None = None
         # streams and counters
         self.stream_interval_s = dict(STREAM_DEFAULT_INTERVAL_S)
         self._stream_last_s: dict[int, float] = {}
@@ -263,7 +265,7 @@ class Autopilot:
 
     def apply_params(self) -> None:
         self.tracker.set_gains(self.params.tracker_gains())
-        self.filter.tau_s = self.params["BRG_ATT_TAU"]
+        self.filter.set_tau(self.params["BRG_ATT_TAU"])
 
     def set_mode(self, mode: FlightMode, now_s: float, reason: str = "") -> None:
         if mode == self.mode:
@@ -300,7 +302,7 @@ class Autopilot:
         self.imu_samples += 1
         self._last_accel_q = np.asarray(accel_q_m_s2, dtype=float)
         self._last_gyro_q = np.asarray(gyro_q_rad_s, dtype=float)
-        est = self.filter.update(dt, self._last_gyro_q, self._last_accel_q)
+        est = self.filter.update(now_s, self._last_gyro_q, self._last_accel_q)
         if self.in_air:
             # acceleration in H from the specific force: a_h = R_hq f_q + g e3
             a_h = R_hq(est.roll_rad, est.pitch_rad) @ self._last_accel_q + np.array([0.0, 0.0, GRAVITY_M_S2])
@@ -361,6 +363,8 @@ class Autopilot:
         self._check_links(now_s)
         self._update_height(dt)
         est = self.filter.estimate
+        if not self.in_air or not self.odom_ok or (self.mode == FlightMode.OFFBOARD and self._att_sp is not None):
+            self._yaw_sp_rad = None  # heading hold only in velocity control in the air
         if not self.armed_cmd:
             self.in_air = False
             self.tracker.reset()
@@ -411,11 +415,29 @@ class Autopilot:
             self._fs_hover_until_s = None
             self._event(mavlink.MAV_SEVERITY_WARNING, "Failsafe: hover done, landing")
             self.set_mode(FlightMode.LAND, now_s, "failsafe")
+        sp = self._vel_sp
+        if self.mode == FlightMode.OFFBOARD and sp is not None and sp.yaw_rate_rad_s is None and sp.yaw_rad is not None:
+            self._yaw_sp_rad = None  # an absolute yaw target is tracked in _velocity_reference
+        else:
+            yaw_rate = self._heading_hold(dt, yaw_rate, est.yaw_rad)
         v_est = self.v_est_h(now_s)
         cmd = self.tracker.update(dt, v_ref, yaw_rate, v_est, est.roll_rad, est.pitch_rad)
         if self.mode == FlightMode.LAND:
             self._detect_touchdown(now_s, cmd, abs(v_est[2]))
         return self._finish(cmd)
+
+    def _heading_hold(self, dt: float, yaw_rate_ref: float, yaw_rad: float) -> float:
+        """Yaw rate tracked through a heading setpoint (like PX4's yaw control): the setpoint integrates the
+        reference rate, and the heading error (yaw anchored to the odometry) adds ``MC_YAW_P`` * error, so a
+        zero yaw rate holds the heading instead of letting the board's rate loop drift."""
+        if self._yaw_sp_rad is None:
+            self._yaw_sp_rad = yaw_rad
+        self._yaw_sp_rad = wrap_pi(self._yaw_sp_rad + yaw_rate_ref * dt)
+        error = wrap_pi(self._yaw_sp_rad - yaw_rad)
+        if abs(error) > MAX_HEADING_ERROR_RAD:  # do not wind up behind a saturated or blocked yaw
+            self._yaw_sp_rad = wrap_pi(yaw_rad + math.copysign(MAX_HEADING_ERROR_RAD, error))
+            error = math.copysign(MAX_HEADING_ERROR_RAD, error)
+        return yaw_rate_ref + self.params["MC_YAW_P"] * error
 
     def _finish(self, cmd: AttitudeCommand) -> BoardCommand:
         self.last_command = cmd

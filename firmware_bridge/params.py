@@ -47,6 +47,7 @@ PARAM_SPECS: tuple[ParamSpec, ...] = (
     ParamSpec("MPC_Z_VEL_MAX_UP", 1.5, 0.1, 5.0, "maximum climb rate, m/s"),
     ParamSpec("MPC_Z_VEL_MAX_DN", 1.0, 0.1, 5.0, "maximum descent rate, m/s"),
     ParamSpec("MPC_YAWRAUTO_MAX", 90.0, 5.0, 360.0, "maximum yaw rate, deg/s"),
+    ParamSpec("MC_YAW_P", 1.5, 0.0, 5.0, "heading hold gain, (rad/s)/rad (0: pure yaw-rate pass-through)"),
     ParamSpec("MIS_TAKEOFF_ALT", 1.0, 0.2, 10.0, "take-off height above the take-off point, m"),
     ParamSpec("MPC_TKO_SPEED", 0.5, 0.1, 3.0, "take-off climb rate, m/s"),
     ParamSpec("MPC_LAND_SPEED", 0.4, 0.1, 2.0, "landing descent rate, m/s"),

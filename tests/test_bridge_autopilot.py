@@ -47,6 +47,7 @@ class Sim:
         self.board = board
         self.statustext: list[str] = []
         self.wind_n = np.zeros(3)
+        self.yaw_drift_rad_s = 0.0  # the board's rate loop does not hold the heading perfectly
 
     @property
     def t(self) -> float:
@@ -69,7 +70,7 @@ class Sim:
             armed = cmd.armed
             self.roll += a * (cmd.roll_rad - self.roll)
             self.pitch += a * (cmd.pitch_rad - self.pitch)
-            self.yaw += cmd.yaw_rate_rad_s * dt
+            self.yaw += (cmd.yaw_rate_rad_s + self.yaw_drift_rad_s) * dt
             self.thrust = cmd.thrust if armed else 0.0
             R = R_from_euler(self.roll, self.pitch, self.yaw)
             f_n = -self.thrust * self.vehicle.max_total_thrust_n * R[:, 2] + self.wind_n \
@@ -86,7 +87,7 @@ class Sim:
                 self.p[2] = 0.0
                 self.v[:] = 0.0
             specific_force_q = R.T @ (acc - np.array([0.0, 0.0, GRAVITY_M_S2]))
-            omega_q = np.array([0.0, 0.0, cmd.yaw_rate_rad_s])
+            omega_q = np.array([0.0, 0.0, cmd.yaw_rate_rad_s + self.yaw_drift_rad_s])
             if self.board:
                 self._collect(self.ap.on_imu(self.t, self.k * 2000, specific_force_q, omega_q))
                 if self.k % 50 == 0:
@@ -409,3 +410,17 @@ def test_parameter_file_round_trip(tmp_path):
     (tmp_path / "bad.yaml").write_text("- just\n- a list\n")
     with pytest.raises(ConfigError, match="bad.yaml"):
         load_param_file(tmp_path / "bad.yaml")
+
+
+def test_heading_hold_against_yaw_drift():
+    sim = Sim()
+    fly_to_hover(sim)
+    yaw0 = sim.yaw
+    sim.yaw_drift_rad_s = 0.1  # 5.7 deg/s of drift if only the rate were passed through
+    sim.step(0.5, setpoint=velocity_body(0, 0, 0))
+    assert sim.command(mavlink.MAV_CMD_DO_SET_MODE, 1, 6, 0)[0] == mavlink.MAV_RESULT_ACCEPTED
+    sim.step(8.0, setpoint=velocity_body(0.5, 0, 0))
+    assert abs(sim.yaw - yaw0) < math.radians(5.0)
+    # a commanded rate still turns (the setpoint moves with it)
+    sim.step(2.0, setpoint=velocity_body(0, 0, 0, yaw_rate=math.radians(30)))
+    assert sim.yaw - yaw0 == pytest.approx(math.radians(60), abs=math.radians(8))
