@@ -24,7 +24,7 @@ class DeviceConfig:
     workspace_m: Vec3Cfg = (0.08, 0.08, 0.08)          # half range per axis (omega.6: about +-0.08 m)
     force_limit_n: float = 12.0                        # omega.6 continuous force limit
     force_rate_hz: float = 1000.0                      # force loop rate
-    spin_s: float = 0.0002                             # busy-wait before each tick (precise sleep)
+    spin_s: float = 0.0001                             # busy-wait before each tick (precise sleep)
     realtime_priority: int = 20                        # SCHED_FIFO priority of the force thread; 0 = normal
 
     def __post_init__(self) -> None:

@@ -43,8 +43,7 @@ def q_tilde(motion: VehicleMotion, gains: MappingGains) -> Vec3:
     q_x = (math.cos(motion.alpha_rad) * vx + math.sin(motion.alpha_rad) * vy) / gains.k_v_xy_per_s  # eq. (16)
     q_psi = (motion.yaw_rate_rad_s - motion.pan_scan_yaw_rate_rad_s) / (gains.yaw_sign * gains.k_psi_rad_s_m)  # (17)
     q_z = vz / gains.k_v_z_per_s  # eq. (18)
-    out = np.array([q_x, q_psi, q_z])
-    return np.where(np.isfinite(out), out, 0.0)
+    return np.array([v if math.isfinite(v) else 0.0 for v in (q_x, q_psi, q_z)])
 
 
 def saturate(force_n: Vec3, limit_n: float) -> Vec3:
@@ -62,12 +61,18 @@ def force_law(q_m: Vec3, qdot_m_s: Vec3, q_tilde_m: Vec3 | None, cfg: ForceConfi
     ``cue_gain`` in [0, 1] scales the haptic-cue term K (q - q~): the station fades it out while the
     companion flies autonomously (take-off, landing), where the vehicle's motion is not the operator's
     command and feeding it back would pull the handle (and, through the mapping, the next command).
+    Plain floats inside: this runs at 1 kHz and numpy's per-call overhead dominates on 3-vectors.
     """
-    B, K_f, K = (np.asarray(g, dtype=float) for g in (cfg.B_n_s_m, cfg.K_f_n_m, cfg.K_n_m))
-    tau = -B * qdot_m_s - K_f * q_m
-    if q_tilde_m is not None:
-        tau = tau - min(max(cue_gain, 0.0), 1.0) * K * (q_m - q_tilde_m)
-    return saturate(tau, force_limit_n) * min(max(link_gain, 0.0), 1.0)
+    q, qd = [float(v) for v in q_m], [float(v) for v in qdot_m_s]
+    cue = min(max(cue_gain, 0.0), 1.0) if q_tilde_m is not None else 0.0
+    qt = [float(v) for v in q_tilde_m] if q_tilde_m is not None else [0.0, 0.0, 0.0]
+    B, K_f, K = cfg.B_n_s_m, cfg.K_f_n_m, cfg.K_n_m
+    tau = [-B[i] * qd[i] - K_f[i] * q[i] - cue * K[i] * (q[i] - qt[i]) for i in range(3)]
+    norm = math.sqrt(tau[0] * tau[0] + tau[1] * tau[1] + tau[2] * tau[2])
+    if not math.isfinite(norm):
+        return np.zeros(3)
+    scale = min(max(link_gain, 0.0), 1.0) * (force_limit_n / norm if norm > force_limit_n else 1.0)
+    return np.array([scale * t for t in tau])
 
 
 class LinkFade:

@@ -23,23 +23,22 @@ from teleop.devices.script import OperatorScript
 Vec3 = NDArray[np.float64]
 
 
+def _step_axis(q: float, v: float, u: float, dt_s: float, m: float, c: float) -> tuple[float, float]:
+    """Exact solution of m q'' + c q' = u over dt_s (u constant)."""
+    if c * dt_s / m < 1e-9:  # undamped: constant acceleration
+        a = u / m
+        return q + v * dt_s + 0.5 * a * dt_s * dt_s, v + a * dt_s
+    v_inf = u / c                          # terminal velocity
+    decay = math.exp(-c * dt_s / m)
+    return q + v_inf * dt_s + (v - v_inf) * (m / c) * (1.0 - decay), v_inf + (v - v_inf) * decay
+
+
 def step_dynamics(q_m: Vec3, qdot_m_s: Vec3, force_n: Vec3, dt_s: float, mass_kg: Vec3,
                   damping_n_s_m: Vec3) -> tuple[Vec3, Vec3]:
     """Exact solution of eq. (1) per axis over ``dt_s`` with the force held constant."""
-    q_next = np.empty(3)
-    v_next = np.empty(3)
-    for i in range(3):
-        m, c, u, v = float(mass_kg[i]), float(damping_n_s_m[i]), float(force_n[i]), float(qdot_m_s[i])
-        if c * dt_s / m < 1e-9:  # undamped: constant acceleration
-            a = u / m
-            v_next[i] = v + a * dt_s
-            q_next[i] = q_m[i] + v * dt_s + 0.5 * a * dt_s * dt_s
-            continue
-        v_inf = u / c                          # terminal velocity
-        decay = math.exp(-c * dt_s / m)
-        v_next[i] = v_inf + (v - v_inf) * decay
-        q_next[i] = q_m[i] + v_inf * dt_s + (v - v_inf) * (m / c) * (1.0 - decay)
-    return q_next, v_next
+    out = [_step_axis(float(q_m[i]), float(qdot_m_s[i]), float(force_n[i]), dt_s, float(mass_kg[i]),
+                      float(damping_n_s_m[i])) for i in range(3)]
+    return np.array([o[0] for o in out]), np.array([o[1] for o in out])
 
 
 def clamp_workspace(q_m: Vec3, qdot_m_s: Vec3, workspace_m: Vec3) -> tuple[Vec3, Vec3]:
@@ -124,6 +123,8 @@ class VirtualDevice(HapticDevice):
         self.mass_kg = np.asarray(cfg.mass_kg, dtype=float)
         self.damping = np.asarray(cfg.damping_n_s_m, dtype=float)
         self.workspace = np.asarray(cfg.workspace_m, dtype=float)
+        self._m, self._c, self._w = (tuple(float(x) for x in a) for a in (cfg.mass_kg, cfg.damping_n_s_m,
+                                                                         cfg.workspace_m))
         self.max_step_s = max_step_s
         self.q_m = np.zeros(3)
         self.qdot_m_s = np.zeros(3)
@@ -146,13 +147,20 @@ class VirtualDevice(HapticDevice):
             t_prev = self._t_s - self._t0_s
             t_now = t_s - self._t0_s
             t = t_prev
+            q, v = self.q_m.tolist(), self.qdot_m_s.tolist()     # plain floats: this runs at 1 kHz
+            tau = self._tau_n.tolist()
             while t < t_now - 1e-12:
                 dt = min(self.max_step_s, t_now - t)
-                f = self.operator.force_at(t)
-                self.q_m, self.qdot_m_s = step_dynamics(self.q_m, self.qdot_m_s, self._tau_n + f, dt,
-                                                        self.mass_kg, self.damping)
-                self.q_m, self.qdot_m_s = clamp_workspace(self.q_m, self.qdot_m_s, self.workspace)
+                f = self.operator.force_at(t).tolist()
+                for i in range(3):
+                    q[i], v[i] = _step_axis(q[i], v[i], tau[i] + f[i], dt, self._m[i], self._c[i])
+                    w = self._w[i]
+                    if q[i] >= w:          # the workspace is a hard stop
+                        q[i], v[i] = w, min(v[i], 0.0)
+                    elif q[i] <= -w:
+                        q[i], v[i] = -w, max(v[i], 0.0)
                 t += dt
+            self.q_m, self.qdot_m_s = np.array(q), np.array(v)
             self._t_s = t_s
             presses = self.operator.presses_between(t_prev, t_now)
             return DeviceState(t_s, self.q_m.copy(), self.qdot_m_s.copy(), presses, self.operator.force_at(t_now))
