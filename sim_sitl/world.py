@@ -28,6 +28,7 @@ from sim_sitl.textures import make_texture
 log = logging.getLogger(__name__)
 
 D = np.diag([1.0, -1.0, -1.0])  # NED <-> pybullet NWU, FRD <-> FLU
+_D_SANDWICH = np.outer(np.diag(D), np.diag(D))  # elementwise form of D @ R @ D
 
 TEXEL_M = 0.01  # target texture resolution on large surfaces (textures up to 1024 px)
 
@@ -176,12 +177,12 @@ class World:
         """The body's state; the acceleration is the velocity change since ``v_prev_ned`` over one step."""
         pos, quat = p.getBasePositionAndOrientation(self.body, physicsClientId=self.client)
         lin, ang = p.getBaseVelocity(self.body, physicsClientId=self.client)
-        R_pb = np.asarray(p.getMatrixFromQuaternion(quat), dtype=float).reshape(3, 3)
-        R_ned_q = D @ R_pb @ D
-        v_ned = D @ np.asarray(lin)
-        omega_q = R_ned_q.T @ (D @ np.asarray(ang))
+        R_ned_q = np.array(p.getMatrixFromQuaternion(quat)).reshape(3, 3) * _D_SANDWICH  # = D R_pb D
+        v_ned = np.array((lin[0], -lin[1], -lin[2]))
+        omega_q = R_ned_q.T @ np.array((ang[0], -ang[1], -ang[2]))
         a_ned = np.zeros(3) if v_prev_ned is None else (v_ned - v_prev_ned) / self.dt_s
-        return RigidState(self.t_s, D @ np.asarray(pos), v_ned, R_ned_q, omega_q, a_ned, self.motor_thrust_n.copy())
+        return RigidState(self.t_s, np.array((pos[0], -pos[1], -pos[2])), v_ned, R_ned_q, omega_q, a_ned,
+                          self.motor_thrust_n.copy())
 
     def _settle(self, seconds: float) -> None:
         """Let the vehicle come to rest on its support before time starts (the board boots on the ground)."""
