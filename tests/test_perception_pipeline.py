@@ -122,3 +122,12 @@ def test_config_from_yaml_dict_is_validated() -> None:
         from_dict(PerceptionConfig, {"estimator": "kalman"})
     with pytest.raises(ConfigError, match="odometry"):
         from_dict(PerceptionConfig, {"odometry": {"levelz": 3}})
+
+
+def test_shipped_defaults_yaml_equals_the_code_defaults() -> None:
+    from pathlib import Path
+
+    from quadlink.config import load_config
+
+    path = Path(__file__).resolve().parent.parent / "perception" / "defaults.yaml"
+    assert load_config(path, PerceptionConfig) == PerceptionConfig()
