@@ -166,7 +166,8 @@ def fly_push_toward_column(out_dir: Path, push_s: float, port_offset: int = 700)
         run_for(120.0, 3.0, None)
         rec.hold_seen = any(mode == 3 for _, mode in rec.modes)
         run_for(300.0, 25.0, None, until=lambda: not state["armed"] or state["mode"] == 0)
-        rec.landed = state["mode"] == 0 and -state["pos"][2] < 0.3
+        # on the ground (truth) with the companion landing or idle (the autopilot's disarm may come later)
+        rec.landed = state["mode"] in (0, 4) and -state["pos"][2] < 0.3
         return rec
     finally:
         stack.stop()
