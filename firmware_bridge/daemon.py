@@ -14,14 +14,18 @@ advance time and clock the control step (failsafes must still run).
 
 from __future__ import annotations
 
+import collections
 import logging
+import math
 import queue
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
+
+import numpy as np
 
 from firmware_bridge import mk_messages as mk
 from firmware_bridge.autopilot import Autopilot, BoardCommand, Outbound
@@ -106,7 +110,6 @@ class BridgeStats:
     mavlink_out: int = 0
     send_errors: int = 0
     wall_clock_steps: int = 0
-    imu_latency_s: list[float] = field(default_factory=list)  # read -> HIGHRES_IMU sent (when recording)
 
 
 class BridgeDaemon:
@@ -123,7 +126,8 @@ class BridgeDaemon:
         self._stream_opener = stream_opener
         self._mavlink_opener = mavlink_opener
         self.stats = BridgeStats()
-        self.record_latency = False
+        # IMU bytes read -> HIGHRES_IMU sent, inside this process (the bridge's own share of the latency)
+        self._imu_latency_s: collections.deque[float] = collections.deque(maxlen=5000)
         self._queue: queue.Queue[tuple[Any, ...]] = queue.Queue(maxsize=20000)
         self._stop = threading.Event()
         self._threads: list[threading.Thread] = []
@@ -332,8 +336,8 @@ class BridgeDaemon:
         out = self.autopilot.on_imu(now, self._imu_index * 2000, sample.accel_m_s2(imu_cfg),
                                     sample.gyro_rad_s(imu_cfg))
         self._send(out)
-        if self.record_latency and out:
-            self.stats.imu_latency_s.append(self.clock() - read_wall)
+        if out:
+            self._imu_latency_s.append(self.clock() - read_wall)
         block = self._imu_index // CONTROL_DECIMATION
         if block != self._control_block:
             self._control_block = block
@@ -394,11 +398,19 @@ class BridgeDaemon:
         if wall - self._last_status_log >= self.config.status_log_interval_s:
             self._last_status_log = wall
             ap = self.autopilot
+            p50, p99 = self.imu_latency_ms()
             log.info("t=%.1fs mode %s armed %s in_air %s odom %s board %s | imu %d (gaps %d) setpoints %d "
-                     "mav in %d out %d | bad mav %d mk %d", self.now_s(), ap.mode.name, ap.armed, ap.in_air,
-                     ap.odom_ok, ap.board_link_ok, self.stats.imu_samples, self.stats.imu_gaps,
-                     self.stats.setpoints_sent, self.stats.mavlink_in, self.stats.mavlink_out,
-                     ap.counters["mavlink_bad"], ap.counters["mk_bad"])
+                     "mav in %d out %d | bad mav %d mk %d | imu->mavlink in-process p50 %.3f p99 %.3f ms",
+                     self.now_s(), ap.mode.name, ap.armed, ap.in_air, ap.odom_ok, ap.board_link_ok,
+                     self.stats.imu_samples, self.stats.imu_gaps, self.stats.setpoints_sent, self.stats.mavlink_in,
+                     self.stats.mavlink_out, ap.counters["mavlink_bad"], ap.counters["mk_bad"], p50, p99)
+
+    def imu_latency_ms(self) -> tuple[float, float]:
+        """p50 and p99 (ms) of IMU bytes read -> HIGHRES_IMU handed to the sockets, last 5000 samples."""
+        if not self._imu_latency_s:
+            return math.nan, math.nan
+        p50, p99 = np.percentile(np.fromiter(self._imu_latency_s, float), [50, 99]) * 1e3
+        return float(p50), float(p99)
 
     def _request_version(self, wall: float) -> None:
         if self._version_requests >= self.config.version_request_attempts or wall - self._last_version_request < 2.0:
