@@ -19,9 +19,13 @@ import sys
 import threading
 import time
 
-from firmware_bridge.mk_messages import ImuSample, decode_message
+import numpy as np
+
+from firmware_bridge.mk_messages import AttitudeSetpoint, ImuSample, decode_message, encode_message
 from firmware_bridge.mk_protocol import FrameDecoder
 from quadlink.camera import CameraStreamClient
+from quadlink.frames import GRAVITY_M_S2
+from quadlink.vehicle import load_vehicle
 from sim_sitl.config import load_sitl_config
 from sim_sitl.runner import Sitl, SitlOptions
 
@@ -75,7 +79,7 @@ class CameraConsumer(threading.Thread):
                 self.client.ack(f.seq)
 
 
-def child(sim_s: float, camera: bool, res: tuple[int, int], scenario: str, pin: bool) -> None:
+def child(sim_s: float, camera: bool, res: tuple[int, int], scenario: str, pin: bool, flying: bool) -> None:
     """The SITL under test, in its own process (pinned to one core): ports out, 'go' in, stats out."""
     if pin and hasattr(os, "sched_setaffinity"):
         os.sched_setaffinity(0, {min(os.sched_getaffinity(0))})
@@ -83,7 +87,11 @@ def child(sim_s: float, camera: bool, res: tuple[int, int], scenario: str, pin: 
                        camera_res=res, truth_url="udpout:127.0.0.1:9", speed=0.0, duration_s=sim_s,
                        progress_every_s=1e9)
     sitl = Sitl(opts)
-    print(json.dumps({"port2": sitl.port2.address[1],
+    if flying:  # hover 1.2 m above the start, rotors spun up; the parent sends hover setpoints with a yaw rate
+        world = sitl.sim.world
+        world.reset_pose(world.start_p_ned_m + np.array([0.0, 0.0, -1.2]), world.state.R_ned_q)
+        world.motor_thrust_n[:] = sitl.vehicle.mass_kg * GRAVITY_M_S2 / 4.0
+    print(json.dumps({"port1": sitl.port1.address[1], "port2": sitl.port2.address[1],
                       "camera": sitl.camera_server.port if sitl.camera_server else None}), flush=True)
     sys.stdin.readline()
     if camera:
@@ -103,9 +111,25 @@ def child(sim_s: float, camera: bool, res: tuple[int, int], scenario: str, pin: 
     sitl.stop()
 
 
-def run(sim_s: float, camera: bool, res: tuple[int, int], scenario: str, pin: bool) -> dict[str, float]:
+def hover_setpoints(port: int, hover: float, stop: threading.Event) -> None:
+    """100 Hz (wall) hover setpoints turning at 0.5 rad/s, so the camera sweeps the room."""
+    sock = socket.create_connection(("127.0.0.1", port), timeout=5)
+    seq = 0
+    while not stop.is_set():
+        try:
+            sock.sendall(encode_message(AttitudeSetpoint(0.0, 0.0, 0.5, hover, True, seq % 256)))
+        except OSError:
+            break
+        seq += 1
+        time.sleep(0.01)
+    sock.close()
+
+
+def run(sim_s: float, camera: bool, res: tuple[int, int], scenario: str, pin: bool,
+        flying: bool = True) -> dict[str, float]:
     cmd = [sys.executable, __file__, "--child", "--sim-s", str(sim_s), "--res", f"{res[0]}x{res[1]}",
-           "--scenario", scenario] + ([] if camera else ["--no-camera"]) + ([] if pin else ["--all-cores"])
+           "--scenario", scenario] + ([] if camera else ["--no-camera"]) + ([] if pin else ["--all-cores"]) + (
+           ["--flying"] if flying else [])
     proc = subprocess.Popen(cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
     try:
         assert proc.stdin is not None and proc.stdout is not None
@@ -115,9 +139,15 @@ def run(sim_s: float, camera: bool, res: tuple[int, int], scenario: str, pin: bo
         cam = CameraConsumer(ports["camera"]) if camera else None
         if cam:
             cam.start()
+        stop_sp = threading.Event()
+        sp = threading.Thread(target=hover_setpoints, args=(ports["port1"], load_vehicle().hover_thrust_fraction,
+                                                            stop_sp), daemon=True)
+        if flying:
+            sp.start()
         proc.stdin.write("go\n")
         proc.stdin.flush()
         result = json.loads(proc.stdout.readline())
+        stop_sp.set()
         time.sleep(0.3)
         imu.stop.set()
         if cam:
@@ -138,24 +168,29 @@ def main() -> None:
     ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     ap.add_argument("--res", default="320x240", help=argparse.SUPPRESS)
     ap.add_argument("--no-camera", action="store_true", help=argparse.SUPPRESS)
+    ap.add_argument("--flying", action="store_true", help=argparse.SUPPRESS)
     args = ap.parse_args()
     logging.basicConfig(level=logging.WARNING)
     if args.child:
         w, h = (int(x) for x in args.res.split("x"))
-        child(args.sim_s, not args.no_camera, (w, h), args.scenario, not args.all_cores)
+        child(args.sim_s, not args.no_camera, (w, h), args.scenario, not args.all_cores, args.flying)
         return
     pin = not args.all_cores
     print(f"SITL process {'pinned to one core' if pin else 'on all cores'}; clients in this process; "
           f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores")
     for res in ((320, 240), (640, 480)):
         r = run(args.sim_s if res == (320, 240) else args.sim_s / 4, True, res, args.scenario, pin)
-        print(f"camera 30 Hz {res[0]}x{res[1]} + physics 500 Hz + IMU stream ({args.scenario}): "
+        print(f"camera 30 Hz {res[0]}x{res[1]} + physics 500 Hz + IMU stream ({args.scenario}, hovering 1.2 m, "
+              f"turning): "
               f"real-time factor {r['rtf']:.2f} (target >= 1.5: {r['rtf'] / 1.5:.2f}x of target), "
               f"{r['ms_per_frame']:.1f} ms per rendered frame (render + noise model), "
               f"{r['frames']} frames in {r['sim_s']:.1f} s sim")
+    r = run(args.sim_s, True, (320, 240), args.scenario, pin, flying=False)
+    print(f"same, vehicle on the ground (camera sees the floor only): real-time factor {r['rtf']:.2f}, "
+          f"{r['ms_per_frame']:.1f} ms per frame")
     r = run(args.sim_s, False, (320, 240), args.scenario, pin)
     print(f"physics 500 Hz + IMU stream, no camera: real-time factor {r['rtf']:.2f}")
-    r = run(args.soak_s, False, (320, 240), args.scenario, pin)
+    r = run(args.soak_s, False, (320, 240), args.scenario, pin, flying=False)
     print(f"IMU on port 2 over {r['sim_s']:.0f} s sim: {r['imu_hz']:.2f} Hz (target 500 +- 1 %: "
           f"{abs(r['imu_hz'] - 500) / 5:.2f} of tolerance), lost {r['imu_gaps']} (counter gaps) + "
           f"{r['imu_dropped']} (TX drops), {r['port2_b_s']:.0f} B/s = "
