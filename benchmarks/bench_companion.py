@@ -78,14 +78,15 @@ def tum_frames(folder: str, n: int) -> tuple[list[RgbdFrame], np.ndarray]:
     return out, np.zeros(len(out))
 
 
-def run(seconds: float, tum: str | None, warmup_s: float = 3.0) -> dict[str, float]:
+def run(seconds: float, tum: str | None, warmup_s: float = 3.0, profile: str | None = None) -> dict[str, float]:
     n_unique = int(min(seconds + warmup_s, 4.0) * FPS)
     t0 = time.perf_counter()
     frames, rates = tum_frames(tum, n_unique) if tum else synthetic_frames(n_unique)
     print(f"prepared {len(frames)} {'TUM' if tum else 'synthetic'} frames in {time.perf_counter() - t0:.1f} s")
     ap_port, gcs_port = free_udp_port(), free_udp_port()
     server = CameraStreamServer("127.0.0.1", 0)
-    argv = [sys.executable, "-m", "quadlink.cli", "-q", "companion", "--autopilot", f"udpin:127.0.0.1:{ap_port}",
+    prof = ["-m", "cProfile", "-o", profile] if profile else []
+    argv = [sys.executable, *prof, "-m", "quadlink.cli", "-q", "companion", "--autopilot", f"udpin:127.0.0.1:{ap_port}",
             "--gcs", f"udpin:127.0.0.1:{gcs_port}", "--camera", f"tcp://127.0.0.1:{server.port}",
             "--image-port", "0"]
     proc = subprocess.Popen(argv, stdin=subprocess.DEVNULL, env={**os.environ, "PYTHONUNBUFFERED": "1"})
@@ -142,7 +143,7 @@ def run(seconds: float, tum: str | None, warmup_s: float = 3.0) -> dict[str, flo
         wall_s = time.perf_counter() - t_measure0
         flight_s = (n_total - int(warmup_s * FPS)) / FPS  # simulated flight time of the measured frames
     finally:
-        proc.terminate()
+        proc.send_signal(2)  # SIGINT: clean shutdown (and the profile is written)
         try:
             proc.wait(10.0)
         except subprocess.TimeoutExpired:
@@ -178,8 +179,9 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--seconds", type=float, default=20.0, help="measured flight time (after a 3 s warm-up)")
     ap.add_argument("--tum", default=None, help="replay this TUM RGB-D folder instead of synthetic frames")
+    ap.add_argument("--profile", default=None, help="run the daemon under cProfile, write the stats here")
     args = ap.parse_args()
-    r = run(args.seconds, args.tum)
+    r = run(args.seconds, args.tum, profile=args.profile)
     print(f"companion @ {FPS:.0f} Hz 320x240 + {IMU_HZ} Hz IMU, {r['flight_s']:.1f} s of flight measured "
           f"({r['wall_s']:.1f} s wall; > flight time means this machine could not keep real time), "
           f"{int(r['frames'])}/{int(r['expected'])} setpoints matched")
