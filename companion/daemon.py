@@ -435,8 +435,13 @@ class Companion:
         elif name in ("CMP_K_V", "CMP_K_PSI", "CMP_SAFE_DIST"):
             if value < 0:
                 return False
-            key = {"CMP_K_V": "k_v_m_s", "CMP_K_PSI": "k_psi_rad_s", "CMP_SAFE_DIST": "safe_distance_m"}[name]
-            self.ref_params = dataclasses.replace(self.ref_params, **{key: float(value)})
+            r = self.ref_params
+            if name == "CMP_K_V":
+                self.ref_params = dataclasses.replace(r, k_v_m_s=float(value))
+            elif name == "CMP_K_PSI":
+                self.ref_params = dataclasses.replace(r, k_psi_rad_s=float(value))
+            else:
+                self.ref_params = dataclasses.replace(r, safe_distance_m=float(value))
         self._status_text(StatusText(6, f"companion: {name} {old:g} -> {self.param_values()[name]:g}"))
         return True
 
@@ -537,11 +542,9 @@ class Companion:
         flags = msgs.feedback_flags(scan.enabled, self.odometry_ok, self.modes.gcs_ok, fresh)
         v_cmd = zero if ref is None else ref.v_ref_h_m_s
         v_rep = zero if ref is None else ref.v_repulsion_h_m_s
-        self.send_gcs(mavlink.MAVLink_teleop_feedback_message(
-            int(max(stamp_s, 0.0) * 1e6), *(float(x) for x in v_est), *(float(x) for x in v_cmd),
-            *(float(x) for x in v_rep), float(alpha), float(scan.yaw_rate_rad_s), float(yaw_cmd),
-            msgs.euler_yaw_rate_rad_s(self._gyro_q, roll, pitch), *(float(x) for x in obst), dist,
-            int(self.modes.mode), flags))
+        self.send_gcs(msgs.teleop_feedback_message(
+            stamp_s, v_est, v_cmd, v_rep, alpha, scan.yaw_rate_rad_s, yaw_cmd,
+            msgs.euler_yaw_rate_rad_s(self._gyro_q, roll, pitch), obst, dist, int(self.modes.mode), flags))
         self.stats.feedback += 1
 
     def _publish_image(self, frame: RgbdFrame, out: Any, ref: ReferenceOutput) -> None:

@@ -151,3 +151,16 @@ def euler_yaw_rate_rad_s(omega_q_rad_s: ArrayLike, roll_rad: float, pitch_rad: f
     if abs(c) < 1e-3:
         return float(w[2])
     return float((w[1] * math.sin(roll_rad) + w[2] * math.cos(roll_rad)) / c)
+
+
+def teleop_feedback_message(time_s: float, v_est_h_m_s: ArrayLike, v_cmd_h_m_s: ArrayLike, v_rep_h_m_s: ArrayLike,
+                            alpha_rad: float, pan_scan_yaw_rate_rad_s: float, yaw_rate_cmd_rad_s: float,
+                            gyro_yaw_rate_rad_s: float, nearest_obstacle_h_m: ArrayLike, obstacle_distance_m: float,
+                            mode: int, flags: int) -> Any:
+    """The dialect's TELEOP_FEEDBACK (all vectors in H; obstacle_distance -1 = none)."""
+    e, c, r, o = (np.asarray(x, dtype=float) for x in (v_est_h_m_s, v_cmd_h_m_s, v_rep_h_m_s, nearest_obstacle_h_m))
+    return mavlink.MAVLink_teleop_feedback_message(
+        _us(time_s), float(e[0]), float(e[1]), float(e[2]), float(c[0]), float(c[1]), float(c[2]),
+        float(r[0]), float(r[1]), float(r[2]), float(alpha_rad), float(pan_scan_yaw_rate_rad_s),
+        float(yaw_rate_cmd_rad_s), float(gyro_yaw_rate_rad_s), float(o[0]), float(o[1]), float(o[2]),
+        float(obstacle_distance_m), int(mode) & 0xFF, int(flags) & 0xFF)

@@ -153,8 +153,8 @@ class ModeMachine:
             return [text] + self._go(Mode.IDLE, now_s, f"{request.name} refused", SEVERITY_WARNING)
         if request.name == "offboard" and self.mode in (Mode.TELEOP, Mode.HOLD):
             # Without offboard the autopilot keeps its own hold; we cannot fly, so land.
-            return [text, AutopilotRequest("land")] + self._go(Mode.LAND, now_s, "offboard refused",
-                                                                SEVERITY_WARNING)
+            actions: list[Action] = [text, AutopilotRequest("land")]
+            return actions + self._go(Mode.LAND, now_s, "offboard refused", SEVERITY_WARNING)
         return [text]
 
     # --- the periodic step ------------------------------------------------------------------
