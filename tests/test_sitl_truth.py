@@ -11,7 +11,7 @@ import pytest
 
 from quadlink.mavlink import mavlink
 from quadlink.vehicle import load_vehicle
-from sim_sitl.config import SitlConfig, load_scenario
+from sim_sitl.config import RoomConfig, ScenarioConfig, SceneObject, SitlConfig, load_scenario
 from sim_sitl.runner import Sitl, SitlOptions
 from sim_sitl.truth import TRUTH_SYSID, TruthEncoder
 from sim_sitl.world import World
@@ -53,9 +53,21 @@ def test_nearest_surface_distances_in_the_arena():
         assert obstacle_m == pytest.approx(1.0, abs=0.01)
         assert any_m == pytest.approx(1.0, abs=0.01)
         p_low = p.copy()
-        p_low[2] = -0.4  # above the 1 cm carpet (a floor surface): nearest any 0.39 m, obstacle still the column
+        p_low[2] = -0.4  # the floor is the nearest surface; excluding it, the column still is
         any_m, obstacle_m = world.nearest_distances(p_low)
-        assert any_m == pytest.approx(0.39, abs=0.005) and obstacle_m == pytest.approx(1.0, abs=0.01)
+        assert any_m == pytest.approx(0.4, abs=0.005) and obstacle_m == pytest.approx(1.0, abs=0.01)
+    finally:
+        world.close()
+
+
+def test_floor_type_objects_are_excluded_from_the_obstacle_distance():
+    rug = SceneObject(kind="box", name="rug", position_m=(0.0, 0.0, -0.005), size_m=(2.0, 2.0, 0.01), surface="floor")
+    scenario = ScenarioConfig(name="rug", room=RoomConfig(size_m=(10.0, 10.0)), objects=(rug,))
+    world = World(load_vehicle(), SitlConfig(), scenario, np.random.default_rng(0))
+    try:
+        assert world.start_p_ned_m[2] == pytest.approx(-0.06, abs=0.002)  # resting on the rug
+        any_m, obstacle_m = world.nearest_distances(np.array([0.0, 0.0, -0.5]))
+        assert any_m == pytest.approx(0.49, abs=0.005) and obstacle_m == pytest.approx(5.0, abs=0.01)
     finally:
         world.close()
 
