@@ -135,7 +135,7 @@ def _decode_body(header: dict[str, Any], rgb_bytes: bytes, depth_bytes: bytes) -
     return RgbdFrame(
         seq=int(header["seq"]),
         stamp_s=float(header["stamp_s"]),
-        rgb=rgb,
+        rgb=np.asarray(rgb, dtype=np.uint8),
         depth_m=depth,
         intrinsics=CameraIntrinsics(float(k["fx"]), float(k["fy"]), float(k["cx"]), float(k["cy"]), width, height),
         R_qc=np.asarray(header["R_qc"], dtype=float),

@@ -62,7 +62,8 @@ def build_specs(scenario: str, script: Path, out_dir: Path, ports: Ports, lockst
                                "--vehicle", f"udpout:127.0.0.1:{ports.vehicle}",
                                "--image-stream", f"tcp://127.0.0.1:{ports.image}",
                                "--http-port", str(ports.http), "--log-csv", str(out_dir / "teleop.csv"),
-                               "--exit-at-script-end"), ready_after_s=0.5),
+                               "--exit-at-script-end", "--script-clock", "vehicle" if lockstep else "wall"),
+                    ready_after_s=0.5),
     ]
 
 
@@ -148,5 +149,6 @@ def command(scenario: str, duration_s: float, out_dir: Path, script: Path, locks
     except ProcessDied as exc:
         click.echo(f"quadlink demo: {exc}", err=True)
         raise SystemExit(1) from exc
-    click.echo(f"\nFlight report ({out_dir}/report.json, plots: {', '.join(report.get('plots', []))}):")
+    plots = ", ".join(str(p) for p in report.get("plots", []))  # type: ignore[attr-defined]
+    click.echo(f"\nFlight report ({out_dir}/report.json, plots: {plots}):")
     click.echo(summary_table(report))

@@ -65,7 +65,10 @@ def load_flight(out_dir: Path) -> FlightLog:
     flight = FlightLog()
     truth = out_dir / "truth.tlog"
     if truth.is_file():
-        pos, att, d0, d1 = [], [], [], []
+        pos: list[list[float]] = []
+        att: list[list[float]] = []
+        d0: list[list[float]] = []
+        d1: list[list[float]] = []
         for _, m in read_tlog(truth):
             kind = m.get_type()
             if kind == "LOCAL_POSITION_NED":
