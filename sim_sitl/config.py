@@ -56,7 +56,7 @@ class ImuNoiseConfig:
 class PhysicsConfig:
     rate_hz: float = 500.0  # pybullet steps per second (>= the firmware loop rate)
     rotor_drag_n_s_m_per_n: float = 0.02  # horizontal rotor (induced) drag per newton of thrust
-    body_size_m: tuple[float, float, float] = (0.36, 0.36, 0.10)  # collision box (FRD extents)
+    body_size_m: tuple[float, float, float] = (0.36, 0.36, 0.20)  # collision box incl. landing gear; CoM centred
     ground_friction: float = 0.8
 
 

@@ -132,8 +132,8 @@ def test_camera_stream_in_lockstep_carries_sim_time_and_mount():
     opts = SitlOptions(config=SitlConfig(scenario="paper-arena"), port1=0, port2=0, camera_port=0, camera=True,
                        truth_url=None, lockstep=True, progress_every_s=60.0)
     sitl = Sitl(opts).start()
+    client = CameraStreamClient(f"tcp://127.0.0.1:{sitl.camera_server.port}")
     try:
-        client = CameraStreamClient(f"tcp://127.0.0.1:{sitl.camera_server.port}")
         frames = []
         deadline = time.monotonic() + 30
         while len(frames) < 6 and time.monotonic() < deadline:
@@ -157,8 +157,8 @@ def test_camera_stream_in_lockstep_carries_sim_time_and_mount():
         # lock-step: sim time cannot have run past the next frame that nobody has acknowledged yet
         assert sitl.sim.t_s <= stamps[-1] + 2.0 / 30.0 + 0.011
         assert sitl.stats.camera_ack_timeouts == 0
-        client.close()
     finally:
+        client.close()
         sitl.stop()
 
 

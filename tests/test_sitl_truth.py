@@ -65,7 +65,7 @@ def test_floor_type_objects_are_excluded_from_the_obstacle_distance():
     scenario = ScenarioConfig(name="rug", room=RoomConfig(size_m=(10.0, 10.0)), objects=(rug,))
     world = World(load_vehicle(), SitlConfig(), scenario, np.random.default_rng(0))
     try:
-        assert world.start_p_ned_m[2] == pytest.approx(-0.06, abs=0.002)  # resting on the rug
+        assert world.start_p_ned_m[2] == pytest.approx(-0.11, abs=0.002)  # resting on the rug
         any_m, obstacle_m = world.nearest_distances(np.array([0.0, 0.0, -0.5]))
         assert any_m == pytest.approx(0.49, abs=0.005) and obstacle_m == pytest.approx(5.0, abs=0.01)
     finally:
@@ -106,5 +106,5 @@ def test_truth_stream_over_udp_at_50_hz_in_sim_time():
     d = [m for m in msgs if m.get_type() == "DISTANCE_SENSOR"]
     floor = [m.current_distance for m in d if m.id == 0]
     walls = [m.current_distance for m in d if m.id == 1]
-    assert floor[-1] == pytest.approx(5, abs=1)  # CoM 5 cm above the floor
+    assert floor[-1] == pytest.approx(10, abs=1)  # CoM 10 cm above the floor (landing gear)
     assert walls[-1] == pytest.approx(500, abs=1)  # centre of the 10 m room
