@@ -80,9 +80,14 @@ class FakeAutopilot:
         self.armed = False
         self.landed_state = mavlink.MAV_LANDED_STATE_ON_GROUND
         self.custom_mode = 0
+        self.climb_states = 0
         self.received: list[Any] = []
 
     def send_state(self) -> None:
+        if self.landed_state == mavlink.MAV_LANDED_STATE_TAKEOFF:
+            self.climb_states -= 1
+            if self.climb_states <= 0:
+                self.landed_state = mavlink.MAV_LANDED_STATE_IN_AIR
         base = mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | (mavlink.MAV_MODE_FLAG_SAFETY_ARMED if self.armed else 0)
         self.link.mav.heartbeat_send(mavlink.MAV_TYPE_QUADROTOR, mavlink.MAV_AUTOPILOT_PX4, base, self.custom_mode,
                                      mavlink.MAV_STATE_ACTIVE)
@@ -100,7 +105,8 @@ class FakeAutopilot:
                 if m.command == mavlink.MAV_CMD_COMPONENT_ARM_DISARM:
                     self.armed = m.param1 > 0.5
                 elif m.command == mavlink.MAV_CMD_NAV_TAKEOFF:
-                    self.landed_state = mavlink.MAV_LANDED_STATE_IN_AIR
+                    self.landed_state = mavlink.MAV_LANDED_STATE_TAKEOFF  # climbing; in air after a few states
+                    self.climb_states = 3
                 elif m.command == mavlink.MAV_CMD_NAV_LAND:
                     self.landed_state = mavlink.MAV_LANDED_STATE_LANDING
                 elif m.command == mavlink.MAV_CMD_DO_SET_MODE:
@@ -163,7 +169,7 @@ class Rig:
         """One camera period: IMU at 500 Hz, state, optional MANUAL_CONTROL, the frame, wait for its ack."""
         for k in range(int(IMU_HZ / FPS)):
             self.ap.send_imu(self.t_s + k / IMU_HZ)
-        if self.seq % 10 == 0:
+        if self.seq % 5 == 0:
             self.ap.send_state()
         if manual is not None:
             self.gcs.link.mav.manual_control_send(1, manual[0], manual[1], manual[2], 0, 0)
@@ -317,3 +323,31 @@ def test_cli_rejects_bad_input_with_status_2(tmp_path: Path) -> None:
     assert result.exit_code == 2
     result = runner.invoke(main, ["companion", "--autopilot", "bogus:1"])
     assert result.exit_code == 2
+
+
+def test_takeoff_commanded_to_the_autopilot_is_followed_into_teleop(rig: Rig) -> None:
+    """A ground station (like teleop's) arms and takes off the autopilot (compid 1) through the routing."""
+    for _ in range(5):
+        rig.frame(manual=(0, 0, 500))
+    rig.gcs.link.mav.command_long_send(1, 1, mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 0, 1, 0, 0, 0, 0, 0, 0)
+    rig.frame(manual=(0, 0, 500))
+    rig.gcs.link.mav.command_long_send(1, 1, mavlink.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, 0, 0, 0, 1.0)
+    seen_takeoff = False
+    for _ in range(60):
+        rig.frame(manual=(0, 0, 500))
+        seen_takeoff = seen_takeoff or rig.daemon.modes.mode == Mode.TAKEOFF
+        if rig.daemon.modes.mode == Mode.TELEOP:
+            break
+    assert seen_takeoff and rig.daemon.modes.mode == Mode.TELEOP
+    from_gcs = [m for m in rig.ap.of_type("COMMAND_LONG") if m.get_srcSystem() == 255]
+    assert [m.command for m in from_gcs][:2] == [mavlink.MAV_CMD_COMPONENT_ARM_DISARM, mavlink.MAV_CMD_NAV_TAKEOFF]
+    from_companion = [m.command for m in rig.ap.of_type("COMMAND_LONG") if m.get_srcComponent() == 191]
+    assert from_companion == [mavlink.MAV_CMD_DO_SET_MODE]
+    acks = [m for m in rig.gcs.of_type("COMMAND_ACK") if m.get_srcComponent() == 1]
+    assert {m.command for m in acks} >= {mavlink.MAV_CMD_COMPONENT_ARM_DISARM, mavlink.MAV_CMD_NAV_TAKEOFF}
+    # pan-scan off from the ground station (teleop's PARAM_SET PANSCAN_EN) is echoed
+    rig.gcs.link.mav.param_set_send(1, 191, b"PANSCAN_EN", 0.0, mavlink.MAV_PARAM_TYPE_REAL32)
+    rig.frame(manual=(0, 0, 500))
+    rig.frame(manual=(0, 0, 500))
+    echo = [m for m in rig.gcs.of_type("PARAM_VALUE", src_comp=191) if m.param_id == "PANSCAN_EN"]
+    assert echo and echo[-1].param_value == 0.0 and not rig.daemon.scan_params.enabled
