@@ -39,6 +39,7 @@ import numpy as np
 from firmware_bridge.attitude_filter import BridgeAttitude
 from firmware_bridge.params import ParamTable
 from firmware_bridge.velocity_tracker import AttitudeCommand, VelocityTracker
+from firmware_bridge.vertical_estimator import VerticalEstimator
 from quadlink import __version__
 from quadlink.frames import GRAVITY_M_S2, R_from_quat_wxyz, R_hq, Rz, euler_from_R, quat_wxyz_from_euler, wrap_pi
 from quadlink.mavlink import mavlink
@@ -79,6 +80,14 @@ ARDUCOPTER_MODES: dict[int, FlightMode] = {9: FlightMode.LAND, 5: FlightMode.LOI
                                            4: FlightMode.OFFBOARD}
 
 HOLD_MODES = (FlightMode.ALTCTL, FlightMode.POSCTL, FlightMode.LOITER)
+
+
+class TakeoffPhase(enum.Enum):
+    """Take-off phases (the camera sees the floor closer than its minimum range until ~0.3-0.5 m up)."""
+
+    OPEN_LOOP = 1  # no odometry yet: level, heading hold, climb on the accelerometer's vertical estimate
+    CLOSED_LOOP = 2  # odometry: the velocity tracker finishes the climb
+
 
 # SET_POSITION_TARGET_LOCAL_NED type_mask bits (POSITION_TARGET_TYPEMASK)
 TM_POSITION = 0x007
@@ -130,6 +139,9 @@ SETPOINT_FRESH_FOR_OFFBOARD_S = 0.5  # PX4 wants the stream running before the s
 IMU_PREDICTION_HORIZON_S = 0.3
 MAX_HEADING_ERROR_RAD = 0.5
 ODOM_LOST_VZ_LEAK_TAU_S = 3.0
+HOVER_LEARN_TAU_S = 1.0  # low-pass of the thrust in the open-loop climb: the hover thrust actually needed
+GROUND_CONTACT_ACCEL_M_S2 = 0.3  # below hover thrust, less vertical acceleration than this = the ground carries it
+BLIND_DESCENT_EXTRA_S = 3.0  # the blind descent probes for the ground after height / rate + this
 
 
 class BoardStatusLike(Protocol):
@@ -221,6 +233,15 @@ class Autopilot:
         self._odom_z_m: float | None = None
         self.odom_ok = False
         self._vz_dead_reckoned = 0.0
+        self._odom_reset_counter: int | None = None
+        # flight without odometry (take-off phase 1 and the landing after it): accelerometer-only vertical
+        self.vertical = VerticalEstimator(vehicle.hover_thrust_fraction, params["MPC_Z_VEL_MAX_UP"],
+                                          params["MPC_Z_VEL_MAX_DN"])
+        self.blind = False  # in the air and no odometry acquired yet in this flight
+        self.takeoff_phase: TakeoffPhase | None = None
+        self._takeoff_start_s: float | None = None
+        self._hover_thrust_learned: float | None = None
+        self._blind_descent: tuple[float, float] | None = None  # (start time, estimated height then)
         # setpoints
         self.setpoint_time_s: float | None = None
         self._vel_sp: _VelocitySetpoint | None = None
@@ -240,7 +261,8 @@ class Autopilot:
         self.stream_interval_s = dict(STREAM_DEFAULT_INTERVAL_S)
         self._stream_last_s: dict[int, float] = {}
         self.counters: dict[str, int] = {"mavlink_bad": 0, "mk_bad": 0, "setpoint_rejected": 0,
-                                         "odometry_rejected": 0, "commands": 0, "unsupported_commands": 0}
+                                         "odometry_rejected": 0, "odometry_low_quality": 0, "commands": 0,
+                                         "unsupported_commands": 0}
         self._last_counter_report_s = -math.inf
 
     # ------------------------------------------------------------------ helpers
@@ -266,6 +288,8 @@ class Autopilot:
     def apply_params(self) -> None:
         self.tracker.set_gains(self.params.tracker_gains())
         self.filter.set_tau(self.params["BRG_ATT_TAU"])
+        self.vertical.max_climb_m_s = self.params["MPC_Z_VEL_MAX_UP"]
+        self.vertical.max_descent_m_s = self.params["MPC_Z_VEL_MAX_DN"]
 
     def set_mode(self, mode: FlightMode, now_s: float, reason: str = "") -> None:
         if mode == self.mode:
@@ -277,10 +301,24 @@ class Autopilot:
             self._start_takeoff(now_s)
 
     def _start_takeoff(self, now_s: float) -> None:
-        self.in_air = True
-        if self._z_ground_m is None:
-            self._z_ground_m = self._odom_z_m
-        self._event(mavlink.MAV_SEVERITY_INFO, f"Takeoff to {self.takeoff_target_m:.1f} m")
+        was_in_air, self.in_air = self.in_air, True
+        if self.odom_ok:
+            self.takeoff_phase = TakeoffPhase.CLOSED_LOOP
+            if self._z_ground_m is None:
+                self._z_ground_m = self._odom_z_m
+            self._event(mavlink.MAV_SEVERITY_INFO, f"Takeoff to {self.takeoff_target_m:.1f} m")
+            return
+        # phase 1: the camera cannot see yet; climb level on the accelerometer until odometry arrives
+        self.takeoff_phase = TakeoffPhase.OPEN_LOOP
+        self.blind = True
+        self._takeoff_start_s = now_s
+        self._hover_thrust_learned = None
+        self._blind_descent = None
+        if not was_in_air:
+            self.vertical.reset_ground()
+        self._z_ground_m = None
+        self.height_m = self.vertical.height_m
+        self._event(mavlink.MAV_SEVERITY_INFO, f"Takeoff to {self.takeoff_target_m:.1f} m, open loop until odometry")
 
     def note_malformed(self, kind: str, now_s: float, detail: str = "") -> None:
         """Count bad input (``mavlink_bad`` or ``mk_bad``); log at most once every 5 s."""
@@ -303,11 +341,13 @@ class Autopilot:
         self._last_accel_q = np.asarray(accel_q_m_s2, dtype=float)
         self._last_gyro_q = np.asarray(gyro_q_rad_s, dtype=float)
         est = self.filter.update(now_s, self._last_gyro_q, self._last_accel_q)
+        # acceleration in H from the specific force: a_h = R_hq f_q + g e3
+        a_h = R_hq(est.roll_rad, est.pitch_rad) @ self._last_accel_q + np.array([0.0, 0.0, GRAVITY_M_S2])
         if self.in_air:
-            # acceleration in H from the specific force: a_h = R_hq f_q + g e3
-            a_h = R_hq(est.roll_rad, est.pitch_rad) @ self._last_accel_q + np.array([0.0, 0.0, GRAVITY_M_S2])
             self._dv_h_imu += a_h * dt
             self._vz_dead_reckoned += a_h[2] * dt - self._vz_dead_reckoned * dt / ODOM_LOST_VZ_LEAK_TAU_S
+        board = self.last_board_command
+        self.vertical.update(dt, float(a_h[2]), board.thrust if board.armed else 0.0, on_ground=not self.in_air)
         out: list[Outbound] = []
         if self._stream_due(mavlink.MAVLINK_MSG_ID_HIGHRES_IMU, now_s):
             a, w = self._last_accel_q, self._last_gyro_q
@@ -363,10 +403,14 @@ class Autopilot:
         self._check_links(now_s)
         self._update_height(dt)
         est = self.filter.estimate
-        if not self.in_air or not self.odom_ok or (self.mode == FlightMode.OFFBOARD and self._att_sp is not None):
-            self._yaw_sp_rad = None  # heading hold only in velocity control in the air
+        if not self.in_air or (not self.odom_ok and not self.blind) or \
+                (self.mode == FlightMode.OFFBOARD and self._att_sp is not None):
+            self._yaw_sp_rad = None  # heading hold only in velocity control (or the blind climb) in the air
         if not self.armed_cmd:
             self.in_air = False
+            self.blind = False
+            self.takeoff_phase = None
+            self._blind_descent = None
             self.tracker.reset()
             self._on_ground_armed_since_s = None
             return self._board(BoardCommand(0.0, 0.0, 0.0, 0.0, False))
@@ -385,6 +429,10 @@ class Autopilot:
                 return self._board(BoardCommand(0.0, 0.0, 0.0, 0.0, False))
             return self._board(BoardCommand(0.0, 0.0, 0.0, 0.0, True))
         self._on_ground_armed_since_s = None
+
+        # ---- no odometry yet in this flight: take-off phase 1, or the landing that ends it
+        if self.blind and not self.odom_ok:
+            return self._blind_step(now_s, dt, est)
 
         # ---- odometry lost in the air: level attitude hold and descend on the IMU's vertical speed
         if not self.odom_ok and not (self.mode == FlightMode.OFFBOARD and self._att_sp is not None):
@@ -407,6 +455,7 @@ class Autopilot:
             v_ref[2] = -min(self.params["MPC_TKO_SPEED"], max(1.0 * remaining, 0.1))
             if remaining <= 0.05:
                 self._event(mavlink.MAV_SEVERITY_INFO, f"Takeoff complete at {self.height_m:.2f} m")
+                self.takeoff_phase = None
                 self.set_mode(FlightMode.LOITER, now_s, "takeoff complete")
                 v_ref[2] = 0.0
         elif self.mode == FlightMode.LAND:
@@ -424,6 +473,72 @@ class Autopilot:
         cmd = self.tracker.update(dt, v_ref, yaw_rate, v_est, est.roll_rad, est.pitch_rad)
         if self.mode == FlightMode.LAND:
             self._detect_touchdown(now_s, cmd, abs(v_est[2]))
+        return self._finish(cmd)
+
+    def _blind_step(self, now_s: float, dt: float, est: Any) -> BoardCommand:
+        """Flight before any odometry: level (roll = pitch = 0), heading hold on the gyro, vertical velocity
+        tracked on the accelerometer-only estimate, thrust under a ceiling. TAKEOFF climbs at BRG_TKO_OL_SPD
+        toward the take-off height (thrust ramped up to hover x (1 + BRG_TKO_THR_MRG) over BRG_TKO_RAMP_T)
+        until odometry arrives, at most BRG_TKO_OL_ALT (estimated) or BRG_TKO_OL_T; then, or in any other
+        mode, it descends at BRG_OL_LAND_SPD with the thrust capped at the hover thrust learnt in the climb
+        (it can not climb on a drifting estimate). Once the estimate says ground (height 0, or the descent
+        took BLIND_DESCENT_EXTRA_S longer than height / rate) the cap drops to BRG_FS_DESC_THR x hover: in the
+        air the vehicle then accelerates downwards, on the ground the accelerometer shows nothing, which is
+        the touchdown test that does not depend on the drifting velocity."""
+        p = self.params
+        hover_prior = self.tracker.hover_thrust_fraction
+        margin = p["BRG_TKO_THR_MRG"]
+        vz_est = self.vertical.vz_m_s
+        elapsed = 0.0
+        if self.mode == FlightMode.TAKEOFF:
+            elapsed = now_s - (self._takeoff_start_s if self._takeoff_start_s is not None else now_s)
+            height = self.vertical.height_m
+            if height >= p["BRG_TKO_OL_ALT"] or elapsed >= p["BRG_TKO_OL_T"]:
+                self._event(mavlink.MAV_SEVERITY_CRITICAL,
+                            f"No odometry in takeoff ({elapsed:.1f}s, {height:.2f}m): land")
+                self.failsafe_reason = "no odometry in takeoff"
+                self.takeoff_phase = None
+                self.set_mode(FlightMode.LAND, now_s, "no odometry in takeoff")
+        elif self.mode != FlightMode.LAND:
+            self._event(mavlink.MAV_SEVERITY_CRITICAL, "No odometry: landing")
+            self.set_mode(FlightMode.LAND, now_s, "no odometry")
+        if self.mode == FlightMode.TAKEOFF:
+            remaining = self.takeoff_target_m - self.vertical.height_m
+            vz_ref = -min(p["BRG_TKO_OL_SPD"], max(remaining, 0.0))  # slows into the target, then holds
+            ceiling = hover_prior * (1.0 + margin)
+            ramp_s = p["BRG_TKO_RAMP_T"]
+            if ramp_s > 0:
+                ceiling *= min(1.0, elapsed / ramp_s)
+        probing = False
+        if self.mode != FlightMode.TAKEOFF:
+            vz_ref = p["BRG_OL_LAND_SPD"]
+            if self._blind_descent is None:
+                self._blind_descent = (now_s, self.vertical.height_m)
+            start_s, height0 = self._blind_descent
+            learned = self._hover_thrust_learned if self._hover_thrust_learned is not None else hover_prior
+            ceiling = min(max(learned, hover_prior * (1.0 - margin)), hover_prior * (1.0 + margin))
+            probing = self.vertical.height_m <= 0.0 or \
+                now_s - start_s > height0 / vz_ref + BLIND_DESCENT_EXTRA_S
+            if probing:
+                ceiling *= p["BRG_FS_DESC_THR"]
+        if self.vertical.estimate.pinned:
+            self.tracker.reset()  # the ground carries the vehicle while the thrust ramps: nothing to integrate
+        yaw_rate = self._heading_hold(dt, 0.0, est.yaw_rad)
+        cmd = self.tracker.update(dt, np.array([0.0, 0.0, vz_ref]), yaw_rate, np.array([0.0, 0.0, vz_est]),
+                                  est.roll_rad, est.pitch_rad)
+        thrust = min(cmd.thrust_fraction, ceiling)
+        cmd = AttitudeCommand(0.0, 0.0, cmd.yaw_rate_rad_s, thrust, cmd.a_des_h_m_s2,
+                              cmd.saturated or thrust < cmd.thrust_fraction)
+        if self.mode == FlightMode.TAKEOFF and not self.vertical.estimate.pinned:
+            # what the climb needs, tilt-compensated: the descent's thrust ceiling
+            level = thrust * math.cos(est.roll_rad) * math.cos(est.pitch_rad)
+            if self._hover_thrust_learned is None:
+                self._hover_thrust_learned = level
+            self._hover_thrust_learned += (level - self._hover_thrust_learned) * dt / HOVER_LEARN_TAU_S
+        if self.mode == FlightMode.LAND:
+            ground = probing and thrust <= ceiling + 1e-6 and \
+                abs(self.vertical.estimate.accel_z_m_s2) < GROUND_CONTACT_ACCEL_M_S2
+            self._detect_touchdown(now_s, cmd, abs(vz_est), ground_contact=ground)
         return self._finish(cmd)
 
     def _heading_hold(self, dt: float, yaw_rate_ref: float, yaw_rad: float) -> float:
@@ -478,20 +593,24 @@ class Autopilot:
         return AttitudeCommand(roll, pitch, yaw_rate, thrust)
 
     def _update_height(self, dt: float) -> None:
-        if self._z_ground_m is not None and self._odom_z_m is not None:
+        if self.blind:
+            self.height_m = self.vertical.height_m
+        elif self._z_ground_m is not None and self._odom_z_m is not None:
             self.height_m = -(self._odom_z_m - self._z_ground_m)
         elif self.in_air:
             self.height_m -= float(self.v_est_h(self._control_time_s or 0.0)[2]) * dt
         else:
             self.height_m = 0.0
 
-    def _detect_touchdown(self, now_s: float, cmd: AttitudeCommand, vz_abs_m_s: float) -> None:
-        """Low vertical speed with low thrust (or the board saying landed) held for LNDMC_TIME_S."""
+    def _detect_touchdown(self, now_s: float, cmd: AttitudeCommand, vz_abs_m_s: float,
+                          ground_contact: bool = False) -> None:
+        """Low vertical speed with low thrust (or the board saying landed), or ``ground_contact`` (thrust
+        below hover without vertical acceleration, flight without odometry), held for LNDMC_TIME_S."""
         p = self.params
         board_landed = (self.board_link_ok and self.board_status is not None
                         and self.board_status.flight_state == BOARD_FLIGHT_LANDED)
         low_thrust = cmd.thrust_fraction < p["LNDMC_THR_MAX"] * self.tracker.hover_thrust_fraction
-        if vz_abs_m_s < p["LNDMC_Z_VEL_MAX"] and (low_thrust or board_landed):
+        if ground_contact or (vz_abs_m_s < p["LNDMC_Z_VEL_MAX"] and (low_thrust or board_landed)):
             if self._touchdown_since_s is None:
                 self._touchdown_since_s = now_s
             elif now_s - self._touchdown_since_s >= p["LNDMC_TIME_S"]:
@@ -509,6 +628,9 @@ class Autopilot:
         self._fs_hover_until_s = None
         self._z_ground_m = None
         self.height_m = 0.0
+        self.blind = False
+        self.takeoff_phase = None
+        self._blind_descent = None
         self.tracker.reset()
 
     def _check_links(self, now_s: float) -> None:
@@ -528,7 +650,7 @@ class Autopilot:
                 self._vz_dead_reckoned = float(self.v_est_h(now_s)[2])
                 self.set_mode(FlightMode.LAND, now_s, "odometry lost")
             else:
-                self._event(mavlink.MAV_SEVERITY_WARNING, "Odometry lost")
+                log.info("odometry lost (on the ground: nothing depends on it)")  # the health bit says it
         elif odom_fresh and not self.odom_ok:
             self.odom_ok = True
             self._event(mavlink.MAV_SEVERITY_INFO, "Odometry ok")
@@ -765,7 +887,10 @@ class Autopilot:
                 if not self.armed_cmd:
                     self.armed_cmd = True
                     self.in_air = False
-                    self._z_ground_m = self._odom_z_m
+                    self.blind = False
+                    self.takeoff_phase = None
+                    self._blind_descent = None
+                    self._z_ground_m = self._odom_z_m if self.odom_ok else None
                     self.height_m = 0.0
                     if self.mode in (FlightMode.LAND, FlightMode.TAKEOFF):
                         self.set_mode(FlightMode.POSCTL, now_s, "armed on the ground")  # else LAND disarms at once
@@ -843,9 +968,12 @@ class Autopilot:
             if not self.armed_cmd:
                 self._event(mavlink.MAV_SEVERITY_WARNING, "Takeoff denied: not armed")
                 return TEMP
-            if not self.odom_ok:
-                self._event(mavlink.MAV_SEVERITY_WARNING, "Takeoff denied: no odometry")
+            if self.in_air and not self.odom_ok and not self.blind:
+                self._event(mavlink.MAV_SEVERITY_WARNING, "Takeoff denied: odometry lost in the air")
                 return TEMP
+        if mode in HOLD_MODES and self.in_air and self.blind and not self.odom_ok:
+            self._event(mavlink.MAV_SEVERITY_WARNING, f"{mode.name} denied: no odometry yet")
+            return TEMP
         self.failsafe_reason = None if mode != FlightMode.LAND else self.failsafe_reason
         self._fs_hover_until_s = None
         if mode == self.mode and mode == FlightMode.TAKEOFF:
@@ -941,6 +1069,10 @@ class Autopilot:
                 self._event(mavlink.MAV_SEVERITY_WARNING,
                             f"Odometry rejected: frames {msg.frame_id}/{msg.child_frame_id}")
             return []
+        if getattr(msg, "quality", 0) < self.params["BRG_ODOM_QMIN"]:
+            # the companion's "failed" (0; MAVLink's -1): not a velocity source, it simply does not refresh
+            self.counters["odometry_low_quality"] += 1
+            return []
         est = self.filter.estimate
         roll, pitch, yaw = est.roll_rad, est.pitch_rad, est.yaw_rad
         if np.all(np.isfinite(q)) and abs(np.linalg.norm(q) - 1.0) < 0.1:
@@ -953,11 +1085,22 @@ class Autopilot:
         self._v_h_odom = v_h
         self._dv_h_imu[:] = 0.0
         self._vz_dead_reckoned = float(v_h[2])
-        self._odom_z_m = float(msg.z) if math.isfinite(msg.z) else None
+        z = float(msg.z) if math.isfinite(msg.z) else None
+        reset = self._odom_reset_counter is not None and msg.reset_counter != self._odom_reset_counter
+        self._odom_reset_counter = int(msg.reset_counter)
+        if self.in_air and z is not None and (self.blind or reset or self._z_ground_m is None):
+            # the odometry's frame began (or was reset) in the air: anchor it so the height stays continuous
+            self._z_ground_m = z + self.height_m
+        self._odom_z_m = z
         self.odom_time_s = now_s
         if not self.odom_ok:
             self.odom_ok = True
             self._event(mavlink.MAV_SEVERITY_INFO, "Odometry ok")
+        if self.blind and self.in_air:
+            self.blind = False
+            if self.mode == FlightMode.TAKEOFF:
+                self.takeoff_phase = TakeoffPhase.CLOSED_LOOP
+            self._event(mavlink.MAV_SEVERITY_INFO, f"Odometry at {self.height_m:.2f} m: closed loop")
         return []
 
     _handlers: dict[str, Any] = {

@@ -61,6 +61,13 @@ PARAM_SPECS: tuple[ParamSpec, ...] = (
     ParamSpec("BRG_BOARD_LOSS_T", 0.5, 0.05, 10.0, "board link loss timeout, s"),
     ParamSpec("COM_DISARM_PRFLT", 10.0, 0.0, 60.0, "auto-disarm when armed on the ground, s (0 off)"),
     ParamSpec("BRG_ATT_TAU", 1.0, 0.05, 20.0, "complementary attitude filter time constant, s"),
+    ParamSpec("BRG_ODOM_QMIN", 1.0, 0.0, 100.0, "odometry quality below this is not used, % (0: accept unknown)"),
+    ParamSpec("BRG_TKO_OL_SPD", 0.4, 0.1, 1.0, "take-off phase 1 (no odometry yet): climb rate, m/s"),
+    ParamSpec("BRG_TKO_OL_ALT", 1.5, 0.3, 5.0, "take-off phase 1: height bound (accelerometer estimate), m"),
+    ParamSpec("BRG_TKO_OL_T", 6.0, 1.0, 30.0, "take-off phase 1: time bound, s"),
+    ParamSpec("BRG_TKO_THR_MRG", 0.25, 0.05, 0.6, "take-off phase 1: thrust ceiling above hover, fraction"),
+    ParamSpec("BRG_TKO_RAMP_T", 1.0, 0.0, 5.0, "take-off phase 1: thrust ramp from idle, s"),
+    ParamSpec("BRG_OL_LAND_SPD", 0.3, 0.1, 1.0, "landing with no odometry yet: descent rate, m/s"),
 )
 
 SPECS_BY_NAME: dict[str, ParamSpec] = {p.name: p for p in PARAM_SPECS}

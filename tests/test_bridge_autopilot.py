@@ -100,7 +100,8 @@ class Sim:
                 v_q = R.T @ self.v
                 q = quat_wxyz_from_euler(self.roll, self.pitch, self.yaw)
                 self.send(GCS.odometry_encode(self.k * 2000, mavlink.MAV_FRAME_LOCAL_FRD, mavlink.MAV_FRAME_BODY_FRD,
-                                              *self.p, q, *v_q, 0.0, 0.0, 0.0, [math.nan] * 21, [math.nan] * 21))
+                                              *self.p, q, *v_q, 0.0, 0.0, 0.0, [math.nan] * 21, [math.nan] * 21,
+                                              0, 0, 100))  # quality 100: quality 0 is "failed"
             if setpoint is not None and self.k % 10 == 0:
                 self.send(setpoint)
             if self.k % 5 == 0:
@@ -273,12 +274,12 @@ def test_odometry_body_frd_velocity_is_converted_to_h_with_roll_and_pitch():
     v_q = R_hq(roll, pitch).T @ v_h
     odo = GCS.odometry_encode(0, mavlink.MAV_FRAME_LOCAL_FRD, mavlink.MAV_FRAME_BODY_FRD, 0, 0, -1.0,
                               quat_wxyz_from_euler(roll, pitch, yaw), *v_q, 0, 0, 0, [math.nan] * 21,
-                              [math.nan] * 21)
+                              [math.nan] * 21, 0, 0, 100)
     ap.handle_mavlink(0.0, msg(odo))
     np.testing.assert_allclose(ap.v_est_h(0.0), v_h, atol=1e-6)
     assert ap.filter.yaw_rad == pytest.approx(yaw, abs=1e-6)
     bad = GCS.odometry_encode(0, mavlink.MAV_FRAME_GLOBAL, mavlink.MAV_FRAME_BODY_FRD, 0, 0, 0, [1, 0, 0, 0],
-                              0, 0, 0, 0, 0, 0, [math.nan] * 21, [math.nan] * 21)
+                              0, 0, 0, 0, 0, 0, [math.nan] * 21, [math.nan] * 21, 0, 0, 100)
     ap.handle_mavlink(0.0, msg(bad))
     assert ap.counters["odometry_rejected"] == 1
 

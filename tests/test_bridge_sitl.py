@@ -217,7 +217,7 @@ class Odometry(threading.Thread):
             v_q = R.T @ v
             self.gcs.send(self.gcs.encoder.odometry_encode(
                 int(time.monotonic() * 1e6), mavlink.MAV_FRAME_LOCAL_FRD, mavlink.MAV_FRAME_BODY_FRD,
-                *p, q, *v_q, 0, 0, 0, [math.nan] * 21, [math.nan] * 21))
+                *p, q, *v_q, 0, 0, 0, [math.nan] * 21, [math.nan] * 21, 0, 0, 100))
 
 
 class Setpoints(threading.Thread):

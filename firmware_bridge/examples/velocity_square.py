@@ -72,7 +72,7 @@ class TruthOdometry:
             v_q = R_from_quat_wxyz(q).T @ v
             msg = self.encoder.odometry_encode(int(time.monotonic() * 1e6), mavlink.MAV_FRAME_LOCAL_FRD,
                                                mavlink.MAV_FRAME_BODY_FRD, *p, q, *v_q, 0, 0, 0,
-                                               [math.nan] * 21, [math.nan] * 21)
+                                               [math.nan] * 21, [math.nan] * 21, 0, 0, 100)
             buf = msg.pack(self.encoder)
             self.encoder.seq = (self.encoder.seq + 1) % 256
             for address in list(self.bridge.clients):

@@ -1,0 +1,97 @@
+"""Vertical speed and height from the accelerometer alone, for flight without odometry (pure, step-based).
+
+On the ground the RGB-D camera (30 deg down, 0.5 m minimum range) sees the floor too close, so the
+companion's visual odometry starts only after the vehicle has climbed ~0.3-0.5 m. The first phase of the
+take-off (and a landing when odometry never came) therefore flies on this estimate:
+
+    a_z = (R_hq f_q)_z + g - b_z                 (vertical acceleration in H, NED: + down)
+    v_z += a_z dt,   h -= v_z dt                  (bounded: |v_z| <= the climb/descent limits, h >= 0)
+
+* ``f_q`` is the specific force (accelerometer, body FRD) rotated into the horizontal frame H with the
+  attitude estimate's roll and pitch; at rest it reads ``-g e3`` so ``a_z`` = 0.
+* ``b_z``, the vertical accelerometer bias, is the low-passed ``(R_hq f_q)_z + g`` while the vehicle is
+  *pinned* on the ground (time constant ``bias_tau_s``).
+* The hover thrust of the vehicle config is the prior that says when the vehicle can be airborne at all:
+  while the commanded collective thrust is below ``liftoff_fraction_of_hover`` x hover thrust the ground
+  holds the vehicle, so ``v_z`` and ``h`` stay 0 (a zero-velocity update) and the bias keeps being learnt.
+  Once the thrust crosses it the estimator integrates until :meth:`reset_ground`.
+
+Ground contact without a velocity reference: with the collective thrust below the hover thrust the vehicle
+must accelerate downwards unless the ground carries it, so "thrust < hover and no vertical acceleration"
+(``accel_z_m_s2``) is touchdown even when the integrated velocity has drifted.
+
+Integration of a 10-bit accelerometer drifts (a residual bias of 0.02 m/s^2 is 0.12 m/s after 6 s), so the
+autopilot only flies on this for a bounded time and height (``BRG_TKO_OL_T``, ``BRG_TKO_OL_ALT``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+DEFAULT_BIAS_TAU_S = 1.0
+DEFAULT_LIFTOFF_FRACTION_OF_HOVER = 0.7  # no vehicle within 30 % of its configured mass lifts off below this
+ACCEL_LOWPASS_TAU_S = 0.1  # the vertical acceleration the ground-contact test looks at
+
+
+@dataclass(frozen=True)
+class VerticalEstimate:
+    vz_m_s: float  # vertical velocity in H, NED (+ down)
+    height_m: float  # above the point where the estimator was last pinned (+ up)
+    accel_bias_m_s2: float  # vertical specific-force bias learnt on the ground
+    pinned: bool  # on the ground: the thrust is below lift-off
+    accel_z_m_s2: float  # bias-corrected vertical acceleration (NED), low-passed (ACCEL_LOWPASS_TAU_S)
+
+
+class VerticalEstimator:
+    def __init__(self, hover_thrust_fraction: float, max_climb_m_s: float = 1.5, max_descent_m_s: float = 1.0,
+                 bias_tau_s: float = DEFAULT_BIAS_TAU_S,
+                 liftoff_fraction_of_hover: float = DEFAULT_LIFTOFF_FRACTION_OF_HOVER) -> None:
+        if not 0.0 < hover_thrust_fraction < 1.0:
+            raise ValueError("hover thrust fraction must be in (0, 1)")
+        self.hover_thrust_fraction = hover_thrust_fraction
+        self.max_climb_m_s = max_climb_m_s
+        self.max_descent_m_s = max_descent_m_s
+        self.bias_tau_s = bias_tau_s
+        self.liftoff_fraction_of_hover = liftoff_fraction_of_hover
+        self._vz = 0.0
+        self._h = 0.0
+        self._bias: float | None = None
+        self._pinned = True
+        self._a_lp = 0.0
+
+    def reset_ground(self) -> None:
+        """On the ground (landed, disarmed, or at the start of a take-off): pin; the learnt bias is kept."""
+        self._vz = 0.0
+        self._h = 0.0
+        self._pinned = True
+
+    def update(self, dt_s: float, a_h_z_m_s2: float, thrust_fraction: float, on_ground: bool = False) -> None:
+        """One IMU sample: ``a_h_z_m_s2`` = (R_hq f_q)_z + g (NED), the commanded collective thrust (0..1)."""
+        dt_s = min(max(float(dt_s), 0.0), 0.1)
+        if self._bias is None:
+            self._bias = float(a_h_z_m_s2)  # converge at once from the first sample (at rest at start-up)
+        self._a_lp += (float(a_h_z_m_s2) - self._bias - self._a_lp) * dt_s / max(ACCEL_LOWPASS_TAU_S, dt_s)
+        if on_ground:
+            self._pinned = True
+        liftoff_thrust = self.liftoff_fraction_of_hover * self.hover_thrust_fraction
+        if self._pinned and (on_ground or thrust_fraction < liftoff_thrust):
+            self._bias += (float(a_h_z_m_s2) - self._bias) * dt_s / max(self.bias_tau_s, dt_s)
+            self._vz = 0.0
+            self._h = 0.0
+            return
+        self._pinned = False
+        a_z = float(a_h_z_m_s2) - self._bias
+        self._vz = min(max(self._vz + a_z * dt_s, -self.max_climb_m_s), self.max_descent_m_s)
+        self._h = max(self._h - self._vz * dt_s, 0.0)
+
+    @property
+    def estimate(self) -> VerticalEstimate:
+        return VerticalEstimate(self._vz, self._h, self._bias or 0.0, self._pinned, self._a_lp)
+
+    @property
+    def vz_m_s(self) -> float:
+        return self._vz
+
+    @property
+    def height_m(self) -> float:
+        return self._h

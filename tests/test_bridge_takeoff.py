@@ -1,0 +1,179 @@
+"""Take-off without odometry on the ground (pure state machine, injected clock: the point-mass Sim of
+test_bridge_autopilot, 2 ms IMU steps).
+
+On the ground the RGB-D camera sees the floor closer than its minimum range, so the companion's odometry
+is absent or flagged failed (quality 0) until ~0.3-0.5 m up. Phase 1 climbs level on the accelerometer;
+valid odometry switches to the closed-loop tracker; without it the climb is bounded and the vehicle lands.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from test_bridge_autopilot import GCS, Sim, msg
+
+from firmware_bridge.autopilot import FlightMode, TakeoffPhase
+from firmware_bridge.params import ParamTable
+from firmware_bridge.vertical_estimator import VerticalEstimator
+from quadlink.frames import GRAVITY_M_S2
+from quadlink.mavlink import mavlink
+
+ACCEL_BIAS_Q_M_S2 = np.array([0.03, -0.02, 0.06])  # a realistic constant accelerometer bias
+
+
+def blind_sim(bias: bool = True, params: ParamTable | None = None) -> Sim:
+    sim = Sim(params=params, odom=False)
+    if bias:
+        on_imu = sim.ap.on_imu
+        sim.ap.on_imu = lambda now, t_us, a, w: on_imu(now, t_us, np.asarray(a) + ACCEL_BIAS_Q_M_S2, w)
+    return sim
+
+
+def height(sim: Sim) -> float:
+    return float(-sim.p[2])
+
+
+def arm_and_sit(sim: Sim, seconds: float = 2.0) -> None:
+    sim.step(0.5)
+    assert sim.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1)[0] == mavlink.MAV_RESULT_ACCEPTED
+    sim.step(seconds)
+
+
+def test_arming_and_sitting_landed_never_need_odometry():
+    sim = blind_sim()
+    arm_and_sit(sim, 3.0)
+    assert sim.ap.armed_cmd and not sim.ap.in_air and sim.ap.mode == FlightMode.POSCTL
+    assert sim.ap.failsafe_reason is None
+    assert not any("dometry" in t for t in sim.statustext), sim.statustext  # nothing to report ...
+    health = sim.ap.sys_status(sim.t).onboard_control_sensors_health
+    assert not health & mavlink.MAV_SYS_STATUS_SENSOR_VISION_POSITION  # ... but the health bit
+    assert sim.ap.last_board_command.thrust == 0.0 and sim.ap.last_board_command.armed
+    # odometry that comes and goes on the ground (quality flapping) raises no failsafe and no STATUSTEXT
+    sim.odom = True
+    sim.step(0.5)
+    sim.odom = False
+    sim.step(1.0)
+    assert sim.ap.failsafe_reason is None and sim.ap.mode == FlightMode.POSCTL and sim.ap.armed_cmd
+    assert not any("lost" in t for t in sim.statustext), sim.statustext
+
+
+def test_quality_zero_odometry_is_not_a_velocity_source():
+    sim = Sim()
+    sim.step(0.5)
+    assert sim.ap.odom_ok
+    failed = GCS.odometry_encode(0, mavlink.MAV_FRAME_LOCAL_FRD, mavlink.MAV_FRAME_BODY_FRD, 0, 0, 0, [1, 0, 0, 0],
+                                 3.0, 0, 0, 0, 0, 0, [math.nan] * 21, [math.nan] * 21, 0, 0, 0)
+    sim.odom = False
+    for _ in range(60):
+        sim.ap.handle_mavlink(sim.t, msg(failed))
+        sim.step(0.02)
+    assert not sim.ap.odom_ok  # quality 0 = the companion's "failed": it does not refresh the odometry
+    assert sim.ap.counters["odometry_low_quality"] == 60 and sim.ap.counters["odometry_rejected"] == 0
+    assert sim.ap.v_est_h(sim.t)[0] == pytest.approx(0.0)
+    sim.ap.params.set("BRG_ODOM_QMIN", 0.0)  # accept "unknown" quality (MAVLink's 0) if the user says so
+    sim.ap.handle_mavlink(sim.t, msg(failed))
+    assert sim.ap.odom_ok and sim.ap.v_est_h(sim.t)[0] == pytest.approx(3.0)
+
+
+def test_takeoff_climbs_open_loop_then_switches_to_closed_loop_when_odometry_arrives():
+    sim = blind_sim()
+    arm_and_sit(sim)
+    result, _ = sim.command(mavlink.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, math.nan, math.nan, math.nan, 1.2)
+    assert result == mavlink.MAV_RESULT_ACCEPTED
+    assert sim.ap.mode == FlightMode.TAKEOFF and sim.ap.takeoff_phase == TakeoffPhase.OPEN_LOOP
+    assert any("open loop" in t for t in sim.statustext)
+    max_abs_angle = 0.0
+    start = sim.t
+    while height(sim) < 0.4:  # the camera starts to see the floor at ~0.4 m
+        sim.step(0.02)
+        cmd = sim.ap.last_board_command
+        max_abs_angle = max(max_abs_angle, abs(cmd.roll_rad), abs(cmd.pitch_rad))
+        assert cmd.thrust <= sim.ap.tracker.hover_thrust_fraction * 1.25 + 1e-9  # hover + the climb margin
+        assert sim.t - start < 3.0, "no climb without odometry"
+    assert max_abs_angle == 0.0  # level attitude hold
+    assert sim.ap.failsafe_reason is None and sim.ap.mode == FlightMode.TAKEOFF
+    assert sim.ap.vertical.height_m == pytest.approx(height(sim), abs=0.08)
+    assert -sim.v[2] == pytest.approx(0.4, abs=0.15)  # the gentle open-loop climb rate
+    sim.odom = True
+    sim.step(0.1)
+    assert sim.ap.takeoff_phase == TakeoffPhase.CLOSED_LOOP and not sim.ap.blind
+    assert any("closed loop" in t for t in sim.statustext)
+    sim.step(5.0)
+    assert sim.ap.mode == FlightMode.LOITER and sim.ap.armed_cmd and sim.ap.failsafe_reason is None
+    assert height(sim) == pytest.approx(1.2, abs=0.1)
+    # phase 2 acquired odometry in the air: its loss is the usual failsafe (item 3 of the issue)
+    sim.odom = False
+    sim.step(1.0)
+    assert sim.ap.mode == FlightMode.LAND and sim.ap.failsafe_reason == "odometry lost"
+    assert any("Odometry lost" in t for t in sim.statustext)
+
+
+def test_takeoff_without_odometry_is_bounded_in_height_then_lands():
+    sim = blind_sim()
+    arm_and_sit(sim)
+    assert sim.command(mavlink.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, 0, 0, 4.0)[0] == mavlink.MAV_RESULT_ACCEPTED
+    top = 0.0
+    landed_at = None
+    while sim.t < 30.0:
+        sim.step(0.02)
+        top = max(top, height(sim))
+        if not sim.ap.armed_cmd:
+            landed_at = sim.t
+            break
+    assert landed_at is not None, f"still armed at {sim.t:.1f} s, height {height(sim):.2f} m"
+    assert any("No odometry in takeoff" in t for t in sim.statustext), sim.statustext
+    assert 1.2 <= top <= 1.5 + 0.2  # BRG_TKO_OL_ALT (estimated) is the bound
+    assert height(sim) < 0.01 and sim.ap.landed_state() == mavlink.MAV_LANDED_STATE_ON_GROUND
+
+
+def test_takeoff_without_odometry_is_bounded_in_time_then_lands():
+    sim = blind_sim()
+    arm_and_sit(sim)
+    start = sim.t
+    assert sim.command(mavlink.MAV_CMD_NAV_TAKEOFF)[0] == mavlink.MAV_RESULT_ACCEPTED  # MIS_TAKEOFF_ALT 1.0 m
+    aborted_at = None
+    top = 0.0
+    while sim.t < 30.0 and sim.ap.armed_cmd:
+        sim.step(0.02)
+        top = max(top, height(sim))
+        if aborted_at is None and sim.ap.mode == FlightMode.LAND:
+            aborted_at = sim.t - start
+            assert sim.ap.failsafe_reason == "no odometry in takeoff"
+    assert aborted_at == pytest.approx(6.0, abs=0.05)  # BRG_TKO_OL_T
+    assert top == pytest.approx(1.0, abs=0.15)  # it held the take-off height on the estimate meanwhile
+    assert not sim.ap.armed_cmd and height(sim) < 0.01
+
+
+def test_land_command_in_the_open_loop_climb_descends_and_disarms():
+    sim = blind_sim()
+    arm_and_sit(sim)
+    sim.command(mavlink.MAV_CMD_NAV_TAKEOFF)
+    sim.step(2.5)
+    assert height(sim) > 0.3
+    assert sim.command(mavlink.MAV_CMD_DO_SET_MODE, 1, 4, 3)[0] == mavlink.MAV_RESULT_TEMPORARILY_REJECTED  # LOITER
+    assert sim.command(mavlink.MAV_CMD_NAV_LAND)[0] == mavlink.MAV_RESULT_ACCEPTED
+    sim.step(8.0)
+    assert not sim.ap.armed_cmd and height(sim) < 0.01
+
+
+def test_vertical_estimator_is_pinned_below_liftoff_thrust_and_learns_the_bias():
+    est = VerticalEstimator(hover_thrust_fraction=0.5)
+    bias = 0.07
+    for _ in range(1000):  # 2 s armed at idle on the ground
+        est.update(0.002, bias, 0.05)
+    assert est.estimate.pinned and est.vz_m_s == 0.0 and est.height_m == 0.0
+    assert est.estimate.accel_bias_m_s2 == pytest.approx(bias, abs=1e-3)
+    for _ in range(100):  # thrust ramping below 70 % of hover: the ground holds the vehicle
+        est.update(0.002, bias, 0.3)
+    assert est.vz_m_s == 0.0
+    for _ in range(500):  # airborne: 1 s at 0.5 m/s^2 up (NED -)
+        est.update(0.002, bias - 0.5, 0.55)
+    assert est.vz_m_s == pytest.approx(-0.5, abs=0.01) and est.height_m == pytest.approx(0.25, abs=0.01)
+    for _ in range(5000):  # bounded: never faster than the climb limit
+        est.update(0.002, bias - GRAVITY_M_S2, 0.9)
+    assert est.vz_m_s == pytest.approx(-1.5)
+    est.reset_ground()
+    assert est.estimate.pinned and est.height_m == 0.0
+    assert est.estimate.accel_bias_m_s2 == pytest.approx(bias, abs=1e-3)
