@@ -132,6 +132,7 @@ class Gcs:
         self.encoder = mavlink.MAVLink(None, 255, 190)
         self.lock = threading.Lock()
         self.inbox: queue.Queue = queue.Queue()
+        self.texts: list[str] = []  # every STATUSTEXT that recv() went past
         self._stop = threading.Event()
         self._reader = threading.Thread(target=self._read, daemon=True)
         self._reader.start()
@@ -156,6 +157,8 @@ class Gcs:
                 m = self.inbox.get(timeout=0.1)
             except queue.Empty:
                 continue
+            if m.get_type() == "STATUSTEXT":
+                self.texts.append(m.text)
             if m.get_type() == type_ and cond(m):
                 return m
         return None
@@ -386,3 +389,115 @@ def test_mavsdk_arm_takeoff_offboard_velocity_square_land(stack):
     print(f"square: legs {np.round(legs, 2)} m for {side:.2f} m commanded, closure {closure:.2f} m")
     assert closure < 0.4 * side, f"the square does not close: {closure:.2f} m for {side:.2f} m sides"
     assert abs(seen["landed_p"][2]) < 0.15
+
+
+class GatedOdometry(Odometry):
+    """The companion on the ground: ODOMETRY flagged failed (quality 0, zero velocity) while the camera sees
+    the floor closer than its minimum range; valid odometry from the truth once the truth height exceeds
+    ``valid_above_m`` (latched), or never (``valid_above_m`` None)."""
+
+    def __init__(self, stack: Stack, gcs: Gcs, valid_above_m: float | None) -> None:
+        super().__init__(stack, gcs)
+        self.valid_above_m = valid_above_m
+        self.valid_since_height_m: float | None = None
+
+    def run(self) -> None:
+        while not self.stop.wait(1.0 / 30.0):
+            p, v, q = self.stack.state()
+            if self.valid_since_height_m is None and self.valid_above_m is not None and -p[2] > self.valid_above_m:
+                self.valid_since_height_m = float(-p[2])
+            if self.valid_since_height_m is None:
+                self.gcs.send(self.gcs.encoder.odometry_encode(
+                    int(time.monotonic() * 1e6), mavlink.MAV_FRAME_LOCAL_FRD, mavlink.MAV_FRAME_BODY_FRD,
+                    0, 0, 0, [1, 0, 0, 0], 0, 0, 0, 0, 0, 0, [math.nan] * 21, [math.nan] * 21, 0, 0, 0))
+                continue
+            v_q = R_from_quat_wxyz(q).T @ v
+            self.gcs.send(self.gcs.encoder.odometry_encode(
+                int(time.monotonic() * 1e6), mavlink.MAV_FRAME_LOCAL_FRD, mavlink.MAV_FRAME_BODY_FRD,
+                *p, q, *v_q, 0, 0, 0, [math.nan] * 21, [math.nan] * 21, 0, 0, 100))
+
+
+def _statustexts(gcs: Gcs) -> list[str]:
+    gcs.recv("STATUSTEXT", 0.2, lambda m: False)  # drain the inbox into gcs.texts
+    return list(gcs.texts)
+
+
+def test_takeoff_without_odometry_on_the_ground_climbs_open_loop_then_closed_loop(stack):
+    """Odometry only once the truth is 0.4 m up: phase 1 on the accelerometer, phase 2 to the take-off height."""
+    gcs = Gcs(stack.gcs_port)
+    odom = GatedOdometry(stack, gcs, valid_above_m=0.4)
+    try:
+        assert gcs.recv("HEARTBEAT", 20.0) is not None
+        wait_for(lambda: stack.truth_count > 10, 10.0, "truth")
+        odom.start()
+        time.sleep(1.0)
+        p_ground, _, _ = stack.state()
+        assert gcs.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1) == mavlink.MAV_RESULT_ACCEPTED
+        time.sleep(1.0)  # armed on the ground without odometry: no failsafe
+        hb = gcs.recv("HEARTBEAT", 3.0)
+        assert hb is not None and hb.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED
+        assert hb.system_status != mavlink.MAV_STATE_CRITICAL
+        assert gcs.command(mavlink.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, math.nan, math.nan, math.nan, 1.2) \
+            == mavlink.MAV_RESULT_ACCEPTED
+        assert gcs.recv("HEARTBEAT", 25.0, lambda m: m.custom_mode == PX4_LOITER) is not None
+        time.sleep(1.0)
+        p, _, _ = stack.state()
+        height = float(p_ground[2] - p[2])
+        texts = _statustexts(gcs)
+        print(f"open-loop take-off: odometry from {odom.valid_since_height_m:.2f} m (truth); LOITER at "
+              f"{height:.2f} m for 1.2 m commanded; {texts}")
+        assert odom.valid_since_height_m is not None
+        assert height == pytest.approx(1.2, abs=0.2)
+        assert not any("Odometry lost" in t or "No odometry" in t for t in texts), texts
+        assert gcs.command(mavlink.MAV_CMD_NAV_LAND) == mavlink.MAV_RESULT_ACCEPTED
+        assert gcs.recv("HEARTBEAT", 25.0, lambda m: not m.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED) \
+            is not None
+    finally:
+        odom.stop.set()
+        gcs.close()
+
+
+def test_takeoff_with_no_odometry_at_all_is_bounded_and_lands(stack):
+    """The companion never gets odometry: the blind climb stops at BRG_TKO_OL_ALT (1.5 m estimated) and lands."""
+    gcs = Gcs(stack.gcs_port)
+    odom = GatedOdometry(stack, gcs, valid_above_m=None)
+    top = [0.0]
+    stop = threading.Event()
+
+    def watch(p_ground_z: float) -> None:
+        while not stop.wait(0.02):
+            top[0] = max(top[0], p_ground_z - float(stack.state()[0][2]))
+
+    try:
+        assert gcs.recv("HEARTBEAT", 20.0) is not None
+        wait_for(lambda: stack.truth_count > 10, 10.0, "truth")
+        odom.start()
+        time.sleep(1.0)
+        p_ground, _, _ = stack.state()
+        watcher = threading.Thread(target=watch, args=(float(p_ground[2]),), daemon=True)
+        watcher.start()
+        assert gcs.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1) == mavlink.MAV_RESULT_ACCEPTED
+        time.sleep(0.5)
+        assert gcs.command(mavlink.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, math.nan, math.nan, math.nan, 4.0) \
+            == mavlink.MAV_RESULT_ACCEPTED
+        texts: list[str] = []
+        deadline = time.monotonic() + 60.0
+        disarmed = None
+        while disarmed is None and time.monotonic() < deadline:
+            m = gcs.recv("HEARTBEAT", 1.0)
+            if m is not None and not m.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED:
+                disarmed = m
+        texts = _statustexts(gcs)
+        stop.set()
+        watcher.join(timeout=2.0)
+        p, _, _ = stack.state()
+        print(f"no odometry: top {top[0]:.2f} m (bound 1.5 m estimated), landed at {p_ground[2] - p[2]:+.2f} m; "
+              f"{texts}")
+        assert disarmed is not None, "still armed after 60 s"
+        assert any("No odometry in takeoff" in t for t in texts), texts
+        assert 1.0 < top[0] <= 1.5 + 0.25
+        assert abs(p[2] - p_ground[2]) < 0.15
+    finally:
+        stop.set()
+        odom.stop.set()
+        gcs.close()
