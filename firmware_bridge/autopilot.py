@@ -431,7 +431,7 @@ class Autopilot:
         self._on_ground_armed_since_s = None
 
         # ---- no odometry yet in this flight: take-off phase 1, or the landing that ends it
-        if self.blind and not self.odom_ok:
+        if self.blind and not self.odom_ok and not (self.mode == FlightMode.OFFBOARD and self._att_sp is not None):
             return self._blind_step(now_s, dt, est)
 
         # ---- odometry lost in the air: level attitude hold and descend on the IMU's vertical speed
@@ -633,6 +633,12 @@ class Autopilot:
         self._blind_descent = None
         self.tracker.reset()
 
+    def _odometry_ok_event(self) -> None:
+        if self.in_air:
+            self._event(mavlink.MAV_SEVERITY_INFO, "Odometry ok")
+        else:  # on the ground odometry comes and goes (the camera sees the floor too close): the health bit says it
+            log.info("odometry ok")
+
     def _check_links(self, now_s: float) -> None:
         p = self.params
         board_fresh = self._fresh(self.board_status_time_s, now_s, p["BRG_BOARD_LOSS_T"]) or \
@@ -653,7 +659,7 @@ class Autopilot:
                 log.info("odometry lost (on the ground: nothing depends on it)")  # the health bit says it
         elif odom_fresh and not self.odom_ok:
             self.odom_ok = True
-            self._event(mavlink.MAV_SEVERITY_INFO, "Odometry ok")
+            self._odometry_ok_event()
         if self.mode == FlightMode.OFFBOARD and self.in_air and \
                 not self._fresh(self.setpoint_time_s, now_s, p["COM_OF_LOSS_T"]):
             self.failsafe_reason = "offboard setpoints lost"
@@ -1095,7 +1101,7 @@ class Autopilot:
         self.odom_time_s = now_s
         if not self.odom_ok:
             self.odom_ok = True
-            self._event(mavlink.MAV_SEVERITY_INFO, "Odometry ok")
+            self._odometry_ok_event()
         if self.blind and self.in_air:
             self.blind = False
             if self.mode == FlightMode.TAKEOFF:
