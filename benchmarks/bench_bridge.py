@@ -122,7 +122,8 @@ def main() -> None:
                 continue
             k += 1
             msgs = [enc.odometry_encode(k, mavlink.MAV_FRAME_LOCAL_FRD, mavlink.MAV_FRAME_BODY_FRD, 0, 0, 0,
-                                        [1, 0, 0, 0], 0, 0, 0, 0, 0, 0, [math.nan] * 21, [math.nan] * 21)] \
+                                        [1, 0, 0, 0], 0, 0, 0, 0, 0, 0, [math.nan] * 21, [math.nan] * 21,
+                                        0, 0, 100)] \
                 if k % 2 == 0 else []
             if k % 3 == 0:
                 msgs.append(enc.set_position_target_local_ned_encode(0, 1, 1, mavlink.MAV_FRAME_BODY_NED, 1479, 0, 0, 0,
