@@ -78,6 +78,16 @@ class CameraNoiseConfig:
     far_clip_m: float = 20.0
 
 
+RendererName = Literal["raster", "pybullet"]
+
+
+@dataclass(frozen=True)
+class SitlCameraConfig:
+    """How the SITL renders its camera (the mount and intrinsics are the vehicle's: ``VehicleConfig.camera``)."""
+
+    renderer: RendererName = "raster"  # raster (sim_sitl/raster.py, fast) | pybullet (ER_TINY_RENDERER)
+
+
 @dataclass(frozen=True)
 class SitlConfig:
     vehicle: str = "vehicle"  # vehicle config name or path
@@ -88,6 +98,7 @@ class SitlConfig:
     imu_noise: ImuNoiseConfig = field(default_factory=ImuNoiseConfig)
     physics: PhysicsConfig = field(default_factory=PhysicsConfig)
     link: LinkConfig = field(default_factory=LinkConfig)
+    camera: SitlCameraConfig = field(default_factory=SitlCameraConfig)
     camera_noise: CameraNoiseConfig = field(default_factory=CameraNoiseConfig)
     truth_rate_hz: float = 50.0
     lockstep_chunk_s: float = 0.01

@@ -237,7 +237,7 @@ class Sitl:
 
                 w, h = opts.camera_res or (self.vehicle.camera.width_px, self.vehicle.camera.height_px)
                 self.camera = RgbdCamera(self.sim.world, self.vehicle.camera, cfg.camera_noise,
-                                         np.random.default_rng(cfg.seed + 1), w, h)
+                                         np.random.default_rng(cfg.seed + 1), w, h, cfg.camera.renderer)
                 try:
                     self.camera_server = CameraStreamServer(opts.host, opts.camera_port)
                 except OSError as exc:

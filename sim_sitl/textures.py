@@ -12,7 +12,7 @@ TEXTURES = ("carpet", "wood", "concrete", "noise", "checker", "plain")
 def _blurred_noise(rng: np.random.Generator, size: int, cells: int) -> NDArray[np.float32]:
     """Value noise: a ``cells`` x ``cells`` random grid bilinearly upsampled to ``size`` x ``size``."""
     grid = rng.random((cells + 1, cells + 1), dtype=np.float32)
-    return cv2.resize(grid, (size, size), interpolation=cv2.INTER_LINEAR)
+    return np.asarray(cv2.resize(grid, (size, size), interpolation=cv2.INTER_LINEAR), dtype=np.float32)
 
 
 def make_texture(kind: str, rng: np.random.Generator, color: tuple[float, float, float] = (0.7, 0.7, 0.7),

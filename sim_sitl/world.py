@@ -23,19 +23,22 @@ from quadlink.frames import GRAVITY_M_S2, Rz
 from quadlink.vehicle import VehicleConfig
 from sim_sitl.config import ScenarioConfig, SitlConfig
 from sim_sitl.motors import body_wrench, motor_lag, rotor_layout
-from sim_sitl.textures import make_texture
+from sim_sitl.scene import (
+    SURFACE_CEILING,
+    SURFACE_FLOOR,
+    SURFACE_OBJECT,
+    SURFACE_WALL,
+    TextureKey,
+    build_scene,
+    scene_textures,
+)
 
 log = logging.getLogger(__name__)
 
 D = np.diag([1.0, -1.0, -1.0])  # NED <-> pybullet NWU, FRD <-> FLU
 _D_SANDWICH = np.outer(np.diag(D), np.diag(D))  # elementwise form of D @ R @ D
 
-TEXEL_M = 0.01  # target texture resolution on large surfaces (textures up to 1024 px)
-
-SURFACE_FLOOR = "floor"
-SURFACE_CEILING = "ceiling"
-SURFACE_WALL = "wall"
-SURFACE_OBJECT = "object"
+__all__ = ["D", "SURFACE_CEILING", "SURFACE_FLOOR", "SURFACE_OBJECT", "SURFACE_WALL", "RigidState", "World"]
 
 
 @dataclass(frozen=True)
@@ -72,9 +75,11 @@ class World:
         self._tmp = tempfile.TemporaryDirectory(prefix="quadlink-sitl-tex-") if texture_dir is None else None
         self._texture_dir = Path(self._tmp.name if self._tmp else texture_dir)  # type: ignore[arg-type]
         self._rng = rng
-        self._textures: dict[tuple[str, tuple[float, ...]], int] = {}
+        self.scene = build_scene(scenario)
+        self._texture_ids: dict[TextureKey, int] = {}
+        self._texture_images: dict[TextureKey, NDArray[np.uint8]] | None = None
         self.surfaces: dict[int, str] = {}
-        self._pending_textures: list[tuple[int, str, tuple[float, float, float], int]] = []
+        self._pending_textures: list[tuple[int, TextureKey]] = []
         p.setGravity(0.0, 0.0, -GRAVITY_M_S2, physicsClientId=self.client)
         p.setTimeStep(self.dt_s, physicsClientId=self.client)
         p.setPhysicsEngineParameter(numSolverIterations=20, physicsClientId=self.client)
@@ -87,63 +92,34 @@ class World:
         self._settle(0.5)
 
     # ------------------------------------------------------------------ scene
-    def _texture(self, kind: str, color: tuple[float, float, float], size_px: int = 256) -> int:
-        key = (kind, tuple(float(c) for c in color) + (float(size_px),))
-        if key not in self._textures:
-            img = make_texture(kind, self._rng, color, size_px)
-            path = self._texture_dir / f"tex{len(self._textures)}_{kind}.bmp"  # uncompressed: fast to write and load
+    def _texture(self, key: TextureKey) -> int:
+        if key not in self._texture_ids:
+            img = self.scene_textures()[key]
+            path = self._texture_dir / f"tex{len(self._texture_ids)}_{key[0]}.bmp"  # uncompressed: fast to load
             cv2.imwrite(str(path), cv2.cvtColor(img, cv2.COLOR_RGB2BGR))
-            self._textures[key] = p.loadTexture(str(path), physicsClientId=self.client)
-        return self._textures[key]
-
-    def _add_box(self, centre_ned: NDArray[np.float64], size_m: tuple[float, float, float], yaw_rad: float,
-                 texture: str, color: tuple[float, float, float], surface: str) -> int:
-        """A static textured box; the texture spans each face, so large boxes get a finer one."""
-        half = [s / 2.0 for s in size_m]
-        cs = p.createCollisionShape(p.GEOM_BOX, halfExtents=half, physicsClientId=self.client)
-        vs = p.createVisualShape(p.GEOM_BOX, halfExtents=half, physicsClientId=self.client)
-        body = p.createMultiBody(0.0, cs, vs, (D @ centre_ned).tolist(),
-                                 p.getQuaternionFromEuler([0.0, 0.0, -yaw_rad]), physicsClientId=self.client)
-        size_px = int(min(1024, max(256, 2 ** math.ceil(math.log2(max(size_m) / TEXEL_M)))))
-        self._finish_static(body, texture, color, surface, size_px)
-        return body
-
-    def _finish_static(self, body: int, texture: str, color: tuple[float, float, float], surface: str,
-                       size_px: int = 256) -> None:
-        p.changeVisualShape(body, -1, rgbaColor=[*color, 1.0], physicsClientId=self.client)
-        self._pending_textures.append((body, texture, color, size_px))
-        p.changeDynamics(body, -1, lateralFriction=self.cfg.physics.ground_friction, physicsClientId=self.client)
-        self.surfaces[body] = surface
+            self._texture_ids[key] = p.loadTexture(str(path), physicsClientId=self.client)
+        return self._texture_ids[key]
 
     def _build_scene(self) -> None:
-        room = self.scenario.room
-        nx, ny = room.size_m
-        h = room.height_m
-        t = 0.2  # slab thickness
-        white = (0.85, 0.85, 0.85)
-        self._add_box(np.array([0.0, 0.0, t / 2]), (nx + 2 * t, ny + 2 * t, t), 0.0, room.floor_texture,
-                      (0.55, 0.35, 0.3), SURFACE_FLOOR)
-        if room.ceiling:
-            self._add_box(np.array([0.0, 0.0, -h - t / 2]), (nx + 2 * t, ny + 2 * t, t), 0.0, room.ceiling_texture,
-                          white, SURFACE_CEILING)
-        if room.walls:
-            for sx in (-1.0, 1.0):
-                self._add_box(np.array([sx * (nx / 2 + t / 2), 0.0, -h / 2]), (t, ny + 2 * t, h), 0.0,
-                              room.wall_texture, (0.75, 0.75, 0.7), SURFACE_WALL)
-            for sy in (-1.0, 1.0):
-                self._add_box(np.array([0.0, sy * (ny / 2 + t / 2), -h / 2]), (nx, t, h), 0.0,
-                              room.wall_texture, (0.7, 0.72, 0.78), SURFACE_WALL)
-        for obj in self.scenario.objects:
-            centre = np.asarray(obj.position_m, dtype=float)
-            if obj.kind == "box":
-                self._add_box(centre, obj.size_m, math.radians(obj.yaw_deg), obj.texture, obj.color, obj.surface)
-            else:
-                cs = p.createCollisionShape(p.GEOM_CYLINDER, radius=obj.radius_m, height=obj.height_m,
-                                            physicsClientId=self.client)
-                vs = p.createVisualShape(p.GEOM_CYLINDER, radius=obj.radius_m, length=obj.height_m,
+        """One static pybullet body per ``scene.bodies`` entry (textures come later: ``load_textures``)."""
+        for b in self.scene.bodies:
+            centre = (D @ np.asarray(b.centre_ned_m)).tolist()
+            if b.kind == "box":
+                half = [s / 2.0 for s in b.size_m]
+                cs = p.createCollisionShape(p.GEOM_BOX, halfExtents=half, physicsClientId=self.client)
+                vs = p.createVisualShape(p.GEOM_BOX, halfExtents=half, physicsClientId=self.client)
+                body = p.createMultiBody(0.0, cs, vs, centre, p.getQuaternionFromEuler([0.0, 0.0, -b.yaw_rad]),
                                          physicsClientId=self.client)
-                body = p.createMultiBody(0.0, cs, vs, (D @ centre).tolist(), physicsClientId=self.client)
-                self._finish_static(body, obj.texture, obj.color, obj.surface)
+            else:
+                cs = p.createCollisionShape(p.GEOM_CYLINDER, radius=b.radius_m, height=b.height_m,
+                                            physicsClientId=self.client)
+                vs = p.createVisualShape(p.GEOM_CYLINDER, radius=b.radius_m, length=b.height_m,
+                                         physicsClientId=self.client)
+                body = p.createMultiBody(0.0, cs, vs, centre, physicsClientId=self.client)
+            p.changeVisualShape(body, -1, rgbaColor=[*b.color, 1.0], physicsClientId=self.client)
+            p.changeDynamics(body, -1, lateralFriction=self.cfg.physics.ground_friction, physicsClientId=self.client)
+            self.surfaces[body] = b.surface
+            self._pending_textures.append((body, b.texture_key))
 
     def _build_vehicle(self) -> None:
         size = self.cfg.physics.body_size_m
@@ -165,11 +141,18 @@ class World:
                          angularDamping=0.0, lateralFriction=self.cfg.physics.ground_friction,
                          physicsClientId=self.client)
 
+    def scene_textures(self) -> dict[TextureKey, NDArray[np.uint8]]:
+        """The bodies' procedural textures, generated on first use from the world's generator (they take a
+        moment: only a camera needs them). Both renderers use these images."""
+        if self._texture_images is None:
+            self._texture_images = scene_textures(self.scene, self._rng)
+        return self._texture_images
+
     def load_textures(self) -> None:
-        """Generate and apply the procedural textures (only a camera needs them: they take a moment)."""
-        for body, texture, color, size_px in self._pending_textures:
-            p.changeVisualShape(body, -1, textureUniqueId=self._texture(texture, color, size_px),
-                                rgbaColor=[1, 1, 1, 1], physicsClientId=self.client)
+        """Apply the procedural textures to the pybullet bodies (for pybullet's renderer)."""
+        for body, key in self._pending_textures:
+            p.changeVisualShape(body, -1, textureUniqueId=self._texture(key), rgbaColor=[1, 1, 1, 1],
+                                physicsClientId=self.client)
         self._pending_textures = []
 
     # ------------------------------------------------------------------ dynamics

@@ -69,10 +69,11 @@ def test_out_of_range_depth_is_invalid(box_world):
     assert np.all(frame.depth_m[100:140, 140:180] == 0.0)
 
 
-def test_default_portrait_mount_matches_ray_casts(box_world):
+@pytest.mark.parametrize("renderer", ["raster", "pybullet"])
+def test_default_portrait_mount_matches_ray_casts(box_world, renderer):
     """Every valid pixel of the noise-free depth agrees with a pybullet ray cast through that pixel."""
     vehicle = load_vehicle()
-    cam = RgbdCamera(box_world, vehicle.camera, CameraNoiseConfig(), np.random.default_rng(1))
+    cam = RgbdCamera(box_world, vehicle.camera, CameraNoiseConfig(), np.random.default_rng(1), renderer=renderer)
     box_world.reset_pose(np.array([1.0, -1.0, -1.2]), Rz(math.radians(-10)))
     _, z = cam.render_raw(box_world.state)
     p_ned, R_ned_c = cam.pose_ned(box_world.state)
