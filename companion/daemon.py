@@ -486,7 +486,7 @@ class Companion:
         ref = reference_velocity(self.op, self._R_qc, self._scan_state(stamp), points, self.ref_params,
                                  sectors_m=sectors, block_unknown=block,
                                  operator_enabled=self.modes.operator_enabled,
-                                 sector_offset_rad=math.radians(offset_deg))
+                                 sector_offset_rad=math.radians(offset_deg), height_m=self._height_m(out))
         self.last_ref = ref
         self._send_setpoint(stamp, ref)
         self.stats.latencies_s.append(self.clock() - t_in)
@@ -496,6 +496,14 @@ class Companion:
         if out is not None:
             self._send_gcs_telemetry(stamp, out)
             self._publish_image(frame, out, ref)
+
+    @staticmethod
+    def _height_m(out: Any) -> float | None:
+        """Height above the take-off floor from the odometry (its world starts on the ground, NED)."""
+        if out is None or not out.odometry_ok or out.position_m is None:
+            return None
+        z = float(np.asarray(out.position_m, dtype=float)[2])
+        return -z if math.isfinite(z) else None
 
     def _stamp_to_autopilot(self, stamp_s: float) -> float:
         if self.cfg.timing.camera_stamps == "local":
@@ -602,7 +610,8 @@ class Companion:
             points = None if self.last_output is None else self.last_output.obstacle_points_h_m
             stamp = self._fallback_stamp(now)
             ref = reference_velocity(self.op, self._R_qc, PanScanState(0.0, 0.0, False), points, self.ref_params,
-                                     sectors_m=None, block_unknown=True, operator_enabled=self.modes.operator_enabled)
+                                     sectors_m=None, block_unknown=True, operator_enabled=self.modes.operator_enabled,
+                                     height_m=self._height_m(self.last_output))
             self.last_ref = ref
             self._send_setpoint(stamp, ref)
         imu_silent = self._imu_wall_s is None or now - self._imu_wall_s > 0.1

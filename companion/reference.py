@@ -55,7 +55,9 @@ class ReferenceParams:
     repulsion and the safe distance act in the horizontal plane, on the points within
     ``vertical_band_m`` of the vehicle's height (the camera looks down, so it samples tall obstacles
     mostly below the vehicle: in 3D their sum would push the vehicle up, and the floor is not an
-    obstacle to horizontal motion); False is the paper's 3D form.
+    obstacle to horizontal motion); False is the paper's 3D form. When the height above the take-off
+    floor is known, points within ``floor_margin_m`` of the floor are the floor, not obstacles (a low
+    vehicle sees the floor ahead at its own height: repelled by it, it would back away blindly).
     """
 
     k_v_m_s: float = 0.6
@@ -70,7 +72,8 @@ class ReferenceParams:
     max_speed_m_s: float = 1.5
     unknown_sector_guard_rad: float = math.radians(15.0)
     horizontal_only: bool = True
-    vertical_band_m: float = 0.6
+    vertical_band_m: float = 0.3
+    floor_margin_m: float = 0.15
 
 
 @dataclass(frozen=True)
@@ -118,21 +121,26 @@ def operator_velocity(op: OperatorInput, alpha_rad: float, params: ReferencePara
     return v, params.k_psi_rad_s * op.qy  # eq. (3), NED sign (see module doc)
 
 
-def _points(points_h_m: ArrayLike | None, params: ReferenceParams | None = None) -> NDArray[np.float64]:
-    """Finite points; with ``params.horizontal_only`` those within the height band, projected to z = 0."""
+def _points(points_h_m: ArrayLike | None, params: ReferenceParams | None = None,
+            height_m: float | None = None) -> NDArray[np.float64]:
+    """Finite points, minus the floor (if ``height_m`` above it is known); with ``params.horizontal_only``
+    those within the height band, projected to z = 0."""
     if points_h_m is None:
         return np.zeros((0, 3))
     p = np.asarray(points_h_m, dtype=float).reshape(-1, 3)
     p = p[np.all(np.isfinite(p), axis=1)]
+    if params is not None and height_m is not None and math.isfinite(height_m):
+        p = p[height_m - p[:, 2] > params.floor_margin_m]  # height of the point above the floor (H: z down)
     if params is not None and params.horizontal_only:
         p = p[np.abs(p[:, 2]) <= params.vertical_band_m].copy()
         p[:, 2] = 0.0
     return p
 
 
-def repulsion_velocity(points_h_m: ArrayLike | None, params: ReferenceParams) -> NDArray[np.float64]:
+def repulsion_velocity(points_h_m: ArrayLike | None, params: ReferenceParams,
+                       height_m: float | None = None) -> NDArray[np.float64]:
     """v_o of eq. (7): summed repulsive-potential gradients of the map points (vehicle at the origin of H)."""
-    p = _points(points_h_m, params)
+    p = _points(points_h_m, params, height_m)
     if p.size == 0:
         return np.zeros(3)
     d = np.linalg.norm(p, axis=1)
@@ -149,15 +157,15 @@ def repulsion_velocity(points_h_m: ArrayLike | None, params: ReferenceParams) ->
 
 
 def remove_toward_close_obstacles(v_h_m_s: NDArray[np.float64], points_h_m: ArrayLike | None,
-                                  safe_distance_m: float, params: ReferenceParams | None = None
-                                  ) -> tuple[NDArray[np.float64], bool]:
+                                  safe_distance_m: float, params: ReferenceParams | None = None,
+                                  height_m: float | None = None) -> tuple[NDArray[np.float64], bool]:
     """Remove from v every component toward an obstacle point closer than ``safe_distance_m``.
 
     Projection onto the half-spaces {v . u_j <= 0}, repeated so that removing one component cannot leave
     another one pointing at a close obstacle (converges in a few passes for a handful of directions).
     With ``params.horizontal_only`` the points are those of the height band, projected horizontally.
     """
-    p = _points(points_h_m, params)
+    p = _points(points_h_m, params, height_m)
     v = np.array(v_h_m_s, dtype=float)
     if p.size == 0:
         return v, False
@@ -220,12 +228,14 @@ def remove_toward_unknown(v_h_m_s: NDArray[np.float64], sectors_m: ArrayLike | N
 def reference_velocity(op: OperatorInput, R_qc: ArrayLike, scan: PanScanState,
                        obstacle_points_h_m: ArrayLike | None, params: ReferenceParams,
                        sectors_m: ArrayLike | None = None, block_unknown: bool = False,
-                       operator_enabled: bool = True, sector_offset_rad: float = 0.0) -> ReferenceOutput:
+                       operator_enabled: bool = True, sector_offset_rad: float = 0.0,
+                       height_m: float | None = None) -> ReferenceOutput:
     """Eqs. (2)-(8) with the safety constraints (see module doc).
 
     ``operator_enabled`` False (hold, link lost) zeroes the operator part but keeps the repulsion;
     ``block_unknown`` forbids horizontal operator motion toward unknown sectors of ``sectors_m``
-    (the caller sets it when the obstacle data are stale, passing ``sectors_m=None``).
+    (the caller sets it when the obstacle data are stale, passing ``sectors_m=None``). ``height_m``:
+    height above the take-off floor (odometry), to tell the floor from obstacles; None = unknown.
     """
     alpha = camera_yaw_rad(R_qc) + scan.yaw_offset_rad  # eq. (6)
     if not operator_enabled:
@@ -234,9 +244,9 @@ def reference_velocity(op: OperatorInput, R_qc: ArrayLike, scan: PanScanState,
     constrained = False
     if block_unknown:
         v_d, constrained = remove_toward_unknown(v_d, sectors_m, params.unknown_sector_guard_rad, sector_offset_rad)
-    v_o = repulsion_velocity(obstacle_points_h_m, params)
+    v_o = repulsion_velocity(obstacle_points_h_m, params, height_m)
     v_r = v_d + v_o  # eq. (7)
-    v_r, removed = remove_toward_close_obstacles(v_r, obstacle_points_h_m, params.safe_distance_m, params)
+    v_r, removed = remove_toward_close_obstacles(v_r, obstacle_points_h_m, params.safe_distance_m, params, height_m)
     speed = float(np.linalg.norm(v_r))
     if speed > params.max_speed_m_s:
         v_r *= params.max_speed_m_s / speed

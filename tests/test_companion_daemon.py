@@ -42,7 +42,7 @@ class FakeOutput:
     omega_q_rad_s: np.ndarray = field(default_factory=lambda: np.zeros(3))
     v_h_m_s: np.ndarray = field(default_factory=lambda: np.zeros(3))
     v_h_cov: np.ndarray = field(default_factory=lambda: np.eye(3) * 1e-3)
-    position_m: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    position_m: np.ndarray = field(default_factory=lambda: np.array([0.0, 0.0, -1.0]))  # 1 m up
     odometry_ok: bool = True
     odometry_fitness: float = 0.9
     obstacle_points_c_m: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))

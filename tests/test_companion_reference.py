@@ -230,3 +230,15 @@ def test_horizontal_only_ignores_floor_and_flattens_points() -> None:
     assert not changed and out == pytest.approx([0.0, 0.0, 0.5])
     out, changed = remove_toward_close_obstacles(np.array([0.5, 0.0, 0.0]), [[0.3, 0.0, 0.2]], 0.45, params)
     assert changed and out == pytest.approx([0.0, 0.0, 0.0])
+
+
+def test_floor_seen_ahead_by_a_low_vehicle_is_not_an_obstacle() -> None:
+    params = ReferenceParams(vertical_band_m=0.6, floor_margin_m=0.15)
+    floor_ahead = [[0.7, 0.0, 0.5], [0.8, 0.1, 0.5]]  # vehicle 0.5 m high, camera sees the floor 0.7 m ahead
+    assert np.linalg.norm(repulsion_velocity(floor_ahead, params)) > 0  # height unknown: treated as obstacle
+    assert repulsion_velocity(floor_ahead, params, height_m=0.5) == pytest.approx([0, 0, 0])
+    # a box 0.3 m tall 0.6 m ahead of the same vehicle is still an obstacle
+    box = [[0.6, 0.0, 0.2]]
+    assert repulsion_velocity(box, params, height_m=0.5)[0] < 0
+    out = reference_velocity(OperatorInput(), R_QC_FORWARD, NO_SCAN, floor_ahead, params, height_m=0.5)
+    assert out.v_ref_h_m_s == pytest.approx([0, 0, 0])
