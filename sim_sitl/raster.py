@@ -39,7 +39,10 @@ AMBIENT = 0.6  # pybullet tiny renderer's default light coefficients (ambient, d
 DIFFUSE = 0.35
 BACKGROUND_RGB = (255, 255, 255)
 ATLAS_WIDTH_PX = 4096  # cv2.remap takes coordinates below 32768
-PAD_PX = 2  # replicated border around each face's texture: bilinear lookups stay inside their face
+# replicated border around each face's texture. A pixel on a face's edge may have its ray just miss the face
+# (its centre within ~0.5 px outside): its lookup lands outside the face's texels by up to the pixel's
+# footprint in texels (<= 13 texels over the test poses, more only at extreme grazing): the border catches it.
+PAD_PX = 16
 _SHIFT = 4  # sub-pixel bits for cv2.fillConvexPoly
 # cv2.fillConvexPoly rounds vertices to whole pixels and fills boundaries inclusively (~0.5 px too much on
 # every side); moving each edge 0.4 px inward makes coverage follow the pixel centres best: against pybullet
@@ -226,9 +229,6 @@ class RasterRenderer:
             self._G[i, 1] = f.e_v * (h_in / f.len_v_m)
             self._h[i, 0] = x + PAD_PX - 0.5 - self._G[i, 0] @ f.origin
             self._h[i, 1] = y + PAD_PX - 0.5 - self._G[i, 1] @ f.origin
-        # each face's texels in the atlas: lookups are clamped to them (an edge pixel's ray may just miss its face)
-        self._bounds = np.array([(x + PAD_PX - 0.5, x + t.shape[1] - PAD_PX - 0.5, y + PAD_PX - 0.5,
-                                  y + t.shape[0] - PAD_PX - 0.5) for t, (x, y) in zip(tiles, pos, strict=True)])
         bx, by = pos[-1]
         self._background_xy = (bx + PAD_PX, by + PAD_PX)
         self._grids: dict[tuple[int, int], tuple[NDArray[np.float32], NDArray[np.float32]]] = {}
@@ -281,7 +281,7 @@ class RasterRenderer:
         for slot, poly in enumerate(self._screen_polygons(Xc, drawn, k, near_m), start=1):
             if poly is not None:
                 cv2.fillConvexPoly(ids, poly, slot, cv2.LINE_8, _SHIFT)
-        coef = self._coefficients(p, R, k, far_m, drawn)  # (13, len(drawn) + 1)
+        coef = self._coefficients(p, R, k, far_m, drawn)  # (9, len(drawn) + 1)
         if ids.dtype == np.uint8:
             table = np.zeros((len(coef), 256), np.float32)
             table[:, :coef.shape[1]] = coef
@@ -301,8 +301,6 @@ class RasterRenderer:
         ay += c[7] * v
         ay += c[8]
         ay *= depth
-        np.clip(ax, c[9], c[10], out=ax)
-        np.clip(ay, c[11], c[12], out=ay)
         map1, map2 = cv2.convertMaps(ax.reshape(H, W), ay.reshape(H, W), cv2.CV_16SC2)
         rgba = cv2.remap(self.atlas, map1, map2, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
         rgb = np.asarray(cv2.cvtColor(rgba, cv2.COLOR_RGBA2RGB), dtype=np.uint8)
@@ -346,14 +344,14 @@ class RasterRenderer:
     def _coefficients(self, p: NDArray[np.float64], R: NDArray[np.float64], k: CameraIntrinsics,
                       far_m: float, faces: NDArray[np.int64]) -> NDArray[np.float32]:
         """Columns (background, then ``faces``) of rows A, S, T: 1/z = A.(u, v, 1), atlas x = z S.(u, v, 1),
-        atlas y = z T.(u, v, 1), then the face's atlas bounds (x min, x max, y min, y max).
+        atlas y = z T.(u, v, 1).
 
         With r = K^-1 (u, v, 1) and the plane n.X = d (NED): z (R^T n).r = d - n.p, so
         A = (R^T n)^T K^-1 / (d - n.p); and atlas x = G.(p + R z r) + h = z [(R^T G)^T K^-1 + (G.p + h) A].(u, v, 1).
         """
         Kinv = np.array([[1 / k.fx, 0.0, -k.cx / k.fx], [0.0, 1 / k.fy, -k.cy / k.fy], [0.0, 0.0, 1.0]])
         n, d, G, h = self._normal[faces], self._plane_d[faces], self._G[faces], self._h[faces]
-        out = np.zeros((len(faces) + 1, 13))
+        out = np.zeros((len(faces) + 1, 9))
         dc = d - n @ p
         dc = np.where(np.abs(dc) < 1e-9, -1e-9, dc)  # only front faces (dc < 0) are drawn
         A = (n @ R @ Kinv) / dc[:, None]
@@ -362,10 +360,8 @@ class RasterRenderer:
         off = G @ p + h  # (F, 2)
         out[1:, 3:6] = GR[:, 0] + off[:, 0:1] * A
         out[1:, 6:9] = GR[:, 1] + off[:, 1:2] * A
-        out[0, :9] = (0.0, 0.0, 1.0 / far_m, 0.0, 0.0, self._background_xy[0] / far_m, 0.0, 0.0,
-                      self._background_xy[1] / far_m)
-        out[0, 9:] = self._bounds[-1]
-        out[1:, 9:] = self._bounds[faces]
+        out[0] = (0.0, 0.0, 1.0 / far_m, 0.0, 0.0, self._background_xy[0] / far_m, 0.0, 0.0,
+                  self._background_xy[1] / far_m)
         return np.ascontiguousarray(out.T, dtype=np.float32)
 
 

@@ -200,7 +200,8 @@ class SitlStats:
     port1_frames_dropped: int = 0
     port1_frames_late: int = 0
     camera_frames: int = 0
-    camera_render_s: float = 0.0
+    camera_render_s: float = 0.0  # wall time in render + noise model
+    camera_render_cpu_s: float = 0.0  # process CPU time in render + noise model (time.process_time)
     setpoints: int = 0
     lockstep_timeouts: int = 0
     camera_ack_timeouts: int = 0
@@ -448,9 +449,10 @@ class Sitl:
         assert self.camera is not None and self.camera_server is not None
         if self.camera_server.client_count == 0:
             return  # nobody watching: do not pay for rendering
-        t0 = time.perf_counter()
+        t0, cpu0 = time.perf_counter(), time.process_time()
         frame = self.camera.render(state, self._camera_seq, t_s)
         self.stats.camera_render_s += time.perf_counter() - t0
+        self.stats.camera_render_cpu_s += time.process_time() - cpu0
         self.camera_server.publish(frame)
         self.stats.camera_frames += 1
         if self.options.lockstep and self.camera_server.client_count > 0:
