@@ -96,12 +96,9 @@ def run_demo(scenario: str, duration_s: float, out_dir: Path, script: Path, lock
         next_progress = 0.0
         while not interrupted:
             time.sleep(0.2)
-            if not stack.is_running("teleop"):
-                code = stack.wait_exit("teleop", 1.0)
-                if code == 0:
-                    log.info("operator script finished")
-                    break
-            stack.check()
+            if "teleop" in stack.check(may_finish=frozenset({"teleop"})):
+                log.info("operator script finished")
+                break
             t = recorder.truth
             if math.isfinite(t.sim_time_s) and t.sim_time_s >= duration_s:
                 log.info("duration of %.0f s simulated time reached", duration_s)

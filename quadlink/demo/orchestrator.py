@@ -76,25 +76,22 @@ class Stack:
             time.sleep(0.05)
         return running
 
-    def check(self) -> None:
-        """Raise :class:`ProcessDied` if a part has exited; also samples CPU time."""
+    def check(self, may_finish: frozenset[str] = frozenset()) -> set[str]:
+        """Raise :class:`ProcessDied` if a part has exited, unless it is in ``may_finish`` and exited 0.
+
+        Returns the names of the parts that finished cleanly; also samples CPU time.
+        """
+        finished = set()
         for r in self.running:
             self._sample_cpu(r)
             code = r.popen.poll()
-            if code is not None:
-                raise ProcessDied(r.spec.name, code, _tail(r.log_path))
-
-    def is_running(self, name: str) -> bool:
-        return any(r.spec.name == name and r.popen.poll() is None for r in self.running)
-
-    def wait_exit(self, name: str, timeout_s: float) -> int | None:
-        for r in self.running:
-            if r.spec.name == name:
-                try:
-                    return r.popen.wait(timeout=timeout_s)
-                except subprocess.TimeoutExpired:
-                    return None
-        return None
+            if code is None:
+                continue
+            if code == 0 and r.spec.name in may_finish:
+                finished.add(r.spec.name)
+                continue
+            raise ProcessDied(r.spec.name, code, _tail(r.log_path))
+        return finished
 
     @staticmethod
     def _sample_cpu(r: Running) -> None:

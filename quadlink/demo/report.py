@@ -138,11 +138,17 @@ def compute_report(flight: FlightLog, cpu_s: dict[str, float] | None = None, sce
         flying = _flying_mask(flight, flight.t_dist1)
         d = flight.dist1_m[flying] if np.any(flying) else flight.dist1_m
         report["min_true_obstacle_distance_m"] = float(np.min(d))
-    if flight.t_dist0.size and flight.t_fb.size:
+    if flight.t_dist1.size and flight.t_fb.size:
+        # The companion's map leaves the floor out by design (repulsion acts in a horizontal band), so its
+        # nearest obstacle is compared with the truth of the same kind: nearest surface excluding floor and
+        # ceiling (DISTANCE_SENSOR id 1). The paper's all-surfaces comparison is reported beside it.
         flying = _flying_mask(flight, flight.t_fb)
         est = np.where(flying, flight.obstacle_est_m, np.nan)
-        report["fraction_estimate_le_truth"] = metrics.fraction_at_or_below(flight.t_fb, est, flight.t_dist0,
-                                                                            flight.dist0_m)
+        report["fraction_estimate_le_truth"] = metrics.fraction_at_or_below(flight.t_fb, est, flight.t_dist1,
+                                                                            flight.dist1_m)
+        if flight.t_dist0.size:
+            report["fraction_estimate_le_truth_all_surfaces"] = metrics.fraction_at_or_below(
+                flight.t_fb, est, flight.t_dist0, flight.dist0_m)
     if flight.t_fb.size:
         teleop = flight.mode == 2
         if np.sum(teleop) > 30:
