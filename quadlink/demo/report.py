@@ -263,13 +263,18 @@ def make_plots(flight: FlightLog, out_dir: Path, safe_distance_m: float = SAFE_D
         t_key = next((k for k in flight.force if k.startswith("t")), None)
         if t_key:
             fig, ax = plt.subplots(figsize=(10, 3.5))
+            colours = {"x": "tab:blue", "y": "tab:orange", "z": "tab:green"}
             for key, values in flight.force.items():
-                if key != t_key and (key.startswith("tau") or key.startswith("f_") or key.startswith("force")):
-                    ax.plot(flight.force[t_key], values, lw=1, label=key)
-            ax.set_xlabel("time [s]")
+                axis = key.split("_")[1] if key.count("_") >= 2 else ""
+                if key.startswith("tau_"):  # the device's feedback force, eq. (15)
+                    ax.plot(flight.force[t_key], values, lw=1, color=colours.get(axis), label=f"feedback {axis}")
+                elif key.startswith("fop_"):  # the (scripted) operator's force on the handle
+                    ax.plot(flight.force[t_key], values, lw=1, ls="--", color=colours.get(axis),
+                            label=f"operator {axis}")
+            ax.set_xlabel("ground-station time [s]")
             ax.set_ylabel("force [N]")
             ax.grid(alpha=0.3)
-            ax.legend(loc="upper right", ncol=3)
+            ax.legend(loc="lower left", ncol=3, fontsize=8)
             ax.set_title("Operator force and haptic feedback")
             paths.append(_save(fig, out_dir / "force.png"))
     return paths
