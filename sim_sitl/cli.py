@@ -2,13 +2,14 @@
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import signal
 
 import click
 
 from quadlink.errors import ConfigError, LinkError
-from sim_sitl.config import known_scenarios, load_sitl_config
+from sim_sitl.config import RendererName, known_scenarios, load_sitl_config
 
 log = logging.getLogger(__name__)
 
@@ -21,6 +22,8 @@ log = logging.getLogger(__name__)
               help="sim speed factor vs wall clock (default 1.0; 0 = as fast as possible)")
 @click.option("--camera-res", default=None, help="320x240 (default) or 640x480")
 @click.option("--no-camera", is_flag=True, help="do not render or serve the RGB-D camera")
+@click.option("--renderer", type=click.Choice(["raster", "pybullet"]), default=None,
+              help="camera renderer (default: camera.renderer of the config, raster)")
 @click.option("--pty", is_flag=True, help="also expose both MK ports as pseudo-terminals (paths are logged)")
 @click.option("--port1", type=int, default=5760, show_default=True, help="MK port 1 TCP port (commands)")
 @click.option("--port2", type=int, default=5761, show_default=True, help="MK port 2 TCP port (IMU)")
@@ -29,11 +32,13 @@ log = logging.getLogger(__name__)
               help="ground-truth MAVLink endpoint (udpout:HOST:PORT, 'none' to disable)")
 @click.option("--duration", type=float, default=None, help="stop after this many simulated seconds")
 def command(scenario: str | None, config_path: str | None, lockstep: bool, speed: float | None,
-            camera_res: str | None, no_camera: bool, pty: bool, port1: int, port2: int, camera_port: int, truth: str,
-            duration: float | None) -> None:
+            camera_res: str | None, no_camera: bool, renderer: RendererName | None, pty: bool, port1: int, port2: int,
+            camera_port: int, truth: str, duration: float | None) -> None:
     from sim_sitl.runner import Sitl, SitlOptions, parse_resolution
 
     cfg = load_sitl_config(config_path)
+    if renderer is not None:
+        cfg = dataclasses.replace(cfg, camera=dataclasses.replace(cfg.camera, renderer=renderer))
     if speed is not None and speed < 0:
         raise ConfigError(f"--speed must be positive (or 0 for as fast as possible), got {speed}")
     res = None

@@ -39,6 +39,11 @@ def test_cli_bad_camera_resolution():
     assert result.exit_code == 2 and "camera-res" in result.output
 
 
+def test_cli_unknown_renderer():
+    result = CliRunner().invoke(main, ["sitl", "--renderer", "opengl"])
+    assert result.exit_code == 2 and "renderer" in result.output
+
+
 @pytest.mark.sitl
 def test_cli_runs_for_a_duration_and_logs_endpoints(caplog):
     with caplog.at_level("INFO"):
