@@ -203,3 +203,21 @@ def test_camera_mount_and_noise_model_are_shared_by_both_renderers():
         assert abs(patch[0].mean() - patch[1].mean()) < 0.003
     finally:
         world.close()
+
+
+def test_more_than_255_faces_in_view_use_the_wide_id_buffer():
+    """121 small cubes in a wall of cubes 2 m ahead show ~330 faces: ids no longer fit 8 bits."""
+    cubes = tuple(SceneObject(kind="box", position_m=(2.0, y, z), size_m=(0.1, 0.1, 0.1))
+                  for y in np.linspace(-1.0, 1.0, 11) for z in np.linspace(-2.5, -0.5, 11))
+    r = _pure_renderer(cubes)
+    k = CameraIntrinsics.from_fov(320, 240, 58.0, 45.0)
+    p = np.array([0.0, 0.0, -1.5])
+    _, z = r.render(p, np.array(FORWARD), k, NOISE.near_clip_m, NOISE.far_clip_m)
+    seen = 0
+    for c in cubes:
+        d = np.array(c.position_m) - p  # NED; optical x = east, y = down, z = north
+        u, v = k.cx + k.fx * d[1] / (d[0] - 0.05), k.cy + k.fy * d[2] / (d[0] - 0.05)
+        if 0 <= u < k.width and 0 <= v < k.height:
+            assert z[round(v), round(u)] == pytest.approx(1.95, abs=1e-4), c.position_m
+            seen += 1
+    assert seen > 50
