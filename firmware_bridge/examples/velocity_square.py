@@ -72,7 +72,8 @@ class TruthOdometry:
             v_q = R_from_quat_wxyz(q).T @ v
             msg = self.encoder.odometry_encode(int(time.monotonic() * 1e6), mavlink.MAV_FRAME_LOCAL_FRD,
                                                mavlink.MAV_FRAME_BODY_FRD, float(p[0]), float(p[1]), float(p[2]),
-                                               [float(x) for x in q], float(v_q[0]), float(v_q[1]), float(v_q[2]), 0, 0, 0,
+                                               [float(x) for x in q], float(v_q[0]), float(v_q[1]),
+                                               float(v_q[2]), 0, 0, 0,
                                                [math.nan] * 21, [math.nan] * 21, 0, 0, 100)
             buf = msg.pack(self.encoder)
             self.encoder.seq = (self.encoder.seq + 1) % 256
