@@ -364,6 +364,7 @@ class RasterRenderer:
         inv_z = c[0] * u
         inv_z += c[1] * v
         inv_z += c[2]
+        np.maximum(inv_z, np.float32(1.0 / far_m), out=inv_z)  # an edge pixel's ray may meet its plane behind
         depth = np.float32(1.0) / inv_z
         ax = c[3] * u
         ax += c[4] * v
