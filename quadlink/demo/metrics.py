@@ -81,29 +81,26 @@ class Sinusoid:
 
 
 def fit_sinusoid(t_s: Array, y: Array, min_hz: float = 0.02, max_hz: float = 5.0) -> Sinusoid:
-    """Least-squares ``offset + a sin(2 pi f t + phase)``: frequency from a periodogram, refined by a scan.
+    """Least-squares ``offset + a sin(2 pi f t + phase)`` with the frequency unknown.
 
-    Works on irregular sampling (a dense grid of trial frequencies, closed-form linear fit at each).
+    Scans trial frequencies (coarse log grid, then a fine one around the best) and, at each, uses the
+    companion's closed-form fit at a known pulsation (:func:`companion.identification.fit_sinusoid`);
+    works on irregular sampling.
     """
+    from companion.identification import fit_sinusoid as fit_at
+
     t = np.asarray(t_s, dtype=float)
     y = np.asarray(y, dtype=float)
     ok = np.isfinite(t) & np.isfinite(y)
     t, y = t[ok], y[ok]
     if t.size < 8:
         return Sinusoid(math.nan, math.nan, math.nan, math.nan, math.nan)
-    span = t[-1] - t[0]
-    lo = max(min_hz, 1.0 / max(span, 1e-6))
+    lo = max(min_hz, 1.0 / max(t[-1] - t[0], 1e-6))
 
-    def fit(f: float) -> tuple[float, Array]:
-        w = 2 * math.pi * f
-        A = np.column_stack([np.sin(w * t), np.cos(w * t), np.ones_like(t)])
-        coef, *_ = np.linalg.lstsq(A, y, rcond=None)
-        return float(np.sum((A @ coef - y) ** 2)), coef
+    def residual(f: float) -> float:
+        return fit_at(t, y, 2 * math.pi * f).rms_residual
 
-    coarse = np.geomspace(lo, max_hz, 400)
-    best = min(coarse, key=lambda f: fit(f)[0])
-    fine = np.linspace(best * 0.97, best * 1.03, 121)
-    f_best = min(fine, key=lambda f: fit(f)[0])
-    sse, (a_sin, a_cos, offset) = fit(f_best)
-    return Sinusoid(float(math.hypot(a_sin, a_cos)), float(f_best), float(math.atan2(a_cos, a_sin)),
-                    float(offset), float(math.sqrt(sse / t.size)))
+    best = min(np.geomspace(lo, max_hz, 400), key=residual)
+    f_best = float(min(np.linspace(best * 0.97, best * 1.03, 121), key=residual))
+    fit = fit_at(t, y, 2 * math.pi * f_best)
+    return Sinusoid(fit.amplitude, f_best, fit.phase_rad, fit.offset, fit.rms_residual)
