@@ -78,21 +78,25 @@ class OdometryResult:
     fitness: float
 
 
+_I3 = np.eye(3)
+
+
 def se3_exp(xi: NDArray[np.float64]) -> Mat4:
     """Exponential map of a twist (v, omega) to a 4x4 transform."""
-    v, w = xi[:3], xi[3:]
-    theta = float(np.linalg.norm(w))
-    W = np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
+    v = xi[:3]
+    w0, w1, w2 = float(xi[3]), float(xi[4]), float(xi[5])
+    theta = math.sqrt(w0 * w0 + w1 * w1 + w2 * w2)
+    W = np.array([[0.0, -w2, w1], [w2, 0.0, -w0], [-w1, w0, 0.0]])
     if theta < 1e-9:
-        R = np.eye(3) + W
-        V = np.eye(3) + 0.5 * W
+        R = _I3 + W
+        V = _I3 + 0.5 * W
     else:
         a = math.sin(theta) / theta
         b = (1.0 - math.cos(theta)) / theta**2
         c = (1.0 - a) / theta**2
         W2 = W @ W
-        R = np.eye(3) + a * W + b * W2
-        V = np.eye(3) + b * W + c * W2
+        R = _I3 + a * W + b * W2
+        V = _I3 + b * W + c * W2
     T = np.eye(4)
     T[:3, :3] = R
     T[:3, 3] = V @ v
@@ -252,30 +256,54 @@ def _sample(tex: Image, u: NDArray[np.float32], v: NDArray[np.float32]) -> Image
     return out.reshape(rows * width, -1)[:n]
 
 
-def _t_weights_masked(r: NDArray[np.float64], n_valid: int, nu: float, s2_start: float, s2_min: float
-                      ) -> tuple[NDArray[np.float64], float]:
-    """:func:`_t_weights` over the valid entries of ``r`` (invalid ones are 0 and do not count)."""
-    r2 = r * r
-    s2 = s2_start if s2_start > 0 else max(float(r2.sum()) / n_valid, s2_min)
+def _t_weights_masked(r2: NDArray[np.float32], n_valid: int, nu: float, s2_start: float, s2_min: float,
+                      out: NDArray[np.float32]) -> float:
+    """t-distribution weights (DVO) of squared residuals ``r2`` into ``out``; returns the scale s^2.
+
+    Invalid entries have ``r2 = 0`` and are not counted in ``n_valid``. The scale is re-estimated by a few
+    fixed-point steps (4 from the plain mean square, 2 from the previous iteration's scale).
+    """
+    s2 = s2_start if s2_start > 0 else max(float(r2.sum(dtype=np.float64)) / n_valid, s2_min)
+    a = np.float32(nu + 1.0)
     for _ in range(2 if s2_start > 0 else 4):
-        w = (nu + 1.0) / (nu + r2 / s2)
-        s2 = max(float((w * r2).sum()) / n_valid, s2_min)
-    return (nu + 1.0) / (nu + r2 / s2), s2
+        np.multiply(r2, np.float32(1.0 / s2), out=out)
+        out += np.float32(nu)
+        np.divide(a, out, out=out)
+        s2 = max(float(np.dot(out, r2)) / n_valid, s2_min)
+    np.multiply(r2, np.float32(1.0 / s2), out=out)
+    out += np.float32(nu)
+    np.divide(a, out, out=out)
+    return s2
 
 
-def _fill_rows(out: NDArray[np.float64], x: NDArray[np.float64], y: NDArray[np.float64], z: NDArray[np.float64],
-               iz: NDArray[np.float64], a: NDArray[np.float64], b: NDArray[np.float64], dz: float) -> None:
+def _fill_rows(out: NDArray[np.float32], x: NDArray[np.float32], y: NDArray[np.float32], z: NDArray[np.float32],
+               iz: NDArray[np.float32], a: NDArray[np.float32], b: NDArray[np.float32], dz: float,
+               tmp: NDArray[np.float32]) -> None:
     """Write the 6 × N Jacobian rows (left se(3) increment) of a residual with pixel gradient scaled by
-    ``f/z``: ``a = g_u f_x / z``, ``b = g_v f_y / z``; ``dz`` is the residual's direct d/dz (-1 for depth)."""
-    c = -(a * x + b * y) * iz
+    ``f/z``: ``a = g_u f_x / z``, ``b = g_v f_y / z``; ``dz`` is the residual's direct d/dz (-1 for depth).
+
+    ``a`` and ``b`` may alias ``out[0]`` and ``out[1]``; ``tmp`` is scratch of length N."""
+    c = out[2]
+    np.multiply(a, x, out=c)
+    np.multiply(b, y, out=tmp)
+    c += tmp
+    c *= iz
+    np.negative(c, out=c)
     if dz:
-        c += dz
-    out[0] = a
-    out[1] = b
-    out[2] = c
-    out[3] = y * c - z * b      # P x g
-    out[4] = z * a - x * c
-    out[5] = x * b - y * a
+        c += np.float32(dz)
+    if a is not out[0]:
+        out[0] = a
+    if b is not out[1]:
+        out[1] = b
+    np.multiply(y, c, out=out[3])       # P x g
+    np.multiply(z, b, out=tmp)
+    out[3] -= tmp
+    np.multiply(z, a, out=out[4])
+    np.multiply(x, c, out=tmp)
+    out[4] -= tmp
+    np.multiply(x, b, out=out[5])
+    np.multiply(y, a, out=tmp)
+    out[5] -= tmp
 
 
 class RgbdOdometry:
@@ -345,20 +373,36 @@ class RgbdOdometry:
             s2_i = s2_z = 0.0
             eps_level = cfg.convergence_eps * (2.0**li)   # coarse levels only need to land in the basin
             N = n_points
-            P0t = np.ascontiguousarray(P0.T)              # 3×N rows: contiguous vector ops
-            I0f = I0.astype(np.float64)
-            # one Jacobian for both residual kinds: rows [0, N) photometric, [N, 2N) depth (6 × 2N, row-major)
-            J = np.empty((6, 2 * N))
-            r = np.empty(2 * N)
-            wr = np.empty(2 * N)
+            P0t = np.ascontiguousarray(P0.T, dtype=np.float32)   # 3×N rows: contiguous float32 vector ops
+            I0f = I0.astype(np.float32)
+            fx, fy = np.float32(K.fx), np.float32(K.fy)
+            cx, cy = np.float32(K.cx), np.float32(K.cy)
+            # one Jacobian for both residual kinds: rows [0, N) photometric, [N, 2N) depth (6 × 2N, row-major),
+            # float32 (the 6×6 normal equations are accumulated by BLAS and solved in float64)
+            J = np.empty((6, 2 * N), np.float32)
+            Jw = np.empty_like(J)
+            r = np.empty(2 * N, np.float32)
+            r2 = np.empty(2 * N, np.float32)
+            wr = np.empty(2 * N, np.float32)
+            P = np.empty((3, N), np.float32)
+            iz = np.empty(N, np.float32)
+            u = np.empty(N, np.float32)
+            v = np.empty(N, np.float32)
+            tmp = np.empty(N, np.float32)
             for _ in range(iters):
                 total_iters += 1
-                P = T[:3, :3] @ P0t + T[:3, 3:4]
+                np.matmul(T[:3, :3].astype(np.float32), P0t, out=P)
+                P += T[:3, 3:4].astype(np.float32)
                 x, y, z = P[0], P[1], P[2]
                 front = z > 1e-3
-                iz = 1.0 / np.maximum(z, 1e-3)
-                u = (K.fx * x * iz + K.cx).astype(np.float32)
-                v = (K.fy * y * iz + K.cy).astype(np.float32)
+                np.maximum(z, np.float32(1e-3), out=iz)
+                np.divide(np.float32(1.0), iz, out=iz)
+                np.multiply(x, iz, out=u)
+                u *= fx
+                u += cx
+                np.multiply(y, iz, out=v)
+                v *= fy
+                v += cy
                 si = _sample(lc.intensity_tex, u, v)
                 sd = _sample(lc.depth_tex, u, v)
                 ok_i = (si[:, 3] > 0.999) & front
@@ -367,33 +411,47 @@ class RgbdOdometry:
                     break
                 ok_z = ok_i & (sd[:, 3] > 0.999) if use_depth else np.zeros(N, bool)
                 n_z = int(np.count_nonzero(ok_z))
-                r_i = np.where(ok_i, si[:, 0] - I0f, 0.0)
-                w_i, s2_i = _t_weights_masked(r_i, n_i, cfg.t_dof, s2_i, cfg.min_intensity_sigma**2)
-                r[:N] = r_i
-                wr[:N] = w_i * ok_i / s2_i
-                fx_iz, fy_iz = K.fx * iz, K.fy * iz
-                _fill_rows(J[:, :N], x, y, z, iz, si[:, 1] * fx_iz, si[:, 2] * fy_iz, 0.0)
+                ri, wi = r[:N], wr[:N]
+                np.subtract(si[:, 0], I0f, out=ri)
+                ri *= ok_i
+                np.multiply(ri, ri, out=r2[:N])
+                s2_i = _t_weights_masked(r2[:N], n_i, cfg.t_dof, s2_i, cfg.min_intensity_sigma**2, wi)
+                wi *= ok_i
+                wi *= np.float32(1.0 / s2_i)
+                np.multiply(iz, fx, out=u)     # u, v are free after sampling: f/z
+                np.multiply(iz, fy, out=v)
+                Ji = J[:, :N]
+                np.multiply(si[:, 1], u, out=Ji[0])
+                np.multiply(si[:, 2], v, out=Ji[1])
+                _fill_rows(Ji, x, y, z, iz, Ji[0], Ji[1], 0.0, tmp)
                 if n_z >= cfg.min_points:
-                    r_z = np.where(ok_z, sd[:, 0] - z, 0.0)
-                    w_z, s2_z = _t_weights_masked(r_z, n_z, cfg.t_dof, s2_z, cfg.min_depth_sigma_m**2)
-                    r[N:] = r_z
-                    wr[N:] = w_z * ok_z * (cfg.depth_weight / s2_z)
-                    _fill_rows(J[:, N:], x, y, z, iz, sd[:, 1] * fx_iz, sd[:, 2] * fy_iz, -1.0)
+                    rz, wz = r[N:], wr[N:]
+                    np.subtract(sd[:, 0], z, out=rz)
+                    rz *= ok_z
+                    np.multiply(rz, rz, out=r2[N:])
+                    s2_z = _t_weights_masked(r2[N:], n_z, cfg.t_dof, s2_z, cfg.min_depth_sigma_m**2, wz)
+                    wz *= ok_z
+                    wz *= np.float32(cfg.depth_weight / s2_z)
+                    Jz = J[:, N:]
+                    np.multiply(sd[:, 1], u, out=Jz[0])
+                    np.multiply(sd[:, 2], v, out=Jz[1])
+                    _fill_rows(Jz, x, y, z, iz, Jz[0], Jz[1], -1.0, tmp)
                 else:
                     r[N:] = 0.0
                     wr[N:] = 0.0
                     J[:, N:] = 0.0
-                Jw = J * wr
-                H = Jw @ J.T
-                g = Jw @ r
+                np.multiply(J, wr, out=Jw)
+                H = (Jw @ J.T).astype(np.float64)
+                g = (Jw @ r).astype(np.float64)
                 if R_prior is not None:
                     r_p = so3_log(T[:3, :3] @ R_prior.T)
-                    H[3:, 3:] += info_prior * np.eye(3)
+                    H[3:, 3:] += info_prior * _I3
                     g[3:] += info_prior * r_p
-                try:
-                    delta = -np.linalg.solve(H, g)
-                except np.linalg.LinAlgError:
+                # 6×6 symmetric positive definite: Cholesky (cv2.solve is far cheaper than numpy's per call)
+                solved, sol = cv2.solve(H, -g.reshape(6, 1), flags=cv2.DECOMP_CHOLESKY)
+                if not solved:
                     break
+                delta = np.asarray(sol, dtype=np.float64).ravel()
                 if not np.all(np.isfinite(delta)):
                     break
                 T = se3_exp(delta) @ T
