@@ -433,8 +433,11 @@ def test_takeoff_without_odometry_on_the_ground_climbs_open_loop_then_closed_loo
         time.sleep(1.0)
         p_ground, _, _ = stack.state()
         assert gcs.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1) == mavlink.MAV_RESULT_ACCEPTED
-        time.sleep(1.0)  # armed on the ground without odometry: no failsafe
-        hb = gcs.recv("HEARTBEAT", 3.0)
+        # armed on the ground without odometry: no failsafe. Heartbeats follow board time, which runs slower
+        # than the wall clock on a loaded machine, so wait for the armed one instead of taking the next one.
+        hb = gcs.recv("HEARTBEAT", 15.0, lambda m: m.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED)
+        assert hb is not None, "no armed heartbeat"
+        hb = gcs.recv("HEARTBEAT", 5.0)  # and it stays armed, not critical, one heartbeat later
         assert hb is not None and hb.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED
         assert hb.system_status != mavlink.MAV_STATE_CRITICAL
         assert gcs.command(mavlink.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, math.nan, math.nan, math.nan, 1.2) \
@@ -477,7 +480,9 @@ def test_takeoff_with_no_odometry_at_all_is_bounded_and_lands(stack):
         watcher = threading.Thread(target=watch, args=(float(p_ground[2]),), daemon=True)
         watcher.start()
         assert gcs.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1) == mavlink.MAV_RESULT_ACCEPTED
-        time.sleep(0.5)
+        # wait for the armed heartbeat (board time may run slower than the wall clock), so a heartbeat from
+        # before the arm cannot pass for the landing below
+        assert gcs.recv("HEARTBEAT", 15.0, lambda m: m.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED) is not None
         assert gcs.command(mavlink.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, math.nan, math.nan, math.nan, 4.0) \
             == mavlink.MAV_RESULT_ACCEPTED
         texts: list[str] = []
