@@ -9,6 +9,7 @@ the pan-scan yaw swing (or replayed from a TUM folder with ``--tum``).
   autopilot side (both clocks in this process). Reference targets: p50 <= 15 ms, p99 <= 30 ms.
 * CPU: user+system seconds of the daemon process over the measured span / seconds of flight (real-time
   pacing: flight time = wall time). Reference target: <= 0.3 core-s/s.
+* link decode: CPU µs per HIGHRES_IMU received, ``mavutil`` ``recv_msg`` vs the daemon's codec reader.
 
     python benchmarks/bench_companion.py [--seconds 20] [--tum /work/shared/data/tum_fr1_xyz_head]
 """
@@ -175,6 +176,33 @@ def perception_alone(frames: list[RgbdFrame], rates: np.ndarray) -> dict[str, fl
     return {"p50_s": float(np.median(frame_s)), "cpu_core_s_per_s": cpu / (len(frames) / FPS)}
 
 
+def link_decode_cost(messages: int = 2000, reps: int = 5) -> dict[str, float]:
+    """CPU µs per HIGHRES_IMU received on a UDP link: mavutil's ``recv_msg`` vs the daemon's
+    :class:`companion.link_reader.CodecReader` (the dialect's codec on raw datagrams); median of ``reps``."""
+    from companion.link_reader import CodecReader
+
+    out: dict[str, list[float]] = {"mavutil": [], "codec": []}
+    for _ in range(reps):
+        for kind in out:
+            port = free_udp_port()
+            rx = open_mavlink(f"udpin:127.0.0.1:{port}", 1, 191)
+            tx = open_mavlink(f"udpout:127.0.0.1:{port}", 1, 1)
+            reader = CodecReader(rx) if kind == "codec" else rx
+            n, cpu = 0, 0.0
+            for _burst in range(messages // 200):
+                for i in range(200):   # a burst fits the socket buffer; then drained
+                    tx.mav.highres_imu_send(i * 2000, 0.0, 0.0, -9.81, 0.0, 0.0, 0.1, 0, 0, 0, 0, 0, 0, 20.0, 0x3F)
+                time.sleep(0.01)
+                t0 = time.process_time()
+                while (m := reader.recv_msg()) is not None:
+                    n += m.get_type() == "HIGHRES_IMU"
+                cpu += time.process_time() - t0
+            out[kind].append(cpu / max(n, 1) * 1e6)
+            rx.close()
+            tx.close()
+    return {k: float(np.median(v)) for k, v in out.items()}
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--seconds", type=float, default=20.0, help="measured flight time (after a 3 s warm-up)")
@@ -196,6 +224,10 @@ def main() -> None:
     print(f"  of which perception alone (same frames, in-process): on_frame p50 {p['p50_s'] * 1e3:.2f} ms, "
           f"{p['cpu_core_s_per_s']:.3f} core-s/s  -> companion's own share: latency "
           f"{(r['p50_s'] - p['p50_s']) * 1e3:.2f} ms, CPU {r['cpu_core_s_per_s'] - p['cpu_core_s_per_s']:.3f} core-s/s")
+    d = link_decode_cost()
+    print(f"  autopilot link, CPU per HIGHRES_IMU received: mavutil recv_msg {d['mavutil']:.1f} us, codec reader "
+          f"{d['codec']:.1f} us (x{IMU_HZ} Hz = {d['mavutil'] * IMU_HZ * 1e-6:.3f} vs "
+          f"{d['codec'] * IMU_HZ * 1e-6:.3f} core-s/s)")
 
 
 if __name__ == "__main__":
