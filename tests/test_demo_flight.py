@@ -55,7 +55,7 @@ def test_short_demo_flight(tmp_path: Path) -> None:
 @pytest.mark.slow
 def test_paper_experiment_full(tmp_path: Path) -> None:
     out = tmp_path / "report"
-    report = run_demo("paper-arena", duration_s=80.0, out_dir=out,
+    report = run_demo("paper-arena", duration_s=90.0, out_dir=out,
                       script=CONFIG_DIR / "teleop_scripts" / "paper_experiment.yaml", lockstep=True,
                       port_offset=OFFSET, progress_every_s=10.0)
     _assert_common(report, out)

@@ -129,7 +129,7 @@ def run_demo(scenario: str, duration_s: float, out_dir: Path, script: Path, lock
 
 @click.command(name="demo")
 @click.option("--scenario", default="paper-arena", show_default=True, help="SITL scenario (configs/scenarios/).")
-@click.option("--duration", "duration_s", default=70.0, show_default=True, help="Simulated seconds at most.")
+@click.option("--duration", "duration_s", default=90.0, show_default=True, help="Simulated seconds at most.")
 @click.option("--out", "out_dir", default="flight-report", show_default=True, type=click.Path(path_type=Path),
               help="Folder for tlogs, report.json and plots.")
 @click.option("--script", default=str(DEFAULT_SCRIPT), show_default=True, type=click.Path(path_type=Path),
