@@ -68,7 +68,12 @@ def command(config_path: str, autopilot: str | None, gcs: str | None, camera: st
              links.camera, f"tcp://{links.image_host}:{links.image_port}" if images else "off", tlog_path or "off")
     daemon = Companion(cfg, ap, ground, cam, factory, image_server=images, tlog=tlog)
     stop = threading.Event()
-    previous = signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    def on_sigterm(*_: object) -> None:
+        # is_set() first: Event.set() takes a lock, and a second signal inside it would deadlock the handler
+        if not stop.is_set():
+            stop.set()
+
+    previous = signal.signal(signal.SIGTERM, on_sigterm)
     try:
         daemon.run(stop, duration)
     except KeyboardInterrupt:

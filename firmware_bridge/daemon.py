@@ -183,7 +183,9 @@ class BridgeDaemon:
             t.start()
 
     def stop(self) -> None:
-        self._stop.set()
+        """Ask the daemon to end; safe from a signal handler (no lock taken once a stop is pending)."""
+        if not self._stop.is_set():
+            self._stop.set()
 
     def close(self) -> None:
         self._stop.set()

@@ -294,8 +294,13 @@ class Sitl:
         return self
 
     def request_stop(self) -> None:
-        """Ask the loop to end (safe from a signal handler or another thread)."""
-        self._stop.set()
+        """Ask the loop to end (safe from a signal handler or another thread).
+
+        Event.set() takes a non-reentrant lock: a second signal landing inside the first handler's set()
+        deadlocked the SITL on shutdown. is_set() is lock-free, so a repeated request returns at once.
+        """
+        if not self._stop.is_set():
+            self._stop.set()
 
     def stop(self, timeout_s: float = 5.0) -> None:
         self._stop.set()
