@@ -742,7 +742,9 @@ class Autopilot:
             and not flags & BOARD_ERROR_IMU_SATURATED
         board_ok = self.board_link_ok and self.board_status is not None and not self.board_status.failsafe \
             and not flags & BOARD_ERROR_SETPOINT_TIMEOUT
-        health = 0
+        # No geofence here (not present, not enabled); its health bit means "not breached", as ArduPilot
+        # reports it: left clear, MAVProxy's fence module announces a "fence breach" at connect.
+        health = mavlink.MAV_SYS_STATUS_GEOFENCE
         if imu_ok:
             health |= mavlink.MAV_SYS_STATUS_SENSOR_3D_GYRO | mavlink.MAV_SYS_STATUS_SENSOR_3D_ACCEL
         if self.odom_ok:

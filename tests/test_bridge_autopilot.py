@@ -164,6 +164,11 @@ def test_periodic_streams_and_rates():
     sys_status = sim.ap.sys_status(sim.t)
     healthy = mavlink.MAV_SYS_STATUS_SENSOR_3D_GYRO | mavlink.MAV_SYS_STATUS_SENSOR_VISION_POSITION
     assert sys_status.onboard_control_sensors_health & healthy == healthy
+    # no geofence: neither present nor enabled, and never breached (MAVProxy reads a clear health bit as one)
+    fence = mavlink.MAV_SYS_STATUS_GEOFENCE
+    assert not sys_status.onboard_control_sensors_present & fence
+    assert not sys_status.onboard_control_sensors_enabled & fence
+    assert sys_status.onboard_control_sensors_health & fence
     assert sys_status.voltage_battery == 11800
     assert sys_status.battery_remaining == round(100 * (11.8 / 3 - 3.3) / 0.9)
 
