@@ -11,18 +11,25 @@ the heading, y right, z down); yaw rates are NED (positive = turning right seen 
 * :func:`operator_velocity` is eqs. (2)-(3) with alpha from eq. (6). The paper's psi_dot_d = -k_psi q_y
   is written for its NWU-yaw convention; in NED the same gesture (handle to the right -> turn right) is
   psi_dot_d = +k_psi q_y.
-* :func:`repulsion_velocity` is v_o of eq. (7): a sum over the map points of the gradient of a standard
-  (Khatib) repulsive potential ``U_j = eta/2 (1/d_j - 1/d_0)^2`` for d_j < d_0, i.e.
-  ``v_j = eta (1/d_j - 1/d_0) / d_j^2 * (-p_j / d_j)``, the sum limited to ``max_speed_m_s``.
+* :func:`repulsion_velocity` is v_o of eq. (7), "the weighted sum of all contributions": each map point
+  within d_0 contributes the gradient of a standard (Khatib) repulsive potential
+  ``U_j = eta/2 (1/d_j - 1/d_0)^2``, i.e. ``v_j = m_j (-p_j / d_j)`` with ``m_j = eta (1/d_j - 1/d_0) / d_j^2``,
+  and the weights are ``w_j = m_j / sum_k m_k``. The weighted sum keeps the direction of the plain sum but
+  its size is that of the nearest points, whatever the number of points sampling a surface (a column seen
+  in ten image sectors, each point as several map particles, would otherwise push ten times harder and
+  stop the vehicle far outside the safe distance). ``combine="sum"`` is the plain superposition. The
+  result is limited to ``max_repulsion_m_s``.
 * :func:`reference_velocity` adds them (eq. 7) and the pan-scan yaw rate (eq. 8), then enforces the
-  safety constraints: no component toward any obstacle closer than the safe distance, and (when the
-  obstacle data are stale or unknown sectors are not allowed) no horizontal motion toward unknown sectors.
+  safety constraints: a closing speed toward each obstacle point within d_0 of at most
+  ``approach_gain_per_s (d - safe distance)`` — zero inside the safe distance — and (when the obstacle
+  data are stale or unknown sectors are not allowed) no horizontal motion toward unknown sectors.
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -49,9 +56,13 @@ class ReferenceParams:
 
     k_v_m_s: horizontal speed at full handle deflection (eq. 2); k_climb_m_s: climb speed at full
     deflection; k_psi_rad_s: yaw rate at full deflection (eq. 3). Repulsion (eq. 7): eta gain
-    [m^3/s], influence distance d_0, limit on |v_o|, the weight of each map point in the sum
-    (1 / particles per measured point, so a point's copies count once); safe distance (paper Fig. 8:
-    0.45 m) inside which the reference has no component toward the obstacle. ``horizontal_only``:
+    [m^3/s], influence distance d_0, limit on |v_o|, how the points' contributions combine (``weighted``:
+    the paper's weighted sum, see :func:`repulsion_velocity`; ``sum``: plain superposition); safe
+    distance (paper Fig. 8: 0.45 m) inside which the reference has no component toward the obstacle.
+    The default eta = 0.13 m^3/s makes one obstacle cancel the full-deflection push (k_v = 0.6 m/s) at
+    0.47 m, so a vehicle pushed at an obstacle comes to rest just outside the safe distance;
+    ``approach_gain_per_s`` bounds the closing speed toward points within d_0 to gain x (d - safe
+    distance) so it gets there without coasting through (see :func:`limit_speed_toward_obstacles`). ``horizontal_only``:
     repulsion and the safe distance act in the horizontal plane, on the points within
     ``vertical_band_m`` of the vehicle's height (the camera looks down, so it samples tall obstacles
     mostly below the vehicle: in 3D their sum would push the vehicle up, and the floor is not an
@@ -64,11 +75,12 @@ class ReferenceParams:
     k_climb_m_s: float = 0.4
     k_psi_rad_s: float = 0.8
     deadband: float = 0.03
-    point_weight: float = 1.0
-    repulsion_gain_m3_s: float = 0.15
+    combine: Literal["weighted", "sum"] = "weighted"
+    repulsion_gain_m3_s: float = 0.13
     influence_distance_m: float = 0.9
     max_repulsion_m_s: float = 1.0
     safe_distance_m: float = 0.45
+    approach_gain_per_s: float = 1.2
     max_speed_m_s: float = 1.5
     unknown_sector_guard_rad: float = math.radians(15.0)
     horizontal_only: bool = True
@@ -148,7 +160,12 @@ def repulsion_velocity(points_h_m: ArrayLike | None, params: ReferenceParams,
     if not np.any(near):
         return np.zeros(3)
     p, d = p[near], d[near]
-    magnitude = params.point_weight * params.repulsion_gain_m3_s * (1.0 / d - 1.0 / params.influence_distance_m) / d**2
+    magnitude = params.repulsion_gain_m3_s * (1.0 / d - 1.0 / params.influence_distance_m) / d**2
+    if params.combine == "weighted":
+        total = float(magnitude.sum())
+        if total <= 0.0:
+            return np.zeros(3)
+        magnitude = magnitude * (magnitude / total)   # w_j m_j, w_j = m_j / sum m
     v = np.sum((-p / d[:, None]) * magnitude[:, None], axis=0)
     speed = float(np.linalg.norm(v))
     if speed > params.max_repulsion_m_s:
@@ -156,37 +173,61 @@ def repulsion_velocity(points_h_m: ArrayLike | None, params: ReferenceParams,
     return v
 
 
-def remove_toward_close_obstacles(v_h_m_s: NDArray[np.float64], points_h_m: ArrayLike | None,
-                                  safe_distance_m: float, params: ReferenceParams | None = None,
-                                  height_m: float | None = None) -> tuple[NDArray[np.float64], bool]:
-    """Remove from v every component toward an obstacle point closer than ``safe_distance_m``.
+def limit_speed_toward_obstacles(v_h_m_s: NDArray[np.float64], points_h_m: ArrayLike | None,
+                                 safe_distance_m: float, approach_gain_per_s: float = math.inf,
+                                 params: ReferenceParams | None = None, height_m: float | None = None,
+                                 reach_m: float | None = None) -> tuple[NDArray[np.float64], bool]:
+    """Limit the component of v toward each obstacle point to ``approach_gain_per_s (d_j - safe_distance_m)``.
 
-    Projection onto the half-spaces {v . u_j <= 0}, repeated so that removing one component cannot leave
-    another one pointing at a close obstacle (converges in a few passes for a handful of directions).
-    With ``params.horizontal_only`` the points are those of the height band, projected horizontally.
+    Inside the safe distance the bound is zero: no component toward the obstacle at all. Outside it (up
+    to ``reach_m``, default the influence distance of ``params``) the closing speed shrinks linearly to zero
+    at the safe distance, like PX4's collision prevention, so the vehicle slows down in time whatever
+    the lag of the velocity loop: the potential alone only balances the push where the two are equal and
+    lets the vehicle coast past that point. ``approach_gain_per_s = inf`` keeps only the safe-distance
+    rule. Projection onto the half-spaces {v . u_j <= b_j}, repeated so that satisfying one constraint
+    cannot leave another violated; if that does not converge the velocity is zero (which satisfies all,
+    as every bound is >= 0). With ``params.horizontal_only`` the points are those of the height band,
+    projected horizontally.
     """
     p = _points(points_h_m, params, height_m)
     v = np.array(v_h_m_s, dtype=float)
     if p.size == 0:
         return v, False
     d = np.linalg.norm(p, axis=1)
-    close = (d < safe_distance_m) & (d > 1e-6)
+    if math.isfinite(approach_gain_per_s):
+        if reach_m is None:
+            reach_m = params.influence_distance_m if params is not None else safe_distance_m
+        reach_m = max(reach_m, safe_distance_m)
+    else:
+        reach_m = safe_distance_m
+    close = (d < reach_m) & (d > 1e-6)
     if not np.any(close):
         return v, False
-    u = p[close] / d[close, None]
+    d = d[close]
+    u = p[close] / d[:, None]
+    bound = np.zeros_like(d)
+    if math.isfinite(approach_gain_per_s):
+        bound = approach_gain_per_s * np.maximum(d - safe_distance_m, 0.0)
     changed = False
     for _ in range(10):
-        dots = u @ v
-        worst = int(np.argmax(dots))
-        if dots[worst] <= 1e-9:
+        excess = u @ v - bound
+        worst = int(np.argmax(excess))
+        if excess[worst] <= 1e-9:
             break
-        v = v - dots[worst] * u[worst]
+        v = v - excess[worst] * u[worst]
         changed = True
     # The repeated projections can stop short for nearly opposed constraints: there the only
-    # command that moves toward none of them is no motion at all.
-    if np.any(u @ v > 1e-6):
+    # command that satisfies all of them for sure is no motion at all.
+    if np.any(u @ v - bound > 1e-6):
         v[:] = 0.0
     return v, changed
+
+
+def remove_toward_close_obstacles(v_h_m_s: NDArray[np.float64], points_h_m: ArrayLike | None,
+                                  safe_distance_m: float, params: ReferenceParams | None = None,
+                                  height_m: float | None = None) -> tuple[NDArray[np.float64], bool]:
+    """Remove from v every component toward an obstacle point closer than ``safe_distance_m``."""
+    return limit_speed_toward_obstacles(v_h_m_s, points_h_m, safe_distance_m, math.inf, params, height_m)
 
 
 def sector_index(angle_rad: float, n_sectors: int, offset_rad: float = 0.0) -> int:
@@ -246,7 +287,8 @@ def reference_velocity(op: OperatorInput, R_qc: ArrayLike, scan: PanScanState,
         v_d, constrained = remove_toward_unknown(v_d, sectors_m, params.unknown_sector_guard_rad, sector_offset_rad)
     v_o = repulsion_velocity(obstacle_points_h_m, params, height_m)
     v_r = v_d + v_o  # eq. (7)
-    v_r, removed = remove_toward_close_obstacles(v_r, obstacle_points_h_m, params.safe_distance_m, params, height_m)
+    v_r, removed = limit_speed_toward_obstacles(v_r, obstacle_points_h_m, params.safe_distance_m,
+                                                params.approach_gain_per_s, params, height_m)
     speed = float(np.linalg.norm(v_r))
     if speed > params.max_speed_m_s:
         v_r *= params.max_speed_m_s / speed

@@ -21,6 +21,7 @@ from companion.reference import (
     OperatorInput,
     ReferenceParams,
     camera_yaw_rad,
+    limit_speed_toward_obstacles,
     operator_from_manual_control,
     reference_velocity,
     remove_toward_close_obstacles,
@@ -66,19 +67,58 @@ def test_operator_forward_moves_along_alpha_and_climb_is_minus_z() -> None:
 
 
 def test_obstacle_straight_ahead_repels_along_minus_x_with_potential_gradient() -> None:
+    for combine in ("weighted", "sum"):   # one point: both combinations are the potential's gradient
+        params = ReferenceParams(repulsion_gain_m3_s=0.2, influence_distance_m=1.0, max_repulsion_m_s=10.0,
+                                 horizontal_only=False, combine=combine)  # type: ignore[arg-type]
+        for d in (0.3, 0.5, 0.8):
+            v = repulsion_velocity([[d, 0.0, 0.0]], params)
+            expected = 0.2 * (1.0 / d - 1.0) / d**2  # -dU/dd of U = eta/2 (1/d - 1/d0)^2
+            assert v == pytest.approx([-expected, 0.0, 0.0], rel=1e-12)
+        # outside the influence distance: nothing
+        assert repulsion_velocity([[1.2, 0.0, 0.0]], params) == pytest.approx([0.0, 0.0, 0.0])
+
+
+def test_plain_sum_superposes_the_points() -> None:
     params = ReferenceParams(repulsion_gain_m3_s=0.2, influence_distance_m=1.0, max_repulsion_m_s=10.0,
-                             horizontal_only=False)
-    for d in (0.3, 0.5, 0.8):
-        v = repulsion_velocity([[d, 0.0, 0.0]], params)
-        expected = 0.2 * (1.0 / d - 1.0) / d**2  # -dU/dd of U = eta/2 (1/d - 1/d0)^2
-        assert v == pytest.approx([-expected, 0.0, 0.0], rel=1e-12)
-    # outside the influence distance: nothing
-    assert repulsion_velocity([[1.2, 0.0, 0.0]], params) == pytest.approx([0.0, 0.0, 0.0])
+                             horizontal_only=False, combine="sum")
     # two symmetric points: lateral parts cancel, forward parts add
     d, y = 0.6, 0.2
     v = repulsion_velocity([[d, y, 0.0], [d, -y, 0.0]], params)
     r = math.hypot(d, y)
     assert v == pytest.approx([-2 * 0.2 * (1 / r - 1) / r**2 * d / r, 0.0, 0.0], rel=1e-12)
+
+
+def test_weighted_sum_does_not_grow_with_the_sampling_of_a_surface() -> None:
+    params = ReferenceParams(repulsion_gain_m3_s=0.2, influence_distance_m=1.0, max_repulsion_m_s=10.0,
+                             horizontal_only=False)
+    one = repulsion_velocity([[0.5, 0.0, 0.0]], params)
+    # the same point as 5 particles, or a wall face sampled by 9 points: the push stays that of one point
+    assert repulsion_velocity([[0.5, 0.0, 0.0]] * 5, params) == pytest.approx(one, rel=1e-12)
+    wall = [[0.5, y, 0.0] for y in np.linspace(-0.2, 0.2, 9)]
+    v = repulsion_velocity(wall, params)
+    assert v[1] == pytest.approx(0.0, abs=1e-12) and -v[0] <= -one[0] and -v[0] > 0.7 * -one[0]
+    # symmetric pair: w = 1/2 each, so the forward part is one point's, projected
+    d, y = 0.6, 0.2
+    r = math.hypot(d, y)
+    v = repulsion_velocity([[d, y, 0.0], [d, -y, 0.0]], params)
+    assert v == pytest.approx([-0.2 * (1 / r - 1) / r**2 * d / r, 0.0, 0.0], rel=1e-12)
+    # a near point dominates a far one: the weights follow the magnitudes
+    near, far = [0.45, 0.0, 0.0], [0.0, 0.9, 0.0]
+    v = repulsion_velocity([near, far], params)
+    m_near, m_far = (0.2 * (1 / 0.45 - 1) / 0.45**2, 0.2 * (1 / 0.9 - 1) / 0.9**2)
+    total = m_near + m_far
+    assert v == pytest.approx([-m_near**2 / total, -m_far**2 / total, 0.0], rel=1e-12)
+
+
+def test_default_gain_balances_the_full_push_just_outside_the_safe_distance() -> None:
+    params = ReferenceParams()
+    push = params.k_v_m_s   # full handle deflection
+
+    def net(d: float) -> float:
+        return push + float(repulsion_velocity([[d, 0.0, 0.0]] * 5, params)[0])
+
+    assert net(0.60) > 0.1 and net(0.50) > 0.0 and net(params.safe_distance_m) < 0.0
+    assert net(0.47) == pytest.approx(0.0, abs=0.03)
 
 
 def test_repulsion_is_limited() -> None:
@@ -89,7 +129,8 @@ def test_repulsion_is_limited() -> None:
 
 
 def test_inside_safe_distance_the_component_toward_the_obstacle_is_removed() -> None:
-    params = ReferenceParams(k_v_m_s=1.0, repulsion_gain_m3_s=0.0, safe_distance_m=0.45)
+    params = ReferenceParams(k_v_m_s=1.0, repulsion_gain_m3_s=0.0, safe_distance_m=0.45,
+                             approach_gain_per_s=math.inf)   # the safe-distance rule alone
     # camera forward, obstacle 0.4 m ahead-right at 45 deg: forward push keeps only the part along (1,-1)
     p = np.array([0.4, 0.4, 0.0]) / math.sqrt(2) * 0.4 / 0.4
     out = reference_velocity(OperatorInput(qx=1.0), R_QC_FORWARD, NO_SCAN, [p], params)
@@ -109,6 +150,59 @@ def test_obstacle_straight_ahead_inside_safe_distance_stops_and_repels() -> None
     assert out.v_ref_h_m_s[0] < 0.0  # pushing forward still backs off
     assert out.v_ref_h_m_s[1:] == pytest.approx([0.0, 0.0])
     assert out.v_repulsion_h_m_s[0] < 0.0
+
+
+def test_closing_speed_shrinks_to_zero_at_the_safe_distance() -> None:
+    params = ReferenceParams(k_v_m_s=1.0, repulsion_gain_m3_s=0.0, approach_gain_per_s=2.0)
+    for d in (0.85, 0.7, 0.55, 0.46):
+        out = reference_velocity(OperatorInput(qx=1.0), R_QC_FORWARD, NO_SCAN, [[d, 0.0, 0.0]], params)
+        assert out.v_ref_h_m_s == pytest.approx([min(1.0, 2.0 * (d - 0.45)), 0.0, 0.0])
+    # beyond the influence distance, or moving away or sideways: untouched
+    out = reference_velocity(OperatorInput(qx=1.0), R_QC_FORWARD, NO_SCAN, [[0.95, 0.0, 0.0]], params)
+    assert out.v_ref_h_m_s == pytest.approx([1.0, 0.0, 0.0])
+    v, changed = limit_speed_toward_obstacles(np.array([-0.5, 0.3, 0.0]), [[0.6, 0.0, 0.0]], 0.45, 2.0, params)
+    assert not changed and v == pytest.approx([-0.5, 0.3, 0.0])
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.lists(st.tuples(st.floats(-0.9, 0.9), st.floats(-0.9, 0.9), st.floats(-0.9, 0.9)), min_size=1, max_size=8),
+       st.tuples(st.floats(-2, 2), st.floats(-2, 2), st.floats(-2, 2)), st.floats(0.1, 10.0))
+def test_closing_speed_bound_holds_for_every_point(points: list[tuple[float, float, float]],
+                                                   v: tuple[float, float, float], gain: float) -> None:
+    p = np.array(points)
+    p = p[np.linalg.norm(p, axis=1) > 1e-3]
+    out, _ = limit_speed_toward_obstacles(np.array(v), p, 0.45, gain, reach_m=0.9)
+    d = np.linalg.norm(p, axis=1)
+    near = d < 0.9
+    if np.any(near):
+        u = p[near] / d[near, None]
+        assert np.all(u @ out <= gain * np.maximum(d[near] - 0.45, 0.0) + 1e-6)
+
+
+@pytest.mark.parametrize("push", [0.5, 1.0])
+def test_pushed_vehicle_with_a_lagging_velocity_loop_rests_near_the_safe_distance(push: float) -> None:
+    # a vehicle whose velocity follows the reference with a 0.3 s lag (the SITL's tracker is about that),
+    # pushed at a wall 1.5 m ahead sampled by 9 points, as the camera sees it
+    params = ReferenceParams()
+    x, vx, dt, tau = 0.0, 0.0, 0.01, 0.3
+    wall_x = 1.5
+    closest = math.inf
+    for _ in range(int(12.0 / dt)):
+        pts = [[wall_x - x, y, 0.0] for y in np.linspace(-0.3, 0.3, 9)]
+        out = reference_velocity(OperatorInput(qx=push), R_QC_FORWARD, NO_SCAN, pts, params)
+        vx += (out.v_ref_h_m_s[0] - vx) * dt / tau
+        x += vx * dt
+        closest = min(closest, wall_x - x)
+    rest = wall_x - x
+    assert closest >= params.safe_distance_m - 0.02        # no coasting through the safe distance
+    # "stops at about the safe distance": where the weighted repulsion balances the push (farther out for a
+    # lighter push), never beyond the one-point balance distance d*
+    d = np.linspace(params.safe_distance_m, params.influence_distance_m, 2001)
+    m = params.repulsion_gain_m3_s * (1 / d - 1 / params.influence_distance_m) / d**2
+    d_star = float(d[np.argmin(np.abs(m - push * params.k_v_m_s))])
+    assert params.safe_distance_m - 0.02 <= rest <= d_star + 0.01
+    assert rest <= params.safe_distance_m + 0.1
+    assert abs(vx) < 0.01
 
 
 @settings(max_examples=60, deadline=None)

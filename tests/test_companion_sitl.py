@@ -186,7 +186,8 @@ def fly_push_toward_column(out_dir: Path, push_s: float, port_offset: int = 700)
 
 def _check(rec: FlightRecord) -> None:
     assert rec.max_altitude_m > 0.6, "never took off"
-    assert rec.closest_while_pushing_m < 1.5, f"never got near the column ({rec.closest_while_pushing_m:.2f} m)"
+    # pushed at full deflection, it comes to rest at about the safe distance (0.45 m), not far before it
+    assert rec.closest_while_pushing_m < 0.60, f"stopped {rec.closest_while_pushing_m:.2f} m from the column"
     assert rec.min_obstacle_m >= 0.40, (f"truth distance went down to {rec.min_obstacle_m:.2f} m at "
                                         f"(t, mode, altitude) {rec.min_at}")
     assert rec.hold_seen, f"no hover after the ground station went silent (modes {rec.modes})"
