@@ -26,9 +26,9 @@ import struct
 from collections import deque
 from typing import Any
 
-from quadlink.mavlink import mavlink
+from fastcrc.crc16 import mcrf4xx as _mcrf4xx  # a pymavlink dependency; its generated code uses it too
 
-from fastcrc.crc16 import mcrf4xx as _mcrf4xx   # a pymavlink dependency; its generated code uses it too
+from quadlink.mavlink import mavlink
 
 _IMU = mavlink.MAVLink_highres_imu_message
 _IMU_ID = mavlink.MAVLINK_MSG_ID_HIGHRES_IMU

@@ -134,17 +134,34 @@ def operator_velocity(op: OperatorInput, alpha_rad: float, params: ReferencePara
 
 
 def _points(points_h_m: ArrayLike | None, params: ReferenceParams | None = None,
-            height_m: float | None = None) -> NDArray[np.float64]:
+            height_m: float | None = None, reach_m: float = math.inf) -> NDArray[np.float64]:
     """Finite points, minus the floor (if ``height_m`` above it is known); with ``params.horizontal_only``
-    those within the height band, projected to z = 0."""
+    those within the height band, projected to z = 0; only those closer than ``reach_m``.
+
+    One boolean mask over the (typically ~2000) map particles, one copy of the few that pass: this runs
+    at camera rate on the whole map."""
     if points_h_m is None:
         return np.zeros((0, 3))
     p = np.asarray(points_h_m, dtype=float).reshape(-1, 3)
-    p = p[np.all(np.isfinite(p), axis=1)]
+    if not np.isfinite(p).all():            # one flat check; rows only when something is wrong
+        p = p[np.isfinite(p).all(axis=1)]
+    x, y, z = p[:, 0], p[:, 1], p[:, 2]
+    horizontal = params is not None and params.horizontal_only
+    keep = None
+    if math.isfinite(reach_m):
+        r2 = x * x + y * y
+        if not horizontal:
+            r2 += z * z
+        keep = r2 < reach_m * reach_m
     if params is not None and height_m is not None and math.isfinite(height_m):
-        p = p[height_m - p[:, 2] > params.floor_margin_m]  # height of the point above the floor (H: z down)
-    if params is not None and params.horizontal_only:
-        p = p[np.abs(p[:, 2]) <= params.vertical_band_m].copy()
+        floor = (height_m - z) > params.floor_margin_m  # height of the point above the floor (H: z down)
+        keep = floor if keep is None else keep & floor
+    if horizontal:
+        assert params is not None
+        band = np.abs(z) <= params.vertical_band_m
+        keep = band if keep is None else keep & band
+    p = p[keep] if keep is not None else p.copy()
+    if horizontal:
         p[:, 2] = 0.0
     return p
 
@@ -152,7 +169,11 @@ def _points(points_h_m: ArrayLike | None, params: ReferenceParams | None = None,
 def repulsion_velocity(points_h_m: ArrayLike | None, params: ReferenceParams,
                        height_m: float | None = None) -> NDArray[np.float64]:
     """v_o of eq. (7): summed repulsive-potential gradients of the map points (vehicle at the origin of H)."""
-    p = _points(points_h_m, params, height_m)
+    return _repulsion(_points(points_h_m, params, height_m), params)
+
+
+def _repulsion(p: NDArray[np.float64], params: ReferenceParams) -> NDArray[np.float64]:
+    """:func:`repulsion_velocity` of points already through :func:`_points`."""
     if p.size == 0:
         return np.zeros(3)
     d = np.linalg.norm(p, axis=1)
@@ -189,17 +210,20 @@ def limit_speed_toward_obstacles(v_h_m_s: NDArray[np.float64], points_h_m: Array
     as every bound is >= 0). With ``params.horizontal_only`` the points are those of the height band,
     projected horizontally.
     """
-    p = _points(points_h_m, params, height_m)
+    if reach_m is None:
+        reach_m = params.influence_distance_m if params is not None else safe_distance_m
+    return _limit_speed(v_h_m_s, _points(points_h_m, params, height_m), safe_distance_m, approach_gain_per_s,
+                        reach_m)
+
+
+def _limit_speed(v_h_m_s: NDArray[np.float64], p: NDArray[np.float64], safe_distance_m: float,
+                 approach_gain_per_s: float, reach_m: float) -> tuple[NDArray[np.float64], bool]:
+    """:func:`limit_speed_toward_obstacles` of points already through :func:`_points`."""
     v = np.array(v_h_m_s, dtype=float)
     if p.size == 0:
         return v, False
     d = np.linalg.norm(p, axis=1)
-    if math.isfinite(approach_gain_per_s):
-        if reach_m is None:
-            reach_m = params.influence_distance_m if params is not None else safe_distance_m
-        reach_m = max(reach_m, safe_distance_m)
-    else:
-        reach_m = safe_distance_m
+    reach_m = max(reach_m, safe_distance_m) if math.isfinite(approach_gain_per_s) else safe_distance_m
     close = (d < reach_m) & (d > 1e-6)
     if not np.any(close):
         return v, False
@@ -285,10 +309,12 @@ def reference_velocity(op: OperatorInput, R_qc: ArrayLike, scan: PanScanState,
     constrained = False
     if block_unknown:
         v_d, constrained = remove_toward_unknown(v_d, sectors_m, params.unknown_sector_guard_rad, sector_offset_rad)
-    v_o = repulsion_velocity(obstacle_points_h_m, params, height_m)
+    # the map's points once: only those within reach of either rule matter (a few of its ~2000 particles)
+    p = _points(obstacle_points_h_m, params, height_m, max(params.influence_distance_m, params.safe_distance_m))
+    v_o = _repulsion(p, params)
     v_r = v_d + v_o  # eq. (7)
-    v_r, removed = limit_speed_toward_obstacles(v_r, obstacle_points_h_m, params.safe_distance_m,
-                                                params.approach_gain_per_s, params, height_m)
+    v_r, removed = _limit_speed(v_r, p, params.safe_distance_m, params.approach_gain_per_s,
+                                params.influence_distance_m)
     speed = float(np.linalg.norm(v_r))
     if speed > params.max_speed_m_s:
         v_r *= params.max_speed_m_s / speed
