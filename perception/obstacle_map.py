@@ -62,28 +62,61 @@ class ObstacleSectors:
 
 
 class ObstacleMap:
-    """Particles in H; call :meth:`predict` with the motion between frames, then :meth:`measure`."""
+    """Particles in H; call :meth:`predict` with the motion between frames, then :meth:`measure`.
+
+    ``points_h_m`` (N×3) and ``ages_s`` are replaced at every update, never modified in place, so an array
+    handed out (e.g. in a pipeline output) stays a snapshot of the map at that frame.
+    """
 
     def __init__(self, config: ObstacleMapConfig | None = None) -> None:
         self.config = config or ObstacleMapConfig()
-        self.points_h_m = np.zeros((0, 3))
+        self._p = np.zeros((3, 0))      # particles one row per axis: the per-axis math runs on contiguous rows
         self.ages_s = np.zeros(0)
         self._yaw_total_rad = 0.0                                  # integral of the yaw updates
         self._observed_s = np.full(self.config.sectors, -np.inf)  # per world-azimuth sector
         self._last_stamp: float | None = None
+        # azimuth and horizontal distance of the particles, computed once per frame for the cells and the
+        # summary; valid while ``_p`` is the array they were computed for
+        self._polar: tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]] | None = None
+
+    @property
+    def points_h_m(self) -> NDArray[np.float64]:
+        """The particles in H, N×3 (a view of the map's arrays; the map replaces them, never writes them)."""
+        return self._p.T
+
+    @points_h_m.setter
+    def points_h_m(self, points_h_m: NDArray[np.float64]) -> None:
+        self._p = np.array(np.asarray(points_h_m, dtype=float).reshape(-1, 3).T, order="C")
+        self._polar = None
 
     def __len__(self) -> int:
-        return int(self.points_h_m.shape[0])
+        return int(self._p.shape[1])
+
+    def _polar_of_particles(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        p = self._p
+        if self._polar is None or self._polar[0] is not p:
+            az, horiz = _polar(p[0], p[1])
+            self._polar = (p, az, horiz)
+        return self._polar[1], self._polar[2]
+
+    def _set_particles(self, p: NDArray[np.float64], ages_s: NDArray[np.float64],
+                       az: NDArray[np.float64] | None = None, horiz: NDArray[np.float64] | None = None) -> None:
+        self._p, self.ages_s = p, ages_s
+        self._polar = None if az is None or horiz is None else (p, az, horiz)
 
     def cells_of(self, points_h_m: NDArray[np.float64]) -> NDArray[np.intp]:
         """Cell index (azimuth-major) of points in H."""
-        cfg = self.config
-        x, y, z = points_h_m[:, 0], points_h_m[:, 1], points_h_m[:, 2]
-        az = np.arctan2(y, x)                                  # [-pi, pi]
-        zen = np.arctan2(np.hypot(x, y), -z)                   # zenith distance from "up" (-z in NED), [0, pi]
-        ia = np.minimum((az + math.pi) * (cfg.az_bins / (2 * math.pi)), cfg.az_bins - 1).astype(np.intp)
-        iz = np.minimum(zen * (cfg.zen_bins / math.pi), cfg.zen_bins - 1).astype(np.intp)
-        return ia * cfg.zen_bins + iz
+        az, horiz = _polar(points_h_m[:, 0], points_h_m[:, 1])
+        return self._azimuth_cells(az) * self.config.zen_bins + self._zenith_cells(horiz, points_h_m[:, 2])
+
+    def _azimuth_cells(self, az: NDArray[np.float64]) -> NDArray[np.intp]:
+        n = self.config.az_bins
+        return np.minimum((az + math.pi) * (n / (2 * math.pi)), n - 1).astype(np.intp)
+
+    def _zenith_cells(self, horiz: NDArray[np.float64], z: NDArray[np.float64]) -> NDArray[np.intp]:
+        n = self.config.zen_bins
+        zen = np.arctan2(horiz, -z)                            # zenith distance from "up" (-z in NED), [0, pi]
+        return np.minimum(zen * (n / math.pi), n - 1).astype(np.intp)
 
     def predict(self, dt_s: float, v_h_k: NDArray[np.float64], v_h_k1: NDArray[np.float64], yaw_rate_k: float,
                 yaw_rate_k1: float, rng: np.random.Generator) -> None:
@@ -92,75 +125,89 @@ class ObstacleMap:
         if dt_s <= 0.0:
             return
         n = len(self)
-        self._yaw_total_rad += dt_s * (yaw_rate_k + yaw_rate_k1) / 2.0
-        if n:
-            n_v = rng.normal(0.0, cfg.velocity_noise_m_s, size=(n, 3))
-            n_psi = rng.normal(0.0, cfg.yaw_rate_noise_rad_s, size=n)
-            u = dt_s * (np.asarray(v_h_k) + np.asarray(v_h_k1) + n_v) / 2.0           # eq. (14)
-            psi = dt_s * (yaw_rate_k + yaw_rate_k1 + n_psi) / 2.0
-            d = self.points_h_m - u
-            c, s = np.cos(psi), np.sin(psi)
-            # Rz(psi)^T d
-            self.points_h_m = np.column_stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1], d[:, 2]])
-            self.ages_s = self.ages_s + dt_s
-        self._prune()
-
-    def _prune(self) -> None:
-        cfg = self.config
-        keep = (self.ages_s <= cfg.max_age_s) & (np.einsum("ij,ij->i", self.points_h_m, self.points_h_m)
-                                                   <= cfg.radius_m**2)
-        if not keep.all():
-            self.points_h_m = self.points_h_m[keep]
-            self.ages_s = self.ages_s[keep]
+        psi0 = dt_s * (yaw_rate_k + yaw_rate_k1) / 2.0
+        self._yaw_total_rad += psi0
+        if not n:
+            return
+        # eq. (14): u_j = dT (v_k + v_k+1 + n_v,j) / 2, psi_j = dT (psidot_k + psidot_k+1 + n_psi,j) / 2
+        u0 = (dt_s / 2.0) * (np.asarray(v_h_k, dtype=float) + np.asarray(v_h_k1, dtype=float))
+        d = self._p - u0[:, None]                              # p_j - u_j
+        if cfg.velocity_noise_m_s > 0.0:
+            d -= (dt_s / 2.0) * rng.normal(0.0, cfg.velocity_noise_m_s, size=(3, n))
+        c0, s0 = math.cos(psi0), math.sin(psi0)
+        if cfg.yaw_rate_noise_rad_s > 0.0:
+            c, s = _rotate_cos_sin(c0, s0, (dt_s / 2.0) * rng.normal(0.0, cfg.yaw_rate_noise_rad_s, size=n))
+        else:
+            c, s = np.full(n, c0), np.full(n, s0)
+        p = np.empty((3, n))                                   # Rz(psi_j)^T (p_j - u_j)
+        np.multiply(c, d[0], out=p[0])
+        p[0] += s * d[1]
+        np.multiply(c, d[1], out=p[1])
+        p[1] -= s * d[0]
+        p[2] = d[2]
+        ages = self.ages_s + dt_s
+        keep = (ages <= cfg.max_age_s) & (np.einsum("ij,ij->j", d, d) <= cfg.radius_m**2)
+        if keep.all():
+            self._set_particles(p, ages)
+        else:
+            self._set_particles(np.compress(keep, p, axis=1), np.compress(keep, ages))
 
     def measure(self, stamp_s: float, obs: SectorObservation) -> None:
         """Measurement step: carve free space, overwrite the measured cells, record observed sectors."""
         cfg = self.config
         self._last_stamp = stamp_s
-        if len(self):
-            sec = obs.sector_of_points_h(self.points_h_m)
-            inview = sec >= 0
-            if inview.any():
-                rng_meas = obs.ranges_m[np.where(inview, sec, 0)]
-                rng_p = np.linalg.norm(self.points_h_m - obs.p_hc_m, axis=1)
-                free = inview & ~np.isnan(rng_meas) & (rng_p < rng_meas - cfg.carve_margin_m)
-                if free.any():
-                    self.points_h_m = self.points_h_m[~free]
-                    self.ages_s = self.ages_s[~free]
         pts = obs.points_h_m
-        if pts.shape[0]:
-            cells = self.cells_of(pts)
-            if len(self):
-                measured = np.zeros(cfg.az_bins * cfg.zen_bins, dtype=bool)
-                measured[cells] = True
-                drop = measured[self.cells_of(self.points_h_m)]
-                self.points_h_m = self.points_h_m[~drop]
-                self.ages_s = self.ages_s[~drop]
-            new = np.repeat(pts, cfg.copies, axis=0)
-            self.points_h_m = np.concatenate([self.points_h_m, new])
-            self.ages_s = np.concatenate([self.ages_s, np.zeros(new.shape[0])])
+        n_new = pts.shape[0]
+        if n_new:
+            az_new, horiz_new = _polar(pts[:, 0], pts[:, 1])
+            ia_new = self._azimuth_cells(az_new)
+            measured = np.zeros((cfg.az_bins, cfg.zen_bins), dtype=bool)
+            measured[ia_new, self._zenith_cells(horiz_new, pts[:, 2])] = True
+            measured_az = np.zeros(cfg.az_bins, dtype=bool)
+            measured_az[ia_new] = True
+        if len(self):
+            p = self._p
+            az, horiz = self._polar_of_particles()
+            # free space: in view and nearer than the sector's measured range by the margin (inf: free to the
+            # sensor's range; nan, and -1 = out of view, which indexes the appended nan: never carved)
+            sec, rng_p = obs.sector_and_range_of_points_h(p.T)
+            limit = np.append(obs.ranges_m - cfg.carve_margin_m, np.nan)
+            remove = rng_p < limit[sec]
+            if n_new:
+                # measured cells are overwritten; the zenith only of the particles in a measured azimuth
+                ia = self._azimuth_cells(az)
+                cand = np.flatnonzero(measured_az[ia])
+                remove[cand] |= measured[ia[cand], self._zenith_cells(horiz[cand], p[2, cand])]
+            if remove.any():
+                keep = ~remove
+                self._set_particles(np.compress(keep, p, axis=1), np.compress(keep, self.ages_s),
+                                    np.compress(keep, az), np.compress(keep, horiz))
+        if n_new:
+            az_old, horiz_old = self._polar_of_particles()
+            self._set_particles(np.concatenate([self._p, np.repeat(pts.T, cfg.copies, axis=1)], axis=1),
+                                np.concatenate([self.ages_s, np.zeros(n_new * cfg.copies)]),
+                                np.concatenate([az_old, np.repeat(az_new, cfg.copies)]),
+                                np.concatenate([horiz_old, np.repeat(horiz_new, cfg.copies)]))
             if len(self) > cfg.max_particles:  # oldest go first
                 order = np.argsort(self.ages_s, kind="stable")[: cfg.max_particles]
-                self.points_h_m = self.points_h_m[order]
-                self.ages_s = self.ages_s[order]
-        # sectors seen by this frame (a point or free space), kept in world azimuth
-        seen = ~np.isnan(obs.ranges_m)
-        if seen.any():
-            rays = obs.rays_h[seen]
-            horiz = np.hypot(rays[:, 0], rays[:, 1]) > 0.05
-            az = np.arctan2(rays[horiz, 1], rays[horiz, 0]) + self._yaw_total_rad
-            self._observed_s[self._sector_index(az)] = stamp_s
-            # the camera's sectors are wider than 5°: mark the azimuth span between neighbouring rays too
-            if az.size >= 2:
-                lo, hi = self._span(az)
-                fine = np.linspace(lo, hi, max(2, int((hi - lo) / math.radians(2.5)) + 1))
-                self._observed_s[self._sector_index(fine)] = stamp_s
+                self._set_particles(self._p[:, order], self.ages_s[order])
+        self._mark_observed(stamp_s, obs)
 
-    @staticmethod
-    def _span(az: NDArray[np.float64]) -> tuple[float, float]:
-        centre = math.atan2(float(np.mean(np.sin(az))), float(np.mean(np.cos(az))))
+    def _mark_observed(self, stamp_s: float, obs: SectorObservation) -> None:
+        """Sectors seen by this frame (a point or free space), kept in world azimuth."""
+        rays = obs.rays_h[~np.isnan(obs.ranges_m)]
+        rays = rays[rays[:, 0] ** 2 + rays[:, 1] ** 2 > 0.05**2]        # not looking straight up or down
+        if not rays.shape[0]:
+            return
+        az = np.arctan2(rays[:, 1], rays[:, 0])
+        # the camera's sectors are wider than 5°: mark every sector the azimuth span of the rays touches
+        centre = math.atan2(float(np.sin(az).sum()), float(np.cos(az).sum()))
         rel = (az - centre + math.pi) % (2 * math.pi) - math.pi
-        return centre + float(rel.min()), centre + float(rel.max())
+        inc = 2 * math.pi / self.config.sectors
+        start = centre + self._yaw_total_rad + inc / 2
+        first = math.floor((start + float(rel.min())) / inc)
+        last = math.floor((start + float(rel.max())) / inc)
+        self._observed_s[np.arange(first, last + 1) % self.config.sectors] = stamp_s
 
     def _sector_index(self, az_rad: NDArray[np.floating[Any]]) -> NDArray[np.intp]:
         n = self.config.sectors
@@ -176,20 +223,38 @@ class ObstacleMap:
         obs_age = stamp_s - self._observed_s[self._sector_index(centres_h + shift)]
         dist = np.where(obs_age <= cfg.max_age_s, np.inf, np.nan)
         if len(self):
-            p = self.points_h_m
-            band = np.abs(p[:, 2]) <= cfg.z_band_m
-            if band.any():
-                q = p[band]
-                d = np.hypot(q[:, 0], q[:, 1])
-                idx = self._sector_index(np.arctan2(q[:, 1], q[:, 0]))
+            az, horiz = self._polar_of_particles()
+            band = np.flatnonzero(np.abs(self._p[2]) <= cfg.z_band_m)
+            if band.size:
                 best = np.full(n, np.inf)
-                np.minimum.at(best, idx, d)
+                np.minimum.at(best, self._sector_index(az[band]), horiz[band])
                 has = np.isfinite(best)
-                dist[has] = np.clip(best[has], cfg.min_distance_m, None)
+                dist[has] = np.maximum(best[has], cfg.min_distance_m)
         return ObstacleSectors(stamp_s, dist, 360.0 / n, 0.0, cfg.min_distance_m, cfg.max_distance_m)
 
     def nearest_h(self) -> NDArray[np.float64] | None:
         if not len(self):
             return None
-        i = int(np.argmin(np.einsum("ij,ij->i", self.points_h_m, self.points_h_m)))
-        return self.points_h_m[i].copy()
+        i = int(np.argmin(np.einsum("ij,ij->j", self._p, self._p)))
+        return self._p[:, i].copy()
+
+
+def _polar(x: NDArray[np.float64], y: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Azimuth in [-pi, pi] and horizontal distance of points in H."""
+    return np.arctan2(y, x), np.sqrt(x * x + y * y)
+
+
+def _rotate_cos_sin(c0: float, s0: float, delta: NDArray[np.float64]) -> tuple[NDArray[np.float64],
+                                                                               NDArray[np.float64]]:
+    """cos and sin of psi0 + delta_j from cos/sin of psi0 and small per-particle angles delta_j.
+
+    The yaw noise of one frame is ~1e-3 rad: Taylor terms to delta^5 are exact in double precision below
+    1e-2 rad and cost a fraction of np.cos/np.sin; larger angles take the library functions.
+    """
+    if float(np.abs(delta).max()) < 1e-2:
+        d2 = delta * delta
+        cd = 1.0 - d2 * (0.5 - d2 * (1.0 / 24.0))
+        sd = delta * (1.0 - d2 * (1.0 / 6.0 - d2 * (1.0 / 120.0)))
+    else:
+        cd, sd = np.cos(delta), np.sin(delta)
+    return c0 * cd - s0 * sd, s0 * cd + c0 * sd

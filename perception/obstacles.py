@@ -40,59 +40,81 @@ class SectorObservation:
     rows: int
     cols: int
 
-    def sector_of_points_h(self, points_h_m: NDArray[np.float64]) -> NDArray[np.intp]:
-        """Sector index (row-major) of points given in H, or -1 where they are not in the image."""
+    def sector_and_range_of_points_h(self, points_h_m: NDArray[np.float64]) -> tuple[NDArray[np.intp],
+                                                                                   NDArray[np.float64]]:
+        """Sector index (row-major, -1 where not in the image) and range from the camera of points in H."""
         K = self.intrinsics
-        pc = (points_h_m - self.p_hc_m) @ self.R_hc          # R_hc^T (p - p_hc), row-wise
-        z = pc[:, 2]
-        ok = z > 1e-3
-        zs = np.where(ok, z, 1.0)
-        u = K.fx * pc[:, 0] / zs + K.cx
-        v = K.fy * pc[:, 1] / zs + K.cy
+        # camera coordinates, one row per axis: R_hc^T (p - p_hc)
+        x, y, z = self.R_hc.T @ points_h_m.T - (self.R_hc.T @ self.p_hc_m)[:, None]
         bw, bh = K.width // self.cols, K.height // self.rows
-        ok &= (u >= 0) & (v >= 0) & (u < bw * self.cols) & (v < bh * self.rows)
-        si = np.minimum(np.maximum(v, 0.0) // bh, self.rows - 1).astype(np.intp)
-        sj = np.minimum(np.maximum(u, 0.0) // bw, self.cols - 1).astype(np.intp)
-        return np.where(ok, si * self.cols + sj, -1)
+        ok = z > 1e-3
+        inv_z = 1.0 / np.where(ok, z, 1.0)
+        # sector column / row as pixel coordinate over block size: (f x / z + c) / b
+        col = x * inv_z * (K.fx / bw) + K.cx / bw
+        row = y * inv_z * (K.fy / bh) + K.cy / bh
+        ok &= (col >= 0.0) & (row >= 0.0) & (col < self.cols) & (row < self.rows)
+        sector = np.where(ok, row.astype(np.intp) * self.cols + col.astype(np.intp), -1)
+        return sector, np.sqrt(x * x + y * y + z * z)
+
+
+@dataclass(frozen=True)
+class _SectorGrid:
+    """Constant geometry of the n x m sector grid of one image size (cached per intrinsics)."""
+
+    rows: int
+    cols: int
+    block_h: int
+    block_w: int
+    ray_norms: NDArray[np.float32]      # (rows*block_h, cols*block_w) range per unit depth |(x/z, y/z, 1)|
+    top: NDArray[np.intp]               # (n*m,) first pixel row of each sector
+    left: NDArray[np.intp]              # (n*m,) first pixel column of each sector
+    rays_c: NDArray[np.float64]         # (n*m, 3) unit rays through the sector centres, camera frame
 
 
 @lru_cache(maxsize=8)
-def _ray_norms(K: CameraIntrinsics) -> NDArray[np.float32]:
-    """Range per unit depth for every pixel: |(x/z, y/z, 1)|."""
-    u, v = np.meshgrid(np.arange(K.width, dtype=np.float32), np.arange(K.height, dtype=np.float32))
-    return np.sqrt(((u - K.cx) / K.fx) ** 2 + ((v - K.cy) / K.fy) ** 2 + 1.0).astype(np.float32)
+def _sector_grid(K: CameraIntrinsics, height: int, width: int, rows: int, cols: int) -> _SectorGrid:
+    bh, bw = height // rows, width // cols
+    u, v = np.meshgrid(np.arange(bw * cols, dtype=np.float32), np.arange(bh * rows, dtype=np.float32))
+    norms = np.sqrt(((u - K.cx) / K.fx) ** 2 + ((v - K.cy) / K.fy) ** 2 + 1.0).astype(np.float32)
+    si, sj = np.divmod(np.arange(rows * cols), cols)
+    uc = (sj + 0.5) * bw
+    vc = (si + 0.5) * bh
+    rays_c = np.column_stack([(uc - K.cx) / K.fx, (vc - K.cy) / K.fy, np.ones(rows * cols)])
+    rays_c /= np.linalg.norm(rays_c, axis=1, keepdims=True)
+    return _SectorGrid(rows, cols, bh, bw, norms, si * bh, sj * bw, rays_c)
 
 
 def extract_obstacles(depth_m: NDArray[np.float32], K: CameraIntrinsics, R_qc: NDArray[np.float64],
                       p_qc_m: NDArray[np.float64], roll_rad: float, pitch_rad: float,
                       config: ObstacleConfig | None = None) -> SectorObservation:
     cfg = config or ObstacleConfig()
-    h, w = depth_m.shape
     n, m = cfg.rows, cfg.cols
-    bh, bw = h // n, w // m
+    g = _sector_grid(K, *depth_m.shape, n, m)
+    bh, bw = g.block_h, g.block_w
     depth = depth_m[: bh * n, : bw * m]
-    rng = depth * _ray_norms(K)[: bh * n, : bw * m]
-    valid = (depth > 0) & (rng >= cfg.min_range_m)
-    near = valid & (rng <= cfg.max_range_m)
-    r_near = np.where(near, rng, np.inf)
-    blocks = r_near.reshape(n, bh, m, bw).transpose(0, 2, 1, 3).reshape(n * m, bh * bw)
+    # One key per pixel whose per-sector minimum tells all three cases: the range of a valid pixel (near
+    # ones are below max_range, far ones above it) and inf for no reading (depth 0, NaN, closer than
+    # min_range).
+    key = depth * g.ray_norms
+    min_range = max(cfg.min_range_m, float(np.finfo(key.dtype).tiny))   # depth 0 is no reading even at 0 m
+    np.copyto(key, np.inf, where=~(key >= min_range))
+    blocks = key.reshape(n, bh, m, bw).transpose(0, 2, 1, 3).reshape(n * m, bh * bw)
     idx = np.argmin(blocks, axis=1)
-    best = blocks[np.arange(n * m), idx]
-    any_valid = valid.reshape(n, bh, m, bw).any(axis=(1, 3)).reshape(n * m)
-    ranges = np.where(np.isfinite(best), best, np.where(any_valid, np.inf, np.nan))
+    best = blocks[np.arange(n * m), idx].astype(float)
+    has = best <= cfg.max_range_m
+    ranges = np.where(has, best, np.where(np.isinf(best), np.nan, np.inf))
+    if np.isnan(ranges).any() and np.isposinf(depth).any():
+        # an infinite depth is a valid reading beyond range (REP 117: no return), not a missing one
+        for s in np.flatnonzero(np.isnan(ranges)):
+            if np.isposinf(depth[g.top[s]: g.top[s] + bh, g.left[s]: g.left[s] + bw]).any():
+                ranges[s] = np.inf
     # pixel coordinates of the chosen pixels
-    si, sj = np.divmod(np.arange(n * m), m)
-    bi, bj = np.divmod(idx, bw)
-    v = (si * bh + bi).astype(float)
-    u = (sj * bw + bj).astype(float)
-    has = np.isfinite(best)
-    z = depth[v[has].astype(int), u[has].astype(int)].astype(float)
-    pc = np.column_stack([(u[has] - K.cx) / K.fx * z, (v[has] - K.cy) / K.fy * z, z])
+    bi, bj = np.divmod(idx[has], bw)
+    v = g.top[has] + bi
+    u = g.left[has] + bj
+    z = depth[v, u].astype(float)
+    pc = np.column_stack([(u - K.cx) / K.fx * z, (v - K.cy) / K.fy * z, z])
     R_h = R_hq(roll_rad, pitch_rad)
+    R_hc = R_h @ R_qc
     ph = (pc @ R_qc.T + p_qc_m) @ R_h.T   # H p_ij = R_HQ (R_QC C p_ij + Q p_C)
-    uc = (sj + 0.5) * bw
-    vc = (si + 0.5) * bh
-    rays_c = np.column_stack([(uc - K.cx) / K.fx, (vc - K.cy) / K.fy, np.ones(n * m)])
-    rays_c /= np.linalg.norm(rays_c, axis=1, keepdims=True)
-    rays_h = rays_c @ (R_h @ R_qc).T
-    return SectorObservation(pc, ph, ranges, rays_h, R_h @ R_qc, R_h @ p_qc_m, K, n, m)
+    return SectorObservation(pc, ph, ranges, g.rays_c @ R_hc.T, R_hc, R_h @ p_qc_m, K, n, m)

@@ -171,3 +171,72 @@ def test_obstacle_kept_while_out_of_view_during_a_yaw_sweep(rng: np.random.Gener
     assert np.median(az) == pytest.approx(-60.0, abs=3.0)
     sec = m.sectors(1.0)
     assert np.isfinite(sec.distances_m[72 - 12])   # sector at -60°
+
+
+def test_infinite_depth_is_free_space_and_missing_depth_is_unobserved() -> None:
+    cfg = ObstacleConfig(rows=2, cols=2, max_range_m=3.0)
+    depth = _wall_depth(0.0)                       # no reading anywhere
+    depth[:120, 160:] = np.inf                     # top-right: "no return within range" (REP 117)
+    depth[120:, :160] = np.nan                     # bottom-left: invalid
+    depth[120:, 160:] = 0.2                        # bottom-right: closer than min_range only
+    obs = extract_obstacles(depth, K, np.eye(3), np.zeros(3), 0.0, 0.0, cfg)
+    assert math.isnan(obs.ranges_m[0]) and math.isinf(obs.ranges_m[1])
+    assert math.isnan(obs.ranges_m[2]) and math.isnan(obs.ranges_m[3])
+    assert obs.points_c_m.shape == (0, 3)
+
+
+def test_sector_and_range_of_points_match_the_projection_of_the_image(rng: np.random.Generator) -> None:
+    p_qc = np.array([0.1, 0.02, -0.05])
+    obs = extract_obstacles(_wall_depth(2.0), K, R_QC_FWD, p_qc, 0.1, -0.2, ObstacleConfig())
+    points_h = rng.uniform([-1.0, -3.0, -3.0], [4.0, 3.0, 3.0], (2000, 3))   # mostly ahead of the camera
+    sector, range_m = obs.sector_and_range_of_points_h(points_h)
+    p_c = (points_h - obs.p_hc_m) @ obs.R_hc            # rows: R_hc^T (p - p_hc)
+    assert np.allclose(range_m, np.linalg.norm(p_c, axis=1))
+    u = K.fx * p_c[:, 0] / p_c[:, 2] + K.cx
+    v = K.fy * p_c[:, 1] / p_c[:, 2] + K.cy
+    inside = (p_c[:, 2] > 1e-3) & (u >= 0) & (u < K.width) & (v >= 0) & (v < K.height)
+    assert inside.sum() > 100 and (~inside).sum() > 100
+    assert np.all(sector[~inside] == -1)
+    # 8 columns of 40 pixels, 6 rows of 40 pixels
+    expected = (v[inside] // 40).astype(int) * 8 + (u[inside] // 40).astype(int)
+    assert np.array_equal(sector[inside], expected)
+
+
+def test_observed_sectors_span_the_horizontal_field_of_view() -> None:
+    m = ObstacleMap()
+    _observe(m, 0.0, _wall_depth(6.0))                 # free everywhere in view
+    az_deg = np.arange(72) * 5.0
+    az_deg[az_deg > 180.0] -= 360.0
+    d = m.sectors(0.0).distances_m
+    # 58° horizontal field of view: the sector centres' rays reach ±(29° - half a 80-pixel sector)
+    assert np.all(np.isinf(d[np.abs(az_deg) <= 20.0]))
+    assert np.all(np.isnan(d[np.abs(az_deg) >= 30.0]))
+
+
+def test_points_handed_out_are_snapshots(rng: np.random.Generator) -> None:
+    m = ObstacleMap()
+    _observe(m, 0.0, _wall_depth(2.0))
+    snapshot = m.points_h_m
+    before = snapshot.copy()
+    m.predict(0.1, np.array([1.0, 0.0, 0.0]), np.array([1.0, 0.0, 0.0]), 0.5, 0.5, rng)
+    _observe(m, 0.1, _wall_depth(1.0))
+    assert np.array_equal(snapshot, before)
+    assert not np.allclose(m.points_h_m[:, 0], before[0, 0])
+
+
+@pytest.mark.parametrize("delta_scale", [1e-3, 0.5])
+def test_time_update_with_yaw_noise_rotates_each_particle_by_its_own_angle(delta_scale: float) -> None:
+    """Eq. (14) with n_psi only: each particle turns by its own psi_j; compared with the same draws."""
+    cfg = ObstacleMapConfig(velocity_noise_m_s=0.0, yaw_rate_noise_rad_s=delta_scale, max_age_s=100.0)
+    m = ObstacleMap(cfg)
+    p0 = np.random.default_rng(3).uniform(-3.0, 3.0, (500, 3))
+    m.points_h_m = p0
+    m.ages_s = np.zeros(500)
+    dt, r_k, r_k1 = 0.04, 0.3, 0.7
+    m.predict(dt, np.zeros(3), np.zeros(3), r_k, r_k1, np.random.default_rng(11))
+    n_psi = np.random.default_rng(11).normal(0.0, delta_scale, size=500)
+    psi = dt * (r_k + r_k1 + n_psi) / 2.0
+    c, s = np.cos(psi), np.sin(psi)
+    expected = np.column_stack([c * p0[:, 0] + s * p0[:, 1], -s * p0[:, 0] + c * p0[:, 1], p0[:, 2]])
+    keep = np.linalg.norm(p0, axis=1) <= cfg.radius_m
+    assert np.allclose(m.points_h_m, expected[keep], atol=1e-13, rtol=0.0)
