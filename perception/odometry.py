@@ -7,13 +7,15 @@ k-1 into frame k) minimising
     sum_i  w_I,i (r_I,i / s_I)^2 + lambda_Z  w_Z,i (r_Z,i / s_Z)^2  +  |log(R R_prior^T)|^2 / sigma_prior^2
 
 with photometric residuals ``r_I = I_k(pi(T p_i)) - I_km1(x_i)``, depth residuals
-``r_Z = Z_k(pi(T p_i)) - [T p_i]_z``, t-distribution weights (nu = 5) with the scales ``s_I, s_Z``
+``r_Z = (Z_k(pi(T p_i)) - [T p_i]_z) (Z_med / Z_i)^2`` (structured-light noise grows with Z^2; points on
+depth discontinuities have no depth term), t-distribution weights (nu = 5) with the scales ``s_I, s_Z``
 re-estimated each iteration (DVO's robust estimator), an optional rotation prior from the integrated gyro
-(the IMU prior between frames), Gauss-Newton on a left se(3) increment, coarse-to-fine over an image
-pyramid. The camera pose is chained: ``T_c0_ck = T_c0_ckm1 · T_ck_ckm1^-1``.
+(the IMU prior between frames), inverse-compositional Gauss-Newton on se(3) (Jacobians of the reference
+points, fixed per level), coarse-to-fine over an image pyramid, started from the previous pair's motion
+(constant velocity). The camera pose is chained: ``T_c0_ck = T_c0_ckm1 · T_ck_ckm1^-1``.
 
-Everything is vectorised: warped samples come from ``cv2.remap`` on a 1×N map (bilinear, with a validity
-channel so no sample mixes invalid depth), Jacobians are closed-form rows.
+Everything is vectorised: warped samples come from one ``cv2.remap`` per iteration on a 1×N map of a
+4-channel texture (intensity, depth, depth validity, inside), so no sample mixes invalid depth.
 """
 
 from __future__ import annotations
@@ -79,28 +81,32 @@ class OdometryResult:
 
 
 _I3 = np.eye(3)
+_MAX_DEPTH_SLOPE = float(np.tan(np.radians(75.0)))
+_INLIER_INTENSITY = 0.06   # photometric error (0..1) below which a finest-level point counts for fitness
 
 
 def se3_exp(xi: NDArray[np.float64]) -> Mat4:
-    """Exponential map of a twist (v, omega) to a 4x4 transform."""
-    v = xi[:3]
-    w0, w1, w2 = float(xi[3]), float(xi[4]), float(xi[5])
-    theta = math.sqrt(w0 * w0 + w1 * w1 + w2 * w2)
-    W = np.array([[0.0, -w2, w1], [w2, 0.0, -w0], [-w1, w0, 0.0]])
-    if theta < 1e-9:
-        R = _I3 + W
-        V = _I3 + 0.5 * W
+    """Exponential map of a twist (v, omega) to a 4x4 transform (scalar math: called every iteration)."""
+    v0, v1, v2, w0, w1, w2 = (float(c) for c in xi)
+    t2 = w0 * w0 + w1 * w1 + w2 * w2
+    if t2 < 1e-18:
+        a, b, c = 1.0, 0.5, 1.0 / 6.0
     else:
+        theta = math.sqrt(t2)
         a = math.sin(theta) / theta
-        b = (1.0 - math.cos(theta)) / theta**2
-        c = (1.0 - a) / theta**2
-        W2 = W @ W
-        R = _I3 + a * W + b * W2
-        V = _I3 + b * W + c * W2
-    T = np.eye(4)
-    T[:3, :3] = R
-    T[:3, 3] = V @ v
-    return T
+        b = (1.0 - math.cos(theta)) / t2
+        c = (1.0 - a) / t2
+    # W^2 = w w^T - |w|^2 I; R = I + a W + b W^2, V = I + b W + c W^2 (Rodrigues)
+    x00, x11, x22 = w0 * w0 - t2, w1 * w1 - t2, w2 * w2 - t2
+    x01, x02, x12 = w0 * w1, w0 * w2, w1 * w2
+    R = ((1.0 + b * x00, -a * w2 + b * x01, a * w1 + b * x02),
+         (a * w2 + b * x01, 1.0 + b * x11, -a * w0 + b * x12),
+         (-a * w1 + b * x02, a * w0 + b * x12, 1.0 + b * x22))
+    V = ((1.0 + c * x00, -b * w2 + c * x01, b * w1 + c * x02),
+         (b * w2 + c * x01, 1.0 + c * x11, -b * w0 + c * x12),
+         (-b * w1 + c * x02, b * w0 + c * x12, 1.0 + c * x22))
+    t = [Vr[0] * v0 + Vr[1] * v1 + Vr[2] * v2 for Vr in V]
+    return np.array([[*R[0], t[0]], [*R[1], t[1]], [*R[2], t[2]], [0.0, 0.0, 0.0, 1.0]])
 
 
 def so3_log(R: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -129,16 +135,20 @@ Image = NDArray[Any]   # float32 images (OpenCV's stubs type them loosely)
 @dataclass
 class _Level:
     K: CameraIntrinsics
-    intensity_tex: Image   # H×W×4: I, dI/du, dI/dv, 1
-    depth_tex: Image       # H×W×4: Z, dZ/du, dZ/dv, valid (eroded)
-    gray: Image
-    depth: Image
-    grad_mag: Image
+    tex: Image        # H×W×4, sampled at the warped points: I, Z, valid (eroded depth validity), 1 (inside)
+    gray: Image       # intensity in 0..1
+    depth: Image      # metres, 0 = invalid
+    gx: Image         # dI/du, dI/dv (Sobel)
+    gy: Image
+    zx: Image         # dZ/du, dZ/dv (Sobel; 0 where the 3×3 neighbourhood has invalid depth)
+    zy: Image
+    select: Image     # |dI/du| + |dI/dv| where the depth is valid inside a 2-pixel border, else 0
 
 
 @dataclass
 class PreparedFrame:
-    """A frame's pyramid (finest first) with gradient textures, computed once and reused as reference."""
+    """A frame's pyramid (finest first) with gradients and sampling textures, computed once; the frame is the
+    current frame of one pair and the reference of the next."""
 
     levels: list[_Level] = field(default_factory=list)
 
@@ -165,6 +175,7 @@ def _downsample_depth(depth: Image) -> Image:
 
 _KERNEL3 = np.ones((3, 3), np.uint8)
 _ONES: dict[tuple[int, ...], NDArray[np.float32]] = {}
+_BORDER: dict[tuple[int, ...], NDArray[np.float32]] = {}
 
 
 def _ones(shape: tuple[int, ...]) -> NDArray[np.float32]:
@@ -173,9 +184,18 @@ def _ones(shape: tuple[int, ...]) -> NDArray[np.float32]:
     return _ONES[shape]
 
 
+def _inner(shape: tuple[int, ...]) -> NDArray[np.float32]:
+    """1 inside a 2-pixel border (where the 3×3 gradients are two-sided), 0 on it."""
+    if shape not in _BORDER:
+        m = np.zeros(shape, np.float32)
+        m[2:-2, 2:-2] = 1.0
+        _BORDER[shape] = m
+    return _BORDER[shape]
+
+
 def prepare_frame(rgb: NDArray[np.uint8], depth_m: NDArray[np.float32], K: CameraIntrinsics,
                   config: OdometryConfig) -> PreparedFrame:
-    """Pyramids, gradients and remap textures of one frame (finest level first)."""
+    """Pyramids, gradients and the sampling texture of one frame (finest level first)."""
     gray = _gray01(rgb)
     d = np.asarray(depth_m, dtype=np.float32)
     # NaN and inf fail both comparisons: one pass turns them and out-of-range depths into 0 (invalid)
@@ -200,44 +220,107 @@ def prepare_frame(rgb: NDArray[np.uint8], depth_m: NDArray[np.float32], K: Camer
             K = K.scaled(0.5)
         gx = cv2.Sobel(gray, cv2.CV_32F, 1, 0, ksize=3, scale=0.125)
         gy = cv2.Sobel(gray, cv2.CV_32F, 0, 1, ksize=3, scale=0.125)
-        valid_e = cv2.erode((depth > 0).view(np.uint8), _KERNEL3).astype(np.float32)
+        valid = (depth > 0).view(np.uint8)
+        valid_e = cv2.erode(valid, _KERNEL3).astype(np.float32)
         zx = cv2.multiply(cv2.Sobel(depth, cv2.CV_32F, 1, 0, ksize=3, scale=0.125), valid_e)
         zy = cv2.multiply(cv2.Sobel(depth, cv2.CV_32F, 0, 1, ksize=3, scale=0.125), valid_e)
-        out.levels.append(_Level(
-            K=K,
-            intensity_tex=cv2.merge([gray, gx, gy, _ones(gray.shape)]),
-            depth_tex=cv2.merge([depth, zx, zy, valid_e]),
-            gray=gray, depth=depth, grad_mag=np.abs(gx) + np.abs(gy)))
+        sel = cv2.add(np.abs(gx), np.abs(gy))
+        sel = cv2.multiply(sel, _inner(gray.shape))
+        sel[valid == 0] = 0.0
+        out.levels.append(_Level(K=K, tex=cv2.merge([gray, depth, valid_e, _ones(gray.shape)]),
+                                 gray=gray, depth=depth, gx=gx, gy=gy, zx=zx, zy=zy, select=sel))
     return out
 
 
-def _select_points(level: _Level, max_points: int, gradient_fraction: float
-                   ) -> tuple[NDArray[np.float64], Image]:
-    """Reference points (N×3, camera frame) and their intensities: strongest gradients plus an even spread."""
-    d = level.depth
-    valid = d > 0
-    # skip a 2-pixel border where gradients are one-sided
-    valid[:2, :] = False
-    valid[-2:, :] = False
-    valid[:, :2] = False
-    valid[:, -2:] = False
-    idx = np.flatnonzero(valid)
-    if idx.size > max_points:
-        g = level.grad_mag.ravel()[idx]
-        n_grad = int(max_points * gradient_fraction)
-        top = np.argpartition(-g, n_grad)[:n_grad]
-        rest_mask = np.ones(idx.size, bool)
-        rest_mask[top] = False
-        rest = np.flatnonzero(rest_mask)
-        n_rest = max_points - n_grad
-        spread = rest[np.linspace(0, rest.size - 1, n_rest).astype(np.intp)] if rest.size > n_rest else rest
-        idx = idx[np.concatenate([top, spread])]
-    w = d.shape[1]
+def _select_pixels(level: _Level, max_points: int, gradient_fraction: float) -> NDArray[np.intp]:
+    """Flat indices of the reference pixels: the strongest intensity gradients plus an even spread.
+
+    The gradient threshold is the quantile of a strided subsample of the image that leaves about
+    ``gradient_fraction * max_points`` pixels above it (no sort of every pixel); the spread is a regular
+    grid over the remaining valid pixels (for the depth term, which needs no texture).
+    """
+    sel = level.select
+    n_grad = int(max_points * gradient_fraction)
+    n_valid_sub = 0
+    step = 2
+    sub = sel[::step, ::step].ravel()
+    sub_valid = sub[sub > 0]
+    n_valid_sub = sub_valid.size
+    if n_valid_sub == 0:
+        return np.empty(0, np.intp)
+    n_valid = n_valid_sub * step * step   # estimate
+    if n_valid <= max_points:
+        return np.flatnonzero(sel > 0)
+    # threshold leaving about n_grad pixels above it (scaled to the subsample)
+    k = n_valid_sub - max(1, n_grad // (step * step))
+    thr = float(np.partition(sub_valid, k)[k]) if k > 0 else 0.0
+    top = np.flatnonzero(sel > thr)
+    if top.size > n_grad:
+        top = top[np.linspace(0, top.size - 1, n_grad).astype(np.intp)]
+    # an even spread over the valid pixels below the threshold
+    n_rest = max_points - top.size
+    rest = np.flatnonzero((sel > 0) & (sel <= thr))
+    if rest.size > n_rest:
+        rest = rest[np.linspace(0, rest.size - 1, n_rest).astype(np.intp)]
+    return np.concatenate([top, rest])
+
+
+def _jacobian_rows(out: Image, x: Image, y: Image, z: Image, a: Image, b: Image, dz: float) -> None:
+    """Write the 6 × N Jacobian rows of a residual ``f(pi(exp(xi) p))`` w.r.t. a left se(3) increment xi
+    at ``p = (x, y, z)``, given the pixel gradient scaled by ``f/z``: ``a = f_u f_x / z``, ``b = f_v f_y / z``;
+    ``dz`` is the residual's direct d/dz (-1 for the depth residual, whose value also moves with ``[p]_z``)."""
+    c = out[2]
+    np.multiply(a, x, out=c)
+    c += b * y
+    c /= z
+    np.negative(c, out=c)
+    if dz:
+        c += np.float32(dz)
+    out[0] = a
+    out[1] = b
+    np.subtract(y * c, z * b, out=out[3])       # p x (a, b, c)
+    np.subtract(z * a, x * c, out=out[4])
+    np.subtract(x * b, y * a, out=out[5])
+
+
+@dataclass
+class _Reference:
+    """One level's reference points with their Jacobians, fixed for the level (inverse compositional)."""
+
+    P: Image                  # 3 × N points in the reference camera frame
+    I: Image                  # N intensities
+    J: Image                  # 8 × 2N, columns photometric [0, N) and depth [N, 2N): rows 0-5 the Jacobian, row 6
+                              # the residuals (written each iteration), row 7 zero (8 rows: BLAS's fast kernel)
+    z_ok: NDArray[np.bool_]   # N: depth gradient defined at the reference pixel (depth term usable)
+    z_norm: Image             # N: (Z_med / Z)^2, the depth residual's noise normalisation
+
+
+def _reference(level: _Level, max_points: int, gradient_fraction: float) -> _Reference:
+    idx = _select_pixels(level, max_points, gradient_fraction)
+    w = level.depth.shape[1]
     v, u = np.divmod(idx, w)
-    z = d.ravel()[idx].astype(np.float64)
     K = level.K
-    pts = np.column_stack([(u - K.cx) / K.fx * z, (v - K.cy) / K.fy * z, z])
-    return pts, level.gray.ravel()[idx]
+    z = level.depth.ravel()[idx]
+    x = (u.astype(np.float32) - np.float32(K.cx)) * np.float32(1.0 / K.fx) * z
+    y = (v.astype(np.float32) - np.float32(K.cy)) * np.float32(1.0 / K.fy) * z
+    n = idx.size
+    J = np.zeros((8, 2 * n), np.float32)
+    fx_z = np.float32(K.fx) / z
+    fy_z = np.float32(K.fy) / z
+    _jacobian_rows(J[:, :n], x, y, z, level.gx.ravel()[idx] * fx_z, level.gy.ravel()[idx] * fy_z, 0.0)
+    zx, zy = level.zx.ravel()[idx], level.zy.ravel()[idx]
+    _jacobian_rows(J[:, n:], x, y, z, zx * fx_z, zy * fy_z, -1.0)
+    # structured-light depth noise grows with Z^2 (Khoshelham & Elberink 2012): each depth residual is scaled
+    # by (Z_med / Z)^2, so near and far points weigh by their information while the robust scale (and its
+    # floor) stays in metres at the median depth
+    z_med = np.partition(z, n // 2)[n // 2] if n else np.float32(1.0)
+    z_norm = (z_med / z) ** 2
+    J[:6, n:] *= z_norm
+    # the depth term needs a surface: a slope |dZ/du| f / Z beyond tan(75 deg) is a depth discontinuity (or a
+    # grazing surface, where structured-light depth is unreliable), where Z is not differentiable
+    slope2 = (zx * zx + zy * zy) * (fx_z * fx_z)
+    z_ok = (level.tex[..., 2].ravel()[idx] > 0.999) & (slope2 < np.float32(_MAX_DEPTH_SLOPE**2))
+    return _Reference(np.stack([x, y, z]), level.gray.ravel()[idx], J, z_ok, z_norm)
 
 
 def _sample(tex: Image, u: NDArray[np.float32], v: NDArray[np.float32]) -> Image:
@@ -260,56 +343,6 @@ def _sample(tex: Image, u: NDArray[np.float32], v: NDArray[np.float32]) -> Image
     return out.reshape(rows * width, -1)[:n]
 
 
-def _t_weights_masked(r2: NDArray[np.float32], n_valid: int, nu: float, s2_start: float, s2_min: float,
-                      out: NDArray[np.float32]) -> float:
-    """t-distribution weights (DVO) of squared residuals ``r2`` into ``out``; returns the scale s^2.
-
-    Invalid entries have ``r2 = 0`` and are not counted in ``n_valid``. The scale is re-estimated by a few
-    fixed-point steps (4 from the plain mean square, 2 from the previous iteration's scale).
-    """
-    s2 = s2_start if s2_start > 0 else max(float(r2.sum(dtype=np.float64)) / n_valid, s2_min)
-    a = np.float32(nu + 1.0)
-    for _ in range(2 if s2_start > 0 else 4):
-        np.multiply(r2, np.float32(1.0 / s2), out=out)
-        out += np.float32(nu)
-        np.divide(a, out, out=out)
-        s2 = max(float(np.dot(out, r2)) / n_valid, s2_min)
-    np.multiply(r2, np.float32(1.0 / s2), out=out)
-    out += np.float32(nu)
-    np.divide(a, out, out=out)
-    return s2
-
-
-def _fill_rows(out: NDArray[np.float32], x: NDArray[np.float32], y: NDArray[np.float32], z: NDArray[np.float32],
-               iz: NDArray[np.float32], a: NDArray[np.float32], b: NDArray[np.float32], dz: float,
-               tmp: NDArray[np.float32]) -> None:
-    """Write the 6 × N Jacobian rows (left se(3) increment) of a residual with pixel gradient scaled by
-    ``f/z``: ``a = g_u f_x / z``, ``b = g_v f_y / z``; ``dz`` is the residual's direct d/dz (-1 for depth).
-
-    ``a`` and ``b`` may alias ``out[0]`` and ``out[1]``; ``tmp`` is scratch of length N."""
-    c = out[2]
-    np.multiply(a, x, out=c)
-    np.multiply(b, y, out=tmp)
-    c += tmp
-    c *= iz
-    np.negative(c, out=c)
-    if dz:
-        c += np.float32(dz)
-    if a is not out[0]:
-        out[0] = a
-    if b is not out[1]:
-        out[1] = b
-    np.multiply(y, c, out=out[3])       # P x g
-    np.multiply(z, b, out=tmp)
-    out[3] -= tmp
-    np.multiply(z, a, out=out[4])
-    np.multiply(x, c, out=tmp)
-    out[4] -= tmp
-    np.multiply(x, b, out=out[5])
-    np.multiply(y, a, out=tmp)
-    out[5] -= tmp
-
-
 class RgbdOdometry:
     """Frame-to-frame direct RGB-D odometry producing the chained camera pose ``T_c0_ck``."""
 
@@ -317,10 +350,13 @@ class RgbdOdometry:
         self.config = config or OdometryConfig()
         self._ref: PreparedFrame | None = None
         self._T_c0_ck = np.eye(4)
+        self._stamp_s = 0.0
+        self._last_motion: tuple[Mat4, float] | None = None   # last good T_ck_ckm1 and its frame interval
 
     def reset(self) -> None:
         self._ref = None
         self._T_c0_ck = np.eye(4)
+        self._last_motion = None
 
     @property
     def T_c0_ck(self) -> Mat4:
@@ -336,29 +372,52 @@ class RgbdOdometry:
         cur = prepare_frame(rgb, depth_m, K, self.config)
         if self._ref is None:
             self._ref = cur
+            self._stamp_s = stamp_s
             return OdometryResult(stamp_s, self._T_c0_ck.copy(), np.eye(4), True, 1.0)
-        pair = self.align(self._ref, cur, R_ckm1_ck_prior)
+        dt_s = stamp_s - self._stamp_s
+        pair = self.align(self._ref, cur, R_ckm1_ck_prior, self._predict(dt_s))
         self._ref = cur
+        self._stamp_s = stamp_s
         if pair.ok:
             T_ckm1_ck = inv_T(pair.T_ck_ckm1)
-        elif R_ckm1_ck_prior is not None:
-            T_ckm1_ck = np.eye(4)
-            T_ckm1_ck[:3, :3] = R_ckm1_ck_prior
+            self._last_motion = (pair.T_ck_ckm1, dt_s)
         else:
+            self._last_motion = None
             T_ckm1_ck = np.eye(4)
+            if R_ckm1_ck_prior is not None:
+                T_ckm1_ck[:3, :3] = R_ckm1_ck_prior
         self._T_c0_ck = self._T_c0_ck @ T_ckm1_ck
         return OdometryResult(stamp_s, self._T_c0_ck.copy(), T_ckm1_ck, pair.ok, pair.fitness)
 
+    def _predict(self, dt_s: float) -> Mat4 | None:
+        """Constant-velocity guess of ``T_ck_ckm1`` (DVO's motion prior as the starting point): the last pair's
+        twist scaled to this frame interval; None after a failure or for a non-positive interval."""
+        if self._last_motion is None:
+            return None
+        T_last, dt_last = self._last_motion
+        if dt_s <= 0.0 or dt_last <= 0.0:
+            return None
+        f = min(dt_s / dt_last, 3.0)
+        w = so3_log(T_last[:3, :3]) * f
+        T = se3_exp(np.concatenate([np.zeros(3), w]))
+        T[:3, 3] = T_last[:3, 3] * f
+        return T
+
     def align(self, ref: PreparedFrame, cur: PreparedFrame, R_ckm1_ck_prior: NDArray[np.float64] | None = None,
               T_init: Mat4 | None = None) -> PairResult:
-        """Estimate ``T_ck_ckm1`` between two prepared frames (coarse to fine Gauss-Newton)."""
+        """Estimate ``T_ck_ckm1`` between two prepared frames (coarse to fine Gauss-Newton).
+
+        Inverse compositional (Baker & Matthews 2004): the Jacobians are those of the reference frame's
+        points and gradients, fixed per level, and an increment ``xi`` updates ``T <- T exp(xi)^-1``. The
+        residuals keep their definitions, so a converged solution satisfies the same equations; per
+        iteration only the warp, one texture sample and the weights are recomputed.
+        """
         cfg = self.config
         T = np.eye(4) if T_init is None else T_init.copy()
         R_prior = None
         if R_ckm1_ck_prior is not None:
             R_prior = np.asarray(R_ckm1_ck_prior, dtype=float).T   # rotation of T_ck_ckm1
-            if T_init is None:
-                T[:3, :3] = R_prior
+            T[:3, :3] = R_prior   # the gyro's rotation is a better start than any guess
         info_prior = 1.0 / cfg.imu_prior_sigma_rad**2
         use_depth = cfg.depth_weight > 0
         n_levels = min(cfg.levels, len(ref.levels), len(cur.levels))
@@ -368,123 +427,117 @@ class RgbdOdometry:
             k = n_levels - 1 - li  # coarse -> fine index into the per-level tuples
             iters = cfg.iterations[min(k, len(cfg.iterations) - 1)]
             max_pts = cfg.max_points[min(k, len(cfg.max_points) - 1)]
-            lr, lc = ref.levels[li], cur.levels[li]
-            P0, I0 = _select_points(lr, max_pts, cfg.gradient_fraction)
-            n_points = P0.shape[0]
-            if n_points < cfg.min_points:
+            lc = cur.levels[li]
+            rp = _reference(ref.levels[li], max_pts, cfg.gradient_fraction)
+            N = n_points = rp.I.shape[0]
+            if N < cfg.min_points:
+                if li == 0:
+                    fitness = 0.0
                 continue
             K = lc.K
+            Kf = np.array([[K.fx, 0.0, K.cx], [0.0, K.fy, K.cy], [0.0, 0.0, 1.0]])
             s2_i = s2_z = 0.0
+            s2_imin, s2_zmin = cfg.min_intensity_sigma**2, cfg.min_depth_sigma_m**2
+            nu, nu1 = np.float32(cfg.t_dof), np.float32(cfg.t_dof + 1.0)
             eps_level = cfg.convergence_eps * (2.0**li)   # coarse levels only need to land in the basin
-            N = n_points
-            P0t = np.ascontiguousarray(P0.T, dtype=np.float32)   # 3×N rows: contiguous float32 vector ops
-            I0f = I0.astype(np.float32)
-            fx, fy = np.float32(K.fx), np.float32(K.fy)
-            cx, cy = np.float32(K.cx), np.float32(K.cy)
-            # one Jacobian for both residual kinds: rows [0, N) photometric, [N, 2N) depth (6 × 2N, row-major),
-            # float32 (the 6×6 normal equations are accumulated by BLAS and solved in float64)
-            J = np.empty((6, 2 * N), np.float32)
+            J = rp.J
             Jw = np.empty_like(J)
-            r = np.empty(2 * N, np.float32)
+            # both residual kinds in one vector: photometric [0, N), depth [N, 2N)
+            r = J[6]
             r2 = np.empty(2 * N, np.float32)
             wr = np.empty(2 * N, np.float32)
-            P = np.empty((3, N), np.float32)
+            scale = np.empty(2 * N, np.float32)
+            use = np.empty(2 * N, bool)   # residual usable (inside, valid depth)
+            ok_i, ok_z = use[:N], use[N:]
+            Ph = np.empty((3, N), np.float32)
             iz = np.empty(N, np.float32)
             u = np.empty(N, np.float32)
             v = np.empty(N, np.float32)
-            tmp = np.empty(N, np.float32)
+            evaluated = False
             for _ in range(iters):
                 total_iters += 1
-                np.matmul(T[:3, :3].astype(np.float32), P0t, out=P)
-                P += T[:3, 3:4].astype(np.float32)
-                x, y, z = P[0], P[1], P[2]
-                front = z > 1e-3
+                # homogeneous pixels of the warped points: K (R p + t)
+                np.matmul((Kf @ T[:3, :3]).astype(np.float32), rp.P, out=Ph)
+                Ph += (Kf @ T[:3, 3:4]).astype(np.float32)
+                z = Ph[2]
+                np.greater(z, np.float32(1e-3), out=ok_i)
                 np.maximum(z, np.float32(1e-3), out=iz)
-                np.divide(np.float32(1.0), iz, out=iz)
-                np.multiply(x, iz, out=u)
-                u *= fx
-                u += cx
-                np.multiply(y, iz, out=v)
-                v *= fy
-                v += cy
-                si = _sample(lc.intensity_tex, u, v)
-                sd = _sample(lc.depth_tex, u, v)
-                ok_i = (si[:, 3] > 0.999) & front
+                np.reciprocal(iz, out=iz)
+                np.multiply(Ph[0], iz, out=u)
+                np.multiply(Ph[1], iz, out=v)
+                s = _sample(lc.tex, u, v)
+                ok_i &= s[:, 3] > 0.999
                 n_i = int(np.count_nonzero(ok_i))
                 if n_i < cfg.min_points:
+                    evaluated = False
                     break
-                ok_z = ok_i & (sd[:, 3] > 0.999) if use_depth else np.zeros(N, bool)
-                n_z = int(np.count_nonzero(ok_z))
-                ri, wi = r[:N], wr[:N]
-                np.subtract(si[:, 0], I0f, out=ri)
-                ri *= ok_i
-                np.multiply(ri, ri, out=r2[:N])
-                s2_i = _t_weights_masked(r2[:N], n_i, cfg.t_dof, s2_i, cfg.min_intensity_sigma**2, wi)
-                wi *= ok_i
-                wi *= np.float32(1.0 / s2_i)
-                np.multiply(iz, fx, out=u)     # u, v are free after sampling: f/z
-                np.multiply(iz, fy, out=v)
-                Ji = J[:, :N]
-                np.multiply(si[:, 1], u, out=Ji[0])
-                np.multiply(si[:, 2], v, out=Ji[1])
-                _fill_rows(Ji, x, y, z, iz, Ji[0], Ji[1], 0.0, tmp)
-                if n_z >= cfg.min_points:
-                    rz, wz = r[N:], wr[N:]
-                    np.subtract(sd[:, 0], z, out=rz)
-                    rz *= ok_z
-                    np.multiply(rz, rz, out=r2[N:])
-                    s2_z = _t_weights_masked(r2[N:], n_z, cfg.t_dof, s2_z, cfg.min_depth_sigma_m**2, wz)
-                    wz *= ok_z
-                    wz *= np.float32(cfg.depth_weight / s2_z)
-                    Jz = J[:, N:]
-                    np.multiply(sd[:, 1], u, out=Jz[0])
-                    np.multiply(sd[:, 2], v, out=Jz[1])
-                    _fill_rows(Jz, x, y, z, iz, Jz[0], Jz[1], -1.0, tmp)
+                evaluated = True
+                np.greater(s[:, 2], 0.999, out=ok_z)
+                ok_z &= ok_i
+                ok_z &= rp.z_ok
+                n_z = int(np.count_nonzero(ok_z)) if use_depth else 0
+                if n_z < cfg.min_points:
+                    ok_z[:] = False
+                    n_z = 0
+                np.subtract(s[:, 0], rp.I, out=r[:N])
+                np.subtract(s[:, 1], z, out=r[N:])
+                r[N:] *= rp.z_norm
+                r *= use
+                np.multiply(r, r, out=r2)
+                # t-distribution weights with scales re-estimated by fixed-point steps (DVO): 4 from the plain
+                # mean square at a level's first iteration, then 2 from the previous iteration's scales
+                if s2_i <= 0.0:
+                    s2_i = max(float(r2[:N].sum(dtype=np.float64)) / n_i, s2_imin)
+                    s2_z = max(float(r2[N:].sum(dtype=np.float64)) / max(n_z, 1), s2_zmin)
+                    steps = 4
                 else:
-                    r[N:] = 0.0
-                    wr[N:] = 0.0
-                    J[:, N:] = 0.0
+                    steps = 2
+                for step in range(steps + 1):
+                    scale[:N] = 1.0 / s2_i
+                    scale[N:] = 1.0 / s2_z
+                    np.multiply(r2, scale, out=wr)
+                    wr += nu
+                    np.divide(nu1, wr, out=wr)
+                    if step < steps:
+                        s2_i = max(float(np.dot(wr[:N], r2[:N])) / n_i, s2_imin)
+                        if n_z:
+                            s2_z = max(float(np.dot(wr[N:], r2[N:])) / n_z, s2_zmin)
+                scale[N:] *= np.float32(cfg.depth_weight)
+                wr *= scale
+                wr *= use
+                # normal equations of the linearised residuals r - J xi: one BLAS product gives J^T W J and
+                # J^T W r (row 6 of J holds r); solved in float64
                 np.multiply(J, wr, out=Jw)
-                H = (Jw @ J.T).astype(np.float64)
-                g = (Jw @ r).astype(np.float64)
+                M = (Jw @ J.T).astype(np.float64)
+                H = M[:6, :6]
+                g = M[:6, 6].copy()
                 if R_prior is not None:
+                    # prior residual log(R R_prior^T) moves by -R xi_w under T <- T exp(xi)^-1
                     r_p = so3_log(T[:3, :3] @ R_prior.T)
                     H[3:, 3:] += info_prior * _I3
-                    g[3:] += info_prior * r_p
+                    g[3:] += info_prior * (T[:3, :3].T @ r_p)
                 # 6×6 symmetric positive definite: Cholesky (cv2.solve is far cheaper than numpy's per call)
-                solved, sol = cv2.solve(H, -g.reshape(6, 1), flags=cv2.DECOMP_CHOLESKY)
+                solved, sol = cv2.solve(H, g.reshape(6, 1), flags=cv2.DECOMP_CHOLESKY)
                 if not solved:
                     break
                 delta = np.asarray(sol, dtype=np.float64).ravel()
-                if not np.all(np.isfinite(delta)):
+                d2 = float(delta @ delta)
+                if not math.isfinite(d2):
                     break
-                T = se3_exp(delta) @ T
-                if float(delta @ delta) < eps_level**2:
+                T = T @ se3_exp(-delta)
+                if d2 < eps_level**2:
                     break
             if li == 0:
-                fitness, rmse_i = self._quality(P0, I0, lc, T)
+                # quality of the last evaluated iteration (the final update is below the convergence limit)
+                if evaluated:
+                    inl = ok_i & (r2[:N] < np.float32(_INLIER_INTENSITY**2))
+                    n_inl = int(np.count_nonzero(inl))
+                    fitness = n_inl / N
+                    rmse_i = math.sqrt(float(np.dot(r2[:N], inl)) / n_inl) if n_inl else math.nan
+                else:
+                    fitness = 0.0
         ok = (fitness >= cfg.min_fitness and n_points >= cfg.min_points
               and float(np.linalg.norm(T[:3, 3])) <= cfg.max_translation_m
               and float(np.linalg.norm(so3_log(T[:3, :3]))) <= cfg.max_rotation_rad
               and bool(np.all(np.isfinite(T))))
         return PairResult(T, ok, fitness, rmse_i, n_points, total_iters)
-
-    @staticmethod
-    def _quality(P0: NDArray[np.float64], I0: NDArray[np.float64], lc: _Level, T: Mat4,
-                 inlier_intensity: float = 0.06) -> tuple[float, float]:
-        """Share of reference points landing inside with a photometric error below ``inlier_intensity``."""
-        K = lc.K
-        h, w = lc.gray.shape
-        P = P0 @ T[:3, :3].T + T[:3, 3]
-        front = P[:, 2] > 1e-3
-        z = np.where(front, P[:, 2], 1.0)
-        u = (K.fx * P[:, 0] / z + K.cx).astype(np.float32)
-        v = (K.fy * P[:, 1] / z + K.cy).astype(np.float32)
-        inside = front & (u >= 0) & (u <= w - 1) & (v >= 0) & (v <= h - 1)
-        si = _sample(lc.intensity_tex, u, v)[:, 0]
-        r = np.abs(si.astype(np.float64) - I0)
-        inl = inside & (r < inlier_intensity)
-        if P0.shape[0] == 0:
-            return 0.0, math.nan
-        rmse = float(np.sqrt(np.mean(r[inl] ** 2))) if inl.any() else math.nan
-        return float(inl.mean()), rmse
