@@ -2,8 +2,12 @@
 
 Runs ``quadlink companion`` as a subprocess with the real perception pipeline, fed in real time at 30 Hz
 with 320x240 RGB-D frames over the camera stream (lock-step acks) and 500 Hz HIGHRES_IMU from a fake
-autopilot over UDP. Frames are rendered from perception's synthetic textured room along a flight with
-the pan-scan yaw swing (or replayed from a TUM folder with ``--tum``).
+autopilot over UDP. The default source is a **replayed SITL recording** (the issue's measurement): a
+pan-scanning teleop flight in paper-arena (``configs/teleop_scripts/bench_flight.yaml``) flown once with
+``quadlink demo --record-frames`` into ``benchmarks/.cache/sitl-flight`` (about 2 minutes, ~400 MB, reused
+afterwards); the camera frames from its ``frames.qlcf`` and the autopilot's HIGHRES_IMU from its
+``companion.tlog`` are replayed from the moment the companion entered teleop. ``--synthetic`` renders
+perception's textured room along a pan-scanning path instead; ``--tum`` replays a TUM folder.
 
 * latency: ``publish(frame)`` -> the SET_POSITION_TARGET_LOCAL_NED stamped with that frame received by the
   autopilot side (both clocks in this process). Reference targets: p50 <= 15 ms, p99 <= 30 ms.
@@ -11,7 +15,7 @@ the pan-scan yaw swing (or replayed from a TUM folder with ``--tum``).
   pacing: flight time = wall time). Reference target: <= 0.3 core-s/s.
 * link decode: CPU µs per HIGHRES_IMU received, ``mavutil`` ``recv_msg`` vs the daemon's codec reader.
 
-    python benchmarks/bench_companion.py [--seconds 20] [--tum /work/shared/data/tum_fr1_xyz_head]
+    python benchmarks/bench_companion.py [--seconds 20] [--recording DIR | --synthetic | --tum FOLDER]
 """
 
 from __future__ import annotations
@@ -79,11 +83,73 @@ def tum_frames(folder: str, n: int) -> tuple[list[RgbdFrame], np.ndarray]:
     return out, np.zeros(len(out))
 
 
-def run(seconds: float, tum: str | None, warmup_s: float = 3.0, profile: str | None = None) -> dict[str, float]:
-    n_unique = int(min(seconds + warmup_s, 4.0) * FPS)
-    t0 = time.perf_counter()
-    frames, rates = tum_frames(tum, n_unique) if tum else synthetic_frames(n_unique)
-    print(f"prepared {len(frames)} {'TUM' if tum else 'synthetic'} frames in {time.perf_counter() - t0:.1f} s")
+ImuSample = tuple[int, tuple[float, float, float], tuple[float, float, float]]   # t_us, gyro, accel (body FRD)
+Feed = list[tuple[RgbdFrame, list[ImuSample]]]
+
+
+def pingpong_feed(frames: list[RgbdFrame], rates: np.ndarray, n_total: int) -> Feed:
+    """Prepared frames played forward and back (no jump for the odometry), restamped at 30 Hz, with 500 Hz
+    IMU samples of the frames' yaw rate (negated when played backward)."""
+    out: Feed = []
+    period = 1.0 / FPS
+    n = len(frames)
+    for k in range(n_total):
+        idx = k % max(2 * n - 2, 1)
+        backward = idx >= n
+        if backward:
+            idx = 2 * n - 2 - idx
+        stamp = (k + 1) * period
+        r = -float(rates[idx]) if backward else float(rates[idx])
+        imu = [(int((stamp - period + (i + 1) / IMU_HZ) * 1e6), (0.0, 0.0, r), (0.0, 0.0, -9.81))
+               for i in range(int(IMU_HZ / FPS))]
+        out.append((dataclasses.replace(frames[idx], seq=k + 1, stamp_s=stamp), imu))
+    return out
+
+
+def record_sitl_flight(folder: Path, port_offset: int = 950) -> None:
+    """Fly ``bench_flight.yaml`` in the SITL once with the companion recording its camera frames."""
+    folder.mkdir(parents=True, exist_ok=True)
+    script = REPO / "configs" / "teleop_scripts" / "bench_flight.yaml"
+    argv = [sys.executable, "-m", "quadlink.cli", "demo", "--script", str(script), "--duration", "50",
+            "--out", str(folder), "--record-frames", "--port-offset", str(port_offset)]
+    print(f"recording a SITL flight for the replay (once; ~2 min): {' '.join(argv[2:])}", flush=True)
+    subprocess.run(argv, check=True, stdin=subprocess.DEVNULL)
+
+
+def recording_feed(folder: Path, n_total: int) -> Feed:
+    """Frames of ``folder/frames.qlcf`` from the companion's entry into teleop on (TELEOP_FEEDBACK mode 2
+    in ``companion.tlog``), each with the autopilot's HIGHRES_IMU samples since the previous frame."""
+    from quadlink.camera import read_frame_recording
+    from quadlink.mavlink.tlog import read_tlog
+
+    imu: list[ImuSample] = []
+    teleop_from_s = math.inf
+    for _, m in read_tlog(folder / "companion.tlog"):
+        kind = m.get_type()
+        if kind == "HIGHRES_IMU":
+            imu.append((int(m.time_usec), (m.xgyro, m.ygyro, m.zgyro), (m.xacc, m.yacc, m.zacc)))
+        elif kind == "TELEOP_FEEDBACK" and m.mode == 2 and not math.isfinite(teleop_from_s):
+            teleop_from_s = m.time_usec * 1e-6
+    if not imu or not math.isfinite(teleop_from_s):
+        raise SystemExit(f"{folder}: no IMU or no teleop phase in companion.tlog; delete the folder to re-record")
+    imu.sort(key=lambda s: s[0])
+    imu_t = np.array([s[0] for s in imu], dtype=np.int64)
+    out: Feed = []
+    prev_us = None
+    for f in read_frame_recording(folder / "frames.qlcf"):
+        t_us = int(round(f.stamp_s * 1e6))
+        if f.stamp_s >= teleop_from_s and prev_us is not None:
+            lo, hi = np.searchsorted(imu_t, [prev_us, t_us], side="right")
+            out.append((f, imu[lo:hi]))
+            if len(out) == n_total:
+                break
+        prev_us = t_us
+    if len(out) < n_total:
+        raise SystemExit(f"{folder}: {len(out)} teleop frames recorded, {n_total} needed; use fewer --seconds")
+    return out
+
+
+def run(feed: Feed, warmup_frames: int, profile: str | None = None) -> dict[str, float]:
     ap_port, gcs_port = free_udp_port(), free_udp_port()
     server = CameraStreamServer("127.0.0.1", 0)
     prof = ["-m", "cProfile", "-o", profile] if profile else []
@@ -98,33 +164,22 @@ def run(seconds: float, tum: str | None, warmup_s: float = 3.0, profile: str | N
             raise RuntimeError("companion did not connect to the camera stream")
         ps = psutil.Process(proc.pid)
         period = 1.0 / FPS
-        n_total = int((seconds + warmup_s) * FPS)
         start = time.perf_counter()
         cpu0 = None
         t_measure0 = 0.0
-        for k in range(n_total):
-            n = len(frames)  # play the prepared frames forward and back (no jump for the odometry)
-            idx = k % max(2 * n - 2, 1)
-            backward = idx >= n
-            if backward:
-                idx = 2 * n - 2 - idx
-            base = frames[idx]
-            stamp = k * period
+        for k, (frame, imu) in enumerate(feed):
             if k % int(FPS) == 0:
                 ap.mav.heartbeat_send(mavlink.MAV_TYPE_QUADROTOR, mavlink.MAV_AUTOPILOT_PX4, 0, 0,
                                       mavlink.MAV_STATE_STANDBY)
-            r = -float(rates[idx]) if backward else float(rates[idx])
-            for i in range(int(IMU_HZ / FPS)):
-                t_us = int(max(0.0, stamp - period + (i + 1) / IMU_HZ) * 1e6)
-                ap.mav.highres_imu_send(t_us, 0.0, 0.0, -9.81, 0.0, 0.0, r, 0, 0, 0, 0, 0, 0, 20.0, 0x3F)
-            if k == int(warmup_s * FPS):
+            for t_us, g, a in imu:
+                ap.mav.highres_imu_send(t_us, a[0], a[1], a[2], g[0], g[1], g[2], 0, 0, 0, 0, 0, 0, 20.0, 0x3F)
+            if k == warmup_frames:
                 cpu_t = ps.cpu_times()
                 cpu0 = cpu_t.user + cpu_t.system
                 t_measure0 = time.perf_counter()
-            frame = dataclasses.replace(base, seq=k + 1, stamp_s=stamp)
             t_pub = time.perf_counter()
             server.publish(frame)
-            want_ms = int(stamp * 1e3)
+            want_ms = int(frame.stamp_s * 1e3)
             got = None
             while got is None and time.perf_counter() - t_pub < 0.5:
                 m = ap.recv_msg()
@@ -135,14 +190,14 @@ def run(seconds: float, tum: str | None, warmup_s: float = 3.0, profile: str | N
                     got = time.perf_counter()
             if got is not None and cpu0 is not None:
                 latencies.append(got - t_pub)
-            server.wait_acks(k + 1, 2.0)
+            server.wait_acks(frame.seq, 2.0)
             sleep = start + (k + 1) * period - time.perf_counter()
             if sleep > 0:
                 time.sleep(sleep)
         cpu_t = ps.cpu_times()
         cpu = cpu_t.user + cpu_t.system - (cpu0 or 0.0)
         wall_s = time.perf_counter() - t_measure0
-        flight_s = (n_total - int(warmup_s * FPS)) / FPS  # simulated flight time of the measured frames
+        flight_s = (len(feed) - warmup_frames) / FPS  # flight time of the measured frames
     finally:
         proc.send_signal(2)  # SIGINT: clean shutdown (and the profile is written)
         try:
@@ -152,28 +207,27 @@ def run(seconds: float, tum: str | None, warmup_s: float = 3.0, profile: str | N
         server.close()
         ap.close()
     lat = np.sort(np.asarray(latencies))
-    expected = int(seconds * FPS)
+    expected = len(feed) - warmup_frames
     return {"frames": float(lat.size), "expected": float(expected), "p50_s": float(np.percentile(lat, 50)),
             "p99_s": float(np.percentile(lat, 99)), "max_s": float(lat[-1]), "cpu_core_s_per_s": cpu / flight_s,
             "flight_s": flight_s, "wall_s": wall_s}
 
 
-def perception_alone(frames: list[RgbdFrame], rates: np.ndarray) -> dict[str, float]:
-    """The perception pipeline in this process on the same frames: its share of latency and CPU."""
+def perception_alone(feed: Feed) -> dict[str, float]:
+    """The perception pipeline in this process on the same frames and IMU: its share of latency and CPU."""
     from perception.pipeline import PerceptionConfig, PerceptionPipeline
 
-    f0 = frames[0]
+    f0 = feed[0][0]
     pipe = PerceptionPipeline(PerceptionConfig(), f0.intrinsics, f0.R_qc, f0.p_qc_m, np.random.default_rng(0))
     frame_s, cpu0 = [], time.process_time()
-    for k, f in enumerate(frames):
-        for i in range(int(IMU_HZ / FPS)):
-            pipe.on_imu(f.stamp_s - 1.0 / FPS + (i + 1) / IMU_HZ + 1e-6, np.array([0.0, 0.0, rates[k]]),
-                        np.array([0.0, 0.0, -9.81]))
+    for f, imu in feed:
+        for t_us, g, a in imu:
+            pipe.on_imu(t_us * 1e-6, np.array(g), np.array(a))
         t = time.perf_counter()
         pipe.on_frame(f)
         frame_s.append(time.perf_counter() - t)
     cpu = time.process_time() - cpu0
-    return {"p50_s": float(np.median(frame_s)), "cpu_core_s_per_s": cpu / (len(frames) / FPS)}
+    return {"p50_s": float(np.median(frame_s)), "cpu_core_s_per_s": cpu / (len(feed) / FPS)}
 
 
 def link_decode_cost(messages: int = 2000, reps: int = 5) -> dict[str, float]:
@@ -206,10 +260,28 @@ def link_decode_cost(messages: int = 2000, reps: int = 5) -> dict[str, float]:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--seconds", type=float, default=20.0, help="measured flight time (after a 3 s warm-up)")
-    ap.add_argument("--tum", default=None, help="replay this TUM RGB-D folder instead of synthetic frames")
+    src = ap.add_mutually_exclusive_group()
+    src.add_argument("--recording", type=Path, default=REPO / "benchmarks" / ".cache" / "sitl-flight",
+                     help="replay this SITL recording (frames.qlcf + companion.tlog; recorded if missing)")
+    src.add_argument("--synthetic", action="store_true", help="synthetic textured room instead of the recording")
+    src.add_argument("--tum", default=None, help="replay this TUM RGB-D folder instead of the recording")
     ap.add_argument("--profile", default=None, help="run the daemon under cProfile, write the stats here")
     args = ap.parse_args()
-    r = run(args.seconds, args.tum, profile=args.profile)
+    warmup = int(3.0 * FPS)
+    n_total = warmup + int(args.seconds * FPS)
+    t0 = time.perf_counter()
+    if args.tum or args.synthetic:
+        frames, rates = tum_frames(args.tum, 120) if args.tum else synthetic_frames(120)
+        feed = pingpong_feed(frames, rates, n_total)
+        source = f"TUM {args.tum}" if args.tum else "synthetic room"
+    else:
+        folder = args.recording
+        if not (folder / "frames.qlcf").is_file() or not (folder / "companion.tlog").is_file():
+            record_sitl_flight(folder)
+        feed = recording_feed(folder, n_total)
+        source = f"SITL recording {folder} (teleop from t = {feed[0][0].stamp_s:.1f} s)"
+    print(f"prepared {len(feed)} frames from {source} in {time.perf_counter() - t0:.1f} s", flush=True)
+    r = run(feed, warmup, profile=args.profile)
     print(f"companion @ {FPS:.0f} Hz 320x240 + {IMU_HZ} Hz IMU, {r['flight_s']:.1f} s of flight measured "
           f"({r['wall_s']:.1f} s wall; > flight time means this machine could not keep real time), "
           f"{int(r['frames'])}/{int(r['expected'])} setpoints matched")
@@ -219,8 +291,7 @@ def main() -> None:
           f"ratio {r['p99_s'] / TARGET_P99_S:.2f});  max {r['max_s'] * 1e3:.1f} ms")
     print(f"  daemon CPU {r['cpu_core_s_per_s']:.3f} core-s per s of flight  (target {TARGET_CPU}, "
           f"ratio {r['cpu_core_s_per_s'] / TARGET_CPU:.2f})")
-    frames, rates = tum_frames(args.tum, 60) if args.tum else synthetic_frames(60)
-    p = perception_alone(frames, rates)
+    p = perception_alone(feed[: min(len(feed), 300)])
     print(f"  of which perception alone (same frames, in-process): on_frame p50 {p['p50_s'] * 1e3:.2f} ms, "
           f"{p['cpu_core_s_per_s']:.3f} core-s/s  -> companion's own share: latency "
           f"{(r['p50_s'] - p['p50_s']) * 1e3:.2f} ms, CPU {r['cpu_core_s_per_s'] - p['cpu_core_s_per_s']:.3f} core-s/s")

@@ -22,16 +22,19 @@ log = logging.getLogger("companion")
 @click.option("--image-port", type=int, default=None, help="Operator image stream TCP port [config: 5770]; 0 = off.")
 @click.option("--tlog", "tlog_path", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="Record every MAVLink packet of both links to this .tlog.")
+@click.option("--record-frames", "frames_path", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              help="Record every camera frame received to this file (camera-stream records, ~380 kB per QVGA "
+                   "frame; replay with quadlink.camera.read_frame_recording).")
 @click.option("--duration", type=float, default=None, help="Stop after this many seconds (wall).")
 def command(config_path: str, autopilot: str | None, gcs: str | None, camera: str | None, image_port: int | None,
-            tlog_path: Path | None, duration: float | None) -> None:
+            tlog_path: Path | None, frames_path: Path | None, duration: float | None) -> None:
     """Start the companion daemon: perception, reference velocity, MAVLink to autopilot and ground station."""
     import dataclasses
 
     from companion.cameras import open_camera
     from companion.config import load_companion_config
     from companion.daemon import Companion, default_pipeline_factory
-    from quadlink.camera import CameraStreamServer
+    from quadlink.camera import CameraStreamServer, FrameRecordWriter
     from quadlink.errors import LinkError
     from quadlink.mavlink.connection import open_mavlink
     from quadlink.mavlink.tlog import TlogWriter
@@ -60,13 +63,21 @@ def command(config_path: str, autopilot: str | None, gcs: str | None, camera: st
         except OSError as exc:
             raise LinkError(f"operator image stream tcp://{links.image_host}:{links.image_port}: {exc}") from exc
         tlog = TlogWriter(tlog_path) if tlog_path else None
+        if tlog is not None:
+            opened.append(tlog)
+        try:
+            frames = FrameRecordWriter(frames_path) if frames_path else None
+        except OSError as exc:
+            raise LinkError(f"frame recording {frames_path}: {exc}") from exc
     except BaseException:
         for link in opened:
             link.close()
         raise
     log.info("autopilot %s, ground station %s, camera %s, operator images %s, tlog %s", links.autopilot, links.gcs,
              links.camera, f"tcp://{links.image_host}:{links.image_port}" if images else "off", tlog_path or "off")
-    daemon = Companion(cfg, ap, ground, cam, factory, image_server=images, tlog=tlog)
+    if frames is not None:
+        log.info("recording camera frames to %s", frames_path)
+    daemon = Companion(cfg, ap, ground, cam, factory, image_server=images, tlog=tlog, frame_recorder=frames)
     stop = threading.Event()
     def on_sigterm(*_: object) -> None:
         # is_set() first: Event.set() takes a lock, and a second signal inside it would deadlock the handler

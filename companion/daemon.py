@@ -142,7 +142,8 @@ class Companion:
 
     def __init__(self, cfg: CompanionConfig, autopilot: MavLink, gcs: MavLink, camera: CameraInput,
                  pipeline_factory: PipelineFactory, image_server: Any | None = None, tlog: Any | None = None,
-                 clock: Callable[[], float] = time.monotonic, wall: Callable[[], float] = time.time) -> None:
+                 clock: Callable[[], float] = time.monotonic, wall: Callable[[], float] = time.time,
+                 frame_recorder: Any | None = None) -> None:
         self.cfg = cfg
         # the autopilot link (500 Hz HIGHRES_IMU) is decoded by the dialect's codec, not mavutil's recv_msg
         self.autopilot: MavLink = CodecReader(autopilot) if hasattr(autopilot, "recv") else autopilot
@@ -151,6 +152,7 @@ class Companion:
         self._pipeline: Pipeline | None = None
         self.image_server = image_server
         self.tlog = tlog
+        self.frame_recorder = frame_recorder   # quadlink.camera.FrameRecordWriter: every frame received
         self.clock, self.wall = clock, wall
         ident = cfg.identity
         self.sysid = ident.system_id
@@ -500,6 +502,15 @@ class Companion:
         if out is not None:
             self._send_gcs_telemetry(stamp, out)
             self._publish_image(frame, out, ref)
+        if self.frame_recorder is not None:
+            self._record_frame(frame)
+
+    def _record_frame(self, frame: RgbdFrame) -> None:
+        try:
+            self.frame_recorder.write(frame)  # type: ignore[union-attr]
+        except OSError as exc:  # a full disk stops the recording, never the flight loop
+            log.error("frame recording stopped: %s", exc)
+            self.frame_recorder = None
 
     @staticmethod
     def _height_m(out: Any) -> float | None:
@@ -652,7 +663,8 @@ class Companion:
         for name, closer in (("camera", self.camera.close), ("autopilot", self.autopilot.close),
                              ("gcs", self.gcs.close),
                              ("image stream", self.image_server.close if self.image_server else None),
-                             ("tlog", self.tlog.close if self.tlog else None)):
+                             ("tlog", self.tlog.close if self.tlog else None),
+                             ("frame recording", self.frame_recorder.close if self.frame_recorder else None)):
             if closer is None:
                 continue
             try:

@@ -23,8 +23,9 @@ import socket
 import struct
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import cv2
@@ -154,6 +155,11 @@ class RecordDecoder:
     def __init__(self) -> None:
         self._buf = bytearray()
 
+    @property
+    def pending_bytes(self) -> int:
+        """Bytes held of a record not complete yet."""
+        return len(self._buf)
+
     def feed(self, data: bytes) -> list[RgbdFrame]:
         self._buf += data
         frames = []
@@ -184,6 +190,38 @@ class RecordDecoder:
             except (ValueError, KeyError, TypeError) as exc:
                 raise ProtocolError(f"corrupt camera record: {exc}") from exc
         return frames
+
+
+class FrameRecordWriter:
+    """Appends frames to a file as camera-stream records (the wire format above, one after another), so a
+    flight's camera can be replayed later (:func:`read_frame_recording`). Depth is stored as the stream
+    carries it (uint16 mm), colour raw: about 380 kB per QVGA frame."""
+
+    def __init__(self, path: str | Path) -> None:
+        self.path = Path(path)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._f = open(self.path, "wb")   # noqa: SIM115 - held open for the whole run
+        self.frames = 0
+
+    def write(self, frame: RgbdFrame) -> None:
+        self._f.write(encode_record(frame))
+        self.frames += 1
+
+    def close(self) -> None:
+        self._f.close()
+
+
+def read_frame_recording(path: str | Path, chunk_bytes: int = 1 << 20) -> Iterator[RgbdFrame]:
+    """The frames of a file written by :class:`FrameRecordWriter` (or a raw dump of a camera stream).
+
+    A truncated last record (the writer was killed) ends the iteration with a warning; a corrupt one
+    raises :class:`ProtocolError`."""
+    decoder = RecordDecoder()
+    with open(path, "rb") as f:
+        while chunk := f.read(chunk_bytes):
+            yield from decoder.feed(chunk)
+    if decoder.pending_bytes:
+        log.warning("%s: %d bytes of an incomplete last record ignored", path, decoder.pending_bytes)
 
 
 class _Client:

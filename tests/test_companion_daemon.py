@@ -21,7 +21,7 @@ from companion.messages import TYPE_MASK_VELOCITY_YAW_RATE, UINT16_UNKNOWN
 from companion.modes import Mode
 from perception.pipeline import ObstacleSectors
 from perception.synthetic import pose, qvga_intrinsics, render
-from quadlink.camera import CameraStreamServer, RgbdFrame
+from quadlink.camera import CameraStreamServer, FrameRecordWriter, RgbdFrame, read_frame_recording
 from quadlink.mavlink import mavlink
 from quadlink.mavlink.connection import open_mavlink
 from quadlink.mavlink.tlog import TlogWriter, read_tlog
@@ -149,7 +149,8 @@ class Rig:
         self.pipeline = FakePipeline()
         self.tlog_path = tmp_path / "companion.tlog"
         self.daemon = Companion(cfg, ap_link, gcs_link, StreamCamera(f"tcp://127.0.0.1:{self.server.port}"),
-                                lambda frame: self.pipeline, tlog=TlogWriter(self.tlog_path))
+                                lambda frame: self.pipeline, tlog=TlogWriter(self.tlog_path),
+                                frame_recorder=FrameRecordWriter(tmp_path / "frames.qlcf"))
         self.ap = FakeAutopilot(ap_link.port.getsockname()[1])
         self.gcs = FakeGcs(gcs_link.port.getsockname()[1])
         self.stop = threading.Event()
@@ -309,6 +310,23 @@ def test_daemon_flies_teleop_routes_and_fails_safe(rig: Rig) -> None:
     kinds = {m.get_type() for _, m in read_tlog(rig.tlog_path)}
     assert {"HIGHRES_IMU", "SET_POSITION_TARGET_LOCAL_NED", "MANUAL_CONTROL", "TELEOP_FEEDBACK",
             "COMMAND_LONG", "ODOMETRY"} <= kinds
+
+
+def test_every_frame_received_is_recorded_for_replay(rig: Rig, tmp_path: Path) -> None:
+    for _ in range(4):
+        rig.frame(manual=(0, 0, 500), pace=False)
+    got = list(read_frame_recording(tmp_path / "frames.qlcf"))
+    assert [f.seq for f in got] == [1, 2, 3, 4]
+    assert [f.stamp_s for f in got] == pytest.approx([k / FPS for k in range(1, 5)])
+    t = rig.template
+    for f in got:
+        assert np.array_equal(f.rgb, t.rgb) and f.intrinsics == t.intrinsics
+        assert f.depth_m is not None and t.depth_m is not None
+        assert np.max(np.abs(f.depth_m - t.depth_m)) <= 0.0005 + 1e-6   # the stream's millimetres
+    # a recording cut in the middle of a record (daemon killed) still gives the whole frames before it
+    data = (tmp_path / "frames.qlcf").read_bytes()
+    (tmp_path / "cut.qlcf").write_bytes(data[: len(data) - 1000])
+    assert [f.seq for f in read_frame_recording(tmp_path / "cut.qlcf")] == [1, 2, 3]
 
 
 def test_cli_rejects_bad_input_with_status_2(tmp_path: Path) -> None:

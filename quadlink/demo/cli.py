@@ -37,7 +37,7 @@ class Ports:
 
 
 def build_specs(scenario: str, script: Path, out_dir: Path, ports: Ports, lockstep: bool, speed: float,
-                duration_s: float) -> list[ProcessSpec]:
+                duration_s: float, record_frames: bool = False) -> list[ProcessSpec]:
     sitl = ["sitl", "--scenario", scenario, "--port1", str(ports.mk1), "--port2", str(ports.mk2),
             "--camera-port", str(ports.camera), "--truth", f"udpout:127.0.0.1:{ports.truth}",
             "--duration", f"{duration_s + 30:.0f}"]
@@ -57,7 +57,9 @@ def build_specs(scenario: str, script: Path, out_dir: Path, ports: Ports, lockst
                                   "--gcs", f"udpin:127.0.0.1:{ports.vehicle}",
                                   "--camera", f"tcp://127.0.0.1:{ports.camera}",
                                   "--image-port", str(ports.image),
-                                  "--tlog", str(out_dir / "companion.tlog")), ready_after_s=3.0),
+                                  "--tlog", str(out_dir / "companion.tlog"),
+                                  *(("--record-frames", str(out_dir / "frames.qlcf")) if record_frames else ())),
+                    ready_after_s=3.0),
         ProcessSpec("teleop", ("teleop", "--device", "virtual", "--script", str(script),
                                "--vehicle", f"udpout:127.0.0.1:{ports.vehicle}",
                                "--image-stream", f"tcp://127.0.0.1:{ports.image}",
@@ -68,7 +70,8 @@ def build_specs(scenario: str, script: Path, out_dir: Path, ports: Ports, lockst
 
 
 def run_demo(scenario: str, duration_s: float, out_dir: Path, script: Path, lockstep: bool = True,
-             speed: float = 1.0, port_offset: int = 0, progress_every_s: float = 3.0) -> dict[str, object]:
+             speed: float = 1.0, port_offset: int = 0, progress_every_s: float = 3.0,
+             record_frames: bool = False) -> dict[str, object]:
     """Fly the demo; returns the report. Raises :class:`ProcessDied` if a part dies."""
     if not script.is_file():
         raise ConfigError(f"{script}: operator script not found")
@@ -88,7 +91,7 @@ def run_demo(scenario: str, duration_s: float, out_dir: Path, script: Path, lock
     previous = signal.signal(signal.SIGINT, on_sigint)
     t_wall0 = time.monotonic()
     try:
-        for spec in build_specs(scenario, script, out_dir, ports, lockstep, speed, duration_s):
+        for spec in build_specs(scenario, script, out_dir, ports, lockstep, speed, duration_s, record_frames):
             if interrupted:
                 break
             stack.start(spec)
@@ -138,11 +141,14 @@ def run_demo(scenario: str, duration_s: float, out_dir: Path, script: Path, lock
               help="Lock-step keeps every part in step with simulated time on a loaded machine.")
 @click.option("--speed", default=1.0, show_default=True, help="Real-time factor in --realtime mode.")
 @click.option("--port-offset", default=0, show_default=True, help="Shift every port (run beside another stack).")
+@click.option("--record-frames", is_flag=True,
+              help="Also record the companion's camera frames to OUT/frames.qlcf (~11 MB per second of flight).")
 def command(scenario: str, duration_s: float, out_dir: Path, script: Path, lockstep: bool, speed: float,
-            port_offset: int) -> None:
+            port_offset: int, record_frames: bool) -> None:
     """Fly the paper's experiment in the SITL (take off, drive, rotate, approach and push the obstacle, land)."""
     try:
-        report = run_demo(scenario, duration_s, out_dir, script, lockstep, speed, port_offset)
+        report = run_demo(scenario, duration_s, out_dir, script, lockstep, speed, port_offset,
+                          record_frames=record_frames)
     except ProcessDied as exc:
         click.echo(f"quadlink demo: {exc}", err=True)
         raise SystemExit(1) from exc
