@@ -309,7 +309,10 @@ class CameraStreamServer:
 
     def publish(self, frame: RgbdFrame, rgb_jpeg: bool = False) -> int:
         """Send the frame to every client; returns how many received it."""
-        record = encode_record(frame, rgb_jpeg=rgb_jpeg)
+        return self.publish_record(encode_record(frame, rgb_jpeg=rgb_jpeg))
+
+    def publish_record(self, record: bytes) -> int:
+        """Send an already encoded record (:func:`encode_record`) to every client."""
         with self._cond:
             clients = list(self._clients)
         sent = 0
