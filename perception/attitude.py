@@ -10,6 +10,7 @@ specific force is far from ``g`` (manoeuvres). Yaw is integrated from the gyro o
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -54,20 +55,45 @@ def orthonormalise(R: NDArray[np.float64]) -> NDArray[np.float64]:
     return u @ vt
 
 
-def qmul_exp(q: list[float], wx: float, wy: float, wz: float) -> list[float]:
-    """q ⊗ exp(w/2) for a rotation vector w (body frame), renormalised; scalar math for speed."""
+def as_floats(v: Vec3 | Sequence[float]) -> Sequence[float]:
+    """Python floats of a small vector: ``tolist`` for arrays (iterating numpy scalars costs more)."""
+    if isinstance(v, np.ndarray):
+        return v.tolist()
+    return v if isinstance(v, list) else [float(x) for x in v]
+
+
+def quat_exp(wx: float, wy: float, wz: float) -> tuple[float, float, float, float]:
+    """exp(w/2) = [cos(|w|/2), sin(|w|/2) w/|w|], [w, x, y, z], of a rotation vector w."""
     theta = math.sqrt(wx * wx + wy * wy + wz * wz)
     if theta < 1e-12:
-        return q
+        return 1.0, 0.0, 0.0, 0.0
     h = 0.5 * theta
-    c = math.cos(h)
     k = math.sin(h) / theta
-    bx, by, bz = wx * k, wy * k, wz * k
+    return math.cos(h), wx * k, wy * k, wz * k
+
+
+def qmul(q: Sequence[float], p: Sequence[float]) -> tuple[float, float, float, float]:
+    """Hamilton product q ⊗ p of quaternions [w, x, y, z]; scalar math for speed."""
     w, x, y, z = q
-    out = [w * c - x * bx - y * by - z * bz, w * bx + x * c + y * bz - z * by,
-           w * by - x * bz + y * c + z * bx, w * bz + x * by - y * bx + z * c]
-    n = math.sqrt(out[0] ** 2 + out[1] ** 2 + out[2] ** 2 + out[3] ** 2)
-    return [v / n for v in out]
+    c, bx, by, bz = p
+    return (w * c - x * bx - y * by - z * bz, w * bx + x * c + y * bz - z * by,
+            w * by - x * bz + y * c + z * bx, w * bz + x * by - y * bx + z * c)
+
+
+def normalised(q: Sequence[float]) -> list[float]:
+    w, x, y, z = q
+    k = 1.0 / math.sqrt(w * w + x * x + y * y + z * z)
+    return [w * k, x * k, y * k, z * k]
+
+
+def qmul_exp(q: list[float], wx: float, wy: float, wz: float) -> list[float]:
+    """q ⊗ exp(w/2) for a rotation vector w (body frame), renormalised."""
+    return normalised(qmul(q, quat_exp(wx, wy, wz)))
+
+
+def _clamp(v: float, lim: float) -> float:
+    """v limited to [-lim, lim] (conditionals: the min/max builtins cost more at 500 Hz)."""
+    return lim if v > lim else -lim if v < -lim else v
 
 
 class AttitudeFilter:
@@ -82,6 +108,7 @@ class AttitudeFilter:
         self._bias_corr = [0.0, 0.0, 0.0]  # integral term = minus the gyro bias
         self._omega_lp = [0.0, 0.0, 0.0]
         self._stamp: float | None = None
+        self._lowpass_tau_s = 1.0 / (2.0 * math.pi * self.config.gyro_lowpass_hz)
 
     def reset(self) -> None:
         self.__init__(self.config)  # type: ignore[misc]
@@ -99,42 +126,45 @@ class AttitudeFilter:
         cr, sr, cp, sp = math.cos(roll / 2), math.sin(roll / 2), math.cos(pitch / 2), math.sin(pitch / 2)
         self._q = [cr * cp, sr * cp, cr * sp, -sr * sp]
 
-    def update(self, stamp_s: float, gyro_q_rad_s: Vec3 | list[float], accel_q_m_s2: Vec3 | list[float]) -> None:
+    def update(self, stamp_s: float, gyro_q_rad_s: Vec3 | Sequence[float],
+               accel_q_m_s2: Vec3 | Sequence[float]) -> None:
         """One IMU sample (gyro rad/s, specific force m/s², body FRD); bad samples are ignored."""
         cfg = self.config
-        gx, gy, gz = (float(v) for v in gyro_q_rad_s)
-        fx, fy, fz = (float(v) for v in accel_q_m_s2)
-        if not all(math.isfinite(v) for v in (gx, gy, gz, fx, fy, fz)):
+        gx, gy, gz = as_floats(gyro_q_rad_s)
+        fx, fy, fz = as_floats(accel_q_m_s2)
+        if not math.isfinite(gx + gy + gz + fx + fy + fz):   # any nan/inf (or absurd 1e308s) in the sample
             return
         if self._stamp is None:
             self._init_from_accel(fx, fy, fz)
             self._stamp = stamp_s
             self._omega_lp = [gx, gy, gz]
             return
-        dt = min(max(stamp_s - self._stamp, 0.0), cfg.max_dt_s)
+        dt = stamp_s - self._stamp
         self._stamp = stamp_s
         if dt <= 0.0:
             return
-        b = self._bias_corr
-        ox, oy, oz = gx + b[0], gy + b[1], gz + b[2]           # bias-corrected rate
-        q = qmul_exp(self._q, ox * dt, oy * dt, oz * dt)      # predict with the gyro to this sample
+        if dt > cfg.max_dt_s:
+            dt = cfg.max_dt_s
+        bx, by, bz = self._bias_corr
+        ox, oy, oz = gx + bx, gy + by, gz + bz                # bias-corrected rate
+        w, x, y, z = qmul(self._q, quat_exp(ox * dt, oy * dt, oz * dt))   # predict with the gyro to this sample
         norm_f = math.sqrt(fx * fx + fy * fy + fz * fz)
         if norm_f > 1e-3 and abs(norm_f - GRAVITY_M_S2) < cfg.accel_gate_m_s2:
-            w, x, y, z = q
             # estimated "up" in body: -R^T e_z (third row of R, negated)
             ux, uy, uz = -2.0 * (x * z - w * y), -2.0 * (y * z + w * x), -(1.0 - 2.0 * (x * x + y * y))
             mx, my, mz = fx / norm_f, fy / norm_f, fz / norm_f  # measured "up" (specific force)
             ex, ey, ez = my * uz - mz * uy, mz * ux - mx * uz, mx * uy - my * ux   # e = v_meas x v_est
             lim = cfg.max_bias_rad_s
             k = cfg.ki_rad_s2 * dt
-            self._bias_corr = [min(lim, max(-lim, b[0] + k * ex)), min(lim, max(-lim, b[1] + k * ey)),
-                               min(lim, max(-lim, b[2] + k * ez))]
-            kp = cfg.kp_rad_s * dt
-            q = qmul_exp(q, kp * ex, kp * ey, kp * ez)          # proportional correction
-        self._q = q
-        alpha = dt / (dt + 1.0 / (2.0 * math.pi * cfg.gyro_lowpass_hz))
-        lp = self._omega_lp
-        self._omega_lp = [lp[0] + alpha * (ox - lp[0]), lp[1] + alpha * (oy - lp[1]), lp[2] + alpha * (oz - lp[2])]
+            self._bias_corr = [_clamp(bx + k * ex, lim), _clamp(by + k * ey, lim), _clamp(bz + k * ez, lim)]
+            # proportional correction q ⊗ exp(kp e dT / 2), to first order (renormalised below): the angle
+            # kp |e| dT is ~1e-5 rad in flight, and its relative error (kp |e| dT)^2 / 12
+            h = 0.5 * cfg.kp_rad_s * dt
+            w, x, y, z = qmul((w, x, y, z), (1.0, h * ex, h * ey, h * ez))
+        self._q = normalised((w, x, y, z))
+        alpha = dt / (dt + self._lowpass_tau_s)
+        lx, ly, lz = self._omega_lp
+        self._omega_lp = [lx + alpha * (ox - lx), ly + alpha * (oy - ly), lz + alpha * (oz - lz)]
 
     @property
     def gyro_bias_rad_s(self) -> Vec3:

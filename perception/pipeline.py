@@ -19,14 +19,14 @@ from typing import Literal
 import numpy as np
 from numpy.typing import NDArray
 
-from perception.attitude import AttitudeConfig, AttitudeFilter, orthonormalise, qmul_exp
+from perception.attitude import AttitudeConfig, AttitudeFilter, orthonormalise
 from perception.obstacle_map import ObstacleMap, ObstacleMapConfig, ObstacleSectors
 from perception.obstacles import ObstacleConfig, extract_obstacles
 from perception.odometry import OdometryConfig, RgbdOdometry
 from perception.ukf import Ukf, UkfConfig
 from perception.velocity import VelocityConfig, VelocityEstimator, body_pose_in_world
 from quadlink.camera import CameraIntrinsics, RgbdFrame
-from quadlink.frames import R_from_quat_wxyz, R_hq, euler_from_R
+from quadlink.frames import R_hq, euler_from_R
 
 log = logging.getLogger(__name__)
 
@@ -88,9 +88,9 @@ class PerceptionPipeline:
         self._velocity = VelocityEstimator(self.R_qc, self.p_qc_m, config.velocity)
         self._ukf = Ukf(config.ukf) if config.estimator == "ukf" else None
         self._map = ObstacleMap(config.obstacle_map)
-        self._q_since_frame = [1.0, 0.0, 0.0, 0.0]  # gyro-integrated body rotation since the last frame
-        self._imu_since_frame = 0
         self._last_imu_stamp: float | None = None
+        self._prev_R_wq: NDArray[np.float64] | None = None  # attitude at the previous frame
+        self._imu_since_frame = False
         self._R_w_q0: NDArray[np.float64] | None = None
         self._prev_frame_stamp: float | None = None
         self._prev_v_h = np.zeros(3)
@@ -100,21 +100,22 @@ class PerceptionPipeline:
         self.rejected_imu = 0
 
     def on_imu(self, stamp_s: float, gyro_q_rad_s: np.ndarray, accel_q_m_s2: np.ndarray) -> None:
+        # scalar Python on the 500 Hz path: numpy on 3-vectors costs more than the arithmetic
         gyro = np.asarray(gyro_q_rad_s, dtype=float)
         accel = np.asarray(accel_q_m_s2, dtype=float)
-        if (gyro.shape != (3,) or accel.shape != (3,)
-                or not all(map(math.isfinite, gyro.tolist() + accel.tolist()))):   # scalar: cheap at 500 Hz
+        if gyro.shape != (3,) or accel.shape != (3,):
+            self.rejected_imu += 1
+            return
+        g, a = gyro.tolist(), accel.tolist()
+        if not math.isfinite(sum(g) + sum(a)):      # any nan/inf (or absurd 1e308s) in the sample
             self.rejected_imu += 1
             return
         if self._last_imu_stamp is not None and stamp_s <= self._last_imu_stamp:
             self.rejected_imu += 1       # out of order / duplicate
             return
-        self._attitude.update(stamp_s, gyro, accel)
-        if self._last_imu_stamp is not None:
-            dt = min(stamp_s - self._last_imu_stamp, self.config.attitude.max_dt_s)
-            w = (gyro - self._attitude.gyro_bias_rad_s) * dt
-            self._q_since_frame = qmul_exp(self._q_since_frame, float(w[0]), float(w[1]), float(w[2]))
-            self._imu_since_frame += 1
+        self._attitude.update(stamp_s, g, a)
+        if self._last_imu_stamp is not None:      # (the first sample only initialises the filter)
+            self._imu_since_frame = True
         self._last_imu_stamp = stamp_s
         if self._ukf is not None:
             self._ukf.on_imu(stamp_s, gyro, accel)
@@ -127,11 +128,13 @@ class PerceptionPipeline:
         roll, pitch, omega = att.roll_rad, att.pitch_rad, att.omega_q_rad_s
         K = frame.intrinsics
         R_prior = None
-        if cfg.imu_rotation_prior and self._imu_since_frame > 0:
-            R_q = R_from_quat_wxyz(self._q_since_frame)
+        if cfg.imu_rotation_prior and self._prev_R_wq is not None and self._imu_since_frame:
+            # body rotation k-1 -> k from the attitude filter (the bias-corrected gyro with its small
+            # accelerometer corrections)
+            R_q = self._prev_R_wq.T @ att.R_wq
             R_prior = self.R_qc.T @ R_q @ self.R_qc    # camera k-1 -> k rotation
-        self._q_since_frame = [1.0, 0.0, 0.0, 0.0]
-        self._imu_since_frame = 0
+        self._prev_R_wq = att.R_wq
+        self._imu_since_frame = False
         if frame.depth_m is not None:
             odo = self._odometry.process(frame.stamp_s, frame.rgb, frame.depth_m, K, R_prior)
             odometry_ok, fitness, T_c0_ck = odo.ok, odo.fitness, odo.T_c0_ck
@@ -168,6 +171,6 @@ class PerceptionPipeline:
             stamp_s=frame.stamp_s, roll_rad=roll, pitch_rad=pitch, yaw_rad=yaw, omega_q_rad_s=omega,
             v_h_m_s=np.asarray(v_h, dtype=float), v_h_cov=np.asarray(v_h_cov, dtype=float), position_m=p_w,
             odometry_ok=odometry_ok, odometry_fitness=float(fitness), obstacle_points_c_m=points_c,
-            obstacle_points_h_m=self._map.points_h_m.copy(), sectors=sectors,
+            obstacle_points_h_m=self._map.points_h_m, sectors=sectors,   # a snapshot: the map never writes it
             nearest_obstacle_h_m=self._map.nearest_h(), processing_time_s=self._clock() - t_start,
             yaw_rate_rad_s=yaw_rate, estimator=cfg.estimator)

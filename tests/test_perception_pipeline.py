@@ -94,6 +94,21 @@ def test_outputs_obstacles_and_sectors_of_the_room(recording: Recording) -> None
     assert o.v_h_cov.shape == (3, 3) and o.processing_time_s > 0.0
 
 
+def test_obstacle_points_of_an_output_stay_as_they_were_at_that_frame(recording: Recording) -> None:
+    """The map particles are handed out without a copy: later frames must not change an earlier output."""
+    pipe = PerceptionPipeline(PerceptionConfig(), K, recording.flight.R_qc, recording.flight.p_qc_m,
+                              np.random.default_rng(7))
+    outs, copies = [], []
+    for i, (t, gyro, accel) in enumerate(recording.imu[:400]):
+        pipe.on_imu(t, gyro, accel)
+        if i in recording.frames:
+            outs.append(pipe.on_frame(recording.frames[i]))
+            copies.append(outs[-1].obstacle_points_h_m.copy())
+    assert len(outs) > 5 and copies[0].shape[0] > 0
+    for out, points in zip(outs, copies, strict=True):
+        assert np.array_equal(out.obstacle_points_h_m, points)
+
+
 def test_bad_inputs_are_rejected_without_crashing() -> None:
     veh = load_vehicle()
     pipe = PerceptionPipeline(PerceptionConfig(), K, veh.camera.R_qc_matrix, np.asarray(veh.camera.p_qc_m),
