@@ -55,6 +55,8 @@ class OdometryConfig:
     max_translation_m: float = 0.5                   # per-frame sanity bounds
     max_rotation_rad: float = 0.6
     convergence_eps: float = 2e-5                    # |delta| (m, rad) below which the finest level stops
+    affine_brightness: bool = False                  # estimate a brightness gain and bias per pair (exposure)
+    brightness_prior_sigma: float = 0.1              # std of the gain (about 1) and bias (about 0, intensity 0..1)
 
 
 @dataclass(frozen=True)
@@ -67,6 +69,8 @@ class PairResult:
     rmse_intensity: float   # RMS photometric residual of the inliers (intensity in 0..1)
     points: int
     iterations: int
+    gain: float = 1.0       # brightness model of the pair: I_k = gain I_km1 + bias
+    bias: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -289,13 +293,15 @@ class _Reference:
 
     P: Image                  # 3 × N points in the reference camera frame
     I: Image                  # N intensities
-    J: Image                  # 8 × 2N, columns photometric [0, N) and depth [N, 2N): rows 0-5 the Jacobian, row 6
-                              # the residuals (written each iteration), row 7 zero (8 rows: BLAS's fast kernel)
+    J: Image                  # (nj + 1) × 2N, columns photometric [0, N) and depth [N, 2N): rows 0-5 the pose
+                              # Jacobian, with the brightness model 6-7 its Jacobian (I_ref, 1; 0 for depth),
+                              # last the residuals (written each iteration): one BLAS product gives J^T W J and
+                              # J^T W r
     z_ok: NDArray[np.bool_]   # N: depth gradient defined at the reference pixel (depth term usable)
     z_norm: Image             # N: (Z_med / Z)^2, the depth residual's noise normalisation
 
 
-def _reference(level: _Level, max_points: int, gradient_fraction: float) -> _Reference:
+def _reference(level: _Level, max_points: int, gradient_fraction: float, affine: bool) -> _Reference:
     idx = _select_pixels(level, max_points, gradient_fraction)
     w = level.depth.shape[1]
     v, u = np.divmod(idx, w)
@@ -304,7 +310,8 @@ def _reference(level: _Level, max_points: int, gradient_fraction: float) -> _Ref
     x = (u.astype(np.float32) - np.float32(K.cx)) * np.float32(1.0 / K.fx) * z
     y = (v.astype(np.float32) - np.float32(K.cy)) * np.float32(1.0 / K.fy) * z
     n = idx.size
-    J = np.zeros((8, 2 * n), np.float32)
+    nj = 8 if affine else 6
+    J = np.zeros((nj + 1, 2 * n), np.float32)
     fx_z = np.float32(K.fx) / z
     fy_z = np.float32(K.fy) / z
     _jacobian_rows(J[:, :n], x, y, z, level.gx.ravel()[idx] * fx_z, level.gy.ravel()[idx] * fy_z, 0.0)
@@ -315,12 +322,16 @@ def _reference(level: _Level, max_points: int, gradient_fraction: float) -> _Ref
     # floor) stays in metres at the median depth
     z_med = np.partition(z, n // 2)[n // 2] if n else np.float32(1.0)
     z_norm = (z_med / z) ** 2
+    gray = level.gray.ravel()[idx]
+    if affine:
+        J[6, :n] = gray
+        J[7, :n] = 1.0
     J[:6, n:] *= z_norm
     # the depth term needs a surface: a slope |dZ/du| f / Z beyond tan(75 deg) is a depth discontinuity (or a
     # grazing surface, where structured-light depth is unreliable), where Z is not differentiable
     slope2 = (zx * zx + zy * zy) * (fx_z * fx_z)
     z_ok = (level.tex[..., 2].ravel()[idx] > 0.999) & (slope2 < np.float32(_MAX_DEPTH_SLOPE**2))
-    return _Reference(np.stack([x, y, z]), level.gray.ravel()[idx], J, z_ok, z_norm)
+    return _Reference(np.stack([x, y, z]), gray, J, z_ok, z_norm)
 
 
 def _sample(tex: Image, u: NDArray[np.float32], v: NDArray[np.float32]) -> Image:
@@ -419,6 +430,9 @@ class RgbdOdometry:
             R_prior = np.asarray(R_ckm1_ck_prior, dtype=float).T   # rotation of T_ck_ckm1
             T[:3, :3] = R_prior   # the gyro's rotation is a better start than any guess
         info_prior = 1.0 / cfg.imu_prior_sigma_rad**2
+        # brightness I_k = gain I_km1 + bias (auto exposure), estimated with the motion (as DSO's affine model)
+        gain, bias = 1.0, 0.0
+        info_ab = 1.0 / cfg.brightness_prior_sigma**2
         use_depth = cfg.depth_weight > 0
         n_levels = min(cfg.levels, len(ref.levels), len(cur.levels))
         total_iters = 0
@@ -428,7 +442,7 @@ class RgbdOdometry:
             iters = cfg.iterations[min(k, len(cfg.iterations) - 1)]
             max_pts = cfg.max_points[min(k, len(cfg.max_points) - 1)]
             lc = cur.levels[li]
-            rp = _reference(ref.levels[li], max_pts, cfg.gradient_fraction)
+            rp = _reference(ref.levels[li], max_pts, cfg.gradient_fraction, cfg.affine_brightness)
             N = n_points = rp.I.shape[0]
             if N < cfg.min_points:
                 if li == 0:
@@ -443,7 +457,9 @@ class RgbdOdometry:
             J = rp.J
             Jw = np.empty_like(J)
             # both residual kinds in one vector: photometric [0, N), depth [N, 2N)
-            r = J[6]
+            nj = J.shape[0] - 1
+            r = J[nj]
+            pred = np.empty(N, np.float32)   # reference intensities under the brightness model
             r2 = np.empty(2 * N, np.float32)
             wr = np.empty(2 * N, np.float32)
             scale = np.empty(2 * N, np.float32)
@@ -479,7 +495,9 @@ class RgbdOdometry:
                 if n_z < cfg.min_points:
                     ok_z[:] = False
                     n_z = 0
-                np.subtract(s[:, 0], rp.I, out=r[:N])
+                np.multiply(rp.I, np.float32(gain), out=pred)
+                pred += np.float32(bias)
+                np.subtract(s[:, 0], pred, out=r[:N])
                 np.subtract(s[:, 1], z, out=r[N:])
                 r[N:] *= rp.z_norm
                 r *= use
@@ -509,22 +527,32 @@ class RgbdOdometry:
                 # J^T W r (row 6 of J holds r); solved in float64
                 np.multiply(J, wr, out=Jw)
                 M = (Jw @ J.T).astype(np.float64)
-                H = M[:6, :6]
-                g = M[:6, 6].copy()
+                H = M[:nj, :nj]
+                g = M[:nj, nj].copy()
+                if nj > 6:
+                    # the brightness model's weak priors: gain about 1, bias about 0 (as DSO)
+                    H[6, 6] += info_ab
+                    H[7, 7] += info_ab
+                    g[6] += info_ab * (1.0 - gain)
+                    g[7] -= info_ab * bias
                 if R_prior is not None:
                     # prior residual log(R R_prior^T) moves by -R xi_w under T <- T exp(xi)^-1
                     r_p = so3_log(T[:3, :3] @ R_prior.T)
                     H[3:, 3:] += info_prior * _I3
                     g[3:] += info_prior * (T[:3, :3].T @ r_p)
-                # 6×6 symmetric positive definite: Cholesky (cv2.solve is far cheaper than numpy's per call)
-                solved, sol = cv2.solve(H, g.reshape(6, 1), flags=cv2.DECOMP_CHOLESKY)
+                # symmetric positive definite: Cholesky (cv2.solve is far cheaper than numpy's per call)
+                solved, sol = cv2.solve(H, g.reshape(nj, 1), flags=cv2.DECOMP_CHOLESKY)
                 if not solved:
                     break
-                delta = np.asarray(sol, dtype=np.float64).ravel()
+                sol = np.asarray(sol, dtype=np.float64).ravel()
+                delta = sol[:6]
                 d2 = float(delta @ delta)
                 if not math.isfinite(d2):
                     break
                 T = T @ se3_exp(-delta)
+                if nj > 6:
+                    gain += float(sol[6])
+                    bias += float(sol[7])
                 if d2 < eps_level**2:
                     break
             if li == 0:
@@ -540,4 +568,4 @@ class RgbdOdometry:
               and float(np.linalg.norm(T[:3, 3])) <= cfg.max_translation_m
               and float(np.linalg.norm(so3_log(T[:3, :3]))) <= cfg.max_rotation_rad
               and bool(np.all(np.isfinite(T))))
-        return PairResult(T, ok, fitness, rmse_i, n_points, total_iters)
+        return PairResult(T, ok, fitness, rmse_i, n_points, total_iters, gain, bias)
