@@ -2,8 +2,10 @@
 
 * **Cells** discretise the space around the vehicle by azimuth and zenith distance (``az_bins`` x
   ``zen_bins``). A measured obstacle point overwrites its cell: every particle there is removed and
-  ``copies`` particles are placed at the point (reactive behaviour, particles for the spread).
-* **Free-space carving** (added to the paper's rule so that an obstacle that moved away is forgotten):
+  ``copies`` particles are placed at the point (reactive behaviour, particles for the spread) — except
+  particles nearer the camera than its minimum range, which it cannot see.
+* **Free-space carving** (added to the paper's rule so that an obstacle that moved away is forgotten;
+  never nearer the camera than its minimum range, where it is blind):
   a particle inside the camera's view whose sector saw something farther, or nothing within range, is
   removed.
 * **Time update**, eq. (14), per particle j with its own noise samples::
@@ -170,6 +172,9 @@ class ObstacleMap:
             az, horiz = self._polar_of_particles()
             # free space: in view and nearer than the sector's measured range by the margin (inf: free to the
             # sensor's range; nan, and -1 = out of view, which indexes the appended nan: never carved)
+            # Particles nearer the camera than its minimum range are in its blind zone: the sector's reading
+            # (the background past an obstacle the vehicle is now too close to see) says nothing about them,
+            # so they are neither carved nor overwritten.
             sec, rng_p = obs.sector_and_range_of_points_h(p.T)
             limit = np.append(obs.ranges_m - cfg.carve_margin_m, np.nan)
             remove = rng_p < limit[sec]
@@ -178,6 +183,7 @@ class ObstacleMap:
                 ia = self._azimuth_cells(az)
                 cand = np.flatnonzero(measured_az[ia])
                 remove[cand] |= measured[ia[cand], self._zenith_cells(horiz[cand], p[2, cand])]
+            remove &= rng_p >= obs.min_range_m   # neither carved nor overwritten where the sensor is blind
             if remove.any():
                 keep = ~remove
                 self._set_particles(np.compress(keep, p, axis=1), np.compress(keep, self.ages_s),

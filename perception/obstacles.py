@@ -22,7 +22,7 @@ from quadlink.frames import R_hq
 class ObstacleConfig:
     rows: int = 6                 # n: sectors along the image height
     cols: int = 8                 # m: sectors along the image width
-    min_range_m: float = 0.3
+    min_range_m: float = 0.5      # the sensor's minimum range (Xtion/Kinect-class: 0.5 m): nearer it is blind
     max_range_m: float = 3.5
 
 
@@ -39,6 +39,7 @@ class SectorObservation:
     intrinsics: CameraIntrinsics
     rows: int
     cols: int
+    min_range_m: float = 0.0            # nearer than this the sensor sees nothing: no evidence of free space
 
     def sector_and_range_of_points_h(self, points_h_m: NDArray[np.float64]) -> tuple[NDArray[np.intp],
                                                                                    NDArray[np.float64]]:
@@ -117,4 +118,4 @@ def extract_obstacles(depth_m: NDArray[np.float32], K: CameraIntrinsics, R_qc: N
     R_h = R_hq(roll_rad, pitch_rad)
     R_hc = R_h @ R_qc
     ph = (pc @ R_qc.T + p_qc_m) @ R_h.T   # H p_ij = R_HQ (R_QC C p_ij + Q p_C)
-    return SectorObservation(pc, ph, ranges, g.rays_c @ R_hc.T, R_hc, R_h @ p_qc_m, K, n, m)
+    return SectorObservation(pc, ph, ranges, g.rays_c @ R_hc.T, R_hc, R_h @ p_qc_m, K, n, m, cfg.min_range_m)

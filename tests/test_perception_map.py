@@ -142,6 +142,25 @@ def test_free_space_is_carved_and_free_sectors_are_inf() -> None:
     assert np.isinf(sec.distances_m[[71, 0, 1]]).all()
 
 
+def test_obstacle_nearer_than_the_sensor_minimum_range_is_not_carved(rng: np.random.Generator) -> None:
+    """Approached to within the camera's minimum range, a column disappears from the depth image (its
+    pixels read 0) and the sector sees the wall behind: the map must keep the column, not carve it."""
+    cfg = ObstacleMapConfig(velocity_noise_m_s=0.0, yaw_rate_noise_rad_s=0.0)
+    m = ObstacleMap(cfg)
+    _observe(m, 0.0, _wall_depth(0.9))                     # seen at 0.9 m
+    n0 = len(m)
+    m.predict(1.0, np.array([0.5, 0, 0]), np.array([0.5, 0, 0]), 0.0, 0.0, rng)   # 0.5 m closer: 0.4 m
+    assert np.min(np.linalg.norm(m.points_h_m, axis=1)) < ObstacleConfig().min_range_m
+    _observe(m, 1.0, _wall_depth(3.0))                      # blind to it; the background at 3 m
+    assert np.sum(np.linalg.norm(m.points_h_m, axis=1) < 1.0) == n0
+    sec = m.sectors(1.0)
+    assert sec.distances_m[0] == pytest.approx(0.4, abs=0.01)
+    # beyond the minimum range the same reading does carve
+    m.predict(1.0, np.array([-0.3, 0, 0]), np.array([-0.3, 0, 0]), 0.0, 0.0, rng)   # back to 0.7 m
+    _observe(m, 2.0, _wall_depth(3.0))
+    assert np.min(np.linalg.norm(m.points_h_m, axis=1)) > 2.5
+
+
 def test_particles_age_out_and_leave_the_radius(rng: np.random.Generator) -> None:
     cfg = ObstacleMapConfig(max_age_s=1.0, radius_m=3.0, velocity_noise_m_s=0.0, yaw_rate_noise_rad_s=0.0)
     m = ObstacleMap(cfg)
