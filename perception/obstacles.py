@@ -69,6 +69,8 @@ class _SectorGrid:
     ray_norms: NDArray[np.float32]      # (rows*block_h, cols*block_w) range per unit depth |(x/z, y/z, 1)|
     top: NDArray[np.intp]               # (n*m,) first pixel row of each sector
     left: NDArray[np.intp]              # (n*m,) first pixel column of each sector
+    pixel: NDArray[np.intp]             # (n*m, bh*bw) flat image index of each pixel of each sector
+    pixel_rays: NDArray[np.float64]     # (n*m, bh*bw, 3) (x/z, y/z, 1) of each pixel of each sector
     rays_c: NDArray[np.float64]         # (n*m, 3) unit rays through the sector centres, camera frame
 
 
@@ -78,11 +80,15 @@ def _sector_grid(K: CameraIntrinsics, height: int, width: int, rows: int, cols: 
     u, v = np.meshgrid(np.arange(bw * cols, dtype=np.float32), np.arange(bh * rows, dtype=np.float32))
     norms = np.sqrt(((u - K.cx) / K.fx) ** 2 + ((v - K.cy) / K.fy) ** 2 + 1.0).astype(np.float32)
     si, sj = np.divmod(np.arange(rows * cols), cols)
+    # per sector, its pixels in row-major order (the order of the argmin over a sector's block)
+    v_blk = (si * bh)[:, None] + np.repeat(np.arange(bh), bw)[None, :]
+    u_blk = (sj * bw)[:, None] + np.tile(np.arange(bw), bh)[None, :]
+    pixel_rays = np.stack([(u_blk - K.cx) / K.fx, (v_blk - K.cy) / K.fy, np.ones(v_blk.shape)], axis=-1)
     uc = (sj + 0.5) * bw
     vc = (si + 0.5) * bh
     rays_c = np.column_stack([(uc - K.cx) / K.fx, (vc - K.cy) / K.fy, np.ones(rows * cols)])
     rays_c /= np.linalg.norm(rays_c, axis=1, keepdims=True)
-    return _SectorGrid(rows, cols, bh, bw, norms, si * bh, sj * bw, rays_c)
+    return _SectorGrid(rows, cols, bh, bw, norms, si * bh, sj * bw, v_blk * width + u_blk, pixel_rays, rays_c)
 
 
 def extract_obstacles(depth_m: NDArray[np.float32], K: CameraIntrinsics, R_qc: NDArray[np.float64],
@@ -104,18 +110,17 @@ def extract_obstacles(depth_m: NDArray[np.float32], K: CameraIntrinsics, R_qc: N
     best = blocks[np.arange(n * m), idx].astype(float)
     has = best <= cfg.max_range_m
     ranges = np.where(has, best, np.where(np.isinf(best), np.nan, np.inf))
-    if np.isnan(ranges).any() and np.isposinf(depth).any():
+    for s in np.flatnonzero(np.isinf(best)):
         # an infinite depth is a valid reading beyond range (REP 117: no return), not a missing one
-        for s in np.flatnonzero(np.isnan(ranges)):
-            if np.isposinf(depth[g.top[s]: g.top[s] + bh, g.left[s]: g.left[s] + bw]).any():
-                ranges[s] = np.inf
-    # pixel coordinates of the chosen pixels
-    bi, bj = np.divmod(idx[has], bw)
-    v = g.top[has] + bi
-    u = g.left[has] + bj
-    z = depth[v, u].astype(float)
-    pc = np.column_stack([(u - K.cx) / K.fx * z, (v - K.cy) / K.fy * z, z])
+        if np.isposinf(depth[g.top[s]: g.top[s] + bh, g.left[s]: g.left[s] + bw]).any():
+            ranges[s] = np.inf
+    # the chosen pixels: C p_ij = z (x/z, y/z, 1)
+    sel = np.flatnonzero(has)
+    j = idx[sel]
+    z = np.ravel(depth_m)[g.pixel[sel, j]].astype(float)
+    pc = g.pixel_rays[sel, j] * z[:, None]
     R_h = R_hq(roll_rad, pitch_rad)
     R_hc = R_h @ R_qc
-    ph = (pc @ R_qc.T + p_qc_m) @ R_h.T   # H p_ij = R_HQ (R_QC C p_ij + Q p_C)
-    return SectorObservation(pc, ph, ranges, g.rays_c @ R_hc.T, R_hc, R_h @ p_qc_m, K, n, m, cfg.min_range_m)
+    p_hc = R_h @ p_qc_m
+    ph = pc @ R_hc.T + p_hc   # H p_ij = R_HQ (R_QC C p_ij + Q p_C)
+    return SectorObservation(pc, ph, ranges, g.rays_c @ R_hc.T, R_hc, p_hc, K, n, m, cfg.min_range_m)

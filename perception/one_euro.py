@@ -27,10 +27,12 @@ def _alpha(cutoff_hz: float, dt: float) -> float:
 
 
 class OneEuroFilter:
+    """1€ filter on a small vector (scalar math per component: numpy costs more than the arithmetic here)."""
+
     def __init__(self, config: OneEuroConfig | None = None) -> None:
         self.config = config or OneEuroConfig()
-        self._x: NDArray[np.float64] | None = None
-        self._dx: NDArray[np.float64] | None = None
+        self._x: list[float] | None = None
+        self._dx: list[float] | None = None
         self._t: float | None = None
 
     def reset(self) -> None:
@@ -39,23 +41,27 @@ class OneEuroFilter:
 
     @property
     def value(self) -> NDArray[np.float64] | None:
-        return None if self._x is None else self._x.copy()
+        return None if self._x is None else np.array(self._x)
 
     def __call__(self, stamp_s: float, x: NDArray[np.float64]) -> NDArray[np.float64]:
-        x = np.asarray(x, dtype=float)
+        return np.array(self.filter(stamp_s, np.asarray(x, dtype=float).tolist()))
+
+    def filter(self, stamp_s: float, xs: list[float]) -> list[float]:
+        """One sample as Python floats (the per-frame path of the velocity estimator)."""
         if self._x is None or self._t is None or self._dx is None:
-            self._x, self._dx, self._t = x.copy(), np.zeros_like(x), stamp_s
-            return x.copy()
+            self._x, self._dx, self._t = list(xs), [0.0] * len(xs), stamp_s
+            return list(xs)
         dt = stamp_s - self._t
         if dt <= 0.0:
-            return self._x.copy()
+            return list(self._x)
         self._t = stamp_s
         cfg = self.config
-        dx = (x - self._x) / dt
-        self._dx = self._dx + _alpha(cfg.d_cutoff_hz, dt) * (dx - self._dx)
-        cutoff = cfg.min_cutoff_hz + cfg.beta * float(np.linalg.norm(self._dx))
-        self._x = self._x + _alpha(cutoff, dt) * (x - self._x)
-        return self._x.copy()
+        a_d = _alpha(cfg.d_cutoff_hz, dt)
+        self._dx = [d + a_d * ((v - x0) / dt - d) for v, x0, d in zip(xs, self._x, self._dx, strict=True)]
+        cutoff = cfg.min_cutoff_hz + cfg.beta * math.sqrt(sum(d * d for d in self._dx))
+        a = _alpha(cutoff, dt)
+        self._x = [x0 + a * (v - x0) for v, x0 in zip(xs, self._x, strict=True)]
+        return list(self._x)
 
 
 class OneEuroQuaternion:
@@ -68,9 +74,12 @@ class OneEuroQuaternion:
         self._f.reset()
 
     def __call__(self, stamp_s: float, q_wxyz: NDArray[np.float64]) -> NDArray[np.float64]:
-        q = np.asarray(q_wxyz, dtype=float)
-        prev = self._f.value
-        if prev is not None and float(q @ prev) < 0.0:
-            q = -q
-        out = self._f(stamp_s, q)
-        return out / np.linalg.norm(out)
+        return np.array(self.filter(stamp_s, np.asarray(q_wxyz, dtype=float).tolist()))
+
+    def filter(self, stamp_s: float, q_wxyz: list[float]) -> list[float]:
+        prev = self._f._x
+        if prev is not None and sum(a * b for a, b in zip(q_wxyz, prev, strict=True)) < 0.0:
+            q_wxyz = [-v for v in q_wxyz]
+        out = self._f.filter(stamp_s, q_wxyz)
+        k = 1.0 / math.sqrt(sum(v * v for v in out))
+        return [v * k for v in out]

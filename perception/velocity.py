@@ -18,8 +18,9 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from perception.attitude import qmul
 from perception.one_euro import OneEuroConfig, OneEuroFilter, OneEuroQuaternion
-from quadlink.frames import R_from_quat_wxyz, R_hq, euler_from_R, quat_wxyz_from_R
+from quadlink.frames import R_hq, euler_from_R, quat_wxyz_from_R
 
 Vec3 = NDArray[np.float64]
 
@@ -67,7 +68,7 @@ class VelocityEstimator:
         self.p_qc_m = np.asarray(p_qc_m, dtype=float)
         self._pos = OneEuroFilter(self.config.position_filter)
         self._rot = OneEuroQuaternion(self.config.rotation_filter)
-        self._prev_p: Vec3 | None = None
+        self._prev_p: list[float] | None = None
         self._prev_t: float | None = None
         self._last_v_c = np.zeros(3)
 
@@ -81,21 +82,30 @@ class VelocityEstimator:
     def update(self, stamp_s: float, T_c0_ck: NDArray[np.float64], odometry_ok: bool, omega_q_rad_s: Vec3,
                roll_rad: float, pitch_rad: float) -> VelocityEstimate:
         cfg = self.config
-        p_hat = self._pos(stamp_s, T_c0_ck[:3, 3])
-        R_hat = R_from_quat_wxyz(self._rot(stamp_s, quat_wxyz_from_R(T_c0_ck[:3, :3])))
+        p_hat = self._pos.filter(stamp_s, T_c0_ck[:3, 3].tolist())
+        q_hat = self._rot.filter(stamp_s, quat_wxyz_from_R(T_c0_ck[:3, :3]).tolist())
         valid = False
         if self._prev_p is not None and self._prev_t is not None:
             dt = stamp_s - self._prev_t
             if 0.0 < dt <= cfg.max_dt_s and odometry_ok:
-                self._last_v_c = R_hat.T @ (p_hat - self._prev_p) / dt      # eq. (10)
+                dp = [(a - b) / dt for a, b in zip(p_hat, self._prev_p, strict=True)]
+                # eq. (10): R_hat^T dp / dT, as q_hat^-1 ⊗ dp ⊗ q_hat
+                self._last_v_c = np.array(qmul(qmul(_conj(q_hat), (0.0, *dp)), q_hat)[1:])
                 valid = True
         if self._prev_t is None or stamp_s > self._prev_t:
             self._prev_p, self._prev_t = p_hat, stamp_s
         v_c = self._last_v_c
-        v_q = self.R_qc @ v_c - np.cross(omega_q_rad_s, self.p_qc_m)         # eq. (12)
+        wx, wy, wz = np.asarray(omega_q_rad_s, dtype=float).tolist()
+        px, py, pz = self.p_qc_m.tolist()
+        # eq. (12): - omega x Q p_C, written out (np.cross costs ~50 us on 3-vectors)
+        v_q = self.R_qc @ v_c - np.array([wy * pz - wz * py, wz * px - wx * pz, wx * py - wy * px])
         v_h = R_hq(roll_rad, pitch_rad) @ v_q                                 # eq. (13)
         sigma = cfg.sigma_m_s if valid else cfg.sigma_lost_m_s
-        return VelocityEstimate(stamp_s, v_h, v_q, v_c.copy(), np.eye(3) * sigma**2, valid)
+        return VelocityEstimate(stamp_s, v_h, v_q, v_c.copy(), np.diag([sigma**2] * 3), valid)
+
+
+def _conj(q: list[float]) -> tuple[float, float, float, float]:
+    return q[0], -q[1], -q[2], -q[3]
 
 
 def yaw_of(R_w_q: NDArray[np.float64]) -> float:
