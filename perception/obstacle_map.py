@@ -201,18 +201,19 @@ class ObstacleMap:
 
     def _mark_observed(self, stamp_s: float, obs: SectorObservation) -> None:
         """Sectors seen by this frame (a point or free space), kept in world azimuth."""
-        rays = obs.rays_h[~np.isnan(obs.ranges_m)]
-        rays = rays[rays[:, 0] ** 2 + rays[:, 1] ** 2 > 0.05**2]        # not looking straight up or down
-        if not rays.shape[0]:
+        # azimuths of the rays of the seen sectors, not looking straight up or down (Python floats: a few
+        # dozen values, where numpy calls cost more than the arithmetic)
+        az = [math.atan2(y, x) for (x, y, _), r in zip(obs.rays_h.tolist(), obs.ranges_m.tolist(), strict=True)
+              if not math.isnan(r) and x * x + y * y > 0.05**2]
+        if not az:
             return
-        az = np.arctan2(rays[:, 1], rays[:, 0])
         # the camera's sectors are wider than 5°: mark every sector the azimuth span of the rays touches
-        centre = math.atan2(float(np.sin(az).sum()), float(np.cos(az).sum()))
-        rel = (az - centre + math.pi) % (2 * math.pi) - math.pi
+        centre = math.atan2(sum(map(math.sin, az)), sum(map(math.cos, az)))
+        rel = [(a - centre + math.pi) % (2 * math.pi) - math.pi for a in az]
         inc = 2 * math.pi / self.config.sectors
         start = centre + self._yaw_total_rad + inc / 2
-        first = math.floor((start + float(rel.min())) / inc)
-        last = math.floor((start + float(rel.max())) / inc)
+        first = math.floor((start + min(rel)) / inc)
+        last = math.floor((start + max(rel)) / inc)
         self._observed_s[np.arange(first, last + 1) % self.config.sectors] = stamp_s
 
     def _sector_index(self, az_rad: NDArray[np.floating[Any]]) -> NDArray[np.intp]:

@@ -46,7 +46,8 @@ class SectorObservation:
         """Sector index (row-major, -1 where not in the image) and range from the camera of points in H."""
         K = self.intrinsics
         # camera coordinates, one row per axis: R_hc^T (p - p_hc)
-        x, y, z = self.R_hc.T @ points_h_m.T - (self.R_hc.T @ self.p_hc_m)[:, None]
+        pc = self.R_hc.T @ points_h_m.T - (self.R_hc.T @ self.p_hc_m)[:, None]
+        x, y, z = pc
         bw, bh = K.width // self.cols, K.height // self.rows
         ok = z > 1e-3
         inv_z = 1.0 / np.where(ok, z, 1.0)
@@ -55,7 +56,7 @@ class SectorObservation:
         row = y * inv_z * (K.fy / bh) + K.cy / bh
         ok &= (col >= 0.0) & (row >= 0.0) & (col < self.cols) & (row < self.rows)
         sector = np.where(ok, row.astype(np.intp) * self.cols + col.astype(np.intp), -1)
-        return sector, np.sqrt(x * x + y * y + z * z)
+        return sector, np.sqrt(np.einsum("ij,ij->j", pc, pc))
 
 
 @dataclass(frozen=True)
