@@ -30,7 +30,9 @@ import argparse  # noqa: E402
 import math  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
+from collections.abc import Callable  # noqa: E402
 from pathlib import Path  # noqa: E402
+from typing import Any  # noqa: E402
 
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
@@ -126,26 +128,39 @@ def bench_odometry(passes: int, n_synth: int) -> None:
               f"(target <= 1.0); time {ours[2] / faster:.2f}x the faster reference (target <= 0.70)")
 
 
-def bench_obstacle_map(n: int = 200) -> None:
+def bench_obstacle_map(n: int = 200, passes: int = 3) -> None:
     print("== obstacle sectors + local map update per QVGA frame (target <= 2 ms)")
     veh = load_vehicle()
     K = qvga_intrinsics()
     flight = SyntheticFlight(veh.camera.R_qc_matrix, np.asarray(veh.camera.p_qc_m))
     depths = [render(flight.T_w_c(k / 30), K, supersample=1)[1] for k in range(30)]
-    m = ObstacleMap()
-    rng = np.random.default_rng(0)
-    times = []
-    for k in range(n):
-        t = k / 30
-        d = depths[k % len(depths)]
-        t0 = time.process_time()
-        obs = extract_obstacles(d, K, veh.camera.R_qc_matrix, np.asarray(veh.camera.p_qc_m), 0.02, -0.03)
-        m.predict(1 / 30, np.array([0.3, 0.0, 0.0]), np.array([0.3, 0.0, 0.0]), 0.5, 0.5, rng)
-        m.measure(t, obs)
-        m.sectors(t)
-        times.append(time.process_time() - t0)
-    print(f"  median {np.median(times) * 1e3:.2f} ms, p95 {np.percentile(times, 95) * 1e3:.2f} ms, "
+    best: tuple[float, np.ndarray, np.ndarray] | None = None
+    for _ in range(passes):   # best pass: the machine is shared
+        m = ObstacleMap()
+        rng = np.random.default_rng(0)
+        times, parts = [], np.zeros(4)
+        for k in range(n):
+            t = k / 30
+            d = depths[k % len(depths)]
+            t0 = time.process_time()
+            obs = extract_obstacles(d, K, veh.camera.R_qc_matrix, np.asarray(veh.camera.p_qc_m), 0.02, -0.03)
+            t1 = time.process_time()
+            m.predict(1 / 30, np.array([0.3, 0.0, 0.0]), np.array([0.3, 0.0, 0.0]), 0.5, 0.5, rng)
+            t2 = time.process_time()
+            m.measure(t, obs)
+            t3 = time.process_time()
+            m.sectors(t)
+            t4 = time.process_time()
+            times.append(t4 - t0)
+            parts += (t1 - t0, t2 - t1, t3 - t2, t4 - t3)
+        if best is None or np.median(times) < best[0]:
+            best = (float(np.median(times)), np.array(times), parts / n)
+    assert best is not None
+    _, best_times, parts = best
+    print(f"  median {np.median(best_times) * 1e3:.2f} ms, p95 {np.percentile(best_times, 95) * 1e3:.2f} ms, "
           f"{len(m)} particles at the end")
+    print("  of which (mean ms) sectors from depth {:.2f}, eq. (14) time update {:.2f}, measurement {:.2f}, "
+          "72-sector summary {:.2f}".format(*(parts * 1e3)))
 
 
 def bench_pipeline(seconds: float = 3.0) -> None:
@@ -162,6 +177,17 @@ def bench_pipeline(seconds: float = 3.0) -> None:
     for est in ("filters", "ukf"):
         pipe = PerceptionPipeline(PerceptionConfig(estimator=est), K, R_qc, p_qc, np.random.default_rng(2))
         t_imu = t_frame = 0.0
+        t_odo = [0.0]
+        odometry = pipe._odometry               # instrumented: CPU time of the odometry inside on_frame
+
+        def timed_process(*args: Any, process: Callable[..., Any] = odometry.process,
+                          t_odo: list[float] = t_odo) -> Any:
+            t0 = time.process_time()
+            out = process(*args)
+            t_odo[0] += time.process_time() - t0
+            return out
+
+        setattr(odometry, "process", timed_process)  # noqa: B010 (mypy: a method, replaced for this run)
         errs = []
         for i, (t, g, a) in enumerate(imu):
             t0 = time.process_time()
@@ -178,6 +204,8 @@ def bench_pipeline(seconds: float = 3.0) -> None:
               f"(IMU {t_imu / seconds:.3f}, frames {t_frame / seconds:.3f}; "
               f"{t_frame / len(frames) * 1e3:.1f} ms/frame); "
               f"v_h RMSE x/y/z {rmse[0]:.3f}/{rmse[1]:.3f}/{rmse[2]:.3f} m/s (issue target <= 0.05)")
+        print(f"           outside the odometry {(t_frame - t_odo[0]) / len(frames) * 1e3:.2f} ms/frame, "
+              f"on_imu {t_imu / len(imu) * 1e6:.1f} us per sample")
     f = AttitudeFilter()
     g, a = np.array([0.1, 0.0, 0.0]), np.array([0.0, 0.0, -9.81])
     n = 5000
