@@ -156,48 +156,48 @@ class ObstacleMap:
 
     def measure(self, stamp_s: float, obs: SectorObservation) -> None:
         """Measurement step: carve free space, overwrite the measured cells, record observed sectors."""
-        cfg = self.config
         self._last_stamp = stamp_s
-        pts = obs.points_h_m
-        n_new = pts.shape[0]
-        if n_new:
-            az_new, horiz_new = _polar(pts[:, 0], pts[:, 1])
-            ia_new = self._azimuth_cells(az_new)
-            measured = np.zeros((cfg.az_bins, cfg.zen_bins), dtype=bool)
-            measured[ia_new, self._zenith_cells(horiz_new, pts[:, 2])] = True
+        if len(self) or obs.points_h_m.shape[0]:
+            self._measure_points(obs)
+        self._mark_observed(stamp_s, obs)
+
+    def _measure_points(self, obs: SectorObservation) -> None:
+        cfg = self.config
+        n, k = len(self), obs.points_h_m.shape[0]
+        # the particles and the measured points side by side: each vectorised step runs once for both
+        p = np.concatenate([self._p, obs.points_h_m.T], axis=1) if k else self._p
+        az, horiz = _polar(p[0], p[1]) if k else self._polar_of_particles()
+        remove = np.zeros(n, dtype=bool)
+        if n:
+            # free space: in view and nearer than the sector's measured range by the margin (inf: free to
+            # the sensor's range; nan, and -1 = out of view, which indexes the appended nan: never carved)
+            sec, rng_p = obs.sector_and_range_of_points_h(p[:, :n].T)
+            remove = rng_p < np.append(obs.ranges_m - cfg.carve_margin_m, np.nan)[sec]
+        if k:
+            # measured cells are overwritten; the zenith only where the azimuth is a measured one (the
+            # candidates end with the k measured points themselves, in order)
+            ia = self._azimuth_cells(az)
             measured_az = np.zeros(cfg.az_bins, dtype=bool)
-            measured_az[ia_new] = True
-        if len(self):
-            p = self._p
-            az, horiz = self._polar_of_particles()
-            # free space: in view and nearer than the sector's measured range by the margin (inf: free to the
-            # sensor's range; nan, and -1 = out of view, which indexes the appended nan: never carved)
+            measured_az[ia[n:]] = True
+            cand = np.flatnonzero(measured_az[ia])
+            cells = ia[cand] * cfg.zen_bins + self._zenith_cells(horiz[cand], p[2, cand])
+            measured = np.zeros(cfg.az_bins * cfg.zen_bins, dtype=bool)
+            measured[cells[-k:]] = True
+            remove[cand[:-k]] |= measured[cells[:-k]]
+        if n:
             # Particles nearer the camera than its minimum range are in its blind zone: the sector's reading
             # (the background past an obstacle the vehicle is now too close to see) says nothing about them,
             # so they are neither carved nor overwritten.
-            sec, rng_p = obs.sector_and_range_of_points_h(p.T)
-            limit = np.append(obs.ranges_m - cfg.carve_margin_m, np.nan)
-            remove = rng_p < limit[sec]
-            if n_new:
-                # measured cells are overwritten; the zenith only of the particles in a measured azimuth
-                ia = self._azimuth_cells(az)
-                cand = np.flatnonzero(measured_az[ia])
-                remove[cand] |= measured[ia[cand], self._zenith_cells(horiz[cand], p[2, cand])]
-            remove &= rng_p >= obs.min_range_m   # neither carved nor overwritten where the sensor is blind
-            if remove.any():
-                keep = ~remove
-                self._set_particles(np.compress(keep, p, axis=1), np.compress(keep, self.ages_s),
-                                    np.compress(keep, az), np.compress(keep, horiz))
-        if n_new:
-            az_old, horiz_old = self._polar_of_particles()
-            self._set_particles(np.concatenate([self._p, np.repeat(pts.T, cfg.copies, axis=1)], axis=1),
-                                np.concatenate([self.ages_s, np.zeros(n_new * cfg.copies)]),
-                                np.concatenate([az_old, np.repeat(az_new, cfg.copies)]),
-                                np.concatenate([horiz_old, np.repeat(horiz_new, cfg.copies)]))
-            if len(self) > cfg.max_particles:  # oldest go first
-                order = np.argsort(self.ages_s, kind="stable")[: cfg.max_particles]
-                self._set_particles(self._p[:, order], self.ages_s[order])
-        self._mark_observed(stamp_s, obs)
+            remove &= rng_p >= obs.min_range_m
+        if not k and not remove.any():
+            return
+        # the survivors, then `copies` new particles at each measured point
+        idx = np.concatenate([np.flatnonzero(~remove), np.repeat(np.arange(n, n + k), cfg.copies)])
+        ages = np.concatenate([self.ages_s, np.zeros(k)]) if k else self.ages_s
+        self._set_particles(p[:, idx], ages[idx], az[idx], horiz[idx])
+        if len(self) > cfg.max_particles:  # oldest go first
+            order = np.argsort(self.ages_s, kind="stable")[: cfg.max_particles]
+            self._set_particles(self._p[:, order], self.ages_s[order])
 
     def _mark_observed(self, stamp_s: float, obs: SectorObservation) -> None:
         """Sectors seen by this frame (a point or free space), kept in world azimuth."""
