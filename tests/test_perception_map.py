@@ -253,7 +253,7 @@ def test_time_update_with_yaw_noise_rotates_each_particle_by_its_own_angle(delta
     m.ages_s = np.zeros(500)
     dt, r_k, r_k1 = 0.04, 0.3, 0.7
     m.predict(dt, np.zeros(3), np.zeros(3), r_k, r_k1, np.random.default_rng(11))
-    n_psi = np.random.default_rng(11).normal(0.0, delta_scale, size=500)
+    n_psi = np.random.default_rng(11).standard_normal((4, 500), dtype=np.float32)[3] * np.float64(delta_scale)
     psi = dt * (r_k + r_k1 + n_psi) / 2.0
     c, s = np.cos(psi), np.sin(psi)
     expected = np.column_stack([c * p0[:, 0] + s * p0[:, 1], -s * p0[:, 0] + c * p0[:, 1], p0[:, 2]])
