@@ -63,6 +63,9 @@ class ObstacleSectors:
     frame: str = "H"
 
 
+_NAN = np.array([np.nan])   # appended to the sector ranges: what sector -1 (out of view) reads
+
+
 class ObstacleMap:
     """Particles in H; call :meth:`predict` with the motion between frames, then :meth:`measure`.
 
@@ -174,14 +177,14 @@ class ObstacleMap:
             # free space: in view and nearer than the sector's measured range by the margin (inf: free to
             # the sensor's range; nan, and -1 = out of view, which indexes the appended nan: never carved)
             sec, rng_p = obs.sector_and_range_of_points_h(p[:, :n].T)
-            remove = rng_p < np.append(obs.ranges_m - cfg.carve_margin_m, np.nan)[sec]
+            remove = rng_p < np.concatenate((obs.ranges_m - cfg.carve_margin_m, _NAN))[sec]
         if k:
             # measured cells are overwritten; the zenith only where the azimuth is a measured one (the
             # candidates end with the k measured points themselves, in order)
             ia = self._azimuth_cells(az)
             measured_az = np.zeros(cfg.az_bins, dtype=bool)
             measured_az[ia[n:]] = True
-            cand = np.flatnonzero(measured_az[ia])
+            cand = measured_az[ia].nonzero()[0]
             cells = ia[cand] * cfg.zen_bins + self._zenith_cells(horiz[cand], p[2, cand])
             measured = np.zeros(cfg.az_bins * cfg.zen_bins, dtype=bool)
             measured[cells[-k:]] = True
@@ -194,7 +197,7 @@ class ObstacleMap:
         if not k and not remove.any():
             return
         # the survivors, then `copies` new particles at each measured point
-        idx = np.concatenate([np.flatnonzero(~remove), np.repeat(np.arange(n, n + k), cfg.copies)])
+        idx = np.concatenate([(~remove).nonzero()[0], np.repeat(np.arange(n, n + k), cfg.copies)])
         ages = np.concatenate([self.ages_s, np.zeros(k)]) if k else self.ages_s
         self._set_particles(p[:, idx], ages[idx], az[idx], horiz[idx])
         if len(self) > cfg.max_particles:  # oldest go first
@@ -226,19 +229,17 @@ class ObstacleMap:
     def sectors(self, stamp_s: float) -> ObstacleSectors:
         cfg = self.config
         n = cfg.sectors
-        # observed flags, from world azimuth back to H (rotate by the accumulated yaw)
-        shift = self._yaw_total_rad
-        centres_h = np.arange(n) * (2 * math.pi / n)
-        obs_age = stamp_s - self._observed_s[self._sector_index(centres_h + shift)]
+        # observed flags, from world azimuth back to H: H sector i is world sector i + k0 (accumulated yaw)
+        k0 = math.floor((self._yaw_total_rad + math.pi / n) / (2 * math.pi / n)) % n
+        obs_age = stamp_s - np.concatenate((self._observed_s[k0:], self._observed_s[:k0]))
         dist = np.where(obs_age <= cfg.max_age_s, np.inf, np.nan)
         if len(self):
             az, horiz = self._polar_of_particles()
-            band = np.flatnonzero(np.abs(self._p[2]) <= cfg.z_band_m)
+            band = (np.abs(self._p[2]) <= cfg.z_band_m).nonzero()[0]
             if band.size:
-                best = np.full(n, np.inf)
+                best = np.full(n, np.inf)     # nearest horizontal distance per sector within the height band
                 np.minimum.at(best, self._sector_index(az[band]), horiz[band])
-                has = np.isfinite(best)
-                dist[has] = np.maximum(best[has], cfg.min_distance_m)
+                dist = np.where(best < np.inf, np.maximum(best, cfg.min_distance_m), dist)
         return ObstacleSectors(stamp_s, dist, 360.0 / n, 0.0, cfg.min_distance_m, cfg.max_distance_m)
 
     def nearest_h(self) -> NDArray[np.float64] | None:

@@ -116,7 +116,7 @@ def extract_obstacles(depth_m: NDArray[np.float32], K: CameraIntrinsics, R_qc: N
         if np.isposinf(depth[g.top[s]: g.top[s] + bh, g.left[s]: g.left[s] + bw]).any():
             ranges[s] = np.inf
     # the chosen pixels: C p_ij = z (x/z, y/z, 1)
-    sel = np.flatnonzero(has)
+    sel = has.nonzero()[0]
     j = idx[sel]
     z = np.ravel(depth_m)[g.pixel[sel, j]].astype(float)
     pc = g.pixel_rays[sel, j] * z[:, None]
