@@ -111,9 +111,9 @@ def extract_obstacles(depth_m: NDArray[np.float32], K: CameraIntrinsics, R_qc: N
     best = blocks[np.arange(n * m), idx].astype(float)
     has = best <= cfg.max_range_m
     ranges = np.where(has, best, np.where(np.isinf(best), np.nan, np.inf))
-    for s in np.flatnonzero(np.isinf(best)):
+    for s in np.isinf(best).nonzero()[0]:
         # an infinite depth is a valid reading beyond range (REP 117: no return), not a missing one
-        if np.isposinf(depth[g.top[s]: g.top[s] + bh, g.left[s]: g.left[s] + bw]).any():
+        if (depth[g.top[s]: g.top[s] + bh, g.left[s]: g.left[s] + bw] == np.inf).any():
             ranges[s] = np.inf
     # the chosen pixels: C p_ij = z (x/z, y/z, 1)
     sel = has.nonzero()[0]

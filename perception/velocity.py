@@ -71,6 +71,9 @@ class VelocityEstimator:
         self._prev_p: list[float] | None = None
         self._prev_t: float | None = None
         self._last_v_c = np.zeros(3)
+        # the two covariances handed out (read-only, shared by every estimate)
+        self._cov_ok = _read_only(np.eye(3) * self.config.sigma_m_s**2)
+        self._cov_lost = _read_only(np.eye(3) * self.config.sigma_lost_m_s**2)
 
     def reset(self) -> None:
         self._pos.reset()
@@ -100,8 +103,12 @@ class VelocityEstimator:
         # eq. (12): - omega x Q p_C, written out (np.cross costs ~50 us on 3-vectors)
         v_q = self.R_qc @ v_c - np.array([wy * pz - wz * py, wz * px - wx * pz, wx * py - wy * px])
         v_h = R_hq(roll_rad, pitch_rad) @ v_q                                 # eq. (13)
-        sigma = cfg.sigma_m_s if valid else cfg.sigma_lost_m_s
-        return VelocityEstimate(stamp_s, v_h, v_q, v_c.copy(), np.diag([sigma**2] * 3), valid)
+        return VelocityEstimate(stamp_s, v_h, v_q, v_c.copy(), self._cov_ok if valid else self._cov_lost, valid)
+
+
+def _read_only(a: NDArray[np.float64]) -> NDArray[np.float64]:
+    a.flags.writeable = False
+    return a
 
 
 def _conj(q: list[float]) -> tuple[float, float, float, float]:
