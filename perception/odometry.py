@@ -54,7 +54,8 @@ class OdometryConfig:
     min_points: int = 100
     max_translation_m: float = 0.5                   # per-frame sanity bounds
     max_rotation_rad: float = 0.6
-    convergence_eps: float = 2e-5                    # |delta| (m, rad) below which the finest level stops
+    convergence_eps: float = 2e-5                    # |delta| (m, rad) below which a level stops
+    coarse_convergence_px: float = 0.1               # update (in the level's pixels) below which a coarse level stops
     affine_brightness: bool = False                  # estimate a brightness gain and bias per pair (exposure)
     brightness_prior_sigma: float = 0.1              # std of the gain (about 1) and bias (about 0, intensity 0..1)
 
@@ -146,7 +147,7 @@ class _Level:
     gy: Image
     zx: Image         # dZ/du, dZ/dv (Sobel; 0 where the 3×3 neighbourhood has invalid depth)
     zy: Image
-    select: Image     # |dI/du| + |dI/dv| where the depth is valid inside a 2-pixel border, else 0
+    select: Image     # |dI/du| + |dI/dv| + 1e-6 where the depth is valid, inside a 2-pixel border, else 0
 
 
 @dataclass
@@ -158,7 +159,7 @@ class PreparedFrame:
 
 
 def _gray01(rgb: NDArray[np.uint8]) -> Image:
-    return cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY).astype(np.float32) * np.float32(1.0 / 255.0)
+    return np.multiply(cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY), np.float32(1.0 / 255.0), dtype=np.float32)
 
 
 def _downsample_depth(depth: Image) -> Image:
@@ -172,14 +173,15 @@ def _downsample_depth(depth: Image) -> Image:
     size = (w // 2, h // 2)
     s = cv2.resize(d, size, interpolation=cv2.INTER_AREA)
     n = cv2.resize((d > 0).view(np.uint8).astype(np.float32), size, interpolation=cv2.INTER_AREA)
-    out = np.zeros_like(s)
-    np.divide(s, n, out=out, where=n > 0)
-    return out
+    # a block without valid depth has mean(Z) = 0 too: dividing by max(mean(valid), tiny) leaves it 0
+    np.maximum(n, np.float32(1e-6), out=n)
+    np.divide(s, n, out=s)
+    return s
 
 
 _KERNEL3 = np.ones((3, 3), np.uint8)
 _ONES: dict[tuple[int, ...], NDArray[np.float32]] = {}
-_BORDER: dict[tuple[int, ...], NDArray[np.float32]] = {}
+_BORDER: dict[tuple[int, ...], NDArray[np.uint8]] = {}
 
 
 def _ones(shape: tuple[int, ...]) -> NDArray[np.float32]:
@@ -188,10 +190,10 @@ def _ones(shape: tuple[int, ...]) -> NDArray[np.float32]:
     return _ONES[shape]
 
 
-def _inner(shape: tuple[int, ...]) -> NDArray[np.float32]:
+def _inner(shape: tuple[int, ...]) -> NDArray[np.uint8]:
     """1 inside a 2-pixel border (where the 3×3 gradients are two-sided), 0 on it."""
     if shape not in _BORDER:
-        m = np.zeros(shape, np.float32)
+        m = np.zeros(shape, np.uint8)
         m[2:-2, 2:-2] = 1.0
         _BORDER[shape] = m
     return _BORDER[shape]
@@ -202,8 +204,8 @@ def prepare_frame(rgb: NDArray[np.uint8], depth_m: NDArray[np.float32], K: Camer
     """Pyramids, gradients and the sampling texture of one frame (finest level first)."""
     gray = _gray01(rgb)
     d = np.asarray(depth_m, dtype=np.float32)
-    # NaN and inf fail both comparisons: one pass turns them and out-of-range depths into 0 (invalid)
-    depth = np.where((d >= config.min_depth_m) & (d <= config.max_depth_m), d, np.float32(0.0))
+    # NaN and inf fall outside the range too: they and out-of-range depths become 0 (invalid)
+    depth = cv2.copyTo(d, cv2.inRange(d, config.min_depth_m, config.max_depth_m), np.zeros_like(d))
     if gray.shape[1] > config.working_width_px:
         factor = config.working_width_px / gray.shape[1]
         size = (config.working_width_px, round(gray.shape[0] * factor))
@@ -228,9 +230,12 @@ def prepare_frame(rgb: NDArray[np.uint8], depth_m: NDArray[np.float32], K: Camer
         valid_e = cv2.erode(valid, _KERNEL3).astype(np.float32)
         zx = cv2.multiply(cv2.Sobel(depth, cv2.CV_32F, 1, 0, ksize=3, scale=0.125), valid_e)
         zy = cv2.multiply(cv2.Sobel(depth, cv2.CV_32F, 0, 1, ksize=3, scale=0.125), valid_e)
-        sel = cv2.add(np.abs(gx), np.abs(gy))
-        sel = cv2.multiply(sel, _inner(gray.shape))
-        sel[valid == 0] = 0.0
+        # selection score: |dI/du| + |dI/dv| (plus a floor, so textureless pixels stay selectable for the
+        # depth term) where the depth is valid, inside a 2-pixel border
+        sel = np.abs(gx)
+        sel += np.abs(gy)
+        sel += np.float32(1e-6)
+        sel *= cv2.bitwise_and(valid, _inner(gray.shape))
         out.levels.append(_Level(K=K, tex=cv2.merge([gray, depth, valid_e, _ones(gray.shape)]),
                                  gray=gray, depth=depth, gx=gx, gy=gy, zx=zx, zy=zy, select=sel))
     return out
@@ -239,31 +244,33 @@ def prepare_frame(rgb: NDArray[np.uint8], depth_m: NDArray[np.float32], K: Camer
 def _select_pixels(level: _Level, max_points: int, gradient_fraction: float) -> NDArray[np.intp]:
     """Flat indices of the reference pixels: the strongest intensity gradients plus an even spread.
 
-    The gradient threshold is the quantile of a strided subsample of the image that leaves about
+    The gradient threshold is the quantile of a 4×4-strided subsample of the image that leaves about
     ``gradient_fraction * max_points`` pixels above it (no sort of every pixel); the spread is a regular
-    grid over the remaining valid pixels (for the depth term, which needs no texture).
+    grid over the remaining usable pixels (for the depth term, which needs no texture).
     """
     sel = level.select
+    h, w = sel.shape
     n_grad = int(max_points * gradient_fraction)
-    n_valid_sub = 0
-    step = 2
-    sub = sel[::step, ::step].ravel()
+    step = 4
+    sub = sel[::step, ::step]
     sub_valid = sub[sub > 0]
-    n_valid_sub = sub_valid.size
-    if n_valid_sub == 0:
+    if sub_valid.size == 0:
         return np.empty(0, np.intp)
-    n_valid = n_valid_sub * step * step   # estimate
-    if n_valid <= max_points:
+    n_usable = sub_valid.size * step * step   # estimate
+    if n_usable <= max_points:
         return np.flatnonzero(sel > 0)
-    # threshold leaving about n_grad pixels above it (scaled to the subsample)
-    k = n_valid_sub - max(1, n_grad // (step * step))
-    thr = float(np.partition(sub_valid, k)[k]) if k > 0 else 0.0
+    k = sub_valid.size - max(1, n_grad // (step * step))
+    thr = np.partition(sub_valid, k)[k] if k > 0 else np.float32(0.0)
     top = np.flatnonzero(sel > thr)
     if top.size > n_grad:
         top = top[np.linspace(0, top.size - 1, n_grad).astype(np.intp)]
-    # an even spread over the valid pixels below the threshold
     n_rest = max_points - top.size
-    rest = np.flatnonzero((sel > 0) & (sel <= thr))
+    if n_rest <= 0:
+        return top
+    g = max(1, int(math.sqrt(n_usable / n_rest)))
+    grid = sel[::g, ::g]
+    gv, gu = np.divmod(np.flatnonzero((grid > 0) & (grid <= thr)), grid.shape[1])
+    rest = gv * (g * w) + gu * g
     if rest.size > n_rest:
         rest = rest[np.linspace(0, rest.size - 1, n_rest).astype(np.intp)]
     return np.concatenate([top, rest])
@@ -291,7 +298,7 @@ def _jacobian_rows(out: Image, x: Image, y: Image, z: Image, a: Image, b: Image,
 class _Reference:
     """One level's reference points with their Jacobians, fixed for the level (inverse compositional)."""
 
-    P: Image                  # 3 × N points in the reference camera frame
+    P: Image                  # 4 × N points in the reference camera frame, homogeneous
     I: Image                  # N intensities
     J: Image                  # (nj + 1) × 2N, columns photometric [0, N) and depth [N, 2N): rows 0-5 the pose
                               # Jacobian, with the brightness model 6-7 its Jacobian (I_ref, 1; 0 for depth),
@@ -299,6 +306,7 @@ class _Reference:
                               # J^T W r
     z_ok: NDArray[np.bool_]   # N: depth gradient defined at the reference pixel (depth term usable)
     z_norm: Image             # N: (Z_med / Z)^2, the depth residual's noise normalisation
+    z_med: float              # median depth of the points, m
 
 
 def _reference(level: _Level, max_points: int, gradient_fraction: float, affine: bool) -> _Reference:
@@ -330,8 +338,8 @@ def _reference(level: _Level, max_points: int, gradient_fraction: float, affine:
     # the depth term needs a surface: a slope |dZ/du| f / Z beyond tan(75 deg) is a depth discontinuity (or a
     # grazing surface, where structured-light depth is unreliable), where Z is not differentiable
     slope2 = (zx * zx + zy * zy) * (fx_z * fx_z)
-    z_ok = (level.tex[..., 2].ravel()[idx] > 0.999) & (slope2 < np.float32(_MAX_DEPTH_SLOPE**2))
-    return _Reference(np.stack([x, y, z]), gray, J, z_ok, z_norm)
+    z_ok = (level.tex.reshape(-1, 4)[idx, 2] > 0.999) & (slope2 < np.float32(_MAX_DEPTH_SLOPE**2))
+    return _Reference(np.stack([x, y, z, np.ones_like(z)]), gray, J, z_ok, z_norm, float(z_med))
 
 
 def _sample(tex: Image, u: NDArray[np.float32], v: NDArray[np.float32]) -> Image:
@@ -453,7 +461,11 @@ class RgbdOdometry:
             s2_i = s2_z = 0.0
             s2_imin, s2_zmin = cfg.min_intensity_sigma**2, cfg.min_depth_sigma_m**2
             nu, nu1 = np.float32(cfg.t_dof), np.float32(cfg.t_dof + 1.0)
-            eps_level = cfg.convergence_eps * (2.0**li)   # coarse levels only need to land in the basin
+            # the finest level iterates to convergence_eps; a coarser level only has to land inside the next
+            # level's basin and stops once an update moves the points by less than coarse_convergence_px of its
+            # own pixels (the next level refines with twice the resolution anyway)
+            eps_level = cfg.convergence_eps
+            px_per_rad = 0.0 if li == 0 else math.sqrt(K.fx * K.fy)
             J = rp.J
             Jw = np.empty_like(J)
             # both residual kinds in one vector: photometric [0, N), depth [N, 2N)
@@ -462,7 +474,6 @@ class RgbdOdometry:
             pred = np.empty(N, np.float32)   # reference intensities under the brightness model
             r2 = np.empty(2 * N, np.float32)
             wr = np.empty(2 * N, np.float32)
-            scale = np.empty(2 * N, np.float32)
             use = np.empty(2 * N, bool)   # residual usable (inside, valid depth)
             ok_i, ok_z = use[:N], use[N:]
             Ph = np.empty((3, N), np.float32)
@@ -472,9 +483,8 @@ class RgbdOdometry:
             evaluated = False
             for _ in range(iters):
                 total_iters += 1
-                # homogeneous pixels of the warped points: K (R p + t)
-                np.matmul((Kf @ T[:3, :3]).astype(np.float32), rp.P, out=Ph)
-                Ph += (Kf @ T[:3, 3:4]).astype(np.float32)
+                # homogeneous pixels of the warped points: K (R p + t), p homogeneous
+                np.matmul((Kf @ T[:3]).astype(np.float32), rp.P, out=Ph)
                 z = Ph[2]
                 np.greater(z, np.float32(1e-3), out=ok_i)
                 np.maximum(z, np.float32(1e-3), out=iz)
@@ -495,33 +505,36 @@ class RgbdOdometry:
                 if n_z < cfg.min_points:
                     ok_z[:] = False
                     n_z = 0
-                np.multiply(rp.I, np.float32(gain), out=pred)
-                pred += np.float32(bias)
-                np.subtract(s[:, 0], pred, out=r[:N])
+                if nj > 6:
+                    np.multiply(rp.I, np.float32(gain), out=pred)
+                    pred += np.float32(bias)
+                    np.subtract(s[:, 0], pred, out=r[:N])
+                else:
+                    np.subtract(s[:, 0], rp.I, out=r[:N])
                 np.subtract(s[:, 1], z, out=r[N:])
                 r[N:] *= rp.z_norm
                 r *= use
                 np.multiply(r, r, out=r2)
                 # t-distribution weights with scales re-estimated by fixed-point steps (DVO): 4 from the plain
-                # mean square at a level's first iteration, then 2 from the previous iteration's scales
+                # mean square at a level's first iteration, then one a iteration from the previous scales (the
+                # scales converge with the motion)
                 if s2_i <= 0.0:
                     s2_i = max(float(r2[:N].sum(dtype=np.float64)) / n_i, s2_imin)
                     s2_z = max(float(r2[N:].sum(dtype=np.float64)) / max(n_z, 1), s2_zmin)
                     steps = 4
                 else:
-                    steps = 2
+                    steps = 1
                 for step in range(steps + 1):
-                    scale[:N] = 1.0 / s2_i
-                    scale[N:] = 1.0 / s2_z
-                    np.multiply(r2, scale, out=wr)
+                    np.multiply(r2[:N], np.float32(1.0 / s2_i), out=wr[:N])
+                    np.multiply(r2[N:], np.float32(1.0 / s2_z), out=wr[N:])
                     wr += nu
                     np.divide(nu1, wr, out=wr)
                     if step < steps:
                         s2_i = max(float(np.dot(wr[:N], r2[:N])) / n_i, s2_imin)
                         if n_z:
                             s2_z = max(float(np.dot(wr[N:], r2[N:])) / n_z, s2_zmin)
-                scale[N:] *= np.float32(cfg.depth_weight)
-                wr *= scale
+                wr[:N] *= np.float32(1.0 / s2_i)
+                wr[N:] *= np.float32(cfg.depth_weight / s2_z)
                 wr *= use
                 # normal equations of the linearised residuals r - J xi: one BLAS product gives J^T W J and
                 # J^T W r (row 6 of J holds r); solved in float64
@@ -554,6 +567,10 @@ class RgbdOdometry:
                     gain += float(sol[6])
                     bias += float(sol[7])
                 if d2 < eps_level**2:
+                    break
+                if px_per_rad and px_per_rad * (math.sqrt(float(delta[3:] @ delta[3:]))
+                                                + math.sqrt(float(delta[:3] @ delta[:3])) / rp.z_med) \
+                        < cfg.coarse_convergence_px:
                     break
             if li == 0:
                 # quality of the last evaluated iteration (the final update is below the convergence limit)

@@ -122,7 +122,7 @@ def test_reference_jacobian_matches_finite_differences() -> None:
                                        gy=cv2.Sobel(gray_tex, cv2.CV_32F, 0, 1, ksize=3, scale=0.125))
     rp = _reference(level_smooth, 2000, 0.75, affine=False)
     n = rp.I.shape[0]
-    P = rp.P.astype(np.float64)
+    P = rp.P[:3].astype(np.float64)
 
     def residuals(xi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         T = se3_exp(xi)
