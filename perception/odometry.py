@@ -145,7 +145,7 @@ class _Level:
     depth: Image      # metres, 0 = invalid
     gx: Image         # dI/du, dI/dv (Sobel)
     gy: Image
-    zx: Image         # dZ/du, dZ/dv (Sobel; 0 where the 3×3 neighbourhood has invalid depth)
+    zx: Image         # dZ/du, dZ/dv (Sobel; only meaningful where tex's valid channel is 1)
     zy: Image
     select: Image     # |dI/du| + |dI/dv| + 1e-6 where the depth is valid, inside a 2-pixel border, else 0
 
@@ -228,8 +228,9 @@ def prepare_frame(rgb: NDArray[np.uint8], depth_m: NDArray[np.float32], K: Camer
         gy = cv2.Sobel(gray, cv2.CV_32F, 0, 1, ksize=3, scale=0.125)
         valid = (depth > 0).view(np.uint8)
         valid_e = cv2.erode(valid, _KERNEL3).astype(np.float32)
-        zx = cv2.multiply(cv2.Sobel(depth, cv2.CV_32F, 1, 0, ksize=3, scale=0.125), valid_e)
-        zy = cv2.multiply(cv2.Sobel(depth, cv2.CV_32F, 0, 1, ksize=3, scale=0.125), valid_e)
+        # meaningless where the 3×3 neighbourhood has invalid depth: such points get no depth term (valid_e)
+        zx = cv2.Sobel(depth, cv2.CV_32F, 1, 0, ksize=3, scale=0.125)
+        zy = cv2.Sobel(depth, cv2.CV_32F, 0, 1, ksize=3, scale=0.125)
         # selection score: |dI/du| + |dI/dv| (plus a floor, so textureless pixels stay selectable for the
         # depth term) where the depth is valid, inside a 2-pixel border
         sel = np.abs(gx)
@@ -300,10 +301,10 @@ class _Reference:
 
     P: Image                  # 4 × N points in the reference camera frame, homogeneous
     I: Image                  # N intensities
-    J: Image                  # (nj + 1) × 2N, columns photometric [0, N) and depth [N, 2N): rows 0-5 the pose
+    J: Image                  # 8 or 9 × 2N, columns photometric [0, N) and depth [N, 2N): rows 0-5 the pose
                               # Jacobian, with the brightness model 6-7 its Jacobian (I_ref, 1; 0 for depth),
-                              # last the residuals (written each iteration): one BLAS product gives J^T W J and
-                              # J^T W r
+                              # then the residuals (written each iteration; one BLAS product gives J^T W J and
+                              # J^T W r), zero-padded to 8 rows
     z_ok: NDArray[np.bool_]   # N: depth gradient defined at the reference pixel (depth term usable)
     z_norm: Image             # N: (Z_med / Z)^2, the depth residual's noise normalisation
     z_med: float              # median depth of the points, m
@@ -319,7 +320,8 @@ def _reference(level: _Level, max_points: int, gradient_fraction: float, affine:
     y = (v.astype(np.float32) - np.float32(K.cy)) * np.float32(1.0 / K.fy) * z
     n = idx.size
     nj = 8 if affine else 6
-    J = np.zeros((nj + 1, 2 * n), np.float32)
+    # at least 8 rows: OpenBLAS's sgemm is more than twice as fast for 8 rows as for 7
+    J = np.zeros((max(nj + 1, 8), 2 * n), np.float32)
     fx_z = np.float32(K.fx) / z
     fy_z = np.float32(K.fy) / z
     _jacobian_rows(J[:, :n], x, y, z, level.gx.ravel()[idx] * fx_z, level.gy.ravel()[idx] * fy_z, 0.0)
@@ -469,7 +471,7 @@ class RgbdOdometry:
             J = rp.J
             Jw = np.empty_like(J)
             # both residual kinds in one vector: photometric [0, N), depth [N, 2N)
-            nj = J.shape[0] - 1
+            nj = 8 if cfg.affine_brightness else 6
             r = J[nj]
             pred = np.empty(N, np.float32)   # reference intensities under the brightness model
             r2 = np.empty(2 * N, np.float32)
