@@ -315,7 +315,10 @@ def test_daemon_flies_teleop_routes_and_fails_safe(rig: Rig) -> None:
 def test_every_frame_received_is_recorded_for_replay(rig: Rig, tmp_path: Path) -> None:
     for _ in range(4):
         rig.frame(manual=(0, 0, 500), pace=False)
-    got = list(read_frame_recording(tmp_path / "frames.qlcf"))
+    # the daemon acks a frame before its telemetry and the recording: let it finish the last one
+    deadline = time.monotonic() + 3.0
+    while len(got := list(read_frame_recording(tmp_path / "frames.qlcf"))) < 4 and time.monotonic() < deadline:
+        time.sleep(0.02)
     assert [f.seq for f in got] == [1, 2, 3, 4]
     assert [f.stamp_s for f in got] == pytest.approx([k / FPS for k in range(1, 5)])
     t = rig.template
