@@ -43,7 +43,8 @@ class OdometryConfig:
     working_width_px: int = 320                      # frames wider than this are downscaled first (QVGA)
     min_depth_m: float = 0.2
     max_depth_m: float = 6.0
-    depth_weight: float = 0.3                        # lambda_Z: weight of the (normalised) depth term
+    depth_weight: float = 1.0                        # lambda_Z: weight of the depth term, each term being
+                                                     # normalised by its robust scale (1: maximum likelihood)
     t_dof: float = 5.0                               # nu of the t-distribution weights (DVO)
     min_intensity_sigma: float = 0.004               # floors of the robust scales (about one grey level and
     min_depth_sigma_m: float = 0.0002                # a structured-light sensor's noise at 1 m) so exact
