@@ -96,6 +96,7 @@ class Stats:
     manual_controls: int = 0
     pipeline_errors: int = 0
     latencies_s: list[float] = field(default_factory=list)
+    perception_s: list[float] = field(default_factory=list)
 
 
 @dataclass
@@ -486,6 +487,7 @@ class Companion:
         self._actions(self.modes.update(self.clock(), self.vehicle.status(), self.odometry_ok))
         if out is not None:
             self.last_output = out
+            self.stats.perception_s.append(float(out.processing_time_s))
         points = None if out is None else out.obstacle_points_h_m
         sectors, _, offset_deg = msgs.sector_arrays(None if out is None else out.sectors)
         block = out is None or not self.cfg.obstacles.allow_unknown_when_fresh
@@ -644,12 +646,15 @@ class Companion:
         self._progress_frames = s.frames
         lat = sorted(s.latencies_s[-300:])
         p50 = f"{lat[len(lat) // 2] * 1e3:.1f} ms" if lat else "-"
-        log.info("mode %s  camera %.1f fps  frame->setpoint p50 %s  odometry %s  gcs link %s  manual %d  "
-                 "routed %d to GCS / %d to autopilot", self.modes.mode.name, fps, p50,
+        per = sorted(s.perception_s[-300:])
+        per50 = f"{per[len(per) // 2] * 1e3:.1f} ms" if per else "-"
+        log.info("mode %s  camera %.1f fps  frame->setpoint p50 %s (perception %s)  odometry %s  gcs link %s  "
+                 "manual %d  routed %d to GCS / %d to autopilot", self.modes.mode.name, fps, p50, per50,
                  "ok" if self.odometry_ok else "FAIL", "ok" if self.modes.gcs_ok else "lost", s.manual_controls,
                  s.routed_to_gcs, s.routed_to_autopilot)
         if len(s.latencies_s) > 20000:
             del s.latencies_s[:-2000]
+            del s.perception_s[:-2000]
 
     def _fallback_stamp(self, now: float) -> float:
         """Autopilot time estimate without a fresh frame: last IMU or frame stamp plus the wall time since."""
