@@ -39,6 +39,8 @@ class PerceptionConfig:
 
     estimator: Literal["filters", "ukf"] = "filters"   # eqs. (9)-(13) chain, or paper 003's UKF
     imu_rotation_prior: bool = True                     # gyro rotation between frames as odometry prior
+    odometry_every_n_frames: int = 1                    # 2: odometry and velocity at half the camera rate
+                                                        # (obstacles and map still every frame)
     odometry: OdometryConfig = field(default_factory=OdometryConfig)
     attitude: AttitudeConfig = field(default_factory=AttitudeConfig)
     velocity: VelocityConfig = field(default_factory=VelocityConfig)
@@ -95,6 +97,8 @@ class PerceptionPipeline:
         self._prev_frame_stamp: float | None = None
         self._prev_v_h = np.zeros(3)
         self._prev_yaw_rate = 0.0
+        self._odometry_due = 0          # frames until the odometry runs again (0 = this one)
+        self._last_odo: tuple[bool, float, NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]] | None = None
         self.frames = 0
         self.imu_samples = 0
         self.rejected_imu = 0
@@ -127,30 +131,42 @@ class PerceptionPipeline:
         att = self._attitude.estimate(frame.stamp_s)
         roll, pitch, omega = att.roll_rad, att.pitch_rad, att.omega_q_rad_s
         K = frame.intrinsics
-        R_prior = None
-        if cfg.imu_rotation_prior and self._prev_R_wq is not None and self._imu_since_frame:
-            # body rotation k-1 -> k from the attitude filter (the bias-corrected gyro with its small
-            # accelerometer corrections)
-            R_q = self._prev_R_wq.T @ att.R_wq
-            R_prior = self.R_qc.T @ R_q @ self.R_qc    # camera k-1 -> k rotation
-        self._prev_R_wq = att.R_wq
-        self._imu_since_frame = False
-        if frame.depth_m is not None:
-            odo = self._odometry.process(frame.stamp_s, frame.rgb, frame.depth_m, K, R_prior)
-            odometry_ok, fitness, T_c0_ck = odo.ok, odo.fitness, odo.T_c0_ck
+        # with odometry_every_n_frames > 1 the odometry skips frames while it tracks (never after a failure);
+        # a skipped frame reuses the last pose and velocity, and the obstacles and map still run
+        run_odometry = frame.depth_m is None or self._odometry_due <= 0 or self._last_odo is None \
+            or not self._last_odo[0]
+        if run_odometry:
+            self._odometry_due = max(cfg.odometry_every_n_frames, 1) - 1
+            R_prior = None
+            if cfg.imu_rotation_prior and self._prev_R_wq is not None and self._imu_since_frame:
+                # body rotation since the last odometry frame from the attitude filter (the bias-corrected
+                # gyro with its small accelerometer corrections)
+                R_q = self._prev_R_wq.T @ att.R_wq
+                R_prior = self.R_qc.T @ R_q @ self.R_qc    # camera k-1 -> k rotation
+            self._prev_R_wq = att.R_wq
+            self._imu_since_frame = False
+            if frame.depth_m is not None:
+                odo = self._odometry.process(frame.stamp_s, frame.rgb, frame.depth_m, K, R_prior)
+                odometry_ok, fitness, T_c0_ck = odo.ok, odo.fitness, odo.T_c0_ck
+            else:
+                odometry_ok, fitness, T_c0_ck = False, 0.0, self._odometry.T_c0_ck
+            if self._R_w_q0 is None:
+                self._R_w_q0 = R_hq(roll, pitch)   # world: level, heading of the first frame
+            R_wq, p_w = body_pose_in_world(T_c0_ck, self.R_qc, self.p_qc_m, self._R_w_q0)
+            vel = self._velocity.update(frame.stamp_s, T_c0_ck, odometry_ok, omega, roll, pitch)
+            v_h, v_h_cov = vel.v_h_m_s, vel.v_h_cov
+            if self._ukf is not None:
+                if odometry_ok or not self._ukf.initialised:
+                    self._ukf.on_pose(frame.stamp_s, p_w, R_wq)
+            self._last_odo = (odometry_ok, float(fitness), R_wq, p_w, np.asarray(v_h_cov, dtype=float))
         else:
-            odometry_ok, fitness, T_c0_ck = False, 0.0, self._odometry.T_c0_ck
-        if self._R_w_q0 is None:
-            self._R_w_q0 = R_hq(roll, pitch)   # world: level, heading of the first frame
-        R_wq, p_w = body_pose_in_world(T_c0_ck, self.R_qc, self.p_qc_m, self._R_w_q0)
-        yaw = euler_from_R(R_wq)[2]
-        vel = self._velocity.update(frame.stamp_s, T_c0_ck, odometry_ok, omega, roll, pitch)
-        v_h, v_h_cov = vel.v_h_m_s, vel.v_h_cov
+            self._odometry_due -= 1
+            odometry_ok, fitness, R_wq, p_w, v_h_cov = self._last_odo   # type: ignore[misc]
+            v_h = self._prev_v_h
         if self._ukf is not None:
-            if odometry_ok or not self._ukf.initialised:
-                self._ukf.on_pose(frame.stamp_s, p_w, R_wq)
-            st = self._ukf.state
+            st = self._ukf.state        # the UKF runs on the IMU: fresh on every frame
             v_h, v_h_cov = st.v_h_m_s, st.v_h_cov
+        yaw = euler_from_R(R_wq)[2]
         yaw_rate = euler_yaw_rate(omega, roll, pitch)
         # local obstacle map: time update to this frame (eq. 14), then the measurement
         if self._prev_frame_stamp is not None:

@@ -44,9 +44,18 @@ def recording() -> Recording:
     return Recording(flight, imu, frames)
 
 
-def _fly(estimator: str, rec: Recording, until_s: float = 10.0) -> list[PerceptionOutput]:
-    pipe = PerceptionPipeline(PerceptionConfig(estimator=estimator), K, rec.flight.R_qc, rec.flight.p_qc_m,
-                              np.random.default_rng(7))
+def _fly(estimator: str, rec: Recording, until_s: float = 10.0, every_n: int = 1,
+         calls: list[float] | None = None) -> list[PerceptionOutput]:
+    pipe = PerceptionPipeline(PerceptionConfig(estimator=estimator, odometry_every_n_frames=every_n), K,
+                              rec.flight.R_qc, rec.flight.p_qc_m, np.random.default_rng(7))
+    if calls is not None:   # record the stamps the odometry runs at
+        process = pipe._odometry.process
+
+        def counted(stamp_s: float, *args: object) -> object:
+            calls.append(stamp_s)
+            return process(stamp_s, *args)   # type: ignore[arg-type]
+
+        pipe._odometry.process = counted  # type: ignore[method-assign]
     outs = []
     for i, (t, gyro, accel) in enumerate(rec.imu):
         if t > until_s:
@@ -74,6 +83,18 @@ def test_velocity_in_h_tracks_truth_on_a_pan_scanning_flight(estimator: str, rec
     truth_p = flight.position(last.stamp_s) - flight.position(0.0)
     assert np.linalg.norm(last.position_m - truth_p) < 0.05
     assert last.estimator == estimator
+
+
+def test_odometry_at_half_the_camera_rate_keeps_the_velocity(recording: Recording) -> None:
+    calls: list[float] = []
+    outs, flight = _fly("filters", recording, every_n=2, calls=calls), recording.flight
+    assert len(calls) == (len(outs) + 1) // 2          # every other frame, the first one included
+    assert [o.stamp_s for o in outs[::2]] == calls
+    errs = np.array([o.v_h_m_s - flight.v_h(o.stamp_s) for o in outs if o.stamp_s > 1.0])
+    assert np.sqrt(np.mean(errs**2, axis=0)).max() < 0.05
+    # the skipped frames still get their own obstacle sectors and attitude
+    assert all(o.sectors.stamp_s == o.stamp_s for o in outs)
+    assert len({round(o.roll_rad, 9) for o in outs}) > len(outs) * 0.9
 
 
 def test_outputs_obstacles_and_sectors_of_the_room(recording: Recording) -> None:
