@@ -152,13 +152,13 @@ def recording_feed(folder: Path, n_total: int) -> Feed:
     return out
 
 
-def run(feed: Feed, warmup_frames: int, profile: str | None = None) -> dict[str, float]:
+def run(feed: Feed, warmup_frames: int, profile: str | None = None, config: str | None = None) -> dict[str, float]:
     ap_port, gcs_port = free_udp_port(), free_udp_port()
     server = CameraStreamServer("127.0.0.1", 0)
     prof = ["-m", "cProfile", "-o", profile] if profile else []
     argv = [sys.executable, *prof, "-m", "quadlink.cli", "companion", "--autopilot", f"udpin:127.0.0.1:{ap_port}",
             "--gcs", f"udpin:127.0.0.1:{gcs_port}", "--camera", f"tcp://127.0.0.1:{server.port}",
-            "--image-port", "0"]
+            "--image-port", "0", *(("--config", config) if config else ())]
     log_file = tempfile.TemporaryFile("w+")   # the daemon's log: its own frame->setpoint figure every 5 s
     proc = subprocess.Popen(argv, stdin=subprocess.DEVNULL, stdout=log_file, stderr=subprocess.STDOUT,
                             env={**os.environ, "PYTHONUNBUFFERED": "1"})
@@ -282,6 +282,7 @@ def main() -> None:
     src.add_argument("--synthetic", action="store_true", help="synthetic textured room instead of the recording")
     src.add_argument("--tum", default=None, help="replay this TUM RGB-D folder instead of the recording")
     ap.add_argument("--profile", default=None, help="run the daemon under cProfile, write the stats here")
+    ap.add_argument("--config", default=None, help="companion YAML to run with (default: configs/companion.yaml)")
     args = ap.parse_args()
     warmup = int(3.0 * FPS)
     n_total = warmup + int(args.seconds * FPS)
@@ -297,7 +298,7 @@ def main() -> None:
         feed = recording_feed(folder, n_total)
         source = f"SITL recording {folder} (teleop from t = {feed[0][0].stamp_s:.1f} s)"
     print(f"prepared {len(feed)} frames from {source} in {time.perf_counter() - t0:.1f} s", flush=True)
-    r = run(feed, warmup, profile=args.profile)
+    r = run(feed, warmup, profile=args.profile, config=args.config)
     print(f"companion @ {FPS:.0f} Hz 320x240 + {IMU_HZ} Hz IMU, {r['flight_s']:.1f} s of flight measured "
           f"({r['wall_s']:.1f} s wall; > flight time means this machine could not keep real time), "
           f"{int(r['frames'])}/{int(r['expected'])} setpoints matched")
