@@ -1,18 +1,25 @@
 """Dense RGB-D odometry in the spirit of DVO (Kerl, Sturm, Cremers, IROS 2013) — pure numpy/OpenCV.
 
-Frame-to-frame direct alignment: for a selection of reference pixels (strong intensity gradient plus an
-even spread for the depth term) with valid depth, find the rigid motion ``T_ck_ckm1`` (points of frame
-k-1 into frame k) minimising
+Keyframe-based direct alignment: for a selection of reference pixels of the keyframe (strong intensity gradient
+plus an even spread for the depth term) with valid depth, find the rigid motion ``T_ck_kf`` (points of the
+keyframe into frame k; written ``T_ck_ckm1`` for a pair) minimising
 
     sum_i  w_I,i (r_I,i / s_I)^2 + lambda_Z  w_Z,i (r_Z,i / s_Z)^2  +  |log(R R_prior^T)|^2 / sigma_prior^2
 
-with photometric residuals ``r_I = I_k(pi(T p_i)) - I_km1(x_i)``, depth residuals
+with photometric residuals ``r_I = I_k(pi(T p_i)) - I_kf(x_i)``, depth residuals
 ``r_Z = (Z_k(pi(T p_i)) - [T p_i]_z) (Z_med / Z_i)^2`` (structured-light noise grows with Z^2; points on
 depth discontinuities have no depth term), t-distribution weights (nu = 5) with the scales ``s_I, s_Z``
 re-estimated each iteration (DVO's robust estimator), an optional rotation prior from the integrated gyro
-(the IMU prior between frames), inverse-compositional Gauss-Newton on se(3) (Jacobians of the reference
-points, fixed per level), coarse-to-fine over an image pyramid, started from the previous pair's motion
-(constant velocity). The camera pose is chained: ``T_c0_ck = T_c0_ckm1 · T_ck_ckm1^-1``.
+(the IMU prior between frames, composed with the previous frame's pose in the keyframe), inverse-compositional
+Gauss-Newton on se(3) (Jacobians of the reference points, fixed per level), coarse-to-fine over an image
+pyramid, started from the previous frame's pose in the keyframe and the previous motion (constant velocity).
+
+Inverse compositional alignment differentiates only the reference, so the keyframe's gradients, points and
+Jacobians are computed once and reused by every frame aligned against it (frames that never become keyframes
+get no gradients at all). A frame becomes the next keyframe after ``keyframe_max_frames`` frames, once it is
+0.1 m / 5 degrees from the keyframe, or when its fitness drops; ``keyframe_max_frames = 1`` is frame-to-frame
+alignment. Poses chain over keyframes: ``T_c0_ck = T_c0_kf · T_ck_kf^-1``, and the per-frame motion is
+``T_ckm1_ck = T_ckm1_kf · T_ck_kf^-1`` (the difference of consecutive chained poses).
 
 Everything is vectorised: warped samples come from one ``cv2.remap`` per iteration on a 1×N map of a
 4-channel texture (intensity, depth, depth validity, inside), so no sample mixes invalid depth.
@@ -59,6 +66,13 @@ class OdometryConfig:
     coarse_convergence_px: float = 0.1               # update (in the level's pixels) below which a coarse level stops
     affine_brightness: bool = False                  # estimate a brightness gain and bias per pair (exposure)
     brightness_prior_sigma: float = 0.1              # std of the gain (about 1) and bias (about 0, intensity 0..1)
+    # keyframes: frames are aligned against the last keyframe, whose gradients, points and Jacobians are computed
+    # once; the current frame becomes the next keyframe after this many frames (1: frame-to-frame alignment),
+    # once it has moved this far from the keyframe, or when its fitness drops below keyframe_min_fitness
+    keyframe_max_frames: int = 8
+    keyframe_max_translation_m: float = 0.1
+    keyframe_max_rotation_rad: float = 0.087         # 5 degrees
+    keyframe_min_fitness: float = 0.7
 
 
 @dataclass(frozen=True)
@@ -139,11 +153,10 @@ Image = NDArray[Any]   # float32 images (OpenCV's stubs type them loosely)
 
 
 @dataclass
-class _Level:
-    K: CameraIntrinsics
-    tex: Image        # H×W×4, sampled at the warped points: I, Z, valid (eroded depth validity), 1 (inside)
-    gray: Image       # intensity in 0..1
-    depth: Image      # metres, 0 = invalid
+class _Gradients:
+    """A reference level's gradients and selection score: computed only for frames that become a reference
+    (a keyframe), since inverse-compositional alignment never differentiates the current frame."""
+
     gx: Image         # dI/du, dI/dv (Sobel)
     gy: Image
     zx: Image         # dZ/du, dZ/dv (Sobel; only meaningful where tex's valid channel is 1)
@@ -152,11 +165,33 @@ class _Level:
 
 
 @dataclass
+class _Level:
+    K: CameraIntrinsics
+    tex: Image        # H×W×4, sampled at the warped points: I, Z, valid (eroded depth validity), 1 (inside)
+    gray: Image       # intensity in 0..1
+    depth: Image      # metres, 0 = invalid
+    grad: _Gradients | None = None   # see gradients(): filled when the level is first used as a reference
+
+    def gradients(self) -> _Gradients:
+        if self.grad is None:
+            self.grad = _compute_gradients(self.gray, self.depth)
+        return self.grad
+
+
+@dataclass
 class PreparedFrame:
-    """A frame's pyramid (finest first) with gradients and sampling textures, computed once; the frame is the
-    current frame of one pair and the reference of the next."""
+    """A frame's pyramid (finest first) with its sampling textures, computed once. As a reference (keyframe)
+    it also holds its gradients and its reference points with their Jacobians per level, computed on first
+    use and reused by every frame aligned against it."""
 
     levels: list[_Level] = field(default_factory=list)
+    references: dict[tuple[int, int, float, bool], _Reference] = field(default_factory=dict)
+
+    def reference(self, level: int, max_points: int, gradient_fraction: float, affine: bool) -> _Reference:
+        key = (level, max_points, gradient_fraction, affine)
+        if key not in self.references:
+            self.references[key] = _reference(self.levels[level], max_points, gradient_fraction, affine)
+        return self.references[key]
 
 
 def _gray01(rgb: NDArray[np.uint8]) -> Image:
@@ -200,9 +235,25 @@ def _inner(shape: tuple[int, ...]) -> NDArray[np.uint8]:
     return _BORDER[shape]
 
 
+def _compute_gradients(gray: Image, depth: Image) -> _Gradients:
+    gx = cv2.Sobel(gray, cv2.CV_32F, 1, 0, ksize=3, scale=0.125)
+    gy = cv2.Sobel(gray, cv2.CV_32F, 0, 1, ksize=3, scale=0.125)
+    # meaningless where the 3×3 neighbourhood has invalid depth: such points get no depth term (tex's valid)
+    zx = cv2.Sobel(depth, cv2.CV_32F, 1, 0, ksize=3, scale=0.125)
+    zy = cv2.Sobel(depth, cv2.CV_32F, 0, 1, ksize=3, scale=0.125)
+    # selection score: |dI/du| + |dI/dv| (plus a floor, so textureless pixels stay selectable for the
+    # depth term) where the depth is valid, inside a 2-pixel border
+    sel = np.abs(gx)
+    sel += np.abs(gy)
+    sel += np.float32(1e-6)
+    sel *= cv2.bitwise_and((depth > 0).view(np.uint8), _inner(gray.shape))
+    return _Gradients(gx=gx, gy=gy, zx=zx, zy=zy, select=sel)
+
+
 def prepare_frame(rgb: NDArray[np.uint8], depth_m: NDArray[np.float32], K: CameraIntrinsics,
                   config: OdometryConfig) -> PreparedFrame:
-    """Pyramids, gradients and the sampling texture of one frame (finest level first)."""
+    """Pyramids and the sampling texture of one frame (finest level first); gradients come later, and only
+    if the frame becomes a reference."""
     gray = _gray01(rgb)
     d = np.asarray(depth_m, dtype=np.float32)
     # NaN and inf fall outside the range too: they and out-of-range depths become 0 (invalid)
@@ -225,21 +276,9 @@ def prepare_frame(rgb: NDArray[np.uint8], depth_m: NDArray[np.float32], K: Camer
             if depth.shape != gray.shape:
                 depth = cv2.resize(depth, (gray.shape[1], gray.shape[0]), interpolation=cv2.INTER_NEAREST)
             K = K.scaled(0.5)
-        gx = cv2.Sobel(gray, cv2.CV_32F, 1, 0, ksize=3, scale=0.125)
-        gy = cv2.Sobel(gray, cv2.CV_32F, 0, 1, ksize=3, scale=0.125)
-        valid = (depth > 0).view(np.uint8)
-        valid_e = cv2.erode(valid, _KERNEL3).astype(np.float32)
-        # meaningless where the 3×3 neighbourhood has invalid depth: such points get no depth term (valid_e)
-        zx = cv2.Sobel(depth, cv2.CV_32F, 1, 0, ksize=3, scale=0.125)
-        zy = cv2.Sobel(depth, cv2.CV_32F, 0, 1, ksize=3, scale=0.125)
-        # selection score: |dI/du| + |dI/dv| (plus a floor, so textureless pixels stay selectable for the
-        # depth term) where the depth is valid, inside a 2-pixel border
-        sel = np.abs(gx)
-        sel += np.abs(gy)
-        sel += np.float32(1e-6)
-        sel *= cv2.bitwise_and(valid, _inner(gray.shape))
+        valid_e = cv2.erode((depth > 0).view(np.uint8), _KERNEL3).astype(np.float32)
         out.levels.append(_Level(K=K, tex=cv2.merge([gray, depth, valid_e, _ones(gray.shape)]),
-                                 gray=gray, depth=depth, gx=gx, gy=gy, zx=zx, zy=zy, select=sel))
+                                 gray=gray, depth=depth))
     return out
 
 
@@ -250,7 +289,7 @@ def _select_pixels(level: _Level, max_points: int, gradient_fraction: float) -> 
     ``gradient_fraction * max_points`` pixels above it (no sort of every pixel); the spread is a regular
     grid over the remaining usable pixels (for the depth term, which needs no texture).
     """
-    sel = level.select
+    sel = level.gradients().select
     h, w = sel.shape
     n_grad = int(max_points * gradient_fraction)
     step = 4
@@ -316,6 +355,7 @@ def _reference(level: _Level, max_points: int, gradient_fraction: float, affine:
     w = level.depth.shape[1]
     v, u = np.divmod(idx, w)
     K = level.K
+    grad = level.gradients()
     z = level.depth.ravel()[idx]
     x = (u.astype(np.float32) - np.float32(K.cx)) * np.float32(1.0 / K.fx) * z
     y = (v.astype(np.float32) - np.float32(K.cy)) * np.float32(1.0 / K.fy) * z
@@ -325,8 +365,8 @@ def _reference(level: _Level, max_points: int, gradient_fraction: float, affine:
     J = np.zeros((max(nj + 1, 8), 2 * n), np.float32)
     fx_z = np.float32(K.fx) / z
     fy_z = np.float32(K.fy) / z
-    _jacobian_rows(J[:, :n], x, y, z, level.gx.ravel()[idx] * fx_z, level.gy.ravel()[idx] * fy_z, 0.0)
-    zx, zy = level.zx.ravel()[idx], level.zy.ravel()[idx]
+    _jacobian_rows(J[:, :n], x, y, z, grad.gx.ravel()[idx] * fx_z, grad.gy.ravel()[idx] * fy_z, 0.0)
+    zx, zy = grad.zx.ravel()[idx], grad.zy.ravel()[idx]
     _jacobian_rows(J[:, n:], x, y, z, zx * fx_z, zy * fy_z, -1.0)
     # structured-light depth noise grows with Z^2 (Khoshelham & Elberink 2012): each depth residual is scaled
     # by (Z_med / Z)^2, so near and far points weigh by their information while the robust scale (and its
@@ -366,17 +406,31 @@ def _sample(tex: Image, u: NDArray[np.float32], v: NDArray[np.float32]) -> Image
 
 
 class RgbdOdometry:
-    """Frame-to-frame direct RGB-D odometry producing the chained camera pose ``T_c0_ck``."""
+    """Keyframe-based direct RGB-D odometry producing the chained camera pose ``T_c0_ck``.
+
+    Each frame is aligned against the current keyframe (``T_ck_kf``), started from the previous frame's pose
+    relative to it composed with the constant-velocity guess, and the gyro's rotation since the previous
+    frame composed with that pose as the prior. Poses chain over keyframes: ``T_c0_ck = T_c0_kf · T_kf_ck``,
+    and the motion since the previous frame is ``T_ckm1_ck = T_ckm1_kf · T_kf_ck``.
+    """
 
     def __init__(self, config: OdometryConfig | None = None) -> None:
         self.config = config or OdometryConfig()
-        self._ref: PreparedFrame | None = None
+        self._kf: PreparedFrame | None = None    # the keyframe: reference of every alignment
+        self._prev: PreparedFrame | None = None  # the previous frame (fallback reference if the keyframe fails)
+        self._T_c0_kf = np.eye(4)
+        self._T_kf_ckm1 = np.eye(4)              # previous frame in the keyframe
+        self._kf_frames = 0                      # frames aligned against the keyframe so far
         self._T_c0_ck = np.eye(4)
         self._stamp_s = 0.0
         self._last_motion: tuple[Mat4, float] | None = None   # last good T_ck_ckm1 and its frame interval
+        self.keyframes = 0                       # keyframes taken since the start (statistics)
 
     def reset(self) -> None:
-        self._ref = None
+        self._kf = self._prev = None
+        self._T_c0_kf = np.eye(4)
+        self._T_kf_ckm1 = np.eye(4)
+        self._kf_frames = 0
         self._T_c0_ck = np.eye(4)
         self._last_motion = None
 
@@ -388,28 +442,62 @@ class RgbdOdometry:
                 R_ckm1_ck_prior: NDArray[np.float64] | None = None) -> OdometryResult:
         """Add a frame; ``R_ckm1_ck_prior`` is the camera rotation since the last frame from the gyro.
 
-        A failed alignment keeps the last pose (and drops the reference to this frame) and reports
-        ``ok=False``; the first frame defines C0.
+        If the alignment against the keyframe fails, the previous frame is tried as the reference (when it is
+        not the keyframe). A failed alignment keeps the last pose (turned by the gyro's rotation, if any) and
+        reports ``ok=False``; the frame becomes the keyframe. The first frame defines C0.
         """
-        cur = prepare_frame(rgb, depth_m, K, self.config)
-        if self._ref is None:
-            self._ref = cur
+        cfg = self.config
+        cur = prepare_frame(rgb, depth_m, K, cfg)
+        if self._kf is None:
+            self._set_keyframe(cur)
+            self._prev = cur
             self._stamp_s = stamp_s
             return OdometryResult(stamp_s, self._T_c0_ck.copy(), np.eye(4), True, 1.0)
         dt_s = stamp_s - self._stamp_s
-        pair = self.align(self._ref, cur, R_ckm1_ck_prior, self._predict(dt_s))
-        self._ref = cur
-        self._stamp_s = stamp_s
+        T_pred = self._predict(dt_s)                  # T_ck_ckm1 guess
+        T_ckm1_kf = inv_T(self._T_kf_ckm1)
+        R_kf_ck_prior = None if R_ckm1_ck_prior is None else self._T_kf_ckm1[:3, :3] @ R_ckm1_ck_prior
+        pair = self.align(self._kf, cur, R_kf_ck_prior, T_ckm1_kf if T_pred is None else T_pred @ T_ckm1_kf,
+                          self._T_kf_ckm1)
+        T_kf_ck: Mat4 | None = None
         if pair.ok:
+            T_kf_ck = inv_T(pair.T_ck_ckm1)
+            T_ckm1_ck = T_ckm1_kf @ T_kf_ck
+        elif self._prev is not None and self._prev is not self._kf:
+            pair = self.align(self._prev, cur, R_ckm1_ck_prior, T_pred)
             T_ckm1_ck = inv_T(pair.T_ck_ckm1)
-            self._last_motion = (pair.T_ck_ckm1, dt_s)
-        else:
-            self._last_motion = None
+        if not pair.ok:
             T_ckm1_ck = np.eye(4)
             if R_ckm1_ck_prior is not None:
                 T_ckm1_ck[:3, :3] = R_ckm1_ck_prior
-        self._T_c0_ck = self._T_c0_ck @ T_ckm1_ck
+        self._last_motion = (inv_T(T_ckm1_ck), dt_s) if pair.ok else None
+        self._prev = cur
+        self._stamp_s = stamp_s
+        self._kf_frames += 1
+        if T_kf_ck is not None:
+            self._T_c0_ck = self._T_c0_kf @ T_kf_ck
+            self._T_kf_ckm1 = T_kf_ck
+            if self._keyframe_is_due(T_kf_ck, pair.fitness):
+                self._set_keyframe(cur)
+        else:   # the keyframe failed: this frame, whatever its own pose's quality, becomes the next one
+            self._T_c0_ck = self._T_c0_ck @ T_ckm1_ck
+            self._set_keyframe(cur)
         return OdometryResult(stamp_s, self._T_c0_ck.copy(), T_ckm1_ck, pair.ok, pair.fitness)
+
+    def _set_keyframe(self, frame: PreparedFrame) -> None:
+        self._kf = frame
+        self._T_c0_kf = self._T_c0_ck.copy()
+        self._T_kf_ckm1 = np.eye(4)
+        self._kf_frames = 0
+        self.keyframes += 1
+
+    def _keyframe_is_due(self, T_kf_ck: Mat4, fitness: float) -> bool:
+        """Whether the current frame should replace the keyframe: enough frames, motion (the overlap shrinks
+        and the warp's linearisation about the keyframe degrades) or a fitness drop (occlusions, exposure)."""
+        cfg = self.config
+        return (self._kf_frames >= cfg.keyframe_max_frames or fitness < cfg.keyframe_min_fitness
+                or float(np.linalg.norm(T_kf_ck[:3, 3])) > cfg.keyframe_max_translation_m
+                or float(np.linalg.norm(so3_log(T_kf_ck[:3, :3]))) > cfg.keyframe_max_rotation_rad)
 
     def _predict(self, dt_s: float) -> Mat4 | None:
         """Constant-velocity guess of ``T_ck_ckm1`` (DVO's motion prior as the starting point): the last pair's
@@ -426,8 +514,12 @@ class RgbdOdometry:
         return T
 
     def align(self, ref: PreparedFrame, cur: PreparedFrame, R_ckm1_ck_prior: NDArray[np.float64] | None = None,
-              T_init: Mat4 | None = None) -> PairResult:
-        """Estimate ``T_ck_ckm1`` between two prepared frames (coarse to fine Gauss-Newton).
+              T_init: Mat4 | None = None, T_ref_ckm1: Mat4 | None = None) -> PairResult:
+        """Estimate ``T_ck_ckm1`` between two prepared frames (coarse to fine Gauss-Newton); the reference
+        ``ref`` plays frame k-1 (it is the keyframe in :meth:`process`, the names are those of a pair).
+
+        ``T_ref_ckm1`` (the previous frame in a keyframe reference) makes the per-frame sanity bounds apply to
+        the motion since the previous frame, ``T_ck_ref · T_ref_ckm1``, instead of the motion from ``ref``.
 
         Inverse compositional (Baker & Matthews 2004): the Jacobians are those of the reference frame's
         points and gradients, fixed per level, and an increment ``xi`` updates ``T <- T exp(xi)^-1``. The
@@ -453,7 +545,7 @@ class RgbdOdometry:
             iters = cfg.iterations[min(k, len(cfg.iterations) - 1)]
             max_pts = cfg.max_points[min(k, len(cfg.max_points) - 1)]
             lc = cur.levels[li]
-            rp = _reference(ref.levels[li], max_pts, cfg.gradient_fraction, cfg.affine_brightness)
+            rp = ref.reference(li, max_pts, cfg.gradient_fraction, cfg.affine_brightness)
             N = n_points = rp.I.shape[0]
             if N < cfg.min_points:
                 if li == 0:
@@ -584,8 +676,9 @@ class RgbdOdometry:
                     rmse_i = math.sqrt(float(np.dot(r2[:N], inl)) / n_inl) if n_inl else math.nan
                 else:
                     fitness = 0.0
+        T_step = T if T_ref_ckm1 is None else T @ T_ref_ckm1   # the motion since the previous frame
         ok = (fitness >= cfg.min_fitness and n_points >= cfg.min_points
-              and float(np.linalg.norm(T[:3, 3])) <= cfg.max_translation_m
-              and float(np.linalg.norm(so3_log(T[:3, :3]))) <= cfg.max_rotation_rad
-              and bool(np.all(np.isfinite(T))))
+              and bool(np.all(np.isfinite(T)))
+              and float(np.linalg.norm(T_step[:3, 3])) <= cfg.max_translation_m
+              and float(np.linalg.norm(so3_log(T_step[:3, :3]))) <= cfg.max_rotation_rad)
         return PairResult(T, ok, fitness, rmse_i, n_points, total_iters, gain, bias)

@@ -117,9 +117,7 @@ def test_reference_jacobian_matches_finite_differences() -> None:
     rgb, depth = render(pose(R_from_euler(0.05, -0.1, 0.2), [0.1, 0.2, -0.1]), K)
     level = prepare_frame(rgb, depth, K, cfg).levels[0]
     gray_tex = cv2.GaussianBlur(level.gray, (0, 0), 0.7)   # smooth enough for a finite difference
-    level_smooth = dataclasses.replace(level, gray=gray_tex,
-                                       gx=cv2.Sobel(gray_tex, cv2.CV_32F, 1, 0, ksize=3, scale=0.125),
-                                       gy=cv2.Sobel(gray_tex, cv2.CV_32F, 0, 1, ksize=3, scale=0.125))
+    level_smooth = dataclasses.replace(level, gray=gray_tex, grad=None)   # gradients of the smoothed image
     rp = _reference(level_smooth, 2000, 0.75, affine=False)
     n = rp.I.shape[0]
     P = rp.P[:3].astype(np.float64)
@@ -197,6 +195,94 @@ def test_chained_poses_on_a_synthetic_sequence() -> None:
     assert rpe.trans_rmse_m_s < 0.02            # < 0.7 mm per frame at 30 Hz
     assert rpe.rot_rmse_deg_s < 0.5
     assert metrics.ate(est, gt).rmse_m < 2e-3
+
+
+def _flight_frames(n: int) -> list[np.ndarray]:
+    """Camera poses T_w_ck of a smooth synthetic flight at 30 Hz: ~1.2 deg and ~9 mm per frame."""
+    return [pose(R_from_euler(0.05 * math.sin(3 * k / 30), 0.2 * k / 30, 0.6 * k / 30),
+                 [0.25 * k / 30, -0.1 * k / 30, 0.05 * math.sin(4 * k / 30)]) for k in range(n)]
+
+
+def test_keyframe_pose_chain_over_several_keyframes_against_ground_truth() -> None:
+    """Frames aligned against keyframes (a new one every 4 frames or 2.9 degrees): the chained pose T_c0_ck
+    and the per-frame motion T_ckm1_ck both match the ground truth, and T_ckm1_ck is exactly the chained
+    poses' difference (velocity is differentiated from it)."""
+    cfg = OdometryConfig(keyframe_max_frames=4, keyframe_max_rotation_rad=0.05)
+    odo = RgbdOdometry(cfg)
+    T_w = _flight_frames(16)
+    results = []
+    for k, T in enumerate(T_w):
+        results.append(odo.process(k / 30, *render(T, K), K))
+        assert results[-1].ok, k
+    assert 5 <= odo.keyframes <= 8   # the first frame, then a switch every 2-4 frames (rotation ~2.4 deg/frame)
+    for k in range(1, len(T_w)):
+        E = inv_T(inv_T(T_w[0]) @ T_w[k]) @ results[k].T_c0_ck
+        assert np.linalg.norm(E[:3, 3]) < 1e-3 and math.degrees(np.linalg.norm(so3_log(E[:3, :3]))) < 0.02, k
+        step_true = inv_T(T_w[k - 1]) @ T_w[k]
+        E = inv_T(step_true) @ results[k].T_ckm1_ck
+        assert np.linalg.norm(E[:3, 3]) < 3e-4 and math.degrees(np.linalg.norm(so3_log(E[:3, :3]))) < 0.01, k
+        chained = inv_T(results[k - 1].T_c0_ck) @ results[k].T_c0_ck
+        assert np.allclose(chained, results[k].T_ckm1_ck, atol=1e-9), k
+    # frame-to-frame (keyframe_max_frames 1) agrees with the keyframe chain to the errors above
+    f2f = RgbdOdometry(dataclasses.replace(cfg, keyframe_max_frames=1))
+    for k, T in enumerate(T_w):
+        last = f2f.process(k / 30, *render(T, K), K)
+    assert f2f.keyframes == len(T_w)
+    assert np.linalg.norm(last.T_c0_ck[:3, 3] - results[-1].T_c0_ck[:3, 3]) < 2e-3
+
+
+@pytest.mark.parametrize("change,expected", [
+    ({"keyframe_max_frames": 3}, [0, 3, 6, 9]),                                # every 3 frames
+    ({"keyframe_max_rotation_rad": 0.035}, [0, 2, 4, 6, 8]),                   # 2.0 deg: every 2nd frame
+    ({"keyframe_max_translation_m": 0.015}, [0, 2, 4, 6, 8]),                  # 9.3 mm a frame
+    ({"keyframe_max_frames": 1}, list(range(10))),                             # frame-to-frame
+])
+def test_keyframe_switching(change: dict[str, float], expected: list[int]) -> None:
+    """Each criterion alone (the others out of reach) makes the frame that crosses it the next keyframe."""
+    base = dict(keyframe_max_frames=100, keyframe_max_rotation_rad=1.0, keyframe_max_translation_m=1.0)
+    odo = RgbdOdometry(OdometryConfig(**{**base, **change}))
+    taken = []
+    for k, T in enumerate(_flight_frames(10)):
+        before = odo.keyframes
+        assert odo.process(k / 30, *render(T, K), K).ok
+        if odo.keyframes > before:
+            taken.append(k)
+    assert taken[:-1] == expected[:len(taken) - 1] and taken == expected[:len(taken)]
+    assert len(taken) == len(expected) or taken[-1] == 9
+
+
+def test_keyframe_fitness_drop_switches_keyframe() -> None:
+    """A frame whose fitness against the keyframe drops below keyframe_min_fitness (a fifth of the image newly
+    occluded) but is still a good alignment becomes the keyframe; the frames around it do not."""
+    T_w = _flight_frames(4)
+    odo = RgbdOdometry(OdometryConfig(keyframe_min_fitness=0.9))
+    fitness = []
+    for k, T in enumerate(T_w):
+        rgb, depth = render(T, K)
+        if k == 2:
+            rgb[:, :60] = 128   # the occluder, a flat grey card (the depth still sees the room)
+        res = odo.process(k / 30, rgb, depth, K)
+        assert res.ok, k
+        fitness.append(res.fitness)
+        E = inv_T(inv_T(T_w[0]) @ T) @ res.T_c0_ck
+        assert np.linalg.norm(E[:3, 3]) < 1e-3, k
+        assert odo.keyframes == (1 if k < 2 else 2), k
+    assert fitness[2] < odo.config.keyframe_min_fitness <= min(fitness[1], fitness[3])
+
+
+def test_keyframe_failure_falls_back_to_the_previous_frame() -> None:
+    """Yaw 11.5 degrees a frame with the gyro prior, keyframe thresholds out of reach: the fifth frame has too
+    little overlap with the keyframe (46 degrees away) and is aligned to the previous frame instead; it then
+    becomes the keyframe. The chained pose stays right."""
+    T_w = [pose(R_from_euler(0.0, 0.2 * k, 0.0), [0.01 * k, 0.0, 0.0]) for k in range(6)]
+    odo = RgbdOdometry(OdometryConfig(keyframe_min_fitness=0.0, keyframe_max_rotation_rad=3.0))
+    for k, T in enumerate(T_w):
+        prior = None if k == 0 else (inv_T(T_w[k - 1]) @ T)[:3, :3]
+        res = odo.process(k / 30, *render(T, K), K, prior)
+        assert res.ok, k
+        assert odo.keyframes == (1 if k < 4 else 2), k
+        E = inv_T(inv_T(T_w[0]) @ T) @ res.T_c0_ck
+        assert np.linalg.norm(E[:3, 3]) < 1e-3 and math.degrees(np.linalg.norm(so3_log(E[:3, :3]))) < 0.02, k
 
 
 def test_tum_frames_against_ground_truth(tum_head: Path) -> None:
