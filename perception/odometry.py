@@ -45,7 +45,8 @@ class OdometryConfig:
     """Parameters of the direct RGB-D odometry (defaults tuned on TUM fr1 and the SITL, QVGA)."""
 
     levels: int = 3                                  # pyramid levels (finest = input resolution)
-    iterations: tuple[int, ...] = (10, 6, 3)         # Gauss-Newton iterations per level, coarse -> fine
+    iterations: tuple[int, ...] = (10, 6, 2)         # Gauss-Newton iterations per level, coarse -> fine (the
+                                                     # finest starts close: from the keyframe pose and the gyro)
     max_points: tuple[int, ...] = (600, 1200, 4000)  # selected reference pixels per level, coarse -> fine
     working_width_px: int = 320                      # frames wider than this are downscaled first (QVGA)
     min_depth_m: float = 0.2
@@ -107,7 +108,7 @@ _INLIER_INTENSITY = 0.06   # photometric error (0..1) below which a finest-level
 
 def se3_exp(xi: NDArray[np.float64]) -> Mat4:
     """Exponential map of a twist (v, omega) to a 4x4 transform (scalar math: called every iteration)."""
-    v0, v1, v2, w0, w1, w2 = (float(c) for c in xi)
+    v0, v1, v2, w0, w1, w2 = np.asarray(xi, dtype=float).tolist()
     t2 = w0 * w0 + w1 * w1 + w2 * w2
     if t2 < 1e-18:
         a, b, c = 1.0, 0.5, 1.0 / 6.0
