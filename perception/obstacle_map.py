@@ -41,7 +41,8 @@ class ObstacleMapConfig:
     max_particles: int = 20000
     radius_m: float = 5.0             # particles farther than this are dropped
     max_age_s: float = 8.0            # ... and older than this
-    velocity_noise_m_s: float = 0.05  # std of n_v per axis (eq. 14)
+    velocity_noise_m_s: float = 0.1   # std of n_v per axis (eq. 14): white per frame, so that the spread after 1 s
+                                      # matches the drift of a 0.02 m/s velocity error that persists that long
     yaw_rate_noise_rad_s: float = 0.02  # std of n_psi (eq. 14)
     carve_margin_m: float = 0.15      # a particle this much in front of the measured surface is free space
     sectors: int = 72                 # OBSTACLE_DISTANCE-style summary
