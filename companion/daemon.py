@@ -48,6 +48,7 @@ from companion.reference import (
     ReferenceOutput,
     ReferenceParams,
     camera_yaw_rad,
+    nearest_obstacle,
     operator_from_manual_control,
     reference_velocity,
 )
@@ -180,6 +181,7 @@ class Companion:
         self._imu_stamp_s: float | None = None
         self._imu_wall_s: float | None = None
         self._gyro_q = np.zeros(3)
+        self._nearest: tuple[NDArray[np.float64], float] | None = None   # nearest obstacle (vector in H, m)
         self._imu_wait_misses = 0
         self._next_feedback_s = 0.0
         self._next_feedback_wall_s = 0.0
@@ -489,6 +491,7 @@ class Companion:
             self.last_output = out
             self.stats.perception_s.append(float(out.processing_time_s))
         points = None if out is None else out.obstacle_points_h_m
+        self._nearest = nearest_obstacle(points, self.ref_params)   # for TELEOP_FEEDBACK at 50 Hz
         sectors, _, offset_deg = msgs.sector_arrays(None if out is None else out.sectors)
         block = out is None or not self.cfg.obstacles.allow_unknown_when_fresh
         ref = reference_velocity(self.op, self._R_qc, self._scan_state(stamp), points, self.ref_params,
@@ -556,12 +559,8 @@ class Companion:
         scan = self._scan_state(stamp_s)
         yaw_cmd = (0.0 if ref is None else ref.operator_yaw_rate_rad_s) + scan.yaw_rate_rad_s  # eq. (8) held
         alpha = camera_yaw_rad(self._R_qc) + scan.yaw_offset_rad  # eq. (6) at this instant
-        nearest = None if out is None else out.nearest_obstacle_h_m
-        if nearest is not None and np.all(np.isfinite(nearest)):
-            obst = np.asarray(nearest, dtype=float)
-            dist = float(np.linalg.norm(obst))
-        else:
-            obst, dist = zero, -1.0
+        nearest = self._nearest
+        obst, dist = nearest if nearest is not None else (zero, -1.0)
         fresh = self.last_frame_wall_s is not None and \
             self.clock() - self.last_frame_wall_s <= self.cfg.timing.camera_timeout_s
         flags = msgs.feedback_flags(scan.enabled, self.odometry_ok, self.modes.gcs_ok, fresh)

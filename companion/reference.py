@@ -254,6 +254,31 @@ def remove_toward_close_obstacles(v_h_m_s: NDArray[np.float64], points_h_m: Arra
     return limit_speed_toward_obstacles(v_h_m_s, points_h_m, safe_distance_m, math.inf, params, height_m)
 
 
+def nearest_obstacle(points_h_m: ArrayLike | None, params: ReferenceParams) -> tuple[NDArray[np.float64], float] | None:
+    """The nearest map point as the avoidance sees it: with ``horizontal_only``, a point within the height band
+    counts by its horizontal distance (and is reported projected to z = 0) — the band stands for obstacles
+    that extend vertically through the vehicle's height, which the camera, looking down, samples below it;
+    other points (the floor, say) count by their 3D distance. None if there are no finite points."""
+    if points_h_m is None:
+        return None
+    p = np.asarray(points_h_m, dtype=float).reshape(-1, 3)
+    if not np.isfinite(p).all():
+        p = p[np.isfinite(p).all(axis=1)]
+    if p.shape[0] == 0:
+        return None
+    x, y, z = p[:, 0], p[:, 1], p[:, 2]
+    d2 = x * x + y * y
+    if params.horizontal_only:
+        d2 = np.where(np.abs(z) <= params.vertical_band_m, d2, d2 + z * z)
+    else:
+        d2 = d2 + z * z
+    i = int(np.argmin(d2))
+    v = p[i].copy()
+    if params.horizontal_only and abs(v[2]) <= params.vertical_band_m:
+        v[2] = 0.0
+    return v, math.sqrt(float(d2[i]))
+
+
 def sector_index(angle_rad: float, n_sectors: int, offset_rad: float = 0.0) -> int:
     """Sector of a direction in H (azimuth from +x toward +y); sector i is centred on offset + i 2 pi / n."""
     width = 2.0 * math.pi / n_sectors

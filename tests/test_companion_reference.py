@@ -22,6 +22,7 @@ from companion.reference import (
     ReferenceParams,
     camera_yaw_rad,
     limit_speed_toward_obstacles,
+    nearest_obstacle,
     operator_from_manual_control,
     reference_velocity,
     remove_toward_close_obstacles,
@@ -336,3 +337,18 @@ def test_floor_seen_ahead_by_a_low_vehicle_is_not_an_obstacle() -> None:
     assert repulsion_velocity(box, params, height_m=0.5)[0] < 0
     out = reference_velocity(OperatorInput(), R_QC_FORWARD, NO_SCAN, floor_ahead, params, height_m=0.5)
     assert out.v_ref_h_m_s == pytest.approx([0, 0, 0])
+
+
+def test_nearest_obstacle_counts_band_points_horizontally_and_others_in_3d() -> None:
+    params = ReferenceParams(vertical_band_m=0.3)
+    # a column seen 0.2 m below the vehicle at 0.9 m horizontally, and the floor 0.6 m below, 0.5 m ahead
+    column, floor = [0.9, 0.0, 0.2], [0.5, 0.0, 0.6]
+    got = nearest_obstacle([floor, column], params)
+    assert got is not None
+    v, d = got
+    assert d == pytest.approx(math.hypot(0.5, 0.6)) and v == pytest.approx(floor)   # floor: 3D, 0.78 < 0.9
+    v, d = nearest_obstacle([column, [2.0, 0.0, 0.6]], params)  # type: ignore[misc]
+    assert d == pytest.approx(0.9) and v == pytest.approx([0.9, 0.0, 0.0])     # the column's own distance
+    assert nearest_obstacle(None, params) is None and nearest_obstacle(np.full((2, 3), np.nan), params) is None
+    v, d = nearest_obstacle([column], dataclasses.replace(params, horizontal_only=False))  # type: ignore[misc]
+    assert d == pytest.approx(math.hypot(0.9, 0.2)) and v == pytest.approx(column)
