@@ -45,6 +45,8 @@ class ObstacleMapConfig:
                                       # matches the drift of a 0.02 m/s velocity error that persists that long
     yaw_rate_noise_rad_s: float = 0.02  # std of n_psi (eq. 14)
     carve_margin_m: float = 0.15      # a particle this much in front of the measured surface is free space
+    measurement_noise_per_m: float = 0.02  # std of a measured point's position per metre of distance (depth
+                                           # noise and ~1 deg of attitude error): the copies are drawn from it
     sectors: int = 72                 # OBSTACLE_DISTANCE-style summary
     z_band_m: float = 1.0             # particles within this height of the vehicle count for the summary
     min_distance_m: float = 0.3
@@ -160,14 +162,18 @@ class ObstacleMap:
         else:
             self._set_particles(np.compress(keep, p, axis=1), np.compress(keep, ages))
 
-    def measure(self, stamp_s: float, obs: SectorObservation) -> None:
-        """Measurement step: carve free space, overwrite the measured cells, record observed sectors."""
+    def measure(self, stamp_s: float, obs: SectorObservation, rng: np.random.Generator | None = None) -> None:
+        """Measurement step: carve free space, overwrite the measured cells, record observed sectors.
+
+        With ``rng`` the ``copies`` of a measured point are drawn around it with the measurement noise
+        (``measurement_noise_per_m`` x its distance), as a particle filter samples its measurement model;
+        the nearest of them then errs on the near side, the safe one. Without, the copies sit on the point."""
         self._last_stamp = stamp_s
         if len(self) or obs.points_h_m.shape[0]:
-            self._measure_points(obs)
+            self._measure_points(obs, rng)
         self._mark_observed(stamp_s, obs)
 
-    def _measure_points(self, obs: SectorObservation) -> None:
+    def _measure_points(self, obs: SectorObservation, rng: np.random.Generator | None = None) -> None:
         cfg = self.config
         n, k = len(self), obs.points_h_m.shape[0]
         # the particles and the measured points side by side: each vectorised step runs once for both
@@ -200,7 +206,14 @@ class ObstacleMap:
         # the survivors, then `copies` new particles at each measured point
         idx = np.concatenate([(~remove).nonzero()[0], np.repeat(np.arange(n, n + k), cfg.copies)])
         ages = np.concatenate([self.ages_s, np.zeros(k)]) if k else self.ages_s
-        self._set_particles(p[:, idx], ages[idx], az[idx], horiz[idx])
+        if k and rng is not None and cfg.measurement_noise_per_m > 0.0:
+            new = p[:, idx]     # a copy: the new particles are its last k * copies columns
+            fresh = new[:, new.shape[1] - k * cfg.copies:]
+            sigma = cfg.measurement_noise_per_m * np.sqrt(np.einsum("ij,ij->j", fresh, fresh))
+            fresh += rng.standard_normal(fresh.shape) * sigma
+            self._set_particles(new, ages[idx])
+        else:
+            self._set_particles(p[:, idx], ages[idx], az[idx], horiz[idx])
         if len(self) > cfg.max_particles:  # oldest go first
             order = np.argsort(self.ages_s, kind="stable")[: cfg.max_particles]
             self._set_particles(self._p[:, order], self.ages_s[order])

@@ -177,7 +177,7 @@ class PerceptionPipeline:
         self._prev_v_h, self._prev_yaw_rate = v_h, yaw_rate
         if frame.depth_m is not None:
             obs = extract_obstacles(frame.depth_m, K, self.R_qc, self.p_qc_m, roll, pitch, cfg.obstacles)
-            self._map.measure(frame.stamp_s, obs)
+            self._map.measure(frame.stamp_s, obs, self._rng)
             points_c = obs.points_c_m
         else:
             points_c = np.zeros((0, 3))

@@ -259,3 +259,23 @@ def test_time_update_with_yaw_noise_rotates_each_particle_by_its_own_angle(delta
     expected = np.column_stack([c * p0[:, 0] + s * p0[:, 1], -s * p0[:, 0] + c * p0[:, 1], p0[:, 2]])
     keep = np.linalg.norm(p0, axis=1) <= cfg.radius_m
     assert np.allclose(m.points_h_m, expected[keep], atol=1e-13, rtol=0.0)
+
+
+def test_measured_copies_are_drawn_from_the_measurement_noise(rng: np.random.Generator) -> None:
+    """With a generator the copies of a measured point spread by measurement_noise_per_m x distance around
+    it (a particle filter's measurement model); the nearest copy is then nearer than the point."""
+    cfg = ObstacleMapConfig(copies=200, measurement_noise_per_m=0.02)
+    m = ObstacleMap(cfg)
+    obs = extract_obstacles(_wall_depth(2.0), K, R_QC_FWD, np.zeros(3), 0.0, 0.0, ObstacleConfig(rows=1, cols=1))
+    m.measure(0.0, obs, rng)
+    p = m.points_h_m
+    centre = obs.points_h_m[0]
+    assert p.shape == (200, 3)
+    spread = np.std(p - centre, axis=0)
+    assert spread == pytest.approx([0.02 * np.linalg.norm(centre)] * 3, rel=0.2)
+    assert np.linalg.norm(np.mean(p, axis=0) - centre) < 0.01
+    assert np.min(np.linalg.norm(p, axis=1)) < np.linalg.norm(centre) - 0.05
+    # without a generator the copies sit on the point (the paper's rule, as the unit tests above use it)
+    m2 = ObstacleMap(cfg)
+    m2.measure(0.0, obs)
+    assert np.allclose(m2.points_h_m, centre)
