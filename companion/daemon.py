@@ -100,6 +100,12 @@ class Stats:
     perception_s: list[float] = field(default_factory=list)
 
 
+def _recent_median_ms(values_s: list[float], n: int = 300) -> str:
+    """Median of the last ``n`` durations, for the status line."""
+    recent = sorted(values_s[-n:])
+    return f"{recent[len(recent) // 2] * 1e3:.1f} ms" if recent else "-"
+
+
 @dataclass
 class _Vehicle:
     armed: bool = False
@@ -643,10 +649,7 @@ class Companion:
         s = self.stats
         fps = (s.frames - self._progress_frames) / PROGRESS_EVERY_S
         self._progress_frames = s.frames
-        lat = sorted(s.latencies_s[-300:])
-        p50 = f"{lat[len(lat) // 2] * 1e3:.1f} ms" if lat else "-"
-        per = sorted(s.perception_s[-300:])
-        per50 = f"{per[len(per) // 2] * 1e3:.1f} ms" if per else "-"
+        p50, per50 = _recent_median_ms(s.latencies_s), _recent_median_ms(s.perception_s)
         log.info("mode %s  camera %.1f fps  frame->setpoint p50 %s (perception %s)  odometry %s  gcs link %s  "
                  "manual %d  routed %d to GCS / %d to autopilot", self.modes.mode.name, fps, p50, per50,
                  "ok" if self.odometry_ok else "FAIL", "ok" if self.modes.gcs_ok else "lost", s.manual_controls,

@@ -133,6 +133,13 @@ def operator_velocity(op: OperatorInput, alpha_rad: float, params: ReferencePara
     return v, params.k_psi_rad_s * op.qy  # eq. (3), NED sign (see module doc)
 
 
+def _finite_rows(points_h_m: ArrayLike) -> NDArray[np.float64]:
+    """Points as N x 3 floats without the rows holding a NaN or inf (one flat check first: rows are only
+    filtered when something is wrong)."""
+    p = np.asarray(points_h_m, dtype=float).reshape(-1, 3)
+    return p if np.isfinite(p).all() else p[np.isfinite(p).all(axis=1)]
+
+
 def _points(points_h_m: ArrayLike | None, params: ReferenceParams | None = None,
             height_m: float | None = None, reach_m: float = math.inf) -> NDArray[np.float64]:
     """Finite points, minus the floor (if ``height_m`` above it is known); with ``params.horizontal_only``
@@ -142,9 +149,7 @@ def _points(points_h_m: ArrayLike | None, params: ReferenceParams | None = None,
     at camera rate on the whole map."""
     if points_h_m is None:
         return np.zeros((0, 3))
-    p = np.asarray(points_h_m, dtype=float).reshape(-1, 3)
-    if not np.isfinite(p).all():            # one flat check; rows only when something is wrong
-        p = p[np.isfinite(p).all(axis=1)]
+    p = _finite_rows(points_h_m)
     x, y, z = p[:, 0], p[:, 1], p[:, 2]
     horizontal = params is not None and params.horizontal_only
     keep = None
@@ -261,9 +266,7 @@ def nearest_obstacle(points_h_m: ArrayLike | None, params: ReferenceParams) -> t
     other points (the floor, say) count by their 3D distance. None if there are no finite points."""
     if points_h_m is None:
         return None
-    p = np.asarray(points_h_m, dtype=float).reshape(-1, 3)
-    if not np.isfinite(p).all():
-        p = p[np.isfinite(p).all(axis=1)]
+    p = _finite_rows(points_h_m)
     if p.shape[0] == 0:
         return None
     x, y, z = p[:, 0], p[:, 1], p[:, 2]

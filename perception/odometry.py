@@ -472,10 +472,6 @@ class RgbdOdometry:
         elif self._prev is not None and self._prev is not self._kf:
             pair = self.align(self._prev, cur, R_ckm1_ck_prior, T_pred)
             T_ckm1_ck = inv_T(pair.T_ck_ckm1)
-        if not pair.ok:
-            T_ckm1_ck = np.eye(4)
-            if R_ckm1_ck_prior is not None:
-                T_ckm1_ck[:3, :3] = R_ckm1_ck_prior
         if pair.ok and T_pred is not None and cfg.max_translation_jump_m > 0.0:
             # a multirotor cannot change its velocity by more than a few g: a per-frame translation far from the
             # constant-velocity one is an alignment in a wrong basin, however good its photometric fit
@@ -484,9 +480,10 @@ class RgbdOdometry:
                 self.rejected_jumps += 1
                 pair = dataclasses.replace(pair, ok=False)
                 T_kf_ck = None
-                T_ckm1_ck = np.eye(4)
-                if R_ckm1_ck_prior is not None:
-                    T_ckm1_ck[:3, :3] = R_ckm1_ck_prior
+        if not pair.ok:
+            T_ckm1_ck = np.eye(4)
+            if R_ckm1_ck_prior is not None:
+                T_ckm1_ck[:3, :3] = R_ckm1_ck_prior
         self._last_motion = (inv_T(T_ckm1_ck), dt_s) if pair.ok else None
         self._prev = cur
         self._stamp_s = stamp_s
