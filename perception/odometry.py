@@ -194,6 +194,9 @@ class PreparedFrame:
 
     levels: list[_Level] = field(default_factory=list)
     references: dict[tuple[int, int, float, bool], _Reference] = field(default_factory=dict)
+    # robust scales (s_I^2, s_Z^2) per level of the last alignment against this frame: the next frame aligned
+    # against the same reference starts from them (one fixed-point step an iteration instead of five at first)
+    scales: dict[int, tuple[float, float]] = field(default_factory=dict)
 
     def reference(self, level: int, max_points: int, gradient_fraction: float, affine: bool) -> _Reference:
         key = (level, max_points, gradient_fraction, affine)
@@ -570,7 +573,7 @@ class RgbdOdometry:
                 continue
             K = lc.K
             Kf = np.array([[K.fx, 0.0, K.cx], [0.0, K.fy, K.cy], [0.0, 0.0, 1.0]])
-            s2_i = s2_z = 0.0
+            s2_i, s2_z = ref.scales.get(li, (0.0, 0.0))
             s2_imin, s2_zmin = cfg.min_intensity_sigma**2, cfg.min_depth_sigma_m**2
             nu, nu1 = np.float32(cfg.t_dof), np.float32(cfg.t_dof + 1.0)
             # the finest level iterates to convergence_eps; a coarser level only has to land inside the next
@@ -628,8 +631,9 @@ class RgbdOdometry:
                 r *= use
                 np.multiply(r, r, out=r2)
                 # t-distribution weights with scales re-estimated by fixed-point steps (DVO): 4 from the plain
-                # mean square at a level's first iteration, then one a iteration from the previous scales (the
-                # scales converge with the motion)
+                # mean square at a level's first iteration against a new reference, then one an iteration from
+                # the previous scales (the scales converge with the motion; against a reference aligned before,
+                # from its last scales)
                 if s2_i <= 0.0:
                     s2_i = max(float(r2[:N].sum(dtype=np.float64)) / n_i, s2_imin)
                     s2_z = max(float(r2[N:].sum(dtype=np.float64)) / max(n_z, 1), s2_zmin)
@@ -684,6 +688,8 @@ class RgbdOdometry:
                                                 + math.sqrt(float(delta[:3] @ delta[:3])) / rp.z_med) \
                         < cfg.coarse_convergence_px:
                     break
+            if evaluated:
+                ref.scales[li] = (s2_i, s2_z)
             if li == 0:
                 # quality of the last evaluated iteration (the final update is below the convergence limit)
                 if evaluated:
