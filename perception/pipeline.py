@@ -26,7 +26,7 @@ from perception.odometry import OdometryConfig, RgbdOdometry
 from perception.ukf import Ukf, UkfConfig
 from perception.velocity import VelocityConfig, VelocityEstimator, body_pose_in_world
 from quadlink.camera import CameraIntrinsics, RgbdFrame
-from quadlink.frames import R_hq, euler_from_R
+from quadlink.frames import R_hq, Rz, euler_from_R
 
 log = logging.getLogger(__name__)
 
@@ -157,7 +157,11 @@ class PerceptionPipeline:
             v_h, v_h_cov = vel.v_h_m_s, vel.v_h_cov
             if self._ukf is not None:
                 if odometry_ok or not self._ukf.initialised:
-                    self._ukf.on_pose(frame.stamp_s, p_w, R_wq)
+                    # attitude measurement: heading from the odometry, roll and pitch from the attitude filter
+                    # (gravity: drift-free), as the filter chain's eq. (13); the odometry's own tilt drifts, and
+                    # the UKF would read a tilted world as an accelerometer bias
+                    R_meas = Rz(euler_from_R(R_wq)[2]) @ R_hq(roll, pitch)
+                    self._ukf.on_pose(frame.stamp_s, p_w, R_meas)
             self._last_odo = (odometry_ok, float(fitness), R_wq, p_w, np.asarray(v_h_cov, dtype=float))
         else:
             self._odometry_due -= 1

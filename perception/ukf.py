@@ -9,7 +9,9 @@ covariance (12×12), so sigma points are ``q ⊗ exp(dtheta)``.
   additive Gaussian process noise: ``x += v dT``, ``v += (R (a - a_b) + g) dT``, ``q ⊗= exp(Omega dT)``,
   ``a_b`` a random walk. IMU samples are averaged over ``predict_period_s`` (default 10 ms), so the
   filter's output rate is 100 Hz whatever the IMU rate.
-* **Update** (eq. 11) with the odometry pose of the body, linear in the state: ``z = [x, dtheta] + eta``.
+* **Update** (eq. 11) with the odometry pose of the body, linear in the state: ``z = [x, dtheta] + eta``. The
+  pipeline gives it the odometry's position and heading with the attitude filter's roll and pitch: the
+  odometry's tilt drifts from gravity's, and a tilted world would be read as an accelerometer bias.
 """
 
 from __future__ import annotations
