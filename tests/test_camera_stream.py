@@ -67,6 +67,28 @@ def test_corrupt_stream_raises_protocol_error(rng: np.random.Generator) -> None:
         RecordDecoder().feed(bytes(record))
 
 
+def test_record_with_wrong_image_sizes_is_dropped_and_the_next_decodes(rng: np.random.Generator) -> None:
+    """A record whose header says 32x24 but whose colour image is 12 bytes short: a ProtocolError, the record
+    leaves the buffer whole (nothing of it keeps the buffer locked), and the decoder reads the next one."""
+    import json
+    import struct
+
+    bad, good = make_frame(rng, 1), make_frame(rng, 2)
+    rec = encode_record(bad)
+    magic, n = struct.unpack_from("<4sI", rec)
+    header = json.loads(rec[8:8 + n])
+    header["rgb_bytes"] -= 12
+    head = json.dumps(header).encode()
+    body = rec[8 + n:]
+    broken = struct.pack("<4sI", magic, len(head)) + head + body[:header["rgb_bytes"]] + body[-header["depth_bytes"]:]
+    decoder = RecordDecoder()
+    with pytest.raises(ProtocolError, match="corrupt camera record"):
+        decoder.feed(broken + encode_record(good)[:40])
+    assert decoder.pending_bytes == 40
+    (got,) = decoder.feed(encode_record(good)[40:])
+    assert got.seq == 2 and np.array_equal(got.rgb, good.rgb)
+
+
 def test_server_client_acks_for_lockstep(rng: np.random.Generator) -> None:
     server = CameraStreamServer("127.0.0.1", 0)
     client = CameraStreamClient(f"tcp://127.0.0.1:{server.port}")
