@@ -16,7 +16,11 @@ does not fly, so the bridge runs its 100 Hz control path with the vehicle on the
 companion after 1 s; the bridge auto-disarms after COM_DISARM_PRFLT = 10 s without take-off, as PX4
 does) and all telemetry at full rate.
 
-    python benchmarks/bench_bridge.py [--seconds 20]
+``--busy`` keeps every core busy with a CPU burner per core (a loaded companion board) and runs this process,
+which plays the board and the companion, under ``SCHED_FIFO`` (the hardware does not wait for a CPU), so that
+the figure is the bridge's own tail; ``--rt-priority N`` starts the bridge with ``--rt-priority N``.
+
+    python benchmarks/bench_bridge.py [--seconds 20] [--busy] [--rt-priority 20]
 """
 
 from __future__ import annotations
@@ -44,9 +48,11 @@ from firmware_bridge import mk_messages as mk  # noqa: E402
 from firmware_bridge.mk_protocol import ADDR_FC, FrameDecoder, encode_frame  # noqa: E402
 from quadlink.frames import GRAVITY_M_S2  # noqa: E402
 from quadlink.mavlink import mavlink  # noqa: E402
+from quadlink.realtime import set_realtime_priority  # noqa: E402
 from quadlink.vehicle import VehicleConfig  # noqa: E402
 
 TARGET_P99_MS = 2.0
+BOARD_PRIORITY = 50   # --busy: the fake board and companion, above the bridge's real-time priority
 
 
 def free_port(kind: int) -> int:
@@ -58,7 +64,11 @@ def free_port(kind: int) -> int:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seconds", type=float, default=20.0)
+    parser.add_argument("--busy", action="store_true", help="a CPU burner per core during the run (loaded board)")
+    parser.add_argument("--rt-priority", type=int, default=0, help="the bridge's --rt-priority (0: normal)")
     args = parser.parse_args()
+    if args.busy and not set_realtime_priority(BOARD_PRIORITY):
+        print("  (could not run the fake board under SCHED_FIFO: its own waits count in the figure)")
 
     cmd_srv = socket.create_server(("127.0.0.1", 0))
     imu_srv = socket.create_server(("127.0.0.1", 0))
@@ -74,7 +84,8 @@ def main() -> None:
             [sys.executable, "-m", "quadlink.cli", "bridge", "--mk-cmd",
              f"socket://127.0.0.1:{cmd_srv.getsockname()[1]}", "--mk-imu",
              f"socket://127.0.0.1:{imu_srv.getsockname()[1]}", "--mavlink", f"udpout:127.0.0.1:{udp.getsockname()[1]}",
-             "--params", str(tmp / "params.yaml"), "--config", str(tmp / "bridge.yaml")],
+             "--params", str(tmp / "params.yaml"), "--config", str(tmp / "bridge.yaml"),
+             "--rt-priority", str(args.rt_priority)],
             cwd=REPO, start_new_session=True, stdout=log_file, stderr=subprocess.STDOUT)
     cmd_srv.settimeout(20.0)
     imu_srv.settimeout(20.0)
@@ -140,6 +151,8 @@ def main() -> None:
     frame_bytes = [encode_frame(ADDR_FC, "I", mk.ImuSample.from_si([0.01, -0.02, -GRAVITY_M_S2], [0.001, 0.0, 0.02],
                                                                    imu_cfg, k).pack()) for k in range(4096)]
     proc = psutil.Process(bridge.pid)
+    burners = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(os.cpu_count() or 1)] \
+        if args.busy else []
     warmup_s = 3.0
     t_start = time.perf_counter()
     cpu0 = None
@@ -167,6 +180,9 @@ def main() -> None:
         cpu_s = t.user + t.system - (cpu0 or 0.0)
         wall_s = time.perf_counter() - wall0
     finally:
+        for b in burners:
+            b.kill()
+            b.wait()
         stop.set()
         for t in threads:
             t.join(timeout=2.0)
@@ -207,7 +223,9 @@ def main() -> None:
     print(f"  bridge CPU: {cpu_s:.2f} s over {wall_s:.1f} s of flight = {100 * cpu_s / wall_s:.1f} % of one core "
           f"(500 Hz IMU in, 500 Hz HIGHRES_IMU + 50 Hz ATTITUDE out, 100 Hz board setpoints, "
           f"30 Hz ODOMETRY + 20 Hz setpoints in)")
-    print(f"  machine: {os.cpu_count()} cores, load average {os.getloadavg()[0]:.2f} (other processes share them)")
+    print(f"  machine: {os.cpu_count()} cores, load average {os.getloadavg()[0]:.2f} (other processes share them); "
+          f"{'a CPU burner per core, ' if args.busy else ''}bridge "
+          f"{'SCHED_FIFO ' + str(args.rt_priority) if args.rt_priority else 'at normal priority'}")
 
 
 if __name__ == "__main__":

@@ -12,6 +12,7 @@ import click
 
 from quadlink.config import find_config, load_config
 from quadlink.errors import ConfigError
+from quadlink.realtime import set_realtime_priority
 from quadlink.vehicle import load_vehicle
 
 log = logging.getLogger(__name__)
@@ -30,9 +31,12 @@ SWITCH_INTERVAL_S = 0.0005
               help="bridge config (a path or a name under configs/)")
 @click.option("--params", "params_path", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="parameter file [default ~/.local/state/quadlink/bridge_params.yaml]")
+@click.option("--rt-priority", "rt_priority", type=click.IntRange(0, 99), default=None,
+              help="SCHED_FIFO priority 1-99 for the IMU path (needs CAP_SYS_NICE), 0 = normal "
+              "[config realtime_priority: 0]")
 @click.option("--duration", type=float, default=None, help="stop after this many seconds (tests, benchmarks)")
 def command(mk_cmd: str | None, mk_imu: str | None, mavlink_urls: tuple[str, ...], sysid: int | None,
-            config_name: str, params_path: Path | None, duration: float | None) -> None:
+            config_name: str, params_path: Path | None, rt_priority: int | None, duration: float | None) -> None:
     from firmware_bridge.daemon import BridgeConfig, BridgeDaemon
 
     try:
@@ -50,11 +54,14 @@ def command(mk_cmd: str | None, mk_imu: str | None, mavlink_urls: tuple[str, ...
         overrides["mavlink_urls"] = tuple(mavlink_urls)
     if sysid is not None:
         overrides["sysid"] = sysid
+    if rt_priority is not None:
+        overrides["realtime_priority"] = rt_priority
     config = dataclasses.replace(config, **overrides)  # type: ignore[arg-type]
     vehicle = load_vehicle(config.vehicle)
     # The readers hand bytes to the main thread; with CPython's default 5 ms GIL switch interval a reader
     # that wakes while the main thread computes waits up to 5 ms, which is the whole IMU latency budget.
     sys.setswitchinterval(SWITCH_INTERVAL_S)
+    set_realtime_priority(config.realtime_priority)   # before open() starts the reader threads: they inherit it
     daemon = BridgeDaemon(config, vehicle, params_path)
     daemon.open()  # LinkError -> one-line error, exit 2 (quadlink.cli)
     previous = signal.signal(signal.SIGTERM, lambda *_: daemon.stop())

@@ -58,10 +58,14 @@ class BridgeConfig:
     reconnect_interval_s: float = 1.0
     status_log_interval_s: float = 10.0
     version_request_attempts: int = 5
+    realtime_priority: int = 0  # >0: SCHED_FIFO at this priority (1-99) for the IMU path's latency tail on a
+                                # busy board (needs CAP_SYS_NICE; refused -> a warning, normal priority)
 
     def __post_init__(self) -> None:
         if not 1 <= self.sysid <= 255 or not 1 <= self.compid <= 255:
             raise ValueError("sysid and compid must be 1..255")
+        if not 0 <= self.realtime_priority <= 99:
+            raise ValueError("realtime_priority must be 0 (off) or 1..99")
 
 
 class _StreamHolder:
