@@ -67,8 +67,6 @@ def main() -> None:
     parser.add_argument("--busy", action="store_true", help="a CPU burner per core during the run (loaded board)")
     parser.add_argument("--rt-priority", type=int, default=0, help="the bridge's --rt-priority (0: normal)")
     args = parser.parse_args()
-    if args.busy and not set_realtime_priority(BOARD_PRIORITY):
-        print("  (could not run the fake board under SCHED_FIFO: its own waits count in the figure)")
 
     cmd_srv = socket.create_server(("127.0.0.1", 0))
     imu_srv = socket.create_server(("127.0.0.1", 0))
@@ -144,6 +142,13 @@ def main() -> None:
             for m in msgs:
                 udp.sendto(m.pack(enc), bridge_addr[0])
 
+    # --busy: the burners first, then this process (the board) under SCHED_FIFO — after every child is started,
+    # since children inherit the policy (real-time burners would starve the machine)
+    # (each burner also ends by itself shortly after the run, should this process die without its cleanup)
+    burn = f"import time\nend = time.monotonic() + {args.seconds + 60.0}\nwhile time.monotonic() < end: pass"
+    burners = [subprocess.Popen([sys.executable, "-c", burn]) for _ in range(os.cpu_count() or 1)] if args.busy else []
+    if args.busy and not set_realtime_priority(BOARD_PRIORITY):
+        print("  (could not run the fake board under SCHED_FIFO: its own waits count in the figure)")
     threads = [threading.Thread(target=f, daemon=True) for f in (receive, board_cmd, companion)]
     for t in threads:
         t.start()
@@ -151,8 +156,6 @@ def main() -> None:
     frame_bytes = [encode_frame(ADDR_FC, "I", mk.ImuSample.from_si([0.01, -0.02, -GRAVITY_M_S2], [0.001, 0.0, 0.02],
                                                                    imu_cfg, k).pack()) for k in range(4096)]
     proc = psutil.Process(bridge.pid)
-    burners = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(os.cpu_count() or 1)] \
-        if args.busy else []
     warmup_s = 3.0
     t_start = time.perf_counter()
     cpu0 = None
