@@ -24,6 +24,7 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "teleop": ("teleop.cli", "Start the ground station: haptic device, force feedback, operator view."),
     "demo": ("quadlink.demo", "Fly the paper's experiment in the SITL and write a flight report."),
     "vo-eval": ("perception.cli", "Run the RGB-D odometry on a TUM-format sequence and print RPE/ATE."),
+    "identify-yaw": ("companion.identify_cli", "Identify the yaw response to the pan-scan (eq. 5) from a flight log."),
 }
 
 
