@@ -160,6 +160,20 @@ def compute_report(flight: FlightLog, cpu_s: dict[str, float] | None = None, sce
                 "measured_amplitude_rad_s": meas.amplitude, "measured_frequency_hz": meas.frequency_hz,
                 "phase_lag_rad": float(np.angle(np.exp(1j * (cmd.phase_rad - meas.phase_rad)))),
             }
+            # the yaw loop identified from this flight (what `quadlink identify-yaw` prints from the tlog)
+            from companion.identification import FeedbackSeries, IdentificationError, fit_yaw_loop
+
+            on = teleop & (flight.pan_scan_rate != 0.0)
+            try:
+                loop = fit_yaw_loop(FeedbackSeries(flight.t_fb[on], flight.pan_scan_rate[on],
+                                                   flight.yaw_rate_cmd[on], flight.gyro_yaw_rate[on]),
+                                    2.0 * math.pi * cmd.frequency_hz)
+                report["pan_scan"]["identified"] = {
+                    "gain": loop.response.gain, "phase_rad": loop.response.phase_rad,
+                    "time_constant_s": loop.time_constant_s, "delay_s": loop.delay_s,
+                    "static_gain": loop.static_gain}
+            except IdentificationError:
+                pass
     gaps = metrics.stream_gaps(flight.t_setpoint, 0.1)
     report["setpoint_count"] = int(flight.t_setpoint.size)
     report["setpoint_gaps_over_100ms"] = gaps.count_over
@@ -206,6 +220,10 @@ def summary_table(report: dict[str, Any]) -> str:
                      f"{p['measured_amplitude_rad_s']:.3f}")
         lines.append(f"{'pan-scan frequency cmd/meas (Hz)':<36} {p['commanded_frequency_hz']:.3f} / "
                      f"{p['measured_frequency_hz']:.3f}")
+        if "identified" in p:
+            i = p["identified"]
+            lines.append(f"{'yaw loop identified: A-prime / phi':<36} {i['gain']:.3f} / {i['phase_rad']:+.3f} rad "
+                         f"(tau {i['time_constant_s']:.3f} s, delay {i['delay_s']:.3f} s, gain {i['static_gain']:.3f})")
     for name, value in report.get("cpu_core_s_per_sim_s", {}).items():
         lines.append(f"{'cpu ' + name + ' (core-s per sim-s)':<36} {value:12.3f}")
     return "\n".join(lines)
