@@ -13,9 +13,7 @@ import numpy as np
 from companion.config import load_companion_config, pan_scan_params
 from companion.identification import FeedbackSeries, IdentificationError, fit_yaw_loop
 from quadlink.errors import QuadlinkError
-
-_TELEOP = 2           # QUADLINK_TELEOP_MODE_TELEOP
-_PAN_SCAN_ON = 1      # QUADLINK_TELEOP_FLAGS_PAN_SCAN_ON
+from quadlink.mavlink import mavlink
 
 
 def feedback_from_tlog(path: Path) -> FeedbackSeries:
@@ -29,7 +27,8 @@ def feedback_from_tlog(path: Path) -> FeedbackSeries:
         raise QuadlinkError(f"{path}: cannot read the log ({exc.strerror or exc})") from exc
     rows = sorted((m.time_usec * 1e-6, m.pan_scan_yaw_rate, m.yaw_rate_cmd, m.gyro_yaw_rate)
                   for _, m in records
-                  if m.get_type() == "TELEOP_FEEDBACK" and m.mode == _TELEOP and m.flags & _PAN_SCAN_ON)
+                  if m.get_type() == "TELEOP_FEEDBACK" and m.mode == mavlink.QUADLINK_TELEOP_MODE_TELEOP
+                  and m.flags & mavlink.QUADLINK_TELEOP_FLAGS_PAN_SCAN_ON)
     if not rows:
         raise IdentificationError(f"{path}: no TELEOP_FEEDBACK in teleop with the pan-scan on "
                                   f"({len(records)} messages read)")
@@ -52,7 +51,8 @@ def command(tlog: Path, config_path: str, omega_rad_s: float | None) -> None:
     span = float(series.t_s[-1] - series.t_s[0])
     click.echo(f"{tlog}: {series.t_s.size} TELEOP_FEEDBACK in teleop with the pan-scan on, {span:.1f} s")
     click.echo(f"  yaw-rate loop (commanded -> gyro): tau {fit.time_constant_s:.3f} s, delay {fit.delay_s:.3f} s, "
-               f"static gain {fit.static_gain:.3f}; one-step residual {fit.rms_residual_rad_s:.4f} rad/s")
+               f"static gain {fit.static_gain:.3f}; the model run from the command misses the gyro by "
+               f"{fit.rms_residual_rad_s:.4f} rad/s RMS")
     click.echo(f"  at the carrier ({omega:.3f} rad/s): A' = {r.gain:.3f}, phi = {r.phase_rad:+.3f} rad")
     click.echo(f"  in use ({cfg.response}): A' = {model.gain:.3f}, phi = {model.phase_rad:+.3f} rad")
     if span * omega < 4 * math.pi:

@@ -73,6 +73,10 @@ def test_report_on_synthetic_flight(rng: np.random.Generator) -> None:
     assert report["fraction_estimate_le_truth"] == 1.0
     assert report["pan_scan"]["measured_amplitude_rad_s"] == pytest.approx(0.4, rel=0.05)
     assert report["pan_scan"]["phase_lag_rad"] == pytest.approx(0.3, abs=0.05)
+    # the yaw loop identified from the feedback: 0.8 of the carrier, 0.3 rad late (eq. 5's -pi added)
+    ident = report["pan_scan"]["identified"]
+    assert ident["gain"] == pytest.approx(0.8, rel=0.03)
+    assert ident["phase_rad"] == pytest.approx(math.remainder(-0.3 - math.pi, 2 * math.pi), abs=0.03)
     assert all(t["pass"] for t in report["targets"].values())
     bad = check_targets({**report, "min_true_obstacle_distance_m": 0.3})
     assert not bad["min_true_obstacle_distance_m"]["pass"]

@@ -172,8 +172,8 @@ def compute_report(flight: FlightLog, cpu_s: dict[str, float] | None = None, sce
                     "gain": loop.response.gain, "phase_rad": loop.response.phase_rad,
                     "time_constant_s": loop.time_constant_s, "delay_s": loop.delay_s,
                     "static_gain": loop.static_gain}
-            except IdentificationError:
-                pass
+            except IdentificationError as exc:
+                report["pan_scan"]["identified"] = {"error": str(exc)}
     gaps = metrics.stream_gaps(flight.t_setpoint, 0.1)
     report["setpoint_count"] = int(flight.t_setpoint.size)
     report["setpoint_gaps_over_100ms"] = gaps.count_over
@@ -220,8 +220,10 @@ def summary_table(report: dict[str, Any]) -> str:
                      f"{p['measured_amplitude_rad_s']:.3f}")
         lines.append(f"{'pan-scan frequency cmd/meas (Hz)':<36} {p['commanded_frequency_hz']:.3f} / "
                      f"{p['measured_frequency_hz']:.3f}")
-        if "identified" in p:
-            i = p["identified"]
+        i = p.get("identified", {})
+        if "error" in i:
+            lines.append(f"{'yaw loop identified':<36} not identifiable: {i['error']}")
+        elif i:
             lines.append(f"{'yaw loop identified: A-prime / phi':<36} {i['gain']:.3f} / {i['phase_rad']:+.3f} rad "
                          f"(tau {i['time_constant_s']:.3f} s, delay {i['delay_s']:.3f} s, gain {i['static_gain']:.3f})")
     for name, value in report.get("cpu_core_s_per_sim_s", {}).items():
