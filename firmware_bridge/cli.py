@@ -12,7 +12,7 @@ import click
 
 from quadlink.config import find_config, load_config
 from quadlink.errors import ConfigError
-from quadlink.realtime import set_realtime_priority
+from quadlink.realtime import MAX_PRIORITY, set_realtime_priority
 from quadlink.vehicle import load_vehicle
 
 log = logging.getLogger(__name__)
@@ -31,7 +31,7 @@ SWITCH_INTERVAL_S = 0.0005
               help="bridge config (a path or a name under configs/)")
 @click.option("--params", "params_path", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="parameter file [default ~/.local/state/quadlink/bridge_params.yaml]")
-@click.option("--rt-priority", "rt_priority", type=click.IntRange(0, 99), default=None,
+@click.option("--rt-priority", "rt_priority", type=click.IntRange(0, MAX_PRIORITY), default=None,
               help="SCHED_FIFO priority 1-99 for the IMU path (needs CAP_SYS_NICE), 0 = normal "
               "[config realtime_priority: 0]")
 @click.option("--duration", type=float, default=None, help="stop after this many seconds (tests, benchmarks)")

@@ -34,6 +34,7 @@ from firmware_bridge.params import DEFAULT_PARAMS_PATH, ParamTable, load_param_f
 from quadlink.errors import LinkError, ProtocolError
 from quadlink.links import ByteStream, open_stream
 from quadlink.mavlink.connection import open_mavlink
+from quadlink.realtime import MAX_PRIORITY
 from quadlink.vehicle import VehicleConfig
 
 log = logging.getLogger(__name__)
@@ -64,8 +65,8 @@ class BridgeConfig:
     def __post_init__(self) -> None:
         if not 1 <= self.sysid <= 255 or not 1 <= self.compid <= 255:
             raise ValueError("sysid and compid must be 1..255")
-        if not 0 <= self.realtime_priority <= 99:
-            raise ValueError("realtime_priority must be 0 (off) or 1..99")
+        if not 0 <= self.realtime_priority <= MAX_PRIORITY:
+            raise ValueError(f"realtime_priority must be 0 (off) or 1..{MAX_PRIORITY}")
 
 
 class _StreamHolder:

@@ -155,22 +155,20 @@ class PerceptionPipeline:
             R_wq, p_w = body_pose_in_world(T_c0_ck, self.R_qc, self.p_qc_m, self._R_w_q0)
             vel = self._velocity.update(frame.stamp_s, T_c0_ck, odometry_ok, omega, roll, pitch)
             v_h, v_h_cov = vel.v_h_m_s, vel.v_h_cov
-            if self._ukf is not None:
-                if odometry_ok or not self._ukf.initialised:
-                    # attitude measurement: heading from the odometry, roll and pitch from the attitude filter
-                    # (gravity: drift-free), as the filter chain's eq. (13); the odometry's own tilt drifts, and
-                    # the UKF would read a tilted world as an accelerometer bias
-                    R_meas = Rz(euler_from_R(R_wq)[2]) @ R_hq(roll, pitch)
-                    self._ukf.on_pose(frame.stamp_s, p_w, R_meas)
             self._last_odo = (odometry_ok, float(fitness), R_wq, p_w, np.asarray(v_h_cov, dtype=float))
         else:
             self._odometry_due -= 1
             odometry_ok, fitness, R_wq, p_w, v_h_cov = self._last_odo   # type: ignore[misc]
             v_h = self._prev_v_h
+        yaw = euler_from_R(R_wq)[2]
         if self._ukf is not None:
+            if run_odometry and (odometry_ok or not self._ukf.initialised):
+                # attitude measurement: heading from the odometry, roll and pitch from the attitude filter
+                # (gravity: drift-free), as the filter chain's eq. (13); the odometry's own tilt drifts, and the
+                # UKF would read a tilted world as an accelerometer bias
+                self._ukf.on_pose(frame.stamp_s, p_w, Rz(yaw) @ R_hq(roll, pitch))
             st = self._ukf.state        # the UKF runs on the IMU: fresh on every frame
             v_h, v_h_cov = st.v_h_m_s, st.v_h_cov
-        yaw = euler_from_R(R_wq)[2]
         yaw_rate = euler_yaw_rate(omega, roll, pitch)
         # local obstacle map: time update to this frame (eq. 14), then the measurement
         if self._prev_frame_stamp is not None:
