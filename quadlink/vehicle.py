@@ -77,6 +77,14 @@ class BatteryConfig:
     full_cell_v: float = 4.2
     empty_cell_v: float = 3.3
 
+    def __post_init__(self) -> None:
+        if not 1 <= self.cells <= 12:
+            raise ValueError(f"cells must be 1..12, got {self.cells}")
+        if not 0 < self.empty_cell_v < self.full_cell_v:
+            raise ValueError("need 0 < empty_cell_v < full_cell_v")
+        if not self.capacity_mah > 0:
+            raise ValueError("capacity_mah must be > 0")
+
 
 @dataclass(frozen=True)
 class VehicleConfig:

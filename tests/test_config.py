@@ -102,3 +102,77 @@ def test_find_config_lists_known_names() -> None:
     assert find_config("vehicle").name == "vehicle.yaml"
     with pytest.raises(ConfigError, match="known in"):
         find_config("no-such-config")
+
+
+# --- hostile files (issue 16): each of these gave a traceback or was silently accepted -------------
+
+@pytest.mark.parametrize(
+    ("text", "key", "fragment"),
+    [
+        ("name: x\ninner: {gain: .nan}\n", "inner.gain", "finite"),
+        ("name: x\ninner: {gain: .inf}\n", "inner.gain", "finite"),
+        ("name: x\ninner: {gain: -.inf}\n", "inner.gain", "finite"),
+        ("name: x\ncount: " + "9" * 400 + "\n", "count", "out of range"),
+        ("name: x\ninner: {gain: " + "9" * 400 + "}\n", "inner.gain", "out of range"),
+        ("name: x\n1: a\nzz: b\n", "1", "unknown key"),
+    ],
+)
+def test_hostile_values_are_one_clear_error(tmp_path: Path, text: str, key: str, fragment: str) -> None:
+    with pytest.raises(ConfigError) as info:
+        load_config(write(tmp_path, text), Outer)
+    message = str(info.value)
+    assert "cfg.yaml" in message and f"'{key}'" in message and fragment in message
+    assert "\n" not in message and len(message) < 400
+
+
+def test_duplicate_keys_are_refused_with_their_line(tmp_path: Path) -> None:
+    with pytest.raises(ConfigError, match=r"cfg.yaml: .*duplicate key 'count' \(line 3\)"):
+        load_config(write(tmp_path, "name: x\ncount: 1\ncount: 2\n"), Outer)
+    with pytest.raises(ConfigError, match="duplicate key 'gain'"):
+        load_config(write(tmp_path, "name: x\ninner:\n  gain: 1\n  gain: 2\n"), Outer)
+
+
+def test_non_utf8_file_is_one_clear_error(tmp_path: Path) -> None:
+    path = tmp_path / "cfg.yaml"
+    path.write_bytes(b"name: caf\xe9\n")
+    with pytest.raises(ConfigError, match=r"cfg.yaml: not UTF-8"):
+        load_config(path, Outer)
+
+
+@dataclass(frozen=True)
+class Rated:
+    rate_hz: float = 10.0
+    mass_kg: float = 1.0
+    offset_m: float = 0.0
+
+
+@pytest.mark.parametrize(("text", "key"), [("rate_hz: 0\n", "rate_hz"), ("rate_hz: -5\n", "rate_hz"),
+                                           ("mass_kg: -1\n", "mass_kg"), ("mass_kg: 0.0\n", "mass_kg")])
+def test_rates_and_masses_must_be_positive(tmp_path: Path, text: str, key: str) -> None:
+    with pytest.raises(ConfigError, match=rf"'{key}': must be > 0"):
+        load_config(write(tmp_path, text), Rated)
+    assert load_config(write(tmp_path, "offset_m: -1\n"), Rated).offset_m == -1.0  # other units may be negative
+
+
+@pytest.mark.parametrize(("text", "key"), [
+    ("mass_kg: -1\n", "mass_kg"),
+    ("imu: {rate_hz: 0}\n", "imu.rate_hz"),
+    ("battery: {cells: 0}\n", "battery"),
+])
+def test_vehicle_config_refuses_impossible_vehicles(tmp_path: Path, text: str, key: str) -> None:
+    with pytest.raises(ConfigError, match=rf"'{key}'"):
+        load_config(write(tmp_path, text), VehicleConfig)
+
+
+def test_every_shipped_config_still_loads() -> None:
+    from companion.config import load_companion_config
+    from quadlink import CONFIG_DIR
+    from sim_sitl.config import load_scenario, load_sitl_config
+    from teleop.config import load_teleop_config
+
+    load_vehicle()
+    load_companion_config()
+    load_sitl_config()
+    load_teleop_config()
+    for scenario in sorted((CONFIG_DIR / "scenarios").glob("*.yaml")):
+        load_scenario(str(scenario))
