@@ -118,35 +118,176 @@ def encode_record(frame: RgbdFrame, rgb_jpeg: bool = False, jpeg_quality: int = 
     return _PREFIX.pack(MAGIC, len(header_bytes)) + header_bytes + rgb_bytes + depth_bytes
 
 
-def _decode_body(header: dict[str, Any], buf: bytearray, offset: int) -> RgbdFrame:
+MAX_IMAGE_SIDE_PX = 4096
+RGB_ENCODINGS = ("rgb8", "jpeg")
+DEPTH_ENCODINGS = ("mm_u16le", "none")
+_JPEG_SOF_MARKERS = frozenset((0xC0, 0xC1, 0xC2, 0xC3, 0xC5, 0xC6, 0xC7, 0xC9, 0xCA, 0xCB, 0xCD, 0xCE, 0xCF))
+
+
+@dataclass(frozen=True)
+class RecordHeader:
+    """A camera record's header, validated: every number finite and in range, every size consistent with the
+    image it describes (issue 16: a header is hostile input; nothing is allocated before this check)."""
+
+    seq: int
+    stamp_s: float
+    width: int
+    height: int
+    intrinsics: CameraIntrinsics
+    R_qc: NDArray[np.float64]
+    p_qc_m: NDArray[np.float64]
+    rgb_encoding: str
+    rgb_bytes: int
+    depth_encoding: str
+    depth_bytes: int
+    meta: Any
+
+    @classmethod
+    def parse(cls, header: Any) -> RecordHeader:
+        if not isinstance(header, dict):
+            raise ProtocolError("camera record header is not a JSON object")
+        width = _header_int(header, "width", 1, MAX_IMAGE_SIDE_PX)
+        height = _header_int(header, "height", 1, MAX_IMAGE_SIDE_PX)
+        rgb_encoding = _header_choice(header, "rgb_encoding", RGB_ENCODINGS)
+        depth_encoding = _header_choice(header, "depth_encoding", DEPTH_ENCODINGS)
+        rgb_bytes = _header_int(header, "rgb_bytes", 0, MAX_PAYLOAD_BYTES)
+        depth_bytes = _header_int(header, "depth_bytes", 0, MAX_PAYLOAD_BYTES)
+        if rgb_encoding == "rgb8" and rgb_bytes != width * height * 3:
+            raise ProtocolError(f"rgb_bytes {rgb_bytes} != {width}x{height}x3")
+        if rgb_encoding == "jpeg" and rgb_bytes == 0:
+            raise ProtocolError("empty JPEG colour image")
+        expected_depth = width * height * 2 if depth_encoding == "mm_u16le" else 0
+        if depth_bytes != expected_depth:
+            raise ProtocolError(f"depth_bytes {depth_bytes} != {expected_depth} for "
+                                f"{depth_encoding} {width}x{height}")
+        k = header.get("intrinsics")
+        if not isinstance(k, dict):
+            raise ProtocolError("intrinsics missing")
+        fx, fy, cx, cy = (_finite(k.get(name), f"intrinsics.{name}") for name in ("fx", "fy", "cx", "cy"))
+        if not (fx > 0 and fy > 0):
+            raise ProtocolError("focal lengths must be > 0")
+        R_qc = _finite_array(header.get("R_qc"), (3, 3), "R_qc")
+        if not np.allclose(R_qc @ R_qc.T, np.eye(3), atol=1e-3):
+            raise ProtocolError("R_qc is not a rotation")
+        return cls(
+            seq=_header_int(header, "seq", 0, 2**63 - 1),
+            stamp_s=_finite(header.get("stamp_s"), "stamp_s"),
+            width=width, height=height,
+            intrinsics=CameraIntrinsics(fx, fy, cx, cy, width, height),
+            R_qc=R_qc, p_qc_m=_finite_array(header.get("p_qc_m"), (3,), "p_qc_m"),
+            rgb_encoding=rgb_encoding, rgb_bytes=rgb_bytes, depth_encoding=depth_encoding, depth_bytes=depth_bytes,
+            meta=header.get("meta"),
+        )
+
+    @property
+    def payload_bytes(self) -> int:
+        return self.rgb_bytes + self.depth_bytes
+
+
+def _header_int(header: dict[str, Any], key: str, lo: int, hi: int) -> int:
+    value = header.get(key)
+    if isinstance(value, bool) or not isinstance(value, int):  # JSON's Infinity and 1e999 arrive as floats
+        raise ProtocolError(f"{key} must be an integer, got {str(value)[:40]}")
+    if not lo <= value <= hi:
+        raise ProtocolError(f"{key} {value} out of range {lo}..{hi}")
+    return value
+
+
+def _header_choice(header: dict[str, Any], key: str, allowed: tuple[str, ...]) -> str:
+    value = header.get(key)
+    if value not in allowed:
+        raise ProtocolError(f"unknown {key} {str(value)[:40]!r}")
+    return str(value)
+
+
+def _finite(value: Any, key: str) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        raise ProtocolError(f"{key} must be a finite number, got {str(value)[:40]}")
+    return float(value)
+
+
+def _finite_array(value: Any, shape: tuple[int, ...], key: str) -> NDArray[np.float64]:
+    try:
+        array = np.asarray(value, dtype=float)
+    except (TypeError, ValueError, OverflowError) as exc:
+        raise ProtocolError(f"{key} is not a numeric array") from exc
+    if array.shape != shape or not np.all(np.isfinite(array)):
+        raise ProtocolError(f"{key} must be finite with shape {shape}, got {array.shape}")
+    return array
+
+
+def jpeg_size(data: memoryview | bytes) -> tuple[int, int]:
+    """(width, height) from a JPEG's start-of-frame marker, read without decoding (so a 900-byte file that
+    claims 30000x30000 is refused before the decoder allocates 2.7 GB)."""
+    n = len(data)
+    if n < 4 or data[0] != 0xFF or data[1] != 0xD8:
+        raise ProtocolError("colour image is not a JPEG")
+    i = 2
+    while i + 4 <= n:
+        if data[i] != 0xFF:
+            raise ProtocolError("corrupt JPEG marker")
+        marker = data[i + 1]
+        if marker == 0xFF:  # fill byte
+            i += 1
+            continue
+        if marker in (0xD8, 0x01) or 0xD0 <= marker <= 0xD7:
+            i += 2
+            continue
+        length = (data[i + 2] << 8) | data[i + 3]
+        if length < 2:
+            raise ProtocolError("corrupt JPEG segment length")
+        if marker in _JPEG_SOF_MARKERS:
+            if i + 9 > n:
+                break
+            height = (data[i + 5] << 8) | data[i + 6]
+            width = (data[i + 7] << 8) | data[i + 8]
+            return width, height
+        i += 2 + length
+    raise ProtocolError("JPEG has no frame header")
+
+
+def _decode_body(head: RecordHeader, buf: bytearray, offset: int) -> RgbdFrame:
     """The frame whose images start at ``offset`` in ``buf`` (colour, then depth): each image is copied out of
     the buffer once, straight into its own array (the caller then drops the record from the buffer)."""
-    width, height = int(header["width"]), int(header["height"])
-    rgb_n, depth_n = int(header["rgb_bytes"]), int(header["depth_bytes"])
-    if header["rgb_encoding"] == "jpeg":
-        bgr = cv2.imdecode(np.frombuffer(buf, np.uint8, rgb_n, offset), cv2.IMREAD_COLOR)
-        if bgr is None:
-            raise ProtocolError("corrupt JPEG colour image in camera record")
+    width, height = head.width, head.height
+    rgb_n = head.rgb_bytes
+    if head.rgb_encoding == "jpeg":
+        view = memoryview(buf)[offset:offset + rgb_n]
+        try:
+            if jpeg_size(view) != (width, height):
+                raise ProtocolError(f"JPEG is {jpeg_size(view)}, header says {(width, height)}")
+            bgr = cv2.imdecode(np.frombuffer(view, np.uint8), cv2.IMREAD_COLOR)
+        finally:
+            view.release()
+        if bgr is None or bgr.shape != (height, width, 3):
+            raise ProtocolError("JPEG colour image does not decode")
         rgb = cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
-    elif header["rgb_encoding"] == "rgb8":
-        rgb = np.frombuffer(buf, np.uint8, rgb_n, offset).reshape(height, width, 3).copy()
     else:
-        raise ProtocolError(f"unknown rgb_encoding {header['rgb_encoding']!r}")
+        rgb = np.frombuffer(buf, np.uint8, rgb_n, offset).reshape(height, width, 3).copy()
     depth: NDArray[np.float32] | None = None
-    if header.get("depth_encoding") == "mm_u16le":
-        depth = np.frombuffer(buf, "<u2", depth_n // 2, offset + rgb_n).reshape(height, width).astype(np.float32)
+    if head.depth_encoding == "mm_u16le":
+        depth = np.frombuffer(buf, "<u2", head.depth_bytes // 2, offset + rgb_n).reshape(height, width)
+        depth = depth.astype(np.float32)
         depth *= np.float32(1e-3)
-    k = header["intrinsics"]
     return RgbdFrame(
-        seq=int(header["seq"]),
-        stamp_s=float(header["stamp_s"]),
+        seq=head.seq,
+        stamp_s=head.stamp_s,
         rgb=np.asarray(rgb, dtype=np.uint8),
         depth_m=depth,
-        intrinsics=CameraIntrinsics(float(k["fx"]), float(k["fy"]), float(k["cx"]), float(k["cy"]), width, height),
-        R_qc=np.asarray(header["R_qc"], dtype=float),
-        p_qc_m=np.asarray(header["p_qc_m"], dtype=float),
-        meta=dict(header.get("meta") or {}),
+        intrinsics=head.intrinsics,
+        R_qc=head.R_qc,
+        p_qc_m=head.p_qc_m,
+        meta=dict(head.meta or {}),
     )
+
+
+def _framing_bytes(header: Any) -> int:
+    """The payload size a header announces, which the stream's framing rests on (checked before anything else:
+    a negative or non-integer size would make the decoder wait forever or never shrink its buffer)."""
+    if not isinstance(header, dict):
+        raise ProtocolError("camera record header is not a JSON object")
+    return _header_int(header, "rgb_bytes", 0, MAX_PAYLOAD_BYTES) + \
+        _header_int(header, "depth_bytes", 0, MAX_PAYLOAD_BYTES)
 
 
 class RecordDecoder:
@@ -176,20 +317,17 @@ class RecordDecoder:
                 break
             try:
                 header = json.loads(bytes(self._buf[_PREFIX.size:_PREFIX.size + header_len]))
-                rgb_n, depth_n = int(header["rgb_bytes"]), int(header["depth_bytes"])
-            except (ValueError, KeyError, TypeError) as exc:
-                self._buf.clear()
+                payload_bytes = _framing_bytes(header)
+            except (ValueError, RecursionError, ProtocolError) as exc:  # UnicodeDecodeError is a ValueError
+                self._buf.clear()  # the sizes cannot be trusted: the framing is lost
                 raise ProtocolError(f"corrupt camera record header: {exc}") from exc
-            if rgb_n + depth_n > MAX_PAYLOAD_BYTES:
-                self._buf.clear()
-                raise ProtocolError("camera record larger than the allowed maximum")
             start = _PREFIX.size + header_len
-            end = start + rgb_n + depth_n
+            end = start + payload_bytes
             if len(self._buf) < end:
                 break
-            try:
-                frame = _decode_body(header, self._buf, start)
-            except (ValueError, KeyError, TypeError) as exc:
+            try:  # the framing holds: a record with bad contents is dropped alone
+                frame = _decode_body(RecordHeader.parse(header), self._buf, start)
+            except (ValueError, TypeError, ProtocolError) as exc:
                 raise ProtocolError(f"corrupt camera record: {exc}") from exc
             finally:
                 del self._buf[:end]   # no view of the buffer outlives _decode_body (its arrays are copies)
