@@ -6347,6 +6347,7 @@ enums["MAV_COMPONENT"][251] = EnumEntry("MAV_COMPONENT_ENUM_END", """""")
 MAVLINK_MSG_ID_BAD_DATA = -1
 MAVLINK_MSG_ID_UNKNOWN = -2
 MAVLINK_MSG_ID_TELEOP_FEEDBACK = 53000
+MAVLINK_MSG_ID_PROTOCOL_VERSION = 300
 MAVLINK_MSG_ID_SYS_STATUS = 1
 MAVLINK_MSG_ID_SYSTEM_TIME = 2
 MAVLINK_MSG_ID_PING = 4
@@ -6618,6 +6619,53 @@ class MAVLink_teleop_feedback_message(MAVLink_message):
 # Define name on the class for backwards compatibility (it is now msgname).
 # Done with setattr to hide the class variable from mypy.
 setattr(MAVLink_teleop_feedback_message, "name", mavlink_msg_deprecated_name_property())
+
+
+class MAVLink_protocol_version_message(MAVLink_message):
+    """
+    The MAVLink protocol versions this system speaks (the reply to
+    MAV_CMD_REQUEST_PROTOCOL_VERSION, which QGroundControl sends on
+    connect to decide on MAVLink 2). Upstream's definition, which
+    pymavlink's bundled common.xml no longer carries; same name,
+    fields and order, hence the same CRC extra as in QGroundControl
+    and MAVSDK.
+    """
+
+    id = MAVLINK_MSG_ID_PROTOCOL_VERSION
+    msgname = "PROTOCOL_VERSION"
+    fieldnames = ["version", "min_version", "max_version", "spec_version_hash", "library_version_hash"]
+    ordered_fieldnames = ["version", "min_version", "max_version", "spec_version_hash", "library_version_hash"]
+    fieldtypes = ["uint16_t", "uint16_t", "uint16_t", "uint8_t", "uint8_t"]
+    fielddisplays_by_name: Dict[str, str] = {}
+    fieldenums_by_name: Dict[str, str] = {}
+    fieldunits_by_name: Dict[str, str] = {}
+    native_format = bytearray(b"<HHHBB")
+    orders = [0, 1, 2, 3, 4]
+    lengths = [1, 1, 1, 8, 8]
+    array_lengths = [0, 0, 0, 8, 8]
+    crc_extra = 217
+    unpacker = struct.Struct("<HHH8B8B")
+    instance_field = None
+    instance_offset = -1
+
+    def __init__(self, version: int, min_version: int, max_version: int, spec_version_hash: Sequence[int], library_version_hash: Sequence[int]):
+        MAVLink_message.__init__(self, MAVLink_protocol_version_message.id, MAVLink_protocol_version_message.msgname)
+        self._fieldnames = MAVLink_protocol_version_message.fieldnames
+        self._instance_field = MAVLink_protocol_version_message.instance_field
+        self._instance_offset = MAVLink_protocol_version_message.instance_offset
+        self.version = version
+        self.min_version = min_version
+        self.max_version = max_version
+        self.spec_version_hash = spec_version_hash
+        self.library_version_hash = library_version_hash
+
+    def pack(self, mav: "MAVLink", force_mavlink1: bool = False) -> bytes:
+        return self._pack(mav, self.crc_extra, self.unpacker.pack(self.version, self.min_version, self.max_version, self.spec_version_hash[0], self.spec_version_hash[1], self.spec_version_hash[2], self.spec_version_hash[3], self.spec_version_hash[4], self.spec_version_hash[5], self.spec_version_hash[6], self.spec_version_hash[7], self.library_version_hash[0], self.library_version_hash[1], self.library_version_hash[2], self.library_version_hash[3], self.library_version_hash[4], self.library_version_hash[5], self.library_version_hash[6], self.library_version_hash[7]), force_mavlink1=force_mavlink1)
+
+
+# Define name on the class for backwards compatibility (it is now msgname).
+# Done with setattr to hide the class variable from mypy.
+setattr(MAVLink_protocol_version_message, "name", mavlink_msg_deprecated_name_property())
 
 
 class MAVLink_sys_status_message(MAVLink_message):
@@ -16694,6 +16742,7 @@ setattr(MAVLink_heartbeat_message, "name", mavlink_msg_deprecated_name_property(
 
 mavlink_map: Dict[int, Type[MAVLink_message]] = {
     MAVLINK_MSG_ID_TELEOP_FEEDBACK: MAVLink_teleop_feedback_message,
+    MAVLINK_MSG_ID_PROTOCOL_VERSION: MAVLink_protocol_version_message,
     MAVLINK_MSG_ID_SYS_STATUS: MAVLink_sys_status_message,
     MAVLINK_MSG_ID_SYSTEM_TIME: MAVLink_system_time_message,
     MAVLINK_MSG_ID_PING: MAVLink_ping_message,
@@ -17363,6 +17412,42 @@ class MAVLink(object):
 
         """
         self.send(self.teleop_feedback_encode(time_usec, vx_h, vy_h, vz_h, vx_cmd, vy_cmd, vz_cmd, vx_rep, vy_rep, vz_rep, alpha, pan_scan_yaw_rate, yaw_rate_cmd, gyro_yaw_rate, obstacle_x, obstacle_y, obstacle_z, obstacle_distance, mode, flags), force_mavlink1=force_mavlink1)
+
+    def protocol_version_encode(self, version: int, min_version: int, max_version: int, spec_version_hash: Sequence[int], library_version_hash: Sequence[int]) -> MAVLink_protocol_version_message:
+        """
+        The MAVLink protocol versions this system speaks (the reply to
+        MAV_CMD_REQUEST_PROTOCOL_VERSION, which QGroundControl sends
+        on connect to decide on MAVLink 2). Upstream's definition,
+        which pymavlink's bundled common.xml no longer carries; same
+        name, fields and order, hence the same CRC extra as in
+        QGroundControl and MAVSDK.
+
+        version                   : Currently active MAVLink version number * 100: v1.0 is 100, v2.0 is 200, etc. (type:uint16_t)
+        min_version               : Minimum MAVLink version supported (type:uint16_t)
+        max_version               : Maximum MAVLink version supported (set to the same value as version by default) (type:uint16_t)
+        spec_version_hash         : The first 8 bytes (not characters printed in hex!) of the git hash. (type:uint8_t)
+        library_version_hash        : The first 8 bytes (not characters printed in hex!) of the git hash. (type:uint8_t)
+
+        """
+        return MAVLink_protocol_version_message(version, min_version, max_version, spec_version_hash, library_version_hash)
+
+    def protocol_version_send(self, version: int, min_version: int, max_version: int, spec_version_hash: Sequence[int], library_version_hash: Sequence[int], force_mavlink1: bool = False) -> None:
+        """
+        The MAVLink protocol versions this system speaks (the reply to
+        MAV_CMD_REQUEST_PROTOCOL_VERSION, which QGroundControl sends
+        on connect to decide on MAVLink 2). Upstream's definition,
+        which pymavlink's bundled common.xml no longer carries; same
+        name, fields and order, hence the same CRC extra as in
+        QGroundControl and MAVSDK.
+
+        version                   : Currently active MAVLink version number * 100: v1.0 is 100, v2.0 is 200, etc. (type:uint16_t)
+        min_version               : Minimum MAVLink version supported (type:uint16_t)
+        max_version               : Maximum MAVLink version supported (set to the same value as version by default) (type:uint16_t)
+        spec_version_hash         : The first 8 bytes (not characters printed in hex!) of the git hash. (type:uint8_t)
+        library_version_hash        : The first 8 bytes (not characters printed in hex!) of the git hash. (type:uint8_t)
+
+        """
+        self.send(self.protocol_version_encode(version, min_version, max_version, spec_version_hash, library_version_hash), force_mavlink1=force_mavlink1)
 
     def sys_status_encode(self, onboard_control_sensors_present: int, onboard_control_sensors_enabled: int, onboard_control_sensors_health: int, load: int, voltage_battery: int, current_battery: int, battery_remaining: int, drop_rate_comm: int, errors_comm: int, errors_count1: int, errors_count2: int, errors_count3: int, errors_count4: int, onboard_control_sensors_present_extended: int = 0, onboard_control_sensors_enabled_extended: int = 0, onboard_control_sensors_health_extended: int = 0) -> MAVLink_sys_status_message:
         """
