@@ -54,6 +54,28 @@ class ForceConfig:
 
 
 @dataclass(frozen=True)
+class PassivityConfig:
+    """Time-domain passivity observer/controller on the device port (teleop/passivity.py, Hannaford & Ryu 2002).
+
+    The observer always runs (its energy is logged); ``enabled`` adds the variable damping that keeps the
+    observed energy >= 0 when the force loop is closed through a delayed link.
+    """
+
+    enabled: bool = False
+    max_damping_n_s_m: float = 150.0     # bound on alpha (a sampled damper needs alpha T / M < 2: 500 at 1 kHz, 0.25 kg)
+    max_force_n: float = 6.0             # bound on the controller's force per axis
+    min_speed_m_s: float = 0.002         # no damping below this speed (alpha would be unbounded)
+    energy_cap_j: float = 0.0            # cap on each axis' stored credit (energy tank ceiling); 0 = none
+    log_period_s: float = 5.0            # energy account to the log every this many seconds
+
+    def __post_init__(self) -> None:
+        if min(self.max_damping_n_s_m, self.max_force_n, self.log_period_s) <= 0:
+            raise ValueError("passivity max_damping_n_s_m, max_force_n and log_period_s must be > 0")
+        if self.min_speed_m_s < 0 or self.energy_cap_j < 0:
+            raise ValueError("passivity min_speed_m_s and energy_cap_j must be >= 0")
+
+
+@dataclass(frozen=True)
 class MappingConfig:
     """q -> MANUAL_CONTROL (eqs. (2)-(3)). Full scale (1000) = the companion's maximum command.
 
@@ -132,6 +154,7 @@ class NetworkConfig:
 class TeleopConfig:
     device: DeviceConfig = field(default_factory=DeviceConfig)
     force: ForceConfig = field(default_factory=ForceConfig)
+    passivity: PassivityConfig = field(default_factory=PassivityConfig)
     mapping: MappingConfig = field(default_factory=MappingConfig)
     commands: CommandsConfig = field(default_factory=CommandsConfig)
     view: ViewConfig = field(default_factory=ViewConfig)

@@ -1,0 +1,66 @@
+"""Time-domain passivity observer/controller (teleop/passivity.py) on a released handle under delay."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from teleop.config import DeviceConfig, ForceConfig, PassivityConfig, TeleopConfig
+from teleop.passivity import PassivityController
+from teleop.passivity_sim import DelayedLoop, simulate_release
+
+EPSILON_J = 1e-3
+
+# A low-friction handle (C = 0.5 N s/m) with a light damping B = 0.5 and a fast vehicle (50 ms velocity
+# lag): with the shipped B + C = 5 N s/m the released handle is stable at any delay (see the benchmark),
+# so the need shows where the operator's feel is made crisper.
+CRISP = TeleopConfig(device=DeviceConfig(damping_n_s_m=(0.5, 0.5, 0.5)), force=ForceConfig(B_n_s_m=(0.5, 0.5, 0.5)))
+LOOP_300MS = DelayedLoop(round_trip_s=0.3, vehicle_time_constant_s=0.05, duration_s=6.0)
+
+
+def test_observer_counts_the_work_of_the_held_force() -> None:
+    pc = PassivityController(PassivityConfig())
+    pc.observe(0.0, [0.0, 0.0, 0.0])
+    pc.applied([-2.0, 1.0, 0.0], [-2.0, 1.0, 0.0])        # force held over the next period
+    pc.observe(0.001, [0.01, 0.01, 0.0])                   # x moved against the force, y along it
+    assert pc.energy_j == pytest.approx([0.02, -0.01, 0.0])
+    assert pc.input_j == pytest.approx(0.02) and pc.output_j == pytest.approx(0.01)
+
+
+def test_controller_dissipates_exactly_the_deficit_and_only_then() -> None:
+    cfg = PassivityConfig(enabled=True, max_damping_n_s_m=1e6, max_force_n=1e3)
+    pc = PassivityController(cfg)
+    pc.energy_j = [-0.001, 0.002, -0.001]
+    v, tau, T = [0.1, 0.1, 0.0], [0.0, 0.0, 0.0], 0.001
+    out = pc.control(v, tau, T)
+    # alpha = -E / (T v^2): over one period the damping burns alpha v^2 T = 1 mJ, the deficit
+    assert out[0] == pytest.approx(-0.001 / (T * 0.01) * 0.1)
+    assert (-out[0]) * v[0] * T == pytest.approx(0.001)
+    assert out[1] == 0.0 and out[2] == 0.0                  # passive axis; axis at rest (nothing to damp)
+    off = PassivityController(replace(cfg, enabled=False))
+    off.energy_j = [-0.001, 0.0, 0.0]
+    assert off.control(v, tau, T) == tau                    # observer only: the force is untouched
+
+
+def test_controller_is_inert_when_the_loop_is_passive() -> None:
+    loop = replace(LOOP_300MS, round_trip_s=0.0)
+    off, on = simulate_release(CRISP, loop, False), simulate_release(CRISP, loop, True)
+    assert off.report.min_observed_j >= 0.0                 # no delay: the loop is passive
+    np.testing.assert_array_equal(on.q_x_m, off.q_x_m)      # and the controller never acts
+    assert on.report.dissipated_j == 0.0
+
+
+def test_passivity_controller_stops_the_delayed_oscillation() -> None:
+    off = simulate_release(CRISP, LOOP_300MS, False)
+    on = simulate_release(CRISP, LOOP_300MS, True)
+    # off: the delayed cue drives the released handle into a sustained oscillation against the stops
+    # and the network delivers energy to the hand (observed energy far below zero)
+    assert off.rms_velocity_m_s(3.0) > 0.1
+    assert off.report.min_observed_j < -0.5
+    # on: observed energy bounded below by -epsilon on every axis, the handle settles
+    assert on.report.min_observed_j >= -EPSILON_J
+    assert on.rms_velocity_m_s(3.0) < 0.1 * off.rms_velocity_m_s(3.0)
+    assert on.report.dissipated_j > 0.0
+    assert abs(on.q_x_m[-1000:]).max() < 0.01               # at rest near the centre at the end
