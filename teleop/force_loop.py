@@ -31,8 +31,9 @@ from quadlink import errors
 from quadlink.errors import QuadlinkError
 from teleop.config import TeleopConfig
 from teleop.devices.base import DeviceState, HapticDevice
-from teleop.force import LinkFade, VehicleMotion, force_law, link_ok, q_tilde
+from teleop.force import LinkFade, VehicleMotion, force_law, link_ok, q_tilde, saturate
 from teleop.mapping import mapping_gains
+from teleop.passivity import PassivityController, PassivityReport
 
 log = logging.getLogger(__name__)
 
@@ -46,6 +47,7 @@ class ForceSnapshot:
     q_tilde_m: NDArray[np.float64] | None
     link_gain: float
     cue_gain: float = 1.0
+    passivity: PassivityReport | None = None   # the port's energy account (teleop/passivity.py)
 
 
 @dataclass(frozen=True)
@@ -97,14 +99,21 @@ def try_realtime(priority: int) -> None:
 
 def run_force_loop(device: HapticDevice, cfg: TeleopConfig, io: ForceLoopIO,
                    clock: Callable[[], float] = time.perf_counter) -> None:
-    """Until ``io.stop_requested()``: one tick per 1/force_rate_hz (eq. (15), link and cue fades)."""
+    """Until ``io.stop_requested()``: one tick per 1/force_rate_hz (eq. (15), link and cue fades).
+
+    The passivity observer accounts every tick's work on the handle; with ``passivity.enabled`` its
+    controller adds the damping that keeps the observed energy >= 0 (teleop/passivity.py), on top of
+    eq. (15), before the device's force limit.
+    """
     try_realtime(cfg.device.realtime_priority)
     gains = mapping_gains(cfg.mapping, cfg.device)
     period = 1.0 / cfg.device.force_rate_hz
     fade = LinkFade(cfg.force.fade_time_s)
     cue_fade = LinkFade(cfg.force.fade_time_s)
+    pc = PassivityController(cfg.passivity)
     spin = cfg.device.spin_s
     next_t = clock()
+    next_energy_log = next_t + cfg.passivity.log_period_s
     while not io.stop_requested():
         t = clock()
         io.record_period(t)
@@ -114,15 +123,39 @@ def run_force_loop(device: HapticDevice, cfg: TeleopConfig, io: ForceLoopIO,
         gain = fade.update(ok, t)
         cue = cue_fade.update(ok and m is not None and m.cue_wanted, t)
         qt = q_tilde(m.motion, gains) if m is not None else None
-        tau = force_law(state.q_m, state.qdot_m_s, qt, cfg.force, cfg.device.force_limit_n, gain, cue)
+        tau_law = force_law(state.q_m, state.qdot_m_s, qt, cfg.force, cfg.device.force_limit_n, gain, cue)
+        tau = tau_passive(pc, t, state, tau_law, period, cfg.device.force_limit_n)
         device.set_force(tau)
-        io.publish(ForceSnapshot(state, tau, qt, gain, cue))
+        report = pc.report()
+        io.publish(ForceSnapshot(state, tau, qt, gain, cue, report))
+        if t >= next_energy_log:
+            next_energy_log = t + cfg.passivity.log_period_s
+            log_energy(report, cfg.passivity.enabled)
         for button in state.buttons:
             io.button(button)
         next_t += period
         if clock() - next_t > 50 * period:   # fell far behind (suspended?): resynchronise
             next_t = clock()
         precise_sleep_until(next_t, clock, spin)
+
+
+def tau_passive(pc: PassivityController, t_s: float, state: DeviceState, tau_law_n: NDArray[np.float64],
+                period_s: float, force_limit_n: float) -> NDArray[np.float64]:
+    """One tick of the passivity observer/controller around eq. (15)'s force; returns the force to apply."""
+    q = [float(v) for v in state.q_m]
+    pc.observe(t_s, q)
+    law = [float(v) for v in tau_law_n]
+    cmd = pc.control([float(v) for v in state.qdot_m_s], law, period_s)
+    tau = tau_law_n if cmd == law else saturate(np.array(cmd), force_limit_n)
+    pc.applied([float(v) for v in tau], law)
+    return tau
+
+
+def log_energy(r: PassivityReport, enabled: bool) -> None:
+    log.info("passivity %s: observed energy %.4f J (min axis %.4f J), hand -> network %.4f J, "
+             "network -> hand (injected) %.4f J, dissipated by the controller %.4f J",
+             "on" if enabled else "observer only", r.observed_j, r.min_observed_j, r.input_j, r.output_j,
+             r.dissipated_j)
 
 
 class PeriodRecorder:
@@ -168,7 +201,7 @@ def _seq_read(arr: Any, n: int) -> list[float] | None:
 
 
 _MOTION_N = 11   # t_recv, v(3), alpha, yaw_rate, pan_scan_rate, cue_wanted, valid, vehicle_t, has_vehicle_t
-_STATE_N = 21    # t, q(3), qd(3), fop(3), tau(3), qt(3), has_qt, gain, cue, finished, has_fop
+_STATE_N = 27    # t, q(3), qd(3), fop(3), tau(3), qt(3), has_qt, gain, cue, finished, has_fop, passivity(6)
 
 
 def _motion_values(m: MotionInput | None, vehicle_time_s: float | None) -> list[float]:
@@ -188,6 +221,12 @@ def _motion_from(values: list[float] | None) -> tuple[MotionInput | None, float 
         return None, vt
     motion = VehicleMotion((values[1], values[2], values[3]), values[4], values[5], values[6])
     return MotionInput(values[0], motion, values[7] > 0.5), vt
+
+
+def _passivity_values(r: PassivityReport | None) -> list[float]:
+    if r is None:
+        return [0.0] * 6
+    return [r.observed_j, r.min_observed_j, r.input_j, r.output_j, r.dissipated_j, r.damping_n_s_m]
 
 
 class _SharedIO:
@@ -212,7 +251,8 @@ class _SharedIO:
         qt = s.q_tilde_m if s.q_tilde_m is not None else np.zeros(3)
         _seq_write(self._state_arr, [d.t_s, *d.q_m, *d.qdot_m_s, *fop, *s.tau_d_n, *qt,
                                      float(s.q_tilde_m is not None), s.link_gain, s.cue_gain,
-                                     float(self.device.finished), float(d.operator_force_n is not None)])
+                                     float(self.device.finished), float(d.operator_force_n is not None),
+                                     *_passivity_values(s.passivity)])
 
     def button(self, name: str) -> None:
         self._tx.send(name)
@@ -294,7 +334,8 @@ class ForceProcess:
             return None
         fop = np.array(v[7:10]) if v[20] > 0.5 else None
         state = DeviceState(v[0], np.array(v[1:4]), np.array(v[4:7]), (), fop)
-        return ForceSnapshot(state, np.array(v[10:13]), np.array(v[13:16]) if v[16] > 0.5 else None, v[17], v[18])
+        return ForceSnapshot(state, np.array(v[10:13]), np.array(v[13:16]) if v[16] > 0.5 else None, v[17], v[18],
+                             PassivityReport(*v[21:27]))
 
     @property
     def finished(self) -> bool:

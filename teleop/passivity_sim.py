@@ -3,7 +3,8 @@
 Pure simulation (no I/O, its own time), built from the station's real parts: the handle is the virtual
 device's eq. (1) (:func:`teleop.devices.virtual.step_dynamics`, exact ZOH, workspace stop), the force is
 :func:`teleop.force.force_law` with q~ from :func:`teleop.force.q_tilde` (eqs. (15)-(16)), and the
-passivity controller is :class:`teleop.passivity.PassivityController`, called as the force loop calls it.
+passivity controller is :class:`teleop.passivity.PassivityController`, run by the force loop's own tick
+(:func:`teleop.force_loop.tau_passive`).
 
 Model of the rest of the loop (forward axis x only):
 
@@ -30,8 +31,10 @@ import numpy as np
 from numpy.typing import NDArray
 
 from teleop.config import TeleopConfig
+from teleop.devices.base import DeviceState
 from teleop.devices.virtual import clamp_workspace, step_dynamics
 from teleop.force import VehicleMotion, force_law, q_tilde
+from teleop.force_loop import tau_passive
 from teleop.mapping import mapping_gains
 from teleop.passivity import PassivityController, PassivityReport
 
@@ -97,17 +100,10 @@ def simulate_release(cfg: TeleopConfig, loop: DelayedLoop, passivity_on: bool) -
             v_fb = v_back
         qt = q_tilde(VehicleMotion((v_fb, 0.0, 0.0), 0.0, 0.0, 0.0), gains)
         # the force loop's tick, as run_force_loop does it
-        pc.observe(t, [float(x) for x in q])
         tau_law = force_law(q, qd, qt, cfg.force, dev.force_limit_n)
-        tau_cmd = pc.control([float(x) for x in qd], [float(x) for x in tau_law], loop.dt_s)
-        tau = _saturate(tau_cmd, dev.force_limit_n)
-        pc.applied(tau, [float(x) for x in tau_law])
+        tau = tau_passive(pc, t, DeviceState(t, q, qd), tau_law, loop.dt_s, dev.force_limit_n)
         out[k] = (t - t_release, q[0], qd[0], tau[0], pc.energy_j[0])
-        q, qd = step_dynamics(q, qd, np.array(tau) + hand, loop.dt_s, mass, damping)
+        q, qd = step_dynamics(q, qd, tau + hand, loop.dt_s, mass, damping)
         q, qd = clamp_workspace(q, qd, workspace)
     return LoopRun(out[:, 0], out[:, 1], out[:, 2], out[:, 3], out[:, 4], pc.report())
 
-
-def _saturate(tau: list[float], limit_n: float) -> list[float]:
-    norm = math.sqrt(sum(x * x for x in tau))
-    return [x * limit_n / norm for x in tau] if norm > limit_n else tau

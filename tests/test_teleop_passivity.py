@@ -2,13 +2,17 @@
 
 from __future__ import annotations
 
+import time
 from dataclasses import replace
 
 import numpy as np
 import pytest
 
 from teleop.config import DeviceConfig, ForceConfig, PassivityConfig, TeleopConfig
-from teleop.passivity import PassivityController
+from teleop.devices.base import DeviceState
+from teleop.force import VehicleMotion
+from teleop.force_loop import ForceSnapshot, MotionInput, run_force_loop
+from teleop.passivity import PassivityController, PassivityReport
 from teleop.passivity_sim import DelayedLoop, simulate_release
 
 EPSILON_J = 1e-3
@@ -64,3 +68,68 @@ def test_passivity_controller_stops_the_delayed_oscillation() -> None:
     assert on.rms_velocity_m_s(3.0) < 0.1 * off.rms_velocity_m_s(3.0)
     assert on.report.dissipated_j > 0.0
     assert abs(on.q_x_m[-1000:]).max() < 0.01               # at rest near the centre at the end
+
+
+class _SineHandle:
+    """A handle moved by a hand much stronger than the force: q = A sin(w t) whatever the force."""
+
+    name, has_force_output, finished = "sine", True, False
+    A, W = 0.02, 2 * np.pi * 2.0
+
+    def __init__(self) -> None:
+        self.t0: float | None = None
+
+    def poll(self, t_s: float) -> DeviceState:
+        self.t0 = t_s if self.t0 is None else self.t0
+        tau = t_s - self.t0
+        return DeviceState(t_s, np.array([self.A * np.sin(self.W * tau), 0.0, 0.0]),
+                           np.array([self.A * self.W * np.cos(self.W * tau), 0.0, 0.0]))
+
+    def set_force(self, force_d_n: np.ndarray) -> None:
+        pass
+
+    def close(self) -> None:
+        pass
+
+
+class _IO:
+    def __init__(self, duration_s: float) -> None:
+        self.last: ForceSnapshot | None = None
+        self.end_s = time.perf_counter() + duration_s
+
+    def motion(self) -> MotionInput:      # a live link, vehicle at rest, no cue (cue_wanted False)
+        return MotionInput(time.perf_counter() - 0.01, VehicleMotion((0.0, 0.0, 0.0), 0.0, 0.0, 0.0), False)
+
+    def publish(self, snapshot: ForceSnapshot) -> None:
+        self.last = snapshot
+
+    def button(self, name: str) -> None:
+        pass
+
+    def record_period(self, t_s: float) -> None:
+        pass
+
+    def stop_requested(self) -> bool:
+        return time.perf_counter() > self.end_s
+
+
+def test_force_loop_publishes_the_port_energy() -> None:
+    # no cue: eq. (15) is -B q' - K_f q, passive; along q = A sin(w t) the observed energy is what B
+    # dissipated (B A^2 w^2 / 2 per second) plus what the spring holds. Link fade made instant.
+    cfg = replace(TeleopConfig(), device=replace(DeviceConfig(), realtime_priority=0),
+                  force=replace(ForceConfig(), fade_time_s=1e-4), passivity=PassivityConfig(enabled=True))
+    device, io = _SineHandle(), _IO(1.0)
+    run_force_loop(device, cfg, io)  # type: ignore[arg-type]
+    assert io.last is not None and io.last.passivity is not None
+    r = io.last.passivity
+    elapsed = io.last.device.t_s - (device.t0 or 0.0)
+    B, Kf, A, W = cfg.force.B_n_s_m[0], cfg.force.K_f_n_m[0], device.A, device.W
+    q_end = A * np.sin(W * elapsed)
+    expected = B * A * A * W * W * (elapsed / 2 + np.sin(2 * W * elapsed) / (4 * W)) + 0.5 * Kf * q_end * q_end
+    assert r.observed_j == pytest.approx(expected, rel=0.03)
+    assert r.min_observed_j >= 0.0 and r.dissipated_j == 0.0   # passive: the controller never acted
+    assert r.input_j - r.output_j == pytest.approx(r.observed_j)
+    # and it crosses the force process's shared memory intact
+    from teleop.force_loop import _STATE_N, _passivity_values
+    assert len(_passivity_values(r)) == 6 and _STATE_N == 27
+    assert PassivityReport(*_passivity_values(r)) == r
