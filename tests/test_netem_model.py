@@ -32,6 +32,21 @@ def test_delay_mean_and_jitter_match_the_configuration() -> None:
     assert 150.0 <= np.mean(d_ms) < 151.0 and 8.5 < np.std(d_ms) < 10.0
 
 
+def test_correlated_jitter_keeps_mean_and_spread_on_a_fifo_link() -> None:
+    # 50 Hz, 30 ms jitter: independent draws are clamped by the FIFO (mean up ~10 ms); with a 1 s
+    # correlation time consecutive packets see nearly the same delay and the clamp almost never binds
+    imp = Impairment(delay_ms=150.0, jitter_ms=30.0)
+    t, rel = _run(imp, period_s=0.02)
+    assert np.mean((rel - t) * 1e3) > 157.0
+    t, rel = _run(Impairment(delay_ms=150.0, jitter_ms=30.0, jitter_correlation_s=1.0), period_s=0.02)
+    d_ms = (rel - t) * 1e3
+    assert np.mean(d_ms) == pytest.approx(150.0, abs=5.0)       # 200 s of 1 s-correlated samples
+    assert np.std(d_ms) == pytest.approx(30.0, rel=0.15)
+    assert np.all(np.diff(rel) >= 0)
+    # and the correlation is there: neighbours' delays nearly equal
+    assert np.corrcoef(d_ms[:-1], d_ms[1:])[0, 1] > 0.95
+
+
 def test_jitter_alone_never_reorders_but_reorder_does() -> None:
     # jitter (30 ms) larger than the packet spacing (2 ms): an unordered link would swap most packets
     _, rel = _run(Impairment(delay_ms=100.0, jitter_ms=30.0), period_s=0.002)

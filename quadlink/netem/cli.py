@@ -21,6 +21,8 @@ log = logging.getLogger(__name__)
 @click.option("--to", "to_url", required=True, help="udp:HOST:PORT or tcp:HOST:PORT to forward to.")
 @click.option("--delay-ms", type=float, default=0.0, show_default=True, help="One-way mean delay.")
 @click.option("--jitter-ms", type=float, default=0.0, show_default=True, help="Delay standard deviation (normal).")
+@click.option("--jitter-correlation-s", type=float, default=0.0, show_default=True,
+              help="Correlation time of the jitter (a queue building up); 0 = independent per packet.")
 @click.option("--loss", type=float, default=0.0, show_default=True, help="Drop probability per datagram (UDP).")
 @click.option("--reorder", type=float, default=0.0, show_default=True,
               help="Probability that a datagram is held back --reorder-gap-ms and overtaken (UDP).")
@@ -28,7 +30,8 @@ log = logging.getLogger(__name__)
 @click.option("--rate-kbit", type=float, default=0.0, show_default=True, help="Link rate, kbit/s; 0 = unlimited.")
 @click.option("--seed", type=int, default=None, help="Seed of the impairments (reproducible drops and delays).")
 @click.option("--log-period-s", type=float, default=5.0, show_default=True, help="Forwarding statistics period.")
-def command(listen_url: str, to_url: str, delay_ms: float, jitter_ms: float, loss: float, reorder: float,
+def command(listen_url: str, to_url: str, delay_ms: float, jitter_ms: float, jitter_correlation_s: float,
+            loss: float, reorder: float,
             reorder_gap_ms: float, rate_kbit: float, seed: int | None, log_period_s: float) -> None:
     kind, host, port = parse_endpoint(listen_url)
     to_kind, to_host, to_port = parse_endpoint(to_url)
@@ -36,7 +39,8 @@ def command(listen_url: str, to_url: str, delay_ms: float, jitter_ms: float, los
         raise ConfigError(f"netem: --listen is {kind} but --to is {to_kind}")
     if log_period_s <= 0:
         raise ConfigError("netem: --log-period-s must be > 0")
-    imp = Impairment(delay_ms=delay_ms, jitter_ms=jitter_ms, loss=loss, reorder=reorder,
+    imp = Impairment(delay_ms=delay_ms, jitter_ms=jitter_ms, jitter_correlation_s=jitter_correlation_s,
+                     loss=loss, reorder=reorder,
                      reorder_gap_ms=reorder_gap_ms, rate_kbit_s=rate_kbit)
     proxy: UdpProxy | TcpProxy
     if kind == "udp":

@@ -7,14 +7,18 @@ One direction of a link, in the order a packet meets the impairments:
 2. **rate**: the link serialises ``size_bytes * 8 / rate_kbit_s`` seconds per packet, one packet at a time
    (a FIFO transmit queue; a packet arriving while ``queue_limit`` packets wait is dropped, like a full
    qdisc). ``rate_kbit_s = 0`` is an unlimited link.
-3. **delay and jitter**: propagation delay ``delay_ms + N(0, jitter_ms)``, clipped at 0 (normal jitter,
-   like ``tc netem delay D J distribution normal``).
+3. **delay and jitter**: propagation delay ``delay_ms + x``, clipped at 0, with ``x`` normal of standard
+   deviation ``jitter_ms`` (like ``tc netem delay D J distribution normal``): independent per packet by
+   default, or a Gauss-Markov process of correlation time ``jitter_correlation_s`` (a queue that builds
+   up and drains: consecutive packets see nearly the same delay).
 4. **order**: the link is FIFO: a packet is never released before the one sent just before it, so jitter
    alone never reorders (unlike plain ``tc netem`` with jitter). With probability ``reorder`` a packet
    instead leaves the FIFO and is held ``reorder_gap_ms`` longer, so the packets sent after it overtake
    it: reordering happens only when configured. A FIFO link holds a packet behind an earlier, slower one,
-   so when the jitter is comparable to the packet spacing the delays spread a little less than
-   ``jitter_ms`` and their mean rises a little (50 Hz, 10 ms jitter: 9.4 ms spread, +0.5 ms mean).
+   so when independent jitter is comparable to the packet spacing the delays spread less than
+   ``jitter_ms`` and their mean rises (50 Hz: 10 ms jitter gives 9.4 ms spread and +0.5 ms mean; 30 ms
+   jitter gives about 24 ms and +10 ms). Correlated jitter (``jitter_correlation_s`` of a few times the
+   packet spacing or more) keeps the configured mean and spread.
 
 Times are seconds on the caller's clock; the random generator is injected (``numpy.random.Generator``),
 so a seed reproduces every drop, delay and swap. :class:`DelayLine` is the matching pure scheduler:
@@ -44,15 +48,17 @@ class Impairment:
     loss: float = 0.0              # drop probability per packet, [0, 1)
     reorder: float = 0.0           # probability that a packet is held back and overtaken, [0, 1]
     reorder_gap_ms: float = 25.0   # how much longer a reordered packet is held
+    jitter_correlation_s: float = 0.0  # correlation time of the jitter; 0 = independent per packet
     rate_kbit_s: float = 0.0       # link rate in kbit/s (1000 bit/s); 0 = unlimited
     queue_limit: int = 1000        # packets waiting for the rate-limited link before drops
 
     def __post_init__(self) -> None:
-        values = (self.delay_ms, self.jitter_ms, self.loss, self.reorder, self.reorder_gap_ms, self.rate_kbit_s)
+        values = (self.delay_ms, self.jitter_ms, self.loss, self.reorder, self.reorder_gap_ms, self.rate_kbit_s,
+                  self.jitter_correlation_s)
         if not all(math.isfinite(v) for v in values):
             raise ConfigError("netem: impairment values must be finite")
-        if self.delay_ms < 0 or self.jitter_ms < 0 or self.reorder_gap_ms < 0 or self.rate_kbit_s < 0:
-            raise ConfigError("netem: delay, jitter, reorder gap and rate must be >= 0")
+        if min(self.delay_ms, self.jitter_ms, self.reorder_gap_ms, self.rate_kbit_s, self.jitter_correlation_s) < 0:
+            raise ConfigError("netem: delay, jitter, its correlation time, reorder gap and rate must be >= 0")
         if not 0.0 <= self.loss < 1.0:
             raise ConfigError(f"netem: loss {self.loss} must be in [0, 1)")
         if not 0.0 <= self.reorder <= 1.0:
@@ -100,6 +106,8 @@ class ImpairmentModel:
         self._tx_done_s: list[float] = []      # heap: transmit-done times of queued packets (queue length)
         self._last_fifo_release_s = -math.inf
         self._last_arrival_s = -math.inf
+        self._jitter_s = 0.0                   # the correlated jitter's current value
+        self._jitter_t_s: float | None = None
 
     def submit(self, t_arrival_s: float, size_bytes: int) -> float | None:
         cfg = self.cfg
@@ -123,7 +131,7 @@ class ImpairmentModel:
             heapq.heappush(self._tx_done_s, t_sent)
         delay_s = cfg.delay_ms * 1e-3
         if cfg.jitter_ms > 0:
-            delay_s = max(0.0, delay_s + float(self._rng.normal(0.0, cfg.jitter_ms * 1e-3)))
+            delay_s = max(0.0, delay_s + self._jitter(t_arrival_s))
         candidate = t_sent + delay_s
         if cfg.reorder > 0 and self._rng.random() < cfg.reorder:
             self.stats.reordered += 1
@@ -133,6 +141,20 @@ class ImpairmentModel:
             self._last_fifo_release_s = release
         self.stats.delay_sum_s += release - t_arrival_s
         return release
+
+
+    def _jitter(self, t_s: float) -> float:
+        sigma_s = self.cfg.jitter_ms * 1e-3
+        tau_s = self.cfg.jitter_correlation_s
+        if tau_s <= 0.0:
+            return float(self._rng.normal(0.0, sigma_s))
+        if self._jitter_t_s is None:                       # start in the stationary distribution
+            self._jitter_s = float(self._rng.normal(0.0, sigma_s))
+        else:                                              # exact Gauss-Markov (OU) step over the gap
+            rho = math.exp(-(t_s - self._jitter_t_s) / tau_s)
+            self._jitter_s = rho * self._jitter_s + math.sqrt(1.0 - rho * rho) * float(self._rng.normal(0.0, sigma_s))
+        self._jitter_t_s = t_s
+        return self._jitter_s
 
 
 class DelayLine(Generic[T]):
