@@ -62,7 +62,7 @@ class PassivityConfig:
     """
 
     enabled: bool = False
-    max_damping_n_s_m: float = 150.0     # bound on alpha (a sampled damper needs alpha T / M < 2: 500 at 1 kHz, 0.25 kg)
+    max_damping_n_s_m: float = 150.0     # bound on alpha (sampled damper: alpha T / M < 2, 500 at 1 kHz, 0.25 kg)
     max_force_n: float = 6.0             # bound on the controller's force per axis
     min_speed_m_s: float = 0.002         # no damping below this speed (alpha would be unbounded)
     energy_cap_j: float = 0.0            # cap on each axis' stored credit (energy tank ceiling); 0 = none
