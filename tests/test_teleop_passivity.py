@@ -133,3 +133,17 @@ def test_force_loop_publishes_the_port_energy() -> None:
     from teleop.force_loop import _STATE_N, _passivity_values
     assert len(_passivity_values(r)) == 6 and _STATE_N == 27
     assert PassivityReport(*_passivity_values(r)) == r
+
+
+def test_passivity_config_loads_and_validates(tmp_path) -> None:
+    from quadlink.errors import ConfigError
+    from teleop.config import load_teleop_config
+
+    path = tmp_path / "teleop.yaml"
+    path.write_text("passivity:\n  enabled: true\n  energy_cap_j: 0.005\n")
+    assert load_teleop_config(path).passivity == PassivityConfig(enabled=True, energy_cap_j=0.005)
+    path.write_text("passivity:\n  enabled: true\n  bogus: 1\n")
+    with pytest.raises(ConfigError, match="passivity.bogus"):
+        load_teleop_config(path)
+    with pytest.raises(ValueError):
+        PassivityConfig(max_force_n=0.0)
