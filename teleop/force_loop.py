@@ -142,12 +142,14 @@ def run_force_loop(device: HapticDevice, cfg: TeleopConfig, io: ForceLoopIO,
 def tau_passive(pc: PassivityController, t_s: float, state: DeviceState, tau_law_n: NDArray[np.float64],
                 period_s: float, force_limit_n: float) -> NDArray[np.float64]:
     """One tick of the passivity observer/controller around eq. (15)'s force; returns the force to apply."""
-    q = [float(v) for v in state.q_m]
-    pc.observe(t_s, q)
-    law = [float(v) for v in tau_law_n]
-    cmd = pc.control([float(v) for v in state.qdot_m_s], law, period_s)
-    tau = tau_law_n if cmd == law else saturate(np.array(cmd), force_limit_n)
-    pc.applied([float(v) for v in tau], law)
+    pc.observe(t_s, state.q_m.tolist())          # tolist: plain floats, the cheapest way at 1 kHz
+    law = tau_law_n.tolist()
+    cmd = pc.control(state.qdot_m_s.tolist(), law, period_s)
+    if cmd == law:                                 # the controller did not act (the usual case)
+        pc.applied(law, law)
+        return tau_law_n
+    tau = saturate(np.array(cmd), force_limit_n)
+    pc.applied(tau.tolist(), law)
     return tau
 
 

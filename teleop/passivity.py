@@ -73,7 +73,10 @@ class PassivityController:
         self._t_prev: float | None = None
 
     def observe(self, t_s: float, q_m: list[float]) -> None:
-        """Account the work of the period that ended at ``t_s`` (the force of the last ``applied``)."""
+        """Account the work of the period that ended at ``t_s`` (the force of the last ``applied``).
+
+        The lists given here and to ``applied`` are kept, not copied (1 kHz): pass fresh ones.
+        """
         if self._q_prev is not None:
             cap = self.cfg.energy_cap_j
             for i in range(3):
@@ -87,7 +90,7 @@ class PassivityController:
                 e = self.energy_j[i] + work_in
                 self.energy_j[i] = min(e, cap) if cap > 0.0 else e
                 self.min_energy_j = min(self.min_energy_j, self.energy_j[i])
-        self._q_prev = list(q_m)
+        self._q_prev = q_m
         self._t_prev = t_s
 
     def control(self, qdot_m_s: list[float], tau_n: list[float], period_s: float) -> list[float]:
@@ -113,7 +116,7 @@ class PassivityController:
         The controller's share is the difference, so a saturation that cut the damping is counted as
         such (it dissipated less than planned; the deficit stays in the observed energy).
         """
-        self._tau_prev = list(tau_applied_n)
+        self._tau_prev = tau_applied_n
         self._pc_prev = [a - b for a, b in zip(tau_applied_n, tau_law_n)]
 
     def report(self) -> PassivityReport:
