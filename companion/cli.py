@@ -52,7 +52,8 @@ def command(config_path: str, autopilot: str | None, gcs: str | None, camera: st
     from companion.cameras import open_camera
     from companion.config import load_companion_config
     from companion.daemon import Companion, default_pipeline_factory
-    from quadlink.camera import CameraStreamServer, FrameRecordWriter
+    from companion.image_publisher import OperatorImagePublisher
+    from quadlink.camera import FrameRecordWriter
     from quadlink.errors import LinkError
     from quadlink.mavlink.connection import open_mavlink
     from quadlink.mavlink.tlog import TlogWriter
@@ -77,7 +78,7 @@ def command(config_path: str, autopilot: str | None, gcs: str | None, camera: st
         cam = open_camera(links.camera, R_qc=vehicle.camera.R_qc_matrix, p_qc_m=vehicle.camera.p_qc)
         opened.append(cam)
         try:
-            images = CameraStreamServer(links.image_host, links.image_port) if links.image_port else None
+            images = OperatorImagePublisher(links.image_host, links.image_port) if links.image_port else None
         except OSError as exc:
             raise LinkError(f"operator image stream tcp://{links.image_host}:{links.image_port}: {exc}") from exc
         tlog = TlogWriter(tlog_path) if tlog_path else None

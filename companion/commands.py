@@ -13,11 +13,7 @@ from dataclasses import dataclass, field
 
 from companion.modes import AutopilotRequest
 from quadlink.mavlink import mavlink
-
-PX4_CUSTOM_MAIN_MODE_OFFBOARD = 6  # PX4 custom_mode = main_mode << 16 | sub_mode << 24
-PX4_CUSTOM_MAIN_MODE_AUTO = 4
-PX4_CUSTOM_SUB_MODE_AUTO_TAKEOFF = 2
-PX4_CUSTOM_SUB_MODE_AUTO_LAND = 6
+from quadlink.px4_modes import Px4MainMode
 
 
 @dataclass(frozen=True)
@@ -41,7 +37,7 @@ def command_for(request: AutopilotRequest) -> CommandLong:
         return CommandLong(mavlink.MAV_CMD_NAV_LAND, (0, 0, 0, nan, nan, nan, nan))
     if request.name == "offboard":
         return CommandLong(mavlink.MAV_CMD_DO_SET_MODE,
-                           (float(mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED), float(PX4_CUSTOM_MAIN_MODE_OFFBOARD),
+                           (float(mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED), float(Px4MainMode.OFFBOARD),
                             0, 0, 0, 0, 0))
     raise ValueError(f"unknown autopilot request {request.name!r}")
 

@@ -57,7 +57,7 @@ class PanScanConfig:
 
     ``response``: 'model' computes A'_omega, phi_omega from the first-order yaw model
     (yaw_time_constant_s, yaw_delay_s); 'fixed' uses gain and phase_rad as given (e.g. identified from
-    a logged flight with ``companion.identification.identify_from_log``).
+    a logged flight with ``quadlink.analysis.yaw_identification.identify_from_log``).
     """
 
     enabled: bool = True
@@ -99,7 +99,7 @@ def load_companion_config(path: str | Path = "companion") -> CompanionConfig:
 
 def pan_scan_params(cfg: PanScanConfig) -> PanScanParams:
     """The pan-scan parameters with the closed-loop response (eq. 5) from the model or as given."""
-    from companion.identification import identify_first_order
+    from quadlink.analysis.yaw_identification import identify_first_order
 
     gain, phase = cfg.gain, cfg.phase_rad
     if cfg.response == "model" and cfg.omega_rad_s > 0:

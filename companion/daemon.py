@@ -1,25 +1,27 @@
-"""The companion daemon: camera + autopilot + ground station -> perception -> reference -> setpoints.
+"""The companion daemon's lifecycle and its one loop: links in, the pure parts in between, links out.
 
 Concurrency model: **one thread, one loop** (:meth:`Companion.step`). Each iteration drains the two
 MAVLink endpoints (non-blocking UDP/serial reads), waits up to ``timing.poll_s`` for a camera frame,
 processes it, and runs the periodic tasks (modes, command retries, heartbeats, TIMESYNC, fallback
 setpoints). Every wait is bounded; :meth:`Companion.close` releases everything. The only other threads
-are those inside :class:`quadlink.camera.CameraStreamServer` (accepting operator-view clients).
+are the operator image publisher's (:mod:`companion.image_publisher`: the loop hands frames over
+without ever waiting on a viewer).
+
+The parts it wires (each pure, each tested on its own):
+
+* :mod:`companion.router` — which message goes where;
+* :mod:`companion.frame_step` — perception output + operator input + mode -> setpoint and feedback;
+* :mod:`companion.scheduler` — the periodic deadlines;
+* :mod:`companion.params` — the PARAM_* service for compid 191;
+* :mod:`companion.modes`, :mod:`companion.commands` — the mode machine and the acked autopilot commands.
 
 Clocks: the camera stamps (SITL: simulated time, = the autopilot's board time) stamp everything that
 describes the vehicle (setpoints, odometry, feedback); the injected ``clock`` (monotonic wall time)
 times the links (ground-station loss, camera silence, command acks), which are wall-time phenomena.
-
-Routing (like mavlink-router on a companion computer): everything from the autopilot goes to the
-ground-station endpoint except what is addressed to this component; everything from a ground station
-addressed to the autopilot's system (or broadcast) goes to the autopilot, except MANUAL_CONTROL (the
-companion consumes it: it is the operator's command to the companion) and what is addressed to this
-component (COMMAND_LONG, PARAM_* for compid 191). Broadcast parameter requests are answered by both.
 """
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 import math
 import threading
@@ -33,31 +35,34 @@ from numpy.typing import NDArray
 
 from companion import messages as msgs
 from companion.cameras import CameraInput
-from companion.commands import (
-    PX4_CUSTOM_MAIN_MODE_AUTO,
-    PX4_CUSTOM_SUB_MODE_AUTO_LAND,
-    PX4_CUSTOM_SUB_MODE_AUTO_TAKEOFF,
-    CommandQueue,
+from companion.commands import CommandQueue
+from companion.config import CompanionConfig
+from companion.frame_step import (
+    NO_SCAN,
+    FrameStep,
+    fallback_step,
+    feedback_message,
+    frame_step,
+    operator_image_meta,
+    setpoint_velocity,
 )
-from companion.config import CompanionConfig, pan_scan_params
 from companion.link_reader import CodecReader
 from companion.modes import AutopilotRequest, Mode, ModeMachine, StatusText, VehicleStatus
 from companion.pan_scan import PanScanParams, PanScanState, pan_scan
-from companion.reference import (
-    OperatorInput,
-    ReferenceOutput,
-    ReferenceParams,
-    camera_yaw_rad,
-    nearest_obstacle,
-    operator_from_manual_control,
-    reference_velocity,
-)
+from companion.params import PARAM_NAMES, CompanionParams, handle_param_message, param_value_message, set_by_index
+from companion.reference import OperatorInput, ReferenceOutput, ReferenceParams, operator_from_manual_control
+from companion.router import route_from_autopilot, route_from_gcs
+from companion.scheduler import Deadlines, StampTicker
 from companion.timesync import TimeSync
 from quadlink.camera import RgbdFrame
 from quadlink.errors import QuadlinkError
 from quadlink.mavlink import mavlink
+from quadlink.operator_image import OperatorImageMeta
+from quadlink.px4_modes import Px4AutoSubMode, Px4MainMode, decode_custom_mode
 
 log = logging.getLogger(__name__)
+
+__all__ = ["PARAM_NAMES", "Companion", "ImageSink", "MavLink", "Pipeline", "Stats", "default_pipeline_factory"]
 
 
 class MavLink(Protocol):
@@ -78,13 +83,24 @@ class Pipeline(Protocol):
     def on_frame(self, frame: RgbdFrame) -> Any: ...
 
 
+class ImageSink(Protocol):
+    """Where operator images go (:class:`companion.image_publisher.OperatorImagePublisher`): ``publish``
+    must never block."""
+
+    @property
+    def client_count(self) -> int: ...
+
+    def publish(self, frame: RgbdFrame, meta: OperatorImageMeta) -> None: ...
+
+    def close(self) -> None: ...
+
+
 PipelineFactory = Callable[[RgbdFrame], Pipeline]
 
-# Companion parameters (PARAM_* to compid 191; also MAV_CMD_DO_SET_PARAMETER param1 = index).
-PARAM_NAMES = ("PANSCAN_EN", "PANSCAN_AMP", "PANSCAN_OMEGA", "CMP_K_V", "CMP_K_PSI", "CMP_SAFE_DIST")
 MAX_ROUTED_PER_STEP = 2000
-MAX_IMAGE_POINTS = 400
 PROGRESS_EVERY_S = 5.0
+IMU_SILENT_S = 0.1          # no HIGHRES_IMU for this long: feedback paced on wall time instead
+IMU_LAG_LIMIT = 30          # consecutive IMU-wait timeouts after which the daemon stops waiting
 
 
 @dataclass
@@ -114,17 +130,16 @@ class _Vehicle:
     heartbeat_wall_s: float | None = None
 
     def status(self) -> VehicleStatus:
-        main = (self.custom_mode >> 16) & 0xFF
-        sub = (self.custom_mode >> 24) & 0xFF
+        px4 = decode_custom_mode(self.custom_mode)
+        auto = px4.main == Px4MainMode.AUTO
         if self.landed_state is not None and self.landed_state != mavlink.MAV_LANDED_STATE_UNDEFINED:
             in_air = self.landed_state in (mavlink.MAV_LANDED_STATE_IN_AIR, mavlink.MAV_LANDED_STATE_TAKEOFF,
                                            mavlink.MAV_LANDED_STATE_LANDING)
         else:
             in_air = self.armed
         taking_off = (self.landed_state == mavlink.MAV_LANDED_STATE_TAKEOFF
-                      or (main == PX4_CUSTOM_MAIN_MODE_AUTO and sub == PX4_CUSTOM_SUB_MODE_AUTO_TAKEOFF))
-        landing = (self.landed_state == mavlink.MAV_LANDED_STATE_LANDING
-                   or (main == PX4_CUSTOM_MAIN_MODE_AUTO and sub == PX4_CUSTOM_SUB_MODE_AUTO_LAND))
+                      or (auto and px4.sub == Px4AutoSubMode.TAKEOFF))
+        landing = self.landed_state == mavlink.MAV_LANDED_STATE_LANDING or (auto and px4.sub == Px4AutoSubMode.LAND)
         return VehicleStatus(self.armed, in_air, taking_off, landing, self.landed_state is not None)
 
 
@@ -149,7 +164,7 @@ class Companion:
     """The daemon's state and its single loop. Links are injected (tests use ephemeral UDP ports)."""
 
     def __init__(self, cfg: CompanionConfig, autopilot: MavLink, gcs: MavLink, camera: CameraInput,
-                 pipeline_factory: PipelineFactory, image_server: Any | None = None, tlog: Any | None = None,
+                 pipeline_factory: PipelineFactory, image_server: ImageSink | None = None, tlog: Any | None = None,
                  clock: Callable[[], float] = time.monotonic, wall: Callable[[], float] = time.time,
                  frame_recorder: Any | None = None) -> None:
         self.cfg = cfg
@@ -168,8 +183,7 @@ class Companion:
         self.ap_compid = ident.autopilot_component_id
         self._codec = mavlink.MAVLink(None, self.sysid, self.compid)
         self._codec.robust_parsing = True
-        self.ref_params: ReferenceParams = cfg.reference
-        self.scan_params: PanScanParams = pan_scan_params(cfg.pan_scan)
+        self.params = CompanionParams(cfg.pan_scan, cfg.reference)
         self.modes = ModeMachine(cfg.modes)
         self.commands = CommandQueue()
         self.timesync = TimeSync()
@@ -189,26 +203,42 @@ class Companion:
         self._gyro_q = np.zeros(3)
         self._nearest: tuple[NDArray[np.float64], float] | None = None   # nearest obstacle (vector in H, m)
         self._imu_wait_misses = 0
-        self._next_feedback_s = 0.0
-        self._next_feedback_wall_s = 0.0
-        self._next_heartbeat_wall_s = 0.0
-        self._next_timesync_wall_s = 0.0
-        self._next_fallback_wall_s = 0.0
-        self._next_progress_wall_s = clock() + PROGRESS_EVERY_S
+        self._feedback_ticker = StampTicker(1.0 / cfg.timing.feedback_rate_hz)
+        self.deadlines = Deadlines()
+        self.deadlines.arm("progress", clock() + PROGRESS_EVERY_S)
         self._progress_frames = 0
         self._start_wall_s = clock()
         self._R_qc = np.eye(3)
 
-    # ------------------------------------------------------------------ sending
-    def _pack(self, msg: Any) -> bytes:
-        return bytes(msg.pack(self._codec))
+    # ------------------------------------------------------------------ parameters (companion.params)
+    @property
+    def scan_params(self) -> PanScanParams:
+        return self.params.scan
 
+    @property
+    def ref_params(self) -> ReferenceParams:
+        return self.params.reference
+
+    def param_values(self) -> dict[str, float]:
+        return self.params.values()
+
+    def set_param(self, name: str, value: float) -> bool:
+        old = self.params.values().get(name)
+        if not self.params.set(name, value):
+            return False
+        self._param_changed(name, old)
+        return True
+
+    def _param_changed(self, name: str, old: float | None) -> None:
+        self._status_text(StatusText(6, f"companion: {name} {old:g} -> {self.params.values()[name]:g}"))
+
+    # ------------------------------------------------------------------ sending
     def _log_packet(self, buf: bytes) -> None:
         if self.tlog is not None:
             self.tlog.write(buf, self.wall())
 
     def _send(self, link: MavLink, msg: Any) -> None:
-        buf = self._pack(msg)
+        buf = bytes(msg.pack(self._codec))
         try:
             link.write(buf)
         except OSError as exc:  # a link hiccup must never stop the loop
@@ -221,8 +251,16 @@ class Companion:
     def send_gcs(self, msg: Any) -> None:
         self._send(self.gcs, msg)
 
+    def _forward(self, link: MavLink, msg: Any) -> bool:
+        try:
+            link.write(msg.get_msgbuf())
+            return True
+        except OSError as exc:
+            log.debug("routing %s failed: %s", msg.get_type(), exc)
+            return False
+
     def _status_text(self, st: StatusText) -> None:
-        level = logging.WARNING if st.severity <= 4 else logging.INFO
+        level = logging.WARNING if st.severity <= mavlink.MAV_SEVERITY_WARNING else logging.INFO
         log.log(level, "%s", st.text)
         self.send_gcs(mavlink.MAVLink_statustext_message(st.severity, st.text.encode()[:50]))
 
@@ -276,13 +314,13 @@ class Companion:
         extrapolates the last few ms).
         """
         t = self.cfg.timing
-        if self._imu_stamp_s is None or stamp_s - self._imu_stamp_s > 0.2 or self._imu_wait_misses >= 30:
+        if self._imu_stamp_s is None or stamp_s - self._imu_stamp_s > 0.2 or self._imu_wait_misses >= IMU_LAG_LIMIT:
             return
         deadline = self.clock() + t.imu_wait_s
         while self._imu_stamp_s < stamp_s - t.imu_slack_s:
             if self.clock() >= deadline:
                 self._imu_wait_misses += 1
-                if self._imu_wait_misses == 30:
+                if self._imu_wait_misses == IMU_LAG_LIMIT:
                     log.info("IMU lags the camera frames by more than %.0f ms: not waiting for it any more",
                              t.imu_slack_s * 1e3)
                 return
@@ -294,28 +332,25 @@ class Companion:
     def _on_autopilot(self, msg: Any) -> None:
         self._log_packet(msg.get_msgbuf())
         kind = msg.get_type()
-        to_me = getattr(msg, "target_component", None) == self.compid
-        if kind == "HIGHRES_IMU":
-            self._on_imu(msg)
-        elif kind == "HEARTBEAT":
-            if msg.autopilot != mavlink.MAV_AUTOPILOT_INVALID and msg.type != mavlink.MAV_TYPE_GCS:
-                self._on_autopilot_heartbeat(msg)
-        elif kind == "EXTENDED_SYS_STATE":
-            self.vehicle.landed_state = msg.landed_state
-        elif kind == "COMMAND_ACK" and (to_me or getattr(msg, "target_component", 0) == 0):
-            done, failed = self.commands.on_ack(msg.command, msg.result, self.clock())
-            if done is not None:
-                log.info("autopilot accepted %s", done.name)
-            for req, why in failed:
-                self._actions(self.modes.on_request_failed(req, self.clock(), why))
-        elif kind == "TIMESYNC":
-            self._on_timesync(msg)
-        if not to_me:
-            try:
-                self.gcs.write(msg.get_msgbuf())
-                self.stats.routed_to_gcs += 1
-            except OSError as exc:
-                log.debug("routing to GCS failed: %s", exc)
+        route = route_from_autopilot(kind, getattr(msg, "target_component", None), self.compid)
+        if route.consume:
+            if kind == "HIGHRES_IMU":
+                self._on_imu(msg)
+            elif kind == "HEARTBEAT":
+                if msg.autopilot != mavlink.MAV_AUTOPILOT_INVALID and msg.type != mavlink.MAV_TYPE_GCS:
+                    self._on_autopilot_heartbeat(msg)
+            elif kind == "EXTENDED_SYS_STATE":
+                self.vehicle.landed_state = msg.landed_state
+            elif kind == "COMMAND_ACK":
+                done, failed = self.commands.on_ack(msg.command, msg.result, self.clock())
+                if done is not None:
+                    log.info("autopilot accepted %s", done.name)
+                for req, why in failed:
+                    self._actions(self.modes.on_request_failed(req, self.clock(), why))
+            elif kind == "TIMESYNC":
+                self._on_timesync(msg)
+        if route.forward and self._forward(self.gcs, msg):
+            self.stats.routed_to_gcs += 1
 
     def _on_autopilot_heartbeat(self, msg: Any) -> None:
         src = msg.get_srcSystem()
@@ -345,10 +380,8 @@ class Companion:
             except (ValueError, ArithmeticError, QuadlinkError) as exc:
                 self.stats.pipeline_errors += 1
                 log.warning("perception rejected an IMU sample: %s", exc)
-        period = 1.0 / self.cfg.timing.feedback_rate_hz
-        if stamp >= self._next_feedback_s or stamp < self._next_feedback_s - 1.0:  # (a restart rewinds time)
+        if self._feedback_ticker.due(stamp):
             self._send_feedback(stamp)
-            self._next_feedback_s = (math.floor(stamp / period) + 1) * period
 
     def _on_timesync(self, msg: Any) -> None:
         now_ns = int(self.clock() * 1e9)
@@ -362,46 +395,32 @@ class Companion:
     def _on_gcs(self, msg: Any) -> None:
         self._log_packet(msg.get_msgbuf())
         kind = msg.get_type()
-        if kind == "MANUAL_CONTROL":
-            if msg.target in (0, self.sysid):
+        target_system = msg.target if kind == "MANUAL_CONTROL" else getattr(msg, "target_system", None)
+        route = route_from_gcs(kind, target_system, getattr(msg, "target_component", None), self.sysid,
+                               self.compid)
+        if route.consume:
+            if kind == "MANUAL_CONTROL":
                 self._on_manual_control(msg)
-            return
-        tsys = getattr(msg, "target_system", None)
-        tcomp = getattr(msg, "target_component", None)
-        if tsys not in (None, 0, self.sysid):
-            return  # another system: nothing behind this companion has it
-        if tcomp == self.compid:
-            self._handle_local(msg)
-            return
-        if tcomp in (None, 0) and kind in ("PARAM_REQUEST_LIST", "PARAM_REQUEST_READ", "PARAM_SET"):
-            self._handle_local(msg)  # broadcast: answer for this component too
-        try:
-            self.autopilot.write(msg.get_msgbuf())
+            elif kind == "COMMAND_LONG":
+                self._on_gcs_command(msg)
+            else:
+                before = self.params.values()
+                replies, changed = handle_param_message(self.params, msg)
+                if changed is not None:
+                    self._param_changed(changed, before[changed])
+                for reply in replies:
+                    self.send_gcs(reply)
+        if route.forward and self._forward(self.autopilot, msg):
             self.stats.routed_to_autopilot += 1
-        except OSError as exc:
-            log.debug("routing to autopilot failed: %s", exc)
 
     def _on_manual_control(self, msg: Any) -> None:
         self.op = operator_from_manual_control(msg.x, msg.y, msg.z, self.ref_params.deadband)
         self.modes.on_manual_control(self.clock())
         self.stats.manual_controls += 1
 
-    def _handle_local(self, msg: Any) -> None:
-        kind = msg.get_type()
-        if kind == "COMMAND_LONG":
-            self._on_gcs_command(msg)
-        elif kind == "PARAM_REQUEST_LIST":
-            for i in range(len(PARAM_NAMES)):
-                self._send_param(i)
-        elif kind == "PARAM_REQUEST_READ":
-            name = msg.param_id.rstrip("\x00") if isinstance(msg.param_id, str) else ""
-            index = PARAM_NAMES.index(name) if name in PARAM_NAMES else msg.param_index
-            if 0 <= index < len(PARAM_NAMES):
-                self._send_param(index)
-        elif kind == "PARAM_SET":
-            name = msg.param_id.rstrip("\x00") if isinstance(msg.param_id, str) else ""
-            if name in PARAM_NAMES and self.set_param(name, msg.param_value):
-                self._send_param(PARAM_NAMES.index(name))
+    def _camera_fresh(self) -> bool:
+        return self.last_frame_wall_s is not None and \
+            self.clock() - self.last_frame_wall_s <= self.cfg.timing.camera_timeout_s
 
     def _on_gcs_command(self, msg: Any) -> None:
         cmd = msg.command
@@ -409,10 +428,9 @@ class Companion:
         name = {mavlink.MAV_CMD_NAV_TAKEOFF: "takeoff", mavlink.MAV_CMD_NAV_LAND: "land"}.get(cmd)
         if cmd == mavlink.MAV_CMD_COMPONENT_ARM_DISARM:
             name = "arm" if msg.param1 >= 0.5 else "disarm"
-        camera_fresh = self.last_frame_wall_s is not None and \
-            self.clock() - self.last_frame_wall_s <= self.cfg.timing.camera_timeout_s
-        if name == "takeoff" and not camera_fresh:
-            self._status_text(StatusText(4, "companion: takeoff refused: no camera frames (perception not running)"))
+        if name == "takeoff" and not self._camera_fresh():
+            self._status_text(StatusText(mavlink.MAV_SEVERITY_WARNING,
+                                         "companion: takeoff refused: no camera frames (perception not running)"))
             result = mavlink.MAV_RESULT_TEMPORARILY_REJECTED
         elif name is not None:
             ok, actions = self.modes.request(name, self.clock(), self.vehicle.status())
@@ -420,70 +438,37 @@ class Companion:
             result = mavlink.MAV_RESULT_ACCEPTED if ok else mavlink.MAV_RESULT_TEMPORARILY_REJECTED
         elif cmd == mavlink.MAV_CMD_DO_SET_PARAMETER:
             index = int(round(msg.param1))
-            ok = 0 <= index < len(PARAM_NAMES) and self.set_param(PARAM_NAMES[index], msg.param2)
-            result = mavlink.MAV_RESULT_ACCEPTED if ok else mavlink.MAV_RESULT_DENIED
-            if ok:
-                self._send_param(index)
+            old = self.params.values().get(PARAM_NAMES[index]) if 0 <= index < len(PARAM_NAMES) else None
+            changed = set_by_index(self.params, index, msg.param2)
+            result = mavlink.MAV_RESULT_ACCEPTED if changed else mavlink.MAV_RESULT_DENIED
+            if changed:
+                self._param_changed(changed, old)
+                self.send_gcs(param_value_message(self.params, index))
         self.send_gcs(mavlink.MAVLink_command_ack_message(cmd, result, 0, 0, msg.get_srcSystem(),
                                                           msg.get_srcComponent()))
-
-    def param_values(self) -> dict[str, float]:
-        s, r = self.scan_params, self.ref_params
-        return {"PANSCAN_EN": 1.0 if s.enabled else 0.0, "PANSCAN_AMP": s.amplitude_rad_s,
-                "PANSCAN_OMEGA": s.omega_rad_s,
-                "CMP_K_V": r.k_v_m_s, "CMP_K_PSI": r.k_psi_rad_s, "CMP_SAFE_DIST": r.safe_distance_m}
-
-    def set_param(self, name: str, value: float) -> bool:
-        if not math.isfinite(value):
-            return False
-        old = self.param_values()[name]
-        if name == "PANSCAN_EN":
-            self.scan_params = dataclasses.replace(self.scan_params, enabled=value >= 0.5)
-        elif name in ("PANSCAN_AMP", "PANSCAN_OMEGA"):
-            if value < 0 or (name == "PANSCAN_OMEGA" and value == 0):
-                return False
-            amp = value if name == "PANSCAN_AMP" else self.scan_params.amplitude_rad_s
-            omega = value if name == "PANSCAN_OMEGA" else self.scan_params.omega_rad_s
-            cfg = dataclasses.replace(self.cfg.pan_scan, enabled=self.scan_params.enabled, amplitude_rad_s=amp,
-                                      omega_rad_s=omega)
-            self.scan_params = pan_scan_params(cfg)  # the response depends on omega
-        elif name in ("CMP_K_V", "CMP_K_PSI", "CMP_SAFE_DIST"):
-            if value < 0:
-                return False
-            r = self.ref_params
-            if name == "CMP_K_V":
-                self.ref_params = dataclasses.replace(r, k_v_m_s=float(value))
-            elif name == "CMP_K_PSI":
-                self.ref_params = dataclasses.replace(r, k_psi_rad_s=float(value))
-            else:
-                self.ref_params = dataclasses.replace(r, safe_distance_m=float(value))
-        self._status_text(StatusText(6, f"companion: {name} {old:g} -> {self.param_values()[name]:g}"))
-        return True
-
-    def _send_param(self, index: int) -> None:
-        name = PARAM_NAMES[index]
-        self.send_gcs(mavlink.MAVLink_param_value_message(name.encode(), float(self.param_values()[name]),
-                                                          mavlink.MAV_PARAM_TYPE_REAL32, len(PARAM_NAMES), index))
 
     # ------------------------------------------------------------------ the pipeline at camera rate
     def _scan_state(self, stamp_s: float) -> PanScanState:
         if self.modes.mode != Mode.TELEOP or self._scan_t0_s is None:
-            return PanScanState(0.0, 0.0, False)
+            return NO_SCAN
         return pan_scan(self.scan_params, stamp_s - self._scan_t0_s)
+
+    def _perceive(self, frame: RgbdFrame) -> Any | None:
+        if self._pipeline is None:
+            self._pipeline = self._pipeline_factory(frame)
+            log.info("perception started on %dx%d frames", frame.intrinsics.width, frame.intrinsics.height)
+        try:
+            return self._pipeline.on_frame(frame)
+        except (ValueError, ArithmeticError, np.linalg.LinAlgError, QuadlinkError) as exc:
+            self.stats.pipeline_errors += 1
+            log.warning("perception failed on frame %d: %s", frame.seq, exc)
+            return None
 
     def _process_frame(self, frame: RgbdFrame) -> None:
         t_in = self.clock()
         self.stats.frames += 1
         self._R_qc = np.asarray(frame.R_qc, dtype=float)
-        if self._pipeline is None:
-            self._pipeline = self._pipeline_factory(frame)
-            log.info("perception started on %dx%d frames", frame.intrinsics.width, frame.intrinsics.height)
-        try:
-            out = self._pipeline.on_frame(frame)
-        except (ValueError, ArithmeticError, np.linalg.LinAlgError, QuadlinkError) as exc:
-            self.stats.pipeline_errors += 1
-            log.warning("perception failed on frame %d: %s", frame.seq, exc)
-            out = None
+        out = self._perceive(frame)
         ok = out is not None and bool(out.odometry_ok)
         if ok and not self.odometry_ok and self.stats.frames > 1:
             self._reset_counter += 1  # estimate restarted after a failure: tell the autopilot
@@ -496,23 +481,18 @@ class Companion:
         if out is not None:
             self.last_output = out
             self.stats.perception_s.append(float(out.processing_time_s))
-        points = None if out is None else out.obstacle_points_h_m
-        self._nearest = nearest_obstacle(points, self.ref_params)   # for TELEOP_FEEDBACK at 50 Hz
-        sectors, _, offset_deg = msgs.sector_arrays(None if out is None else out.sectors)
-        block = out is None or not self.cfg.obstacles.allow_unknown_when_fresh
-        ref = reference_velocity(self.op, self._R_qc, self._scan_state(stamp), points, self.ref_params,
-                                 sectors_m=sectors, block_unknown=block,
-                                 operator_enabled=self.modes.operator_enabled,
-                                 sector_offset_rad=math.radians(offset_deg), height_m=self._height_m(out))
-        self.last_ref = ref
-        self._send_setpoint(stamp, ref)
+        step: FrameStep = frame_step(out, self.op, self._R_qc, self._scan_state(stamp), self.ref_params,
+                                     self.modes.operator_enabled, self.cfg.obstacles.allow_unknown_when_fresh)
+        self._nearest = step.nearest   # for TELEOP_FEEDBACK at 50 Hz
+        self.last_ref = step.ref
+        self._send_setpoint(stamp, step.ref)
         self.stats.latencies_s.append(self.clock() - t_in)
         if out is not None:
             self._send_odometry(stamp, out)
         self.camera.ack(frame.seq)
         if out is not None:
             self._send_gcs_telemetry(stamp, out)
-            self._publish_image(frame, out, ref)
+            self._publish_image(frame, out, step.ref)
         if self.frame_recorder is not None:
             self._record_frame(frame)
 
@@ -523,14 +503,6 @@ class Companion:
             log.error("frame recording stopped: %s", exc)
             self.frame_recorder = None
 
-    @staticmethod
-    def _height_m(out: Any) -> float | None:
-        """Height above the take-off floor from the odometry (its world starts on the ground, NED)."""
-        if out is None or not out.odometry_ok or out.position_m is None:
-            return None
-        z = float(np.asarray(out.position_m, dtype=float)[2])
-        return -z if math.isfinite(z) else None
-
     def _stamp_to_autopilot(self, stamp_s: float) -> float:
         if self.cfg.timing.camera_stamps == "local":
             remote = self.timesync.to_remote_s(stamp_s)
@@ -538,8 +510,7 @@ class Companion:
         return stamp_s
 
     def _send_setpoint(self, stamp_s: float, ref: ReferenceOutput) -> None:
-        # Outside TELEOP/HOLD the autopilot flies its own mode; the stream (zero) only keeps offboard ready.
-        v, yaw_rate = (ref.v_ref_h_m_s, ref.yaw_rate_ref_rad_s) if self.modes.in_control else (np.zeros(3), 0.0)
+        v, yaw_rate = setpoint_velocity(ref, self.modes.in_control)
         self.send_autopilot(msgs.setpoint_message(stamp_s, self.sysid, self.ap_compid, v, yaw_rate))
         self.stats.setpoints += 1
 
@@ -557,50 +528,20 @@ class Companion:
         self.send_gcs(msgs.obstacle_distance_message(stamp_s, out.sectors, ob.min_distance_cm, ob.max_distance_cm))
 
     def _send_feedback(self, stamp_s: float) -> None:
-        out, ref = self.last_output, self.last_ref
-        zero = np.zeros(3)
-        v_est = zero if out is None else np.asarray(out.v_h_m_s, dtype=float)
-        roll = 0.0 if out is None else out.roll_rad
-        pitch = 0.0 if out is None else out.pitch_rad
-        scan = self._scan_state(stamp_s)
-        yaw_cmd = (0.0 if ref is None else ref.operator_yaw_rate_rad_s) + scan.yaw_rate_rad_s  # eq. (8) held
-        alpha = camera_yaw_rad(self._R_qc) + scan.yaw_offset_rad  # eq. (6) at this instant
-        nearest = self._nearest
-        obst, dist = nearest if nearest is not None else (zero, -1.0)
-        fresh = self.last_frame_wall_s is not None and \
-            self.clock() - self.last_frame_wall_s <= self.cfg.timing.camera_timeout_s
-        flags = msgs.feedback_flags(scan.enabled, self.odometry_ok, self.modes.gcs_ok, fresh)
-        v_cmd = zero if ref is None else ref.v_ref_h_m_s
-        v_rep = zero if ref is None else ref.v_repulsion_h_m_s
-        self.send_gcs(msgs.teleop_feedback_message(
-            stamp_s, v_est, v_cmd, v_rep, alpha, scan.yaw_rate_rad_s, yaw_cmd,
-            msgs.euler_yaw_rate_rad_s(self._gyro_q, roll, pitch), obst, dist, int(self.modes.mode), flags))
+        self.send_gcs(feedback_message(stamp_s, self.last_output, self.last_ref, self._scan_state(stamp_s),
+                                       self._R_qc, self._nearest, self._gyro_q, self.modes.mode, self.odometry_ok,
+                                       self.modes.gcs_ok, self._camera_fresh()))
         self.stats.feedback += 1
+
+    def image_meta(self, frame: RgbdFrame, out: Any, ref: ReferenceOutput) -> OperatorImageMeta:
+        """The operator image's metadata for ``frame`` from the daemon's state now."""
+        return operator_image_meta(frame.stamp_s, out, ref, self._scan_state(frame.stamp_s), self.scan_params,
+                                   self._gyro_q, self.modes.mode)
 
     def _publish_image(self, frame: RgbdFrame, out: Any, ref: ReferenceOutput) -> None:
         if self.image_server is None or self.image_server.client_count == 0:
             return
-        pts = np.asarray(out.obstacle_points_c_m if out.obstacle_points_c_m is not None else np.zeros((0, 3)),
-                         dtype=float).reshape(-1, 3)[:MAX_IMAGE_POINTS]
-        scan = self._scan_state(frame.stamp_s)
-        meta = {
-            "stamp_s": float(frame.stamp_s), "roll_rad": float(out.roll_rad), "pitch_rad": float(out.pitch_rad),
-            "yaw_rad": float(out.yaw_rad),
-            "gyro_yaw_rate_rad_s": msgs.euler_yaw_rate_rad_s(self._gyro_q, out.roll_rad, out.pitch_rad),
-            "obstacle_points_c_m": np.round(pts, 3).tolist(),
-            "v_cmd_h_m_s": [float(x) for x in ref.v_ref_h_m_s],
-            "v_est_h_m_s": [float(x) for x in np.asarray(out.v_h_m_s, dtype=float)],
-            "pan_scan": {"enabled": scan.enabled, "yaw_rate_rad_s": scan.yaw_rate_rad_s,
-                         "yaw_offset_rad": scan.yaw_offset_rad, "alpha_rad": ref.alpha_rad,
-                         "amplitude_rad_s": self.scan_params.amplitude_rad_s,
-                         "omega_rad_s": self.scan_params.omega_rad_s},
-            "mode": self.modes.mode.name.lower(),
-        }
-        image = RgbdFrame(frame.seq, frame.stamp_s, frame.rgb, None, frame.intrinsics, frame.R_qc, frame.p_qc_m, meta)
-        try:
-            self.image_server.publish(image, rgb_jpeg=True)
-        except (OSError, QuadlinkError) as exc:
-            log.warning("operator image stream: %s", exc)
+        self.image_server.publish(frame, self.image_meta(frame, out, ref))   # never blocks (ImageSink)
 
     # ------------------------------------------------------------------ periodic tasks
     def _periodic(self) -> None:
@@ -616,33 +557,22 @@ class Companion:
         for command, confirmation in send:
             self.send_autopilot(mavlink.MAVLink_command_long_message(
                 self.sysid, self.ap_compid, command.command, confirmation, *command.params))
-        if now >= self._next_heartbeat_wall_s:
-            self._next_heartbeat_wall_s = now + 1.0 / t.heartbeat_rate_hz
+        if self.deadlines.due("heartbeat", now, 1.0 / t.heartbeat_rate_hz):
             hb = mavlink.MAVLink_heartbeat_message(mavlink.MAV_TYPE_ONBOARD_CONTROLLER, mavlink.MAV_AUTOPILOT_INVALID,
                                                    0, int(self.modes.mode), mavlink.MAV_STATE_ACTIVE, 3)
             self.send_autopilot(hb)
             self.send_gcs(hb)
-        if now >= self._next_timesync_wall_s:
-            self._next_timesync_wall_s = now + t.timesync_period_s
+        if self.deadlines.due("timesync", now, t.timesync_period_s):
             self.send_autopilot(mavlink.MAVLink_timesync_message(0, int(now * 1e9)))
-        if camera_silent and now >= self._next_fallback_wall_s:
-            # No camera: obstacle data stale -> no motion toward unknown (= all) sectors, repulsion from the
-            # last map kept (conservative), operator zeroed by HOLD; keeps the autopilot's stream alive.
-            self._next_fallback_wall_s = now + 1.0 / t.fallback_setpoint_rate_hz
-            points = None if self.last_output is None else self.last_output.obstacle_points_h_m
-            stamp = self._fallback_stamp(now)
-            ref = reference_velocity(self.op, self._R_qc, PanScanState(0.0, 0.0, False), points, self.ref_params,
-                                     sectors_m=None, block_unknown=True, operator_enabled=self.modes.operator_enabled,
-                                     height_m=self._height_m(self.last_output))
+        if camera_silent and self.deadlines.due("fallback", now, 1.0 / t.fallback_setpoint_rate_hz):
+            # keeps the autopilot's stream alive without a camera (frame_step.fallback_step)
+            ref = fallback_step(self.last_output, self.op, self._R_qc, self.ref_params, self.modes.operator_enabled)
             self.last_ref = ref
-            self._send_setpoint(stamp, ref)
-        imu_silent = self._imu_wall_s is None or now - self._imu_wall_s > 0.1
-        if imu_silent and now >= self._next_feedback_wall_s:
-            self._next_feedback_wall_s = now + 1.0 / t.feedback_rate_hz
+            self._send_setpoint(self._fallback_stamp(now), ref)
+        imu_silent = self._imu_wall_s is None or now - self._imu_wall_s > IMU_SILENT_S
+        if imu_silent and self.deadlines.due("feedback", now, 1.0 / t.feedback_rate_hz):
             self._send_feedback(self._fallback_stamp(now))
-
-        if now >= self._next_progress_wall_s:
-            self._next_progress_wall_s = now + PROGRESS_EVERY_S
+        if self.deadlines.due("progress", now, PROGRESS_EVERY_S):
             self._log_progress()
 
     def _log_progress(self) -> None:
@@ -678,4 +608,3 @@ class Companion:
                 closer()
             except OSError as exc:
                 log.warning("closing %s: %s", name, exc)
-

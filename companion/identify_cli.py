@@ -11,7 +11,7 @@ import click
 import numpy as np
 
 from companion.config import load_companion_config, pan_scan_params
-from companion.identification import FeedbackSeries, IdentificationError, fit_yaw_loop
+from quadlink.analysis.yaw_identification import FeedbackSeries, IdentificationError, fit_yaw_loop
 from quadlink.errors import QuadlinkError
 from quadlink.mavlink import mavlink
 

@@ -133,10 +133,11 @@ def obstacle_distance_message(time_s: float, sectors: Any, min_cm: int, max_cm: 
         int(round(inc_deg)), min_cm, max_cm, inc_deg, offset_deg, mavlink.MAV_FRAME_BODY_FRD)
 
 
-FLAG_PAN_SCAN = 1
-FLAG_ODOMETRY_OK = 2
-FLAG_GCS_OK = 4
-FLAG_OBSTACLES_FRESH = 8
+# TELEOP_FEEDBACK.flags: the dialect's QUADLINK_TELEOP_FLAGS
+FLAG_PAN_SCAN = mavlink.QUADLINK_TELEOP_FLAGS_PAN_SCAN_ON
+FLAG_ODOMETRY_OK = mavlink.QUADLINK_TELEOP_FLAGS_ODOMETRY_OK
+FLAG_GCS_OK = mavlink.QUADLINK_TELEOP_FLAGS_GCS_LINK_OK
+FLAG_OBSTACLES_FRESH = mavlink.QUADLINK_TELEOP_FLAGS_OBSTACLES_FRESH
 
 
 def feedback_flags(pan_scan_on: bool, odometry_ok: bool, gcs_ok: bool, obstacles_fresh: bool) -> int:

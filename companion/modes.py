@@ -1,6 +1,6 @@
 """Flight modes and safety of the companion: a pure state machine (no clock, no I/O).
 
-Modes (TELEOP_FEEDBACK.mode numbering): IDLE 0, TAKEOFF 1, TELEOP 2, HOLD 3, LAND 4.
+Modes (the dialect's QUADLINK_TELEOP_MODE, TELEOP_FEEDBACK.mode): IDLE, TAKEOFF, TELEOP, HOLD, LAND.
 
 * IDLE: on the ground or not in control. Ground-station ``takeoff`` -> arm + takeoff commands to the
   autopilot -> TAKEOFF. ``arm`` / ``disarm`` are passed on as commands. A takeoff commanded to the
@@ -29,13 +29,17 @@ from __future__ import annotations
 from dataclasses import dataclass
 from enum import IntEnum
 
+from quadlink.mavlink import mavlink
+
 
 class Mode(IntEnum):
-    IDLE = 0
-    TAKEOFF = 1
-    TELEOP = 2
-    HOLD = 3
-    LAND = 4
+    """The dialect's QUADLINK_TELEOP_MODE (TELEOP_FEEDBACK.mode and the companion's HEARTBEAT custom_mode)."""
+
+    IDLE = mavlink.QUADLINK_TELEOP_MODE_IDLE
+    TAKEOFF = mavlink.QUADLINK_TELEOP_MODE_TAKEOFF
+    TELEOP = mavlink.QUADLINK_TELEOP_MODE_TELEOP
+    HOLD = mavlink.QUADLINK_TELEOP_MODE_HOLD
+    LAND = mavlink.QUADLINK_TELEOP_MODE_LAND
 
 
 @dataclass(frozen=True)

@@ -3,7 +3,7 @@
 Pure: time comes in as an argument. The carrier ``psi_dot_s(t) = A sin(omega t)`` (eq. 4) is added to
 the operator's yaw rate; if the closed-loop yaw dynamics were a perfect integrator the yaw would swing
 as ``-(A/omega) cos(omega t)``. The real loop scales the swing by ``A'_omega`` and shifts it by
-``phi_omega`` (see :mod:`companion.identification`), giving eq. (5)::
+``phi_omega`` (see :mod:`quadlink.analysis.yaw_identification`), giving eq. (5)::
 
     psi_bar_s(t) = A'_omega (A / omega) cos(omega t + phi_omega)
 

@@ -11,6 +11,7 @@ from pathlib import Path
 from typing import Literal
 
 from quadlink.config import find_config, load_config
+from quadlink.mavlink import mavlink
 
 Vec3Cfg = tuple[float, float, float]
 
@@ -44,7 +45,8 @@ class ForceConfig:
     link_timeout_s: float = 0.5                        # no TELEOP_FEEDBACK for this long = link lost
     fade_time_s: float = 1.0                           # force fades 1 -> 0 over this time (rate-limited)
     pan_scan_source: Literal["estimated", "commanded"] = "estimated"  # the psi_s' removed in eq. (17)
-    cue_modes: tuple[int, ...] = (2, 3)                # companion modes with the cue K (q - q~): teleop, hold
+    cue_modes: tuple[int, ...] = (mavlink.QUADLINK_TELEOP_MODE_TELEOP,   # companion modes with the cue
+                                  mavlink.QUADLINK_TELEOP_MODE_HOLD)     # K (q - q~)
 
     def __post_init__(self) -> None:
         if min(self.B_n_s_m + self.K_f_n_m + self.K_n_m) < 0:

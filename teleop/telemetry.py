@@ -10,8 +10,14 @@ from typing import Any
 
 from quadlink.mavlink import mavlink
 
-MODE_NAMES = {0: "idle", 1: "takeoff", 2: "teleop", 3: "hold", 4: "land"}
-FLAG_PAN_SCAN_ON, FLAG_ODOMETRY_OK, FLAG_GCS_LINK_OK, FLAG_OBSTACLES_FRESH = 1, 2, 4, 8
+_MODE_PREFIX = "QUADLINK_TELEOP_MODE_"
+# TELEOP_FEEDBACK.mode -> name, from the dialect's QUADLINK_TELEOP_MODE (idle, takeoff, teleop, hold, land)
+MODE_NAMES = {value: entry.name[len(_MODE_PREFIX):].lower()
+              for value, entry in mavlink.enums["QUADLINK_TELEOP_MODE"].items() if entry.name.startswith(_MODE_PREFIX) and not entry.name.endswith("_ENUM_END")}
+FLAG_PAN_SCAN_ON = mavlink.QUADLINK_TELEOP_FLAGS_PAN_SCAN_ON
+FLAG_ODOMETRY_OK = mavlink.QUADLINK_TELEOP_FLAGS_ODOMETRY_OK
+FLAG_GCS_LINK_OK = mavlink.QUADLINK_TELEOP_FLAGS_GCS_LINK_OK
+FLAG_OBSTACLES_FRESH = mavlink.QUADLINK_TELEOP_FLAGS_OBSTACLES_FRESH
 
 
 @dataclass(frozen=True)

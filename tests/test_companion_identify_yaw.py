@@ -11,7 +11,7 @@ import pytest
 import yaml
 from click.testing import CliRunner
 
-from companion.identification import FeedbackSeries, IdentificationError, fit_yaw_loop, identify_first_order
+from quadlink.analysis.yaw_identification import FeedbackSeries, IdentificationError, fit_yaw_loop, identify_first_order
 from quadlink.cli import main
 from quadlink.mavlink import mavlink
 from quadlink.mavlink.tlog import TlogWriter

@@ -10,7 +10,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from companion.identification import (
+from quadlink.analysis.yaw_identification import (
     IdentificationError,
     fit_sinusoid,
     identify_first_order,

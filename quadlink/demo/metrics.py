@@ -12,6 +12,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from quadlink.analysis.yaw_identification import fit_sinusoid as fit_at
+
 Array = NDArray[np.float64]
 
 
@@ -84,11 +86,9 @@ def fit_sinusoid(t_s: Array, y: Array, min_hz: float = 0.02, max_hz: float = 5.0
     """Least-squares ``offset + a sin(2 pi f t + phase)`` with the frequency unknown.
 
     Scans trial frequencies (coarse log grid, then a fine one around the best) and, at each, uses the
-    companion's closed-form fit at a known pulsation (:func:`companion.identification.fit_sinusoid`);
+    closed-form fit at a known pulsation (:func:`quadlink.analysis.yaw_identification.fit_sinusoid`);
     works on irregular sampling.
     """
-    from companion.identification import fit_sinusoid as fit_at
-
     t = np.asarray(t_s, dtype=float)
     y = np.asarray(y, dtype=float)
     ok = np.isfinite(t) & np.isfinite(y)

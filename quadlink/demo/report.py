@@ -19,6 +19,7 @@ import numpy as np
 
 from quadlink.demo import metrics
 from quadlink.frames import euler_from_quat_wxyz
+from quadlink.mavlink import mavlink
 from quadlink.mavlink.tlog import read_tlog
 
 SAFE_DISTANCE_M = 0.45
@@ -130,7 +131,7 @@ def compute_report(flight: FlightLog, cpu_s: dict[str, float] | None = None, sce
         flying = _flying_mask(flight, flight.t_fb)
         rmse = metrics.rmse_per_axis(flight.t_fb, flight.v_est_h, flight.t_truth, v_true_h, flying)
         report["velocity_rmse_m_s"] = dict(zip("xyz", map(float, rmse)))
-        free = flying & (np.linalg.norm(flight.v_rep_h, axis=1) < 0.02) & (flight.mode == 2)
+        free = flying & (np.linalg.norm(flight.v_rep_h, axis=1) < 0.02) & (flight.mode == mavlink.QUADLINK_TELEOP_MODE_TELEOP)
         track = metrics.rmse_per_axis(flight.t_fb, flight.v_cmd_h + flight.v_rep_h, flight.t_truth, v_true_h, free)
         report["tracking_rmse_m_s"] = dict(zip("xyz", map(float, track)))
         report["flying_time_s"] = float(np.sum(np.diff(flight.t_fb)[flying[1:]])) if flight.t_fb.size > 1 else 0.0
@@ -150,7 +151,7 @@ def compute_report(flight: FlightLog, cpu_s: dict[str, float] | None = None, sce
             report["fraction_estimate_le_truth_all_surfaces"] = metrics.fraction_at_or_below(
                 flight.t_fb, est, flight.t_dist0, flight.dist0_m)
     if flight.t_fb.size:
-        teleop = flight.mode == 2
+        teleop = flight.mode == mavlink.QUADLINK_TELEOP_MODE_TELEOP
         if np.sum(teleop) > 30:
             cmd = metrics.fit_sinusoid(flight.t_fb[teleop], flight.pan_scan_rate[teleop])
             operator = flight.yaw_rate_cmd - flight.pan_scan_rate
@@ -161,7 +162,7 @@ def compute_report(flight: FlightLog, cpu_s: dict[str, float] | None = None, sce
                 "phase_lag_rad": float(np.angle(np.exp(1j * (cmd.phase_rad - meas.phase_rad)))),
             }
             # the yaw loop identified from this flight (what `quadlink identify-yaw` prints from the tlog)
-            from companion.identification import FeedbackSeries, IdentificationError, fit_yaw_loop
+            from quadlink.analysis.yaw_identification import FeedbackSeries, IdentificationError, fit_yaw_loop
 
             on = teleop & (flight.pan_scan_rate != 0.0)
             try:

@@ -1,0 +1,121 @@
+"""The companion's work on one camera frame and at the feedback rate, without I/O (pure).
+
+:func:`frame_step`: perception output + operator input + mode -> the reference velocity for the
+autopilot (eqs. (2)-(8) in :mod:`companion.reference`) and the nearest obstacle for the feedback.
+:func:`fallback_step` is the same without a fresh frame (camera silent). :func:`feedback_message` and
+:func:`operator_image_meta` build what the ground station receives from the state those steps leave.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from companion import messages as msgs
+from companion.modes import Mode
+from companion.pan_scan import PanScanParams, PanScanState
+from companion.reference import (
+    OperatorInput,
+    ReferenceOutput,
+    ReferenceParams,
+    camera_yaw_rad,
+    nearest_obstacle,
+    reference_velocity,
+)
+from quadlink.operator_image import MAX_OBSTACLE_POINTS, OperatorImageMeta, PanScanMeta
+
+NO_SCAN = PanScanState(0.0, 0.0, False)
+
+
+@dataclass(frozen=True)
+class FrameStep:
+    """One frame's decision: ``ref`` (sent as the setpoint when in control) and the nearest obstacle
+    (vector in H, distance m) that TELEOP_FEEDBACK reports between frames."""
+
+    ref: ReferenceOutput
+    nearest: tuple[NDArray[np.float64], float] | None
+
+
+def height_m(out: Any) -> float | None:
+    """Height above the take-off floor from the odometry (its world starts on the ground, NED)."""
+    if out is None or not out.odometry_ok or out.position_m is None:
+        return None
+    z = float(np.asarray(out.position_m, dtype=float)[2])
+    return -z if math.isfinite(z) else None
+
+
+def frame_step(out: Any | None, op: OperatorInput, R_qc: NDArray[np.float64], scan: PanScanState,
+               params: ReferenceParams, operator_enabled: bool, allow_unknown_when_fresh: bool) -> FrameStep:
+    """The reference for a frame; ``out`` is perception's output (None: perception failed on it)."""
+    points = None if out is None else out.obstacle_points_h_m
+    sectors, _, offset_deg = msgs.sector_arrays(None if out is None else out.sectors)
+    ref = reference_velocity(op, R_qc, scan, points, params, sectors_m=sectors,
+                             block_unknown=out is None or not allow_unknown_when_fresh,
+                             operator_enabled=operator_enabled, sector_offset_rad=math.radians(offset_deg),
+                             height_m=height_m(out))
+    return FrameStep(ref, nearest_obstacle(points, params))
+
+
+def fallback_step(last_out: Any | None, op: OperatorInput, R_qc: NDArray[np.float64], params: ReferenceParams,
+                  operator_enabled: bool) -> ReferenceOutput:
+    """No camera: obstacle data stale -> no motion toward unknown (= all) sectors, repulsion from the last
+    map kept (conservative), no pan-scan; the operator is zeroed by HOLD (``operator_enabled``)."""
+    points = None if last_out is None else last_out.obstacle_points_h_m
+    return reference_velocity(op, R_qc, NO_SCAN, points, params, sectors_m=None, block_unknown=True,
+                              operator_enabled=operator_enabled, height_m=height_m(last_out))
+
+
+def setpoint_velocity(ref: ReferenceOutput, in_control: bool) -> tuple[NDArray[np.float64], float]:
+    """(v in H, yaw rate) to send. Outside TELEOP/HOLD the autopilot flies its own mode: the (zero) stream
+    only keeps offboard ready."""
+    if in_control:
+        return ref.v_ref_h_m_s, ref.yaw_rate_ref_rad_s
+    return np.zeros(3), 0.0
+
+
+def feedback_message(stamp_s: float, out: Any | None, ref: ReferenceOutput | None, scan: PanScanState,
+                     R_qc: NDArray[np.float64], nearest: tuple[NDArray[np.float64], float] | None,
+                     gyro_q_rad_s: NDArray[np.float64], mode: Mode, odometry_ok: bool, gcs_ok: bool,
+                     obstacles_fresh: bool) -> Any:
+    """TELEOP_FEEDBACK at ``stamp_s`` from the last frame's state and the pan-scan now."""
+    zero = np.zeros(3)
+    v_est = zero if out is None else np.asarray(out.v_h_m_s, dtype=float)
+    roll = 0.0 if out is None else out.roll_rad
+    pitch = 0.0 if out is None else out.pitch_rad
+    yaw_cmd = (0.0 if ref is None else ref.operator_yaw_rate_rad_s) + scan.yaw_rate_rad_s  # eq. (8) held
+    alpha = camera_yaw_rad(R_qc) + scan.yaw_offset_rad  # eq. (6) at this instant
+    obst, dist = nearest if nearest is not None else (zero, -1.0)
+    flags = msgs.feedback_flags(scan.enabled, odometry_ok, gcs_ok, obstacles_fresh)
+    v_cmd = zero if ref is None else ref.v_ref_h_m_s
+    v_rep = zero if ref is None else ref.v_repulsion_h_m_s
+    return msgs.teleop_feedback_message(stamp_s, v_est, v_cmd, v_rep, alpha, scan.yaw_rate_rad_s, yaw_cmd,
+                                        msgs.euler_yaw_rate_rad_s(gyro_q_rad_s, roll, pitch), obst, dist,
+                                        mode, flags)
+
+
+def _vec3(v: Any) -> tuple[float, float, float]:
+    a = np.asarray(v, dtype=float).reshape(3)
+    return (float(a[0]), float(a[1]), float(a[2]))
+
+
+def operator_image_meta(stamp_s: float, out: Any, ref: ReferenceOutput, scan: PanScanState,
+                        scan_params: PanScanParams, gyro_q_rad_s: NDArray[np.float64], mode: Mode) -> OperatorImageMeta:
+    """The operator image's metadata for a frame perception processed (``out`` not None)."""
+    pts = np.asarray(out.obstacle_points_c_m if out.obstacle_points_c_m is not None else np.zeros((0, 3)),
+                     dtype=float).reshape(-1, 3)[:MAX_OBSTACLE_POINTS]
+    pts = pts[np.all(np.isfinite(pts), axis=1)]
+    return OperatorImageMeta(
+        stamp_s=float(stamp_s), roll_rad=float(out.roll_rad), pitch_rad=float(out.pitch_rad),
+        yaw_rad=float(out.yaw_rad),
+        gyro_yaw_rate_rad_s=msgs.euler_yaw_rate_rad_s(gyro_q_rad_s, out.roll_rad, out.pitch_rad),
+        obstacle_points_c_m=tuple(_vec3(p) for p in np.round(pts, 3)),
+        v_cmd_h_m_s=_vec3(ref.v_ref_h_m_s), v_est_h_m_s=_vec3(out.v_h_m_s),
+        pan_scan=PanScanMeta(enabled=bool(scan.enabled), yaw_rate_rad_s=float(scan.yaw_rate_rad_s),
+                             yaw_offset_rad=float(scan.yaw_offset_rad), alpha_rad=float(ref.alpha_rad),
+                             amplitude_rad_s=float(scan_params.amplitude_rad_s),
+                             omega_rad_s=float(scan_params.omega_rad_s)),
+        mode=mode.name.lower())
