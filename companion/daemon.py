@@ -27,8 +27,7 @@ import math
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
-from typing import Any, Protocol
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -46,118 +45,30 @@ from companion.frame_step import (
     operator_image_meta,
     setpoint_velocity,
 )
+from companion.interfaces import ImageSink, MavLink, Pipeline, PipelineFactory, default_pipeline_factory
 from companion.link_reader import CodecReader
-from companion.modes import AutopilotRequest, Mode, ModeMachine, StatusText, VehicleStatus
+from companion.modes import AutopilotRequest, Mode, ModeMachine, StatusText
 from companion.pan_scan import PanScanParams, PanScanState, pan_scan
 from companion.params import PARAM_NAMES, CompanionParams, handle_param_message, param_value_message, set_by_index
 from companion.reference import OperatorInput, ReferenceOutput, ReferenceParams, operator_from_manual_control
 from companion.router import route_from_autopilot, route_from_gcs
 from companion.scheduler import Deadlines, StampTicker
+from companion.stats import Stats
 from companion.timesync import TimeSync
+from companion.vehicle_state import VehicleState
 from quadlink.camera import RgbdFrame
 from quadlink.errors import QuadlinkError
 from quadlink.mavlink import mavlink
 from quadlink.operator_image import OperatorImageMeta
-from quadlink.px4_modes import Px4AutoSubMode, Px4MainMode, decode_custom_mode
 
 log = logging.getLogger(__name__)
 
 __all__ = ["PARAM_NAMES", "Companion", "ImageSink", "MavLink", "Pipeline", "Stats", "default_pipeline_factory"]
 
-
-class MavLink(Protocol):
-    """What the daemon needs of a pymavlink ``mavfile``."""
-
-    def recv_msg(self) -> Any: ...
-
-    def write(self, buf: bytes) -> Any: ...
-
-    def close(self) -> Any: ...
-
-
-class Pipeline(Protocol):
-    """The perception façade (``perception.pipeline.PerceptionPipeline``)."""
-
-    def on_imu(self, stamp_s: float, gyro_q_rad_s: NDArray[np.float64], accel_q_m_s2: NDArray[np.float64]) -> None: ...
-
-    def on_frame(self, frame: RgbdFrame) -> Any: ...
-
-
-class ImageSink(Protocol):
-    """Where operator images go (:class:`companion.image_publisher.OperatorImagePublisher`): ``publish``
-    must never block."""
-
-    @property
-    def client_count(self) -> int: ...
-
-    def publish(self, frame: RgbdFrame, meta: OperatorImageMeta) -> None: ...
-
-    def close(self) -> None: ...
-
-
-PipelineFactory = Callable[[RgbdFrame], Pipeline]
-
 MAX_ROUTED_PER_STEP = 2000
 PROGRESS_EVERY_S = 5.0
 IMU_SILENT_S = 0.1          # no HIGHRES_IMU for this long: feedback paced on wall time instead
 IMU_LAG_LIMIT = 30          # consecutive IMU-wait timeouts after which the daemon stops waiting
-
-
-@dataclass
-class Stats:
-    frames: int = 0
-    setpoints: int = 0
-    feedback: int = 0
-    routed_to_gcs: int = 0
-    routed_to_autopilot: int = 0
-    manual_controls: int = 0
-    pipeline_errors: int = 0
-    latencies_s: list[float] = field(default_factory=list)
-    perception_s: list[float] = field(default_factory=list)
-
-
-def _recent_median_ms(values_s: list[float], n: int = 300) -> str:
-    """Median of the last ``n`` durations, for the status line."""
-    recent = sorted(values_s[-n:])
-    return f"{recent[len(recent) // 2] * 1e3:.1f} ms" if recent else "-"
-
-
-@dataclass
-class _Vehicle:
-    armed: bool = False
-    landed_state: int | None = None
-    custom_mode: int = 0
-    heartbeat_wall_s: float | None = None
-
-    def status(self) -> VehicleStatus:
-        px4 = decode_custom_mode(self.custom_mode)
-        auto = px4.main == Px4MainMode.AUTO
-        if self.landed_state is not None and self.landed_state != mavlink.MAV_LANDED_STATE_UNDEFINED:
-            in_air = self.landed_state in (mavlink.MAV_LANDED_STATE_IN_AIR, mavlink.MAV_LANDED_STATE_TAKEOFF,
-                                           mavlink.MAV_LANDED_STATE_LANDING)
-        else:
-            in_air = self.armed
-        taking_off = (self.landed_state == mavlink.MAV_LANDED_STATE_TAKEOFF
-                      or (auto and px4.sub == Px4AutoSubMode.TAKEOFF))
-        landing = self.landed_state == mavlink.MAV_LANDED_STATE_LANDING or (auto and px4.sub == Px4AutoSubMode.LAND)
-        return VehicleStatus(self.armed, in_air, taking_off, landing, self.landed_state is not None)
-
-
-def default_pipeline_factory(cfg: CompanionConfig, seed: int = 0) -> PipelineFactory:
-    """Builds ``perception.pipeline.PerceptionPipeline`` on the first frame (its intrinsics and mount)."""
-    try:
-        from perception.pipeline import PerceptionConfig, PerceptionPipeline
-    except ImportError as exc:
-        raise QuadlinkError(f"perception pipeline not available ({exc}); the companion needs perception/pipeline.py"
-                            ) from exc
-    from quadlink.config import load_config
-
-    pcfg = load_config(cfg.perception_config, PerceptionConfig) if cfg.perception_config else PerceptionConfig()
-
-    def make(frame: RgbdFrame) -> Pipeline:
-        return PerceptionPipeline(pcfg, frame.intrinsics, frame.R_qc, frame.p_qc_m, np.random.default_rng(seed))
-
-    return make
 
 
 class Companion:
@@ -187,7 +98,7 @@ class Companion:
         self.modes = ModeMachine(cfg.modes)
         self.commands = CommandQueue()
         self.timesync = TimeSync()
-        self.vehicle = _Vehicle()
+        self.vehicle = VehicleState()
         self.stats = Stats()
         self.op = OperatorInput()
         # perception / reference state (held between frames for the 50 Hz feedback)
@@ -576,17 +487,11 @@ class Companion:
             self._log_progress()
 
     def _log_progress(self) -> None:
-        s = self.stats
-        fps = (s.frames - self._progress_frames) / PROGRESS_EVERY_S
-        self._progress_frames = s.frames
-        p50, per50 = _recent_median_ms(s.latencies_s), _recent_median_ms(s.perception_s)
-        log.info("mode %s  camera %.1f fps  frame->setpoint p50 %s (perception %s)  odometry %s  gcs link %s  "
-                 "manual %d  routed %d to GCS / %d to autopilot", self.modes.mode.name, fps, p50, per50,
-                 "ok" if self.odometry_ok else "FAIL", "ok" if self.modes.gcs_ok else "lost", s.manual_controls,
-                 s.routed_to_gcs, s.routed_to_autopilot)
-        if len(s.latencies_s) > 20000:
-            del s.latencies_s[:-2000]
-            del s.perception_s[:-2000]
+        fps = (self.stats.frames - self._progress_frames) / PROGRESS_EVERY_S
+        self._progress_frames = self.stats.frames
+        log.info("mode %s  camera %.1f fps  %s", self.modes.mode.name, fps,
+                 self.stats.summary(self.odometry_ok, self.modes.gcs_ok))
+        self.stats.trim()
 
     def _fallback_stamp(self, now: float) -> float:
         """Autopilot time estimate without a fresh frame: last IMU or frame stamp plus the wall time since."""

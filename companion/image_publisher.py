@@ -5,7 +5,8 @@ bounded queue (a full queue drops its oldest frame). One publisher thread encode
 :class:`quadlink.operator_image.OperatorImageMeta` as ``meta``) and writes it to every viewer with
 non-blocking sends through a selector:
 
-* a viewer still busy with an earlier record skips the new one (frames are dropped, per viewer);
+* a viewer still busy with an earlier record skips the new one (frames are dropped, per viewer); the
+  kernel's send buffer per viewer is bounded too (``send_buffer_bytes``), so at most a few frames queue;
 * a viewer that has taken no byte for ``stall_timeout_s`` while a record waits for it is disconnected.
 
 The viewers' acks (the camera stream's return direction) are read and discarded: this stream is not
@@ -53,13 +54,14 @@ class OperatorImagePublisher:
     """Listens on ``host:port`` for viewers (:class:`quadlink.camera.CameraStreamClient`)."""
 
     def __init__(self, host: str = "127.0.0.1", port: int = 5770, queue_frames: int = 2,
-                 stall_timeout_s: float = 1.0, jpeg_quality: int = 85,
+                 stall_timeout_s: float = 1.0, jpeg_quality: int = 85, send_buffer_bytes: int = 128 * 1024,
                  clock: Callable[[], float] = time.monotonic) -> None:
         self._listener = socket.create_server((host, port))
         self._listener.setblocking(False)
         self.host, self.port = self._listener.getsockname()[:2]
         self._stall_timeout_s = stall_timeout_s
         self._jpeg_quality = jpeg_quality
+        self._send_buffer_bytes = send_buffer_bytes
         self._clock = clock
         self._queue: deque[tuple[RgbdFrame, OperatorImageMeta]] = deque(maxlen=queue_frames)
         self._lock = threading.Lock()
@@ -121,6 +123,8 @@ class OperatorImagePublisher:
             return
         sock.setblocking(False)
         sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        # a bounded kernel queue too: a few frames at most wait there (latency), the rest are dropped here
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, self._send_buffer_bytes)
         viewer = _Viewer(sock, f"{addr[0]}:{addr[1]}", self._clock())
         self._viewers.append(viewer)
         self._viewer_count = len(self._viewers)

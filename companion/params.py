@@ -37,7 +37,7 @@ class ParamStore(Protocol):
 class CompanionParams:
     """The companion's tunable values. ``set`` validates; a rejected value leaves everything unchanged."""
 
-    names = PARAM_NAMES
+    names: tuple[str, ...] = PARAM_NAMES
 
     def __init__(self, pan_scan: PanScanConfig, reference: ReferenceParams) -> None:
         self._pan_scan_cfg = pan_scan
@@ -66,8 +66,13 @@ class CompanionParams:
         else:
             if value < 0:
                 return False
-            field = {"CMP_K_V": "k_v_m_s", "CMP_K_PSI": "k_psi_rad_s", "CMP_SAFE_DIST": "safe_distance_m"}[name]
-            self.reference = dataclasses.replace(self.reference, **{field: float(value)})
+            r, v = self.reference, float(value)
+            if name == "CMP_K_V":
+                self.reference = dataclasses.replace(r, k_v_m_s=v)
+            elif name == "CMP_K_PSI":
+                self.reference = dataclasses.replace(r, k_psi_rad_s=v)
+            else:
+                self.reference = dataclasses.replace(r, safe_distance_m=v)
         return True
 
 

@@ -1,21 +1,21 @@
-"""The ground station process: wires the device, the force law, the command mapping, the vehicle
-link and the operator view to clocks and sockets.
+"""The ground station process: its lifecycle and the snapshots its threads share.
 
-Concurrency model: a few threads sharing immutable snapshots (replaced atomically under one lock),
-a queue for button presses, one stop event; every wait has a timeout.
+:class:`Station` wires the haptic device, the force law, the vehicle link and the operator view to
+clocks and sockets. Concurrency model: a few threads sharing immutable snapshots (replaced atomically
+under one lock), a queue for button presses, one stop event; every wait has a timeout.
 
-* force loop, 1 kHz (``device.force_rate_hz``): poll device -> eq. (15) -> set force. Precise sleep
-  (``time.sleep`` to ``spin_s`` before the deadline, then a short spin); the interpreter's thread
-  switch interval is lowered to 0.5 ms while it runs so the other threads cannot hold it off.
-* network loop, 50 Hz (``mapping.rate_hz``): MAVLink in (telemetry, TELEOP_FEEDBACK, acks), MANUAL_CONTROL
-  and HEARTBEAT out, buttons -> commands, status, CSV log.
-* view loop, camera rate: image stream -> pan-scan compensation -> rendered view -> web page / video.
-* HTTP server thread (view/server.py).
+* force loop, 1 kHz (``device.force_rate_hz``, :mod:`teleop.force_loop`): poll device -> eq. (15) -> set
+  force; in its own process for a device spec (``ForceProcess``), else a thread here (the interpreter's
+  switch interval lowered to 0.5 ms while it runs).
+* vehicle link, 50 Hz (:mod:`teleop.link`): MAVLink in, MANUAL_CONTROL / HEARTBEAT / commands out,
+  warnings, CSV log (:mod:`teleop.recording`).
+* view loop, camera rate (:meth:`Station._view_loop` over :mod:`teleop.view_loop`): the companion's
+  operator images and their :class:`quadlink.operator_image.OperatorImageMeta` -> pan-scan compensation
+  -> rendered view -> web page (:mod:`teleop.view.server`) and optional video.
 """
 
 from __future__ import annotations
 
-import csv
 import logging
 import math
 import queue
@@ -25,41 +25,28 @@ import threading
 import time
 from collections import deque
 from collections.abc import Callable
-from pathlib import Path
-from typing import Any, TextIO
+from typing import Any
 
 import cv2
 import numpy as np
 from numpy.typing import NDArray
 
 from quadlink.camera import CameraStreamClient
-from quadlink.errors import LinkError, QuadlinkError
-from quadlink.mavlink import mavlink
+from quadlink.errors import ProtocolError, QuadlinkError
 from quadlink.mavlink.connection import open_mavlink
-from teleop.commands import CommandResult, CommandTracker, OutgoingCommand
+from teleop.commands import CommandResult, CommandTracker
 from teleop.config import TeleopConfig
 from teleop.devices.base import HapticDevice
-from teleop.force import VehicleMotion, link_ok
+from teleop.force import link_ok
 from teleop.force_loop import DeviceSpec, ForceProcess, ForceSnapshot, MotionInput, PeriodRecorder, run_force_loop
-from teleop.mapping import ManualControl, map_device_to_command
-from teleop.telemetry import (
-    FLAG_GCS_LINK_OK,
-    FLAG_ODOMETRY_OK,
-    MODE_NAMES,
-    Telemetry,
-    apply_message,
-    min_obstacle_m,
-)
-from teleop.view.panscan import PanScanEstimator
-from teleop.view.render import OperatorViewRenderer, Overlay
+from teleop.link import VehicleLink
+from teleop.mapping import ManualControl
+from teleop.recording import open_video
+from teleop.telemetry import FLAG_GCS_LINK_OK, FLAG_ODOMETRY_OK, MODE_NAMES, Telemetry, min_obstacle_m
 from teleop.view.server import ViewHub, ViewServer
+from teleop.view_loop import OperatorView, image_meta
 
 log = logging.getLogger(__name__)
-
-CSV_FIELDS = ["t_s", "qx_m", "qy_m", "qz_m", "qdx_m_s", "qdy_m_s", "qdz_m_s", "fop_x_n", "fop_y_n", "fop_z_n",
-              "tau_x_n", "tau_y_n", "tau_z_n", "qtx_m", "qty_m", "qtz_m", "link_gain", "cmd_x", "cmd_z", "cmd_r",
-              "vx_h", "vy_h", "vz_h", "vx_cmd", "vy_cmd", "vz_cmd", "vx_rep", "vy_rep", "vz_rep", "alpha_rad",
-              "yaw_rate", "pan_scan_rate_used", "obstacle_m", "mode", "flags", "armed"]
 
 
 def warnings_for(tel: Telemetry, link_is_ok: bool, t_s: float, cfg: TeleopConfig) -> list[str]:
@@ -117,6 +104,7 @@ class Station:
         self._switch_interval = sys.getswitchinterval()
         self.manual_control_sent = 0
         self.view_frames = 0
+        self.bad_image_meta = 0   # operator images whose metadata did not decode
         self.error: BaseException | None = None
 
     # ---- lifecycle -------------------------------------------------------------------------
@@ -263,113 +251,17 @@ class Station:
         assert isinstance(self.device, HapticDevice)
         run_force_loop(self.device, self.cfg, _ThreadIO(self), self.clock)
 
-    # ---- network loop (50 Hz) --------------------------------------------------------------
+    # ---- vehicle link (50 Hz): teleop.link ---------------------------------------------------
     def _network_loop(self) -> None:
-        period = 1.0 / self.cfg.mapping.rate_hz
-        conn = self._conn
-        vcfg = self.cfg.view
-        estimator = PanScanEstimator(vcfg.initial_frequency_hz, vcfg.min_frequency_hz, vcfg.max_frequency_hz,
-                                     vcfg.bandpass_q, vcfg.bias_periods,
-                                     operator_yaw_time_constant_s=vcfg.operator_yaw_time_constant_s)
-        ap = (self.cfg.commands.autopilot_system, self.cfg.commands.autopilot_component)
-        csv_file: TextIO | None = None
-        writer = None
-        if self.log_csv:
-            csv_file = open(self.log_csv, "w", newline="", encoding="utf-8")  # noqa: SIM115 - closed below
-            writer = csv.writer(csv_file)
-            writer.writerow(CSV_FIELDS)
-            log.info("logging force/q/command to %s", self.log_csv)
-        t0 = self.clock()
-        next_t = t0
-        next_heartbeat = t0
-        try:
-            while not self.stop_event.is_set():
-                t = self.clock()
-                tel = self.telemetry
-                for _ in range(1000):
-                    try:
-                        msg = conn.recv_match(blocking=False)
-                    except (OSError, ValueError) as exc:   # a bad datagram or a transient socket error
-                        log.debug("MAVLink receive: %s", exc)
-                        break
-                    if msg is None:
-                        break
-                    mtype = msg.get_type()
-                    if mtype == "BAD_DATA":
-                        continue
-                    tel = apply_message(tel, msg, t, ap, self.cfg.commands.companion_component)
-                    if mtype == "TELEOP_FEEDBACK" and tel.feedback is not None:
-                        new_fb = tel.feedback
-                        est = estimator.update(new_fb.gyro_yaw_rate_rad_s, new_fb.time_usec * 1e-6, new_fb.pan_scan_on,
-                                               new_fb.yaw_rate_cmd_rad_s - new_fb.pan_scan_yaw_rate_rad_s)
-                        self._pan_scan_hz = est.frequency_hz
-                        ps = (est.yaw_rate_rad_s if self.cfg.force.pan_scan_source == "estimated"
-                              else new_fb.pan_scan_yaw_rate_rad_s if new_fb.pan_scan_on else 0.0)
-                        self._motion = MotionInput(t, VehicleMotion(new_fb.v_h_m_s, new_fb.alpha_rad,
-                                                                    new_fb.gyro_yaw_rate_rad_s, ps),
-                                                   new_fb.mode in self.cfg.force.cue_modes)
-                        if self._force_proc is not None:
-                            self._force_proc.set_motion(self._motion, new_fb.time_usec * 1e-6)
-                    elif mtype == "COMMAND_ACK":
-                        self._ack(self.commands.on_command_ack(msg.command, msg.result, t))
-                    elif mtype == "PARAM_VALUE":
-                        pid = msg.param_id if isinstance(msg.param_id, str) else msg.param_id.decode(errors="ignore")
-                        self._ack(self.commands.on_param_value(pid.rstrip("\x00"), msg.param_value, t))
-                    elif mtype == "STATUSTEXT" and msg.severity <= mavlink.MAV_SEVERITY_WARNING:
-                        log.warning("vehicle says: %s", tel.last_statustext)
-                # buttons -> commands
-                presses = self._force_proc.buttons() if self._force_proc is not None else []
-                while True:
-                    try:
-                        presses.append(self._buttons.get_nowait())
-                    except queue.Empty:
-                        break
-                for button in presses:
-                    if button == "quit":
-                        log.info("quit pressed")
-                        self.stop_event.set()
-                        continue
-                    out = self.commands.build(button, tel.feedback.pan_scan_on if tel.feedback else False)
-                    if out is not None:
-                        log.info("button %s -> %s", button, out.name)
-                        self._send_command(conn, self.commands.submit(out, t))
-                resend, failed = self.commands.poll(t)
-                for out in resend:
-                    self._send_command(conn, out)
-                for result in failed:
-                    self._ack(result)
-                # operator command, eqs. (2)-(3)
-                force = self.force
-                q = force.device.q_m if force else np.zeros(3)
-                cmd = map_device_to_command(q, self.cfg.mapping, self.cfg.device)
-                conn.mav.manual_control_send(self.cfg.mapping.target_system, cmd.x, cmd.y, cmd.z, cmd.r, cmd.buttons)
-                self.manual_control_sent += 1
-                if t >= next_heartbeat:
-                    next_heartbeat = t + 1.0
-                    conn.mav.heartbeat_send(mavlink.MAV_TYPE_GCS, mavlink.MAV_AUTOPILOT_INVALID, 0, 0,
-                                            mavlink.MAV_STATE_ACTIVE)
-                ok = link_ok(tel.feedback.t_recv_s if tel.feedback else None, t, self.cfg.force.link_timeout_s)
-                warnings = warnings_for(tel, ok, t, self.cfg)
-                with self._lock:
-                    self._telemetry, self._command, self._warnings = tel, cmd, warnings
-                self.hub.set_status(self.status())
-                if writer is not None:
-                    writer.writerow(self._csv_row(t - t0, force, cmd, tel))
-                next_t += period
-                if self.clock() - next_t > 10 * period:
-                    next_t = self.clock()
-                self.stop_event.wait(max(next_t - self.clock(), 0.0))
-        finally:
-            if csv_file is not None:
-                csv_file.close()
+        VehicleLink(self).run()
 
-    def _send_command(self, conn: Any, out: OutgoingCommand) -> None:
-        if out.kind == "command_long":
-            conn.mav.command_long_send(out.target_system, out.target_component, out.command, out.confirmation,
-                                       *out.params)
-        else:
-            conn.mav.param_set_send(out.target_system, out.target_component, out.param_id.encode(),
-                                    out.param_value, mavlink.MAV_PARAM_TYPE_REAL32)
+    def _set_link_state(self, tel: Telemetry, cmd: ManualControl, t: float) -> None:
+        """The link loop's results of one tick, published atomically to the other threads and the page."""
+        ok = link_ok(tel.feedback.t_recv_s if tel.feedback else None, t, self.cfg.force.link_timeout_s)
+        warnings = warnings_for(tel, ok, t, self.cfg)
+        with self._lock:
+            self._telemetry, self._command, self._warnings = tel, cmd, warnings
+        self.hub.set_status(self.status())
 
     def _ack(self, result: CommandResult | None) -> None:
         if result is None:
@@ -378,36 +270,9 @@ class Station:
         with self._lock:
             self._acks.append(result.text)
 
-    def _csv_row(self, t_s: float, force: ForceSnapshot | None, cmd: ManualControl, tel: Telemetry) -> list[Any]:
-        z3 = (0.0, 0.0, 0.0)
-        dev = force.device if force else None
-        q = dev.q_m if dev is not None else z3
-        qd = dev.qdot_m_s if dev is not None else z3
-        fop = dev.operator_force_n if dev is not None and dev.operator_force_n is not None else z3
-        tau = force.tau_d_n if force else z3
-        qt = force.q_tilde_m if force and force.q_tilde_m is not None else (math.nan,) * 3
-        fb = tel.feedback
-        motion = self._motion
-        row: list[Any] = [f"{t_s:.4f}", *(f"{v:.5f}" for v in q), *(f"{v:.5f}" for v in qd),
-                          *(f"{v:.4f}" for v in fop), *(f"{v:.4f}" for v in tau), *(f"{v:.5f}" for v in qt),
-                          f"{force.link_gain if force else 0.0:.3f}", cmd.x, cmd.z, cmd.r]
-        if fb is not None:
-            row += [*(f"{v:.4f}" for v in fb.v_h_m_s), *(f"{v:.4f}" for v in fb.v_cmd_h_m_s),
-                    *(f"{v:.4f}" for v in fb.v_rep_h_m_s), f"{fb.alpha_rad:.4f}", f"{fb.gyro_yaw_rate_rad_s:.4f}",
-                    f"{motion.motion.pan_scan_yaw_rate_rad_s if motion else 0.0:.4f}",
-                    "" if fb.obstacle_distance_m is None else f"{fb.obstacle_distance_m:.3f}", fb.mode, fb.flags]
-        else:
-            row += [""] * 15
-        row.append(int(tel.armed))
-        return row
-
-    # ---- view loop (camera rate) -----------------------------------------------------------
+    # ---- view loop (camera rate): teleop.view_loop -------------------------------------------
     def _view_loop(self) -> None:
-        vcfg = self.cfg.view
-        renderer = OperatorViewRenderer(vcfg.canvas_width_px, vcfg.canvas_height_px, vcfg.background_decay_s)
-        estimator = PanScanEstimator(vcfg.initial_frequency_hz, vcfg.min_frequency_hz, vcfg.max_frequency_hz,
-                                     vcfg.bandpass_q, vcfg.bias_periods,
-                                     operator_yaw_time_constant_s=vcfg.operator_yaw_time_constant_s)
+        view = OperatorView(self.cfg)
         client = CameraStreamClient(self.image_stream_url) if self.image_stream_url else None
         if client is not None:
             log.info("operator view: image stream %s", self.image_stream_url)
@@ -421,50 +286,34 @@ class Station:
                 t = self.clock()
                 if frame is None:
                     if t - last_render >= 0.5:   # keep the page alive (status, force) without images
-                        img = renderer.render(None, None, np.eye(3), 0.0, 0.0, 0.0, t,
-                                              self._overlay({}, ("waiting for the image stream",)))
-                        self._publish(img)
+                        self._publish(view.waiting(t, self.status(), "waiting for the image stream"))
                         last_render = t
                     continue
-                meta = frame.meta or {}
-                gyro = _meta_float(meta, "gyro_yaw_rate_rad_s")
-                est = estimator.update(gyro, frame.stamp_s, bool(meta.get("pan_scan_on", True)),
-                                       self._operator_yaw_rate_cmd())
-                img = renderer.render(frame.rgb, frame.intrinsics, frame.R_qc, _meta_float(meta, "roll_rad"),
-                                      _meta_float(meta, "pitch_rad"), est.yaw_rad, frame.stamp_s,
-                                      self._overlay(meta, ()))
-                self._publish(img)
+                assert client is not None
+                try:
+                    meta = image_meta(frame)
+                except ProtocolError as exc:   # not the companion's metadata: say so, never guess
+                    self.bad_image_meta += 1
+                    if self.bad_image_meta == 1 or self.bad_image_meta % 100 == 0:
+                        log.error("operator image %d rejected (%d so far): %s", frame.seq, self.bad_image_meta, exc)
+                    self._publish(view.waiting(t, self.status(), "image metadata rejected (see log)"))
+                    client.ack(frame.seq)
+                    continue
+                out = view.on_image(frame, meta, self._operator_yaw_rate_cmd(), self.status())
+                self._publish(out.image_bgr)
                 last_render = t
                 self.view_frames += 1
                 if self.record_path:
                     if video is None:
-                        video = _open_video(self.record_path, img.shape[1], img.shape[0])
-                    video.write(img)
-                client.ack(frame.seq)  # type: ignore[union-attr]
+                        video = open_video(self.record_path, out.image_bgr.shape[1], out.image_bgr.shape[0])
+                    video.write(out.image_bgr)
+                client.ack(frame.seq)
         finally:
             if client is not None:
                 client.close()
             if video is not None:
                 video.release()
                 log.info("recorded operator view to %s", self.record_path)
-
-    def _overlay(self, meta: dict[str, Any], extra_warnings: tuple[str, ...]) -> Overlay:
-        s = self.status()
-        tel = self.telemetry
-        fb = tel.feedback
-        v_cmd = _meta_vec(meta, "v_cmd_h") or (fb.v_cmd_h_m_s if fb else (0.0, 0.0, 0.0))
-        v_est = _meta_vec(meta, "v_est_h") or (fb.v_h_m_s if fb else (0.0, 0.0, 0.0))
-        points = meta.get("obstacle_points_c_m") or []
-        pts = tuple(tuple(float(c) for c in p[:3]) for p in points
-                    if isinstance(p, (list, tuple)) and len(p) >= 3 and all(isinstance(c, (int, float)) for c in p[:3]))
-        bat = f"{s['battery_v']:.1f} V" if s["battery_v"] is not None else "- V"
-        obst = f"{s['min_obstacle_m']:.2f} m" if s["min_obstacle_m"] is not None else "none"
-        lines = (f"link {s['link']}  mode {s['mode']}  {'ARMED' if s['armed'] else 'disarmed'}",
-                 f"battery {bat}  obstacle {obst}  pan-scan {'on' if s['pan_scan_on'] else 'off'}")
-        return Overlay(v_cmd_h_m_s=v_cmd, v_est_h_m_s=v_est, force_d_n=tuple(s["force_n"]),  # type: ignore[arg-type]
-                       force_limit_n=self.cfg.device.force_limit_n, obstacle_points_c_m=pts,  # type: ignore[arg-type]
-                       obstacle_warning_m=self.cfg.view.obstacle_warning_m,
-                       status_lines=lines, warnings=tuple(s["warnings"]) + extra_warnings)
 
     def _operator_yaw_rate_cmd(self) -> float:
         """The operator's part of the commanded yaw rate (latest TELEOP_FEEDBACK), 0 without a link."""
@@ -508,24 +357,3 @@ class _ThreadIO:
 
     def stop_requested(self) -> bool:
         return self.station.stop_event.is_set()
-
-
-def _meta_float(meta: dict[str, Any], key: str) -> float:
-    value = meta.get(key, 0.0)
-    return float(value) if isinstance(value, (int, float)) and math.isfinite(value) else 0.0
-
-
-def _meta_vec(meta: dict[str, Any], key: str) -> tuple[float, float, float] | None:
-    value = meta.get(key)
-    if isinstance(value, (list, tuple)) and len(value) == 3 and all(isinstance(v, (int, float)) for v in value):
-        return (float(value[0]), float(value[1]), float(value[2]))
-    return None
-
-
-def _open_video(path: str, width: int, height: int, fps: float = 30.0) -> cv2.VideoWriter:
-    fourcc = cv2.VideoWriter.fourcc(*("MJPG" if Path(path).suffix.lower() == ".avi" else "mp4v"))
-    writer = cv2.VideoWriter(path, fourcc, fps, (width, height))
-    if not writer.isOpened():
-        raise LinkError(f"--record {path}: OpenCV cannot open a video writer (use .avi or .mp4)")
-    log.info("recording the operator view to %s", path)
-    return writer

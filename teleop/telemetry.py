@@ -13,7 +13,8 @@ from quadlink.mavlink import mavlink
 _MODE_PREFIX = "QUADLINK_TELEOP_MODE_"
 # TELEOP_FEEDBACK.mode -> name, from the dialect's QUADLINK_TELEOP_MODE (idle, takeoff, teleop, hold, land)
 MODE_NAMES = {value: entry.name[len(_MODE_PREFIX):].lower()
-              for value, entry in mavlink.enums["QUADLINK_TELEOP_MODE"].items() if entry.name.startswith(_MODE_PREFIX) and not entry.name.endswith("_ENUM_END")}
+              for value, entry in mavlink.enums["QUADLINK_TELEOP_MODE"].items()
+              if entry.name.startswith(_MODE_PREFIX) and not entry.name.endswith("_ENUM_END")}
 FLAG_PAN_SCAN_ON = mavlink.QUADLINK_TELEOP_FLAGS_PAN_SCAN_ON
 FLAG_ODOMETRY_OK = mavlink.QUADLINK_TELEOP_FLAGS_ODOMETRY_OK
 FLAG_GCS_LINK_OK = mavlink.QUADLINK_TELEOP_FLAGS_GCS_LINK_OK

@@ -17,6 +17,7 @@ import pytest
 from companion.cameras import StreamCamera
 from companion.config import CompanionConfig, LinksConfig, ModeParams, PanScanConfig, TimingConfig
 from companion.daemon import Companion
+from companion.image_publisher import OperatorImagePublisher
 from companion.messages import TYPE_MASK_VELOCITY_YAW_RATE, UINT16_UNKNOWN
 from companion.modes import Mode
 from perception.pipeline import ObstacleSectors
@@ -136,7 +137,7 @@ class FakeGcs:
 class Rig:
     """Daemon in a thread + fakes driven from the test thread in lock-step with the frames."""
 
-    def __init__(self, tmp_path: Path) -> None:
+    def __init__(self, tmp_path: Path, images: OperatorImagePublisher | None = None) -> None:
         cfg = CompanionConfig(
             links=LinksConfig(autopilot="udpin:127.0.0.1:0", gcs="udpin:127.0.0.1:0"),
             timing=TimingConfig(camera_timeout_s=1.0),
@@ -150,7 +151,7 @@ class Rig:
         self.tlog_path = tmp_path / "companion.tlog"
         self.daemon = Companion(cfg, ap_link, gcs_link, StreamCamera(f"tcp://127.0.0.1:{self.server.port}"),
                                 lambda frame: self.pipeline, tlog=TlogWriter(self.tlog_path),
-                                frame_recorder=FrameRecordWriter(tmp_path / "frames.qlcf"))
+                                frame_recorder=FrameRecordWriter(tmp_path / "frames.qlcf"), image_server=images)
         self.ap = FakeAutopilot(ap_link.port.getsockname()[1])
         self.gcs = FakeGcs(gcs_link.port.getsockname()[1])
         self.stop = threading.Event()
@@ -165,6 +166,17 @@ class Rig:
         assert self.server.wait_for_client(5.0), "daemon did not connect to the camera stream"
         self.ap.send_state()
         self.gcs.link.mav.heartbeat_send(mavlink.MAV_TYPE_GCS, mavlink.MAV_AUTOPILOT_INVALID, 0, 0, 0)
+
+    def take_off(self) -> None:
+        """Ground-station takeoff through the companion, frames until TELEOP."""
+        for _ in range(5):
+            self.frame(manual=(0, 0, 500))
+        self.gcs.link.mav.command_long_send(1, 191, mavlink.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, 0, 0, 0, 1.0)
+        for _ in range(60):
+            self.frame(manual=(0, 0, 500))
+            if self.daemon.modes.mode == Mode.TELEOP:
+                return
+        raise AssertionError(f"no TELEOP after takeoff: {self.daemon.modes.mode.name}")
 
     def frame(self, manual: tuple[int, int, int] | None = None, pace: bool = True) -> None:
         """One camera period: IMU at 500 Hz, state, optional MANUAL_CONTROL, the frame, wait for its ack."""
@@ -187,7 +199,7 @@ class Rig:
     def close(self) -> None:
         self.stop.set()
         self.thread.join(5.0)
-        self.daemon.close()
+        self.daemon.close()   # closes the image publisher too
         self.server.close()
         self.ap.link.close()
         self.gcs.link.close()

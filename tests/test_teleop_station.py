@@ -1,22 +1,28 @@
-"""The ground station against a fake companion (pymavlink on an ephemeral UDP port + a fake image stream):
+"""The ground station against a fake companion (pymavlink on an ephemeral UDP port + the companion's image
+publisher fed by its real metadata producer):
 MANUAL_CONTROL flows, commands are acknowledged, the force opposes a push when the feedback says the vehicle
 is blocked, and a headless-Chromium screenshot of the operator page shows the view with obstacle points."""
 
 from __future__ import annotations
 
-import math
 import shutil
 import subprocess
 import threading
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
+from types import SimpleNamespace
 
 import cv2
 import numpy as np
 import pytest
 
-from quadlink.camera import CameraIntrinsics, CameraStreamServer, RgbdFrame
+from companion.frame_step import operator_image_meta
+from companion.image_publisher import OperatorImagePublisher
+from companion.modes import Mode
+from companion.pan_scan import PanScanParams, pan_scan
+from companion.reference import OperatorInput, ReferenceParams, reference_velocity
+from quadlink.camera import CameraIntrinsics, RgbdFrame
 from quadlink.mavlink import mavlink
 from quadlink.mavlink.connection import open_mavlink
 from quadlink.vehicle import load_vehicle
@@ -85,11 +91,12 @@ class FakeCompanion:
         self.conn.close()
 
 
-class FakeImageStream:
-    """The companion's operator image stream: JPEG colour, meta with attitude, gyro, obstacle points."""
+class ImageStreamFromCompanion:
+    """The companion's operator image stream: its real publisher, metadata from its real producer
+    (``companion.frame_step.operator_image_meta``) for a perception output with obstacle points ahead."""
 
     def __init__(self) -> None:
-        self.server = CameraStreamServer("127.0.0.1", 0)
+        self.server = OperatorImagePublisher("127.0.0.1", 0)
         self.url = f"tcp://127.0.0.1:{self.server.port}"
         vehicle = load_vehicle()
         cam = vehicle.camera
@@ -98,20 +105,22 @@ class FakeImageStream:
         yy, xx = np.mgrid[0:cam.height_px, 0:cam.width_px]
         board = (((yy // 20) + (xx // 20)) % 2).astype(np.uint8)
         self.rgb = np.stack([60 + 120 * board, 90 + 100 * board, 60 + 60 * board], axis=-1).astype(np.uint8)
+        self.scan_params = PanScanParams(True, 0.6, 1.5)
         self.stop = threading.Event()
         self.thread = threading.Thread(target=self._run, daemon=True)
         self.thread.start()
 
     def _run(self) -> None:
         seq = 0
+        out = SimpleNamespace(roll_rad=0.0, pitch_rad=0.0, yaw_rad=0.0, v_h_m_s=np.array([0.1, 0.05, 0.0]),
+                              obstacle_points_c_m=np.array([[0.0, 0.0, 1.2], [0.25, -0.1, 1.5], [-0.2, 0.15, 0.6]]))
         while not self.stop.is_set():
             t = seq / 30.0
-            meta = {"stamp_s": t, "roll_rad": 0.0, "pitch_rad": 0.0, "yaw_rad": 0.0,
-                    "gyro_yaw_rate_rad_s": 0.6 * math.sin(1.5 * t), "pan_scan_on": True,
-                    "obstacle_points_c_m": [[0.0, 0.0, 1.2], [0.25, -0.1, 1.5], [-0.2, 0.15, 0.6]],
-                    "v_cmd_h": [0.4, 0.0, 0.0], "v_est_h": [0.1, 0.05, 0.0]}
-            self.server.publish(RgbdFrame(seq, t, self.rgb, None, self.intrinsics, self.R_qc, np.zeros(3), meta),
-                                rgb_jpeg=True)
+            scan = pan_scan(self.scan_params, t)
+            ref = reference_velocity(OperatorInput(0.7, 0.0, 0.0), self.R_qc, scan, None, ReferenceParams())
+            gyro_q = np.array([0.0, 0.0, scan.yaw_rate_rad_s])
+            meta = operator_image_meta(t, out, ref, scan, self.scan_params, gyro_q, Mode.TELEOP)
+            self.server.publish(RgbdFrame(seq, t, self.rgb, None, self.intrinsics, self.R_qc, np.zeros(3)), meta)
             seq += 1
             self.stop.wait(1 / 30.0)
 
@@ -131,10 +140,10 @@ def wait_for(condition: Callable[[], bool], timeout_s: float = 15.0) -> bool:
 
 
 @pytest.fixture(scope="module")
-def running() -> Iterator[tuple[Station, FakeCompanion, FakeImageStream]]:
+def running() -> Iterator[tuple[Station, FakeCompanion, ImageStreamFromCompanion]]:
     cfg = TeleopConfig()
     companion = FakeCompanion(cfg)
-    images = FakeImageStream()
+    images = ImageStreamFromCompanion()
     script = build_script(ScriptConfig(steps=[
         ScriptStepConfig(wait_s=0.3), ScriptStepConfig(button="arm"), ScriptStepConfig(button="pan_scan_toggle"),
         ScriptStepConfig(push="forward", force_n=PUSH_N, duration_s=600.0)]))
@@ -206,6 +215,7 @@ def test_page_screenshot_shows_compensated_view_with_obstacles(running, tmp_path
     greenish = (g > 100) & (g > r + 10)
     assert greenish.sum() > 5000, "no camera image in the view"
     assert view.std() > 20
+    assert station.bad_image_meta == 0   # every image's metadata decoded
 
 
 def test_force_process_shares_state_and_buttons(tmp_path):

@@ -1,0 +1,68 @@
+"""What the companion daemon is given: its links, its perception and where operator images go.
+
+Each is a small protocol so the daemon can be wired to the real thing (pymavlink links, the perception
+pipeline, :class:`companion.image_publisher.OperatorImagePublisher`) or to a test's stand-in.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any, Protocol
+
+import numpy as np
+from numpy.typing import NDArray
+
+from companion.config import CompanionConfig
+from quadlink.camera import RgbdFrame
+from quadlink.errors import QuadlinkError
+from quadlink.operator_image import OperatorImageMeta
+
+
+class MavLink(Protocol):
+    """What the daemon needs of a pymavlink ``mavfile``."""
+
+    def recv_msg(self) -> Any: ...
+
+    def write(self, buf: bytes) -> Any: ...
+
+    def close(self) -> Any: ...
+
+
+class Pipeline(Protocol):
+    """The perception façade (``perception.pipeline.PerceptionPipeline``)."""
+
+    def on_imu(self, stamp_s: float, gyro_q_rad_s: NDArray[np.float64], accel_q_m_s2: NDArray[np.float64]) -> None: ...
+
+    def on_frame(self, frame: RgbdFrame) -> Any: ...
+
+
+class ImageSink(Protocol):
+    """Where operator images go (:class:`companion.image_publisher.OperatorImagePublisher`): ``publish``
+    must never block."""
+
+    @property
+    def client_count(self) -> int: ...
+
+    def publish(self, frame: RgbdFrame, meta: OperatorImageMeta) -> None: ...
+
+    def close(self) -> None: ...
+
+
+PipelineFactory = Callable[[RgbdFrame], Pipeline]
+
+
+def default_pipeline_factory(cfg: CompanionConfig, seed: int = 0) -> PipelineFactory:
+    """Builds ``perception.pipeline.PerceptionPipeline`` on the first frame (its intrinsics and mount)."""
+    try:
+        from perception.pipeline import PerceptionConfig, PerceptionPipeline
+    except ImportError as exc:
+        raise QuadlinkError(f"perception pipeline not available ({exc}); the companion needs perception/pipeline.py"
+                            ) from exc
+    from quadlink.config import load_config
+
+    pcfg = load_config(cfg.perception_config, PerceptionConfig) if cfg.perception_config else PerceptionConfig()
+
+    def make(frame: RgbdFrame) -> Pipeline:
+        return PerceptionPipeline(pcfg, frame.intrinsics, frame.R_qc, frame.p_qc_m, np.random.default_rng(seed))
+
+    return make

@@ -1,0 +1,36 @@
+"""The daemon's counters and the figures of its progress line."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+
+def _recent_median_ms(values_s: list[float], n: int = 300) -> str:
+    """Median of the last ``n`` durations, for the status line."""
+    recent = sorted(values_s[-n:])
+    return f"{recent[len(recent) // 2] * 1e3:.1f} ms" if recent else "-"
+
+
+@dataclass
+class Stats:
+    frames: int = 0
+    setpoints: int = 0
+    feedback: int = 0
+    routed_to_gcs: int = 0
+    routed_to_autopilot: int = 0
+    manual_controls: int = 0
+    pipeline_errors: int = 0
+    latencies_s: list[float] = field(default_factory=list)
+    perception_s: list[float] = field(default_factory=list)
+
+    def summary(self, odometry_ok: bool, gcs_ok: bool) -> str:
+        return (f"frame->setpoint p50 {_recent_median_ms(self.latencies_s)} "
+                f"(perception {_recent_median_ms(self.perception_s)})  odometry {'ok' if odometry_ok else 'FAIL'}  "
+                f"gcs link {'ok' if gcs_ok else 'lost'}  manual {self.manual_controls}  "
+                f"routed {self.routed_to_gcs} to GCS / {self.routed_to_autopilot} to autopilot")
+
+    def trim(self, keep: int = 2000, limit: int = 20000) -> None:
+        """Bound the duration lists of a long run."""
+        if len(self.latencies_s) > limit:
+            del self.latencies_s[:-keep]
+            del self.perception_s[:-keep]

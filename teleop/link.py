@@ -1,0 +1,146 @@
+"""The ground station's vehicle link, 50 Hz (``mapping.rate_hz``): MAVLink in (telemetry,
+TELEOP_FEEDBACK, acks, parameter echoes), MANUAL_CONTROL and HEARTBEAT out, buttons -> commands,
+warnings and the CSV log.
+
+TELEOP_FEEDBACK drives the force loop's motion input (the vehicle's velocity, alpha, gyro yaw rate and
+the pan-scan rate removed in eq. (17): estimated from the gyro or the commanded one).
+"""
+
+from __future__ import annotations
+
+import logging
+import queue
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from quadlink.mavlink import mavlink
+from teleop.commands import OutgoingCommand
+from teleop.force import VehicleMotion
+from teleop.force_loop import MotionInput
+from teleop.mapping import map_device_to_command
+from teleop.recording import CsvLog, csv_row
+from teleop.telemetry import Feedback, Telemetry, apply_message
+from teleop.view_loop import make_estimator
+
+if TYPE_CHECKING:
+    from teleop.station import Station
+
+log = logging.getLogger(__name__)
+
+MAX_MESSAGES_PER_TICK = 1000
+
+
+def send_command(conn: Any, out: OutgoingCommand) -> None:
+    """A COMMAND_LONG or PARAM_SET of the command tracker on the link."""
+    if out.kind == "command_long":
+        conn.mav.command_long_send(out.target_system, out.target_component, out.command, out.confirmation,
+                                   *out.params)
+    else:
+        conn.mav.param_set_send(out.target_system, out.target_component, out.param_id.encode(),
+                                out.param_value, mavlink.MAV_PARAM_TYPE_REAL32)
+
+
+class VehicleLink:
+    """The network loop of a :class:`teleop.station.Station` (runs in its own thread)."""
+
+    def __init__(self, station: Station) -> None:
+        self.station = station
+        self.cfg = station.cfg
+        self.estimator = make_estimator(station.cfg)
+
+    def run(self) -> None:
+        st, cfg = self.station, self.cfg
+        period = 1.0 / cfg.mapping.rate_hz
+        conn = st._conn
+        csv_log = CsvLog(st.log_csv) if st.log_csv else None
+        t0 = st.clock()
+        next_t = t0
+        next_heartbeat = t0
+        try:
+            while not st.stop_event.is_set():
+                t = st.clock()
+                tel = self._receive(conn, st.telemetry, t)
+                self._buttons(conn, tel, t)
+                # operator command, eqs. (2)-(3)
+                force = st.force
+                q = force.device.q_m if force else np.zeros(3)
+                cmd = map_device_to_command(q, cfg.mapping, cfg.device)
+                conn.mav.manual_control_send(cfg.mapping.target_system, cmd.x, cmd.y, cmd.z, cmd.r, cmd.buttons)
+                st.manual_control_sent += 1
+                if t >= next_heartbeat:
+                    next_heartbeat = t + 1.0
+                    conn.mav.heartbeat_send(mavlink.MAV_TYPE_GCS, mavlink.MAV_AUTOPILOT_INVALID, 0, 0,
+                                            mavlink.MAV_STATE_ACTIVE)
+                st._set_link_state(tel, cmd, t)
+                if csv_log is not None:
+                    csv_log.write(csv_row(t - t0, force, cmd, tel, st._motion))
+                next_t += period
+                if st.clock() - next_t > 10 * period:
+                    next_t = st.clock()
+                st.stop_event.wait(max(next_t - st.clock(), 0.0))
+        finally:
+            if csv_log is not None:
+                csv_log.close()
+
+    def _receive(self, conn: Any, tel: Telemetry, t: float) -> Telemetry:
+        cfg = self.cfg
+        ap = (cfg.commands.autopilot_system, cfg.commands.autopilot_component)
+        for _ in range(MAX_MESSAGES_PER_TICK):
+            try:
+                msg = conn.recv_match(blocking=False)
+            except (OSError, ValueError) as exc:   # a bad datagram or a transient socket error
+                log.debug("MAVLink receive: %s", exc)
+                break
+            if msg is None:
+                break
+            mtype = msg.get_type()
+            if mtype == "BAD_DATA":
+                continue
+            tel = apply_message(tel, msg, t, ap, cfg.commands.companion_component)
+            if mtype == "TELEOP_FEEDBACK" and tel.feedback is not None:
+                self._on_feedback(tel.feedback, t)
+            elif mtype == "COMMAND_ACK":
+                self.station._ack(self.station.commands.on_command_ack(msg.command, msg.result, t))
+            elif mtype == "PARAM_VALUE":
+                pid = msg.param_id if isinstance(msg.param_id, str) else msg.param_id.decode(errors="ignore")
+                self.station._ack(self.station.commands.on_param_value(pid.rstrip("\x00"), msg.param_value, t))
+            elif mtype == "STATUSTEXT" and msg.severity <= mavlink.MAV_SEVERITY_WARNING:
+                log.warning("vehicle says: %s", tel.last_statustext)
+        return tel
+
+    def _on_feedback(self, fb: Feedback, t: float) -> None:
+        st, cfg = self.station, self.cfg
+        est = self.estimator.update(fb.gyro_yaw_rate_rad_s, fb.time_usec * 1e-6, fb.pan_scan_on,
+                                    fb.yaw_rate_cmd_rad_s - fb.pan_scan_yaw_rate_rad_s)
+        st._pan_scan_hz = est.frequency_hz
+        ps = (est.yaw_rate_rad_s if cfg.force.pan_scan_source == "estimated"
+              else fb.pan_scan_yaw_rate_rad_s if fb.pan_scan_on else 0.0)
+        st._motion = MotionInput(t, VehicleMotion(fb.v_h_m_s, fb.alpha_rad, fb.gyro_yaw_rate_rad_s, ps),
+                                 fb.mode in cfg.force.cue_modes)
+        if st._force_proc is not None:
+            st._force_proc.set_motion(st._motion, fb.time_usec * 1e-6)
+
+    def _buttons(self, conn: Any, tel: Telemetry, t: float) -> None:
+        st = self.station
+        presses = st._force_proc.buttons() if st._force_proc is not None else []
+        while True:
+            try:
+                presses.append(st._buttons.get_nowait())
+            except queue.Empty:
+                break
+        for button in presses:
+            if button == "quit":
+                log.info("quit pressed")
+                st.stop_event.set()
+                continue
+            out = st.commands.build(button, tel.feedback.pan_scan_on if tel.feedback else False)
+            if out is not None:
+                log.info("button %s -> %s", button, out.name)
+                send_command(conn, st.commands.submit(out, t))
+        resend, failed = st.commands.poll(t)
+        for out in resend:
+            send_command(conn, out)
+        for result in failed:
+            st._ack(result)
+
