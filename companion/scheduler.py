@@ -37,6 +37,7 @@ class StampTicker:
 
     def due(self, stamp_s: float) -> bool:
         if stamp_s >= self._next_s or stamp_s < self._next_s - 1.0:
-            self._next_s = (math.floor(stamp_s / self.period_s) + 1) * self.period_s
+            # the epsilon: a stamp on a boundary that rounds just below it must not fire again 2 ms later
+            self._next_s = (math.floor(stamp_s / self.period_s + 1e-6) + 1) * self.period_s
             return True
         return False

@@ -7,6 +7,8 @@ Wire format (TCP, one direction of records, the other of acknowledgements)::
                "R_qc": 3x3 rows, "p_qc_m": [x, y, z],
                "rgb_encoding": "rgb8" | "jpeg", "rgb_bytes": n, "depth_encoding": "mm_u16le" | "none",
                "depth_bytes": n, "meta": {...}}
+    meta    = free-form on the sensor stream (SITL -> companion); on the companion's operator image stream it is
+              quadlink.operator_image.OperatorImageMeta.to_wire(), decoded strictly by the ground station
     ack     = uint32 LE seq   (consumer -> producer, after the frame has been processed)
 
 Colour is RGB8 row-major (or JPEG); depth is uint16 little-endian millimetres, 0 = invalid. A
@@ -81,7 +83,7 @@ class RgbdFrame:
     intrinsics: CameraIntrinsics
     R_qc: NDArray[np.float64] = field(default_factory=lambda: np.eye(3))
     p_qc_m: NDArray[np.float64] = field(default_factory=lambda: np.zeros(3))
-    meta: dict[str, Any] = field(default_factory=dict)
+    meta: dict[str, Any] = field(default_factory=dict)   # JSON-ready; see the module doc for who defines it
 
 
 def encode_record(frame: RgbdFrame, rgb_jpeg: bool = False, jpeg_quality: int = 85) -> bytes:

@@ -10,12 +10,6 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from quadlink.analysis.yaw_identification import (
-    IdentificationError,
-    fit_sinusoid,
-    identify_first_order,
-    identify_from_log,
-)
 from companion.pan_scan import PanScanParams, PanScanState, pan_scan, swing_amplitude_rad
 from companion.reference import (
     OperatorInput,
@@ -28,6 +22,12 @@ from companion.reference import (
     remove_toward_close_obstacles,
     remove_toward_unknown,
     repulsion_velocity,
+)
+from quadlink.analysis.yaw_identification import (
+    IdentificationError,
+    fit_sinusoid,
+    identify_first_order,
+    identify_from_log,
 )
 from quadlink.frames import Ry, Rz
 from quadlink.vehicle import CameraConfig

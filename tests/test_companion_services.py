@@ -1,0 +1,85 @@
+"""The daemon's pure parts: routing decisions, deadlines, the parameter service (unit tier)."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+
+from companion.config import PanScanConfig
+from companion.params import PARAM_NAMES, CompanionParams, handle_param_message, set_by_index
+from companion.reference import ReferenceParams
+from companion.router import route_from_autopilot, route_from_gcs
+from companion.scheduler import Deadlines, StampTicker
+from quadlink.mavlink import mavlink
+
+ME = 191
+
+
+def test_autopilot_messages_go_to_the_gcs_unless_addressed_to_the_companion() -> None:
+    hb = route_from_autopilot("HEARTBEAT", None, ME)
+    assert hb.consume and hb.forward
+    status = route_from_autopilot("SYS_STATUS", None, ME)
+    assert not status.consume and status.forward
+    ack_to_me = route_from_autopilot("COMMAND_ACK", ME, ME)
+    assert ack_to_me.consume and not ack_to_me.forward
+    ack_to_gcs = route_from_autopilot("COMMAND_ACK", 190, ME)
+    assert not ack_to_gcs.consume and ack_to_gcs.forward
+    assert route_from_autopilot("COMMAND_ACK", 0, ME).consume
+
+
+def test_gcs_messages_route_by_target() -> None:
+    mc = route_from_gcs("MANUAL_CONTROL", 1, None, 1, ME)
+    assert mc.consume and not mc.forward
+    assert not route_from_gcs("MANUAL_CONTROL", 7, None, 1, ME).consume
+    to_me = route_from_gcs("COMMAND_LONG", 1, ME, 1, ME)
+    assert to_me.consume and not to_me.forward
+    to_ap = route_from_gcs("COMMAND_LONG", 1, 1, 1, ME)
+    assert not to_ap.consume and to_ap.forward
+    other = route_from_gcs("COMMAND_LONG", 2, 1, 1, ME)
+    assert not other.consume and not other.forward
+    bcast = route_from_gcs("PARAM_REQUEST_LIST", 1, 0, 1, ME)
+    assert bcast.consume and bcast.forward
+    assert not route_from_gcs("COMMAND_LONG", 0, 0, 1, ME).consume
+
+
+def test_deadlines_fire_once_per_period() -> None:
+    d = Deadlines()
+    fired = [t for t in [0.0, 0.3, 0.99, 1.0, 1.5, 2.0, 2.2] if d.due("hb", t, 1.0)]
+    assert fired == [0.0, 1.0, 2.0]
+    d.arm("later", 5.0)
+    assert not d.due("later", 4.9, 1.0) and d.due("later", 5.0, 1.0)
+
+
+def test_stamp_ticker_holds_its_rate_on_a_faster_clock_and_rearms_on_rewind() -> None:
+    tick = StampTicker(0.02)   # 50 Hz on 500 Hz stamps
+    stamps = [k * 0.002 for k in range(1, 501)]
+    fired = [t for t in stamps if tick.due(t)]
+    gaps = [b - a for a, b in zip(fired[1:], fired[2:])]
+    # one per 20 ms period, also where a boundary stamp rounds just below the boundary (k * 0.002 floats)
+    assert len(fired) == 51 and all(abs(g - 0.02) < 1e-9 for g in gaps)
+    assert not tick.due(0.5)   # half a second back: a late sample, not a restart
+    assert tick.due(0.001)     # a restarted producer (more than a second back) re-arms it
+    assert not tick.due(0.002)
+
+
+def test_params_validate_and_the_protocol_answers() -> None:
+    p = CompanionParams(PanScanConfig(enabled=True), ReferenceParams())
+    assert p.names == PARAM_NAMES
+    assert p.set("CMP_K_V", 0.8) and p.reference.k_v_m_s == 0.8
+    assert not p.set("CMP_K_V", -1.0) and p.reference.k_v_m_s == 0.8
+    assert not p.set("PANSCAN_OMEGA", 0.0) and not p.set("CMP_SAFE_DIST", math.nan) and not p.set("NOPE", 1.0)
+    omega0 = p.scan.omega_rad_s
+    assert p.set("PANSCAN_OMEGA", 2.0) and p.scan.omega_rad_s == 2.0 != omega0
+    assert set_by_index(p, PARAM_NAMES.index("PANSCAN_EN"), 0.0) == "PANSCAN_EN" and not p.scan.enabled
+    assert set_by_index(p, 99, 1.0) is None
+
+    replies, changed = handle_param_message(p, mavlink.MAVLink_param_request_list_message(1, ME))
+    assert changed is None and [r.param_id for r in replies] == list(PARAM_NAMES)
+    assert all(r.param_count == len(PARAM_NAMES) for r in replies)
+    replies, changed = handle_param_message(
+        p, mavlink.MAVLink_param_set_message(1, ME, b"CMP_K_PSI", 0.5, mavlink.MAV_PARAM_TYPE_REAL32))
+    assert changed == "CMP_K_PSI" and replies[0].param_value == pytest.approx(0.5)
+    replies, changed = handle_param_message(
+        p, mavlink.MAVLink_param_set_message(1, ME, b"CMP_K_PSI", -2.0, mavlink.MAV_PARAM_TYPE_REAL32))
+    assert changed is None and replies == [] and p.reference.k_psi_rad_s == pytest.approx(0.5)
