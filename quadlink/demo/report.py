@@ -131,7 +131,8 @@ def compute_report(flight: FlightLog, cpu_s: dict[str, float] | None = None, sce
         flying = _flying_mask(flight, flight.t_fb)
         rmse = metrics.rmse_per_axis(flight.t_fb, flight.v_est_h, flight.t_truth, v_true_h, flying)
         report["velocity_rmse_m_s"] = dict(zip("xyz", map(float, rmse)))
-        free = flying & (np.linalg.norm(flight.v_rep_h, axis=1) < 0.02) & (flight.mode == mavlink.QUADLINK_TELEOP_MODE_TELEOP)
+        teleop = flight.mode == mavlink.QUADLINK_TELEOP_MODE_TELEOP
+        free = flying & (np.linalg.norm(flight.v_rep_h, axis=1) < 0.02) & teleop
         track = metrics.rmse_per_axis(flight.t_fb, flight.v_cmd_h + flight.v_rep_h, flight.t_truth, v_true_h, free)
         report["tracking_rmse_m_s"] = dict(zip("xyz", map(float, track)))
         report["flying_time_s"] = float(np.sum(np.diff(flight.t_fb)[flying[1:]])) if flight.t_fb.size > 1 else 0.0
