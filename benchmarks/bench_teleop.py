@@ -28,6 +28,7 @@ import numpy as np
 
 from quadlink.camera import CameraIntrinsics, CameraStreamServer, RgbdFrame
 from quadlink.frames import R_hq, Rz
+from quadlink.operator_image import OperatorImageMeta, PanScanMeta
 from quadlink.vehicle import load_vehicle
 from teleop.config import TeleopConfig
 from teleop.force_loop import DeviceSpec
@@ -47,9 +48,13 @@ def _fake_image_stream(port_queue: Any, stop: Any) -> None:
     seq = 0
     while not stop.is_set():
         t = seq / 30.0
-        meta = {"roll_rad": 0.02, "pitch_rad": -0.03, "gyro_yaw_rate_rad_s": 0.6 * math.sin(1.5 * t),
-                "pan_scan_on": True, "obstacle_points_c_m": [[0.1 * i, 0.0, 1.0 + 0.1 * i] for i in range(20)],
-                "v_cmd_h": [0.3, 0, 0], "v_est_h": [0.25, 0.02, 0]}
+        meta = OperatorImageMeta(
+            stamp_s=t, roll_rad=0.02, pitch_rad=-0.03, yaw_rad=0.0, gyro_yaw_rate_rad_s=0.6 * math.sin(1.5 * t),
+            obstacle_points_c_m=tuple((0.1 * i, 0.0, 1.0 + 0.1 * i) for i in range(20)),
+            v_cmd_h_m_s=(0.3, 0.0, 0.0), v_est_h_m_s=(0.25, 0.02, 0.0),
+            pan_scan=PanScanMeta(True, 0.6 * math.sin(1.5 * t), 0.4 * math.sin(1.5 * t - math.pi / 2),
+                                 math.radians(45.0), 0.6, 1.5),
+            mode="teleop").to_wire()   # the companion's typed metadata (the station rejects anything else)
         server.publish(RgbdFrame(seq, t, rgb, None, intr, cam.R_qc_matrix, np.zeros(3), meta), rgb_jpeg=True)
         seq += 1
         stop.wait(1 / 30.0)
