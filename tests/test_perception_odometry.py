@@ -13,7 +13,7 @@ from click.testing import CliRunner
 
 from perception import metrics
 from perception.cli import command as vo_eval
-from perception.odometry import OdometryConfig, RgbdOdometry, _reference, inv_T, prepare_frame, se3_exp, so3_log
+from perception.odometry import OdometryConfig, RgbdOdometry, _reference, prepare_frame, se3_exp
 from perception.sources import (
     SourceUnavailable,
     TumFolderSource,
@@ -24,6 +24,7 @@ from perception.sources import (
 from perception.synthetic import pose, qvga_intrinsics, render
 from quadlink.errors import ConfigError
 from quadlink.frames import R_from_euler
+from quadlink.lie import inv_T, so3_log
 
 K = qvga_intrinsics()
 

@@ -7,8 +7,14 @@ import time
 
 import pytest
 
-from firmware_bridge.mk_messages import AttitudeSetpoint, ImuSample, Version, VersionRequest, decode_message, \
-    encode_message
+from firmware_bridge.mk_messages import (
+    AttitudeSetpoint,
+    ImuSample,
+    Version,
+    VersionRequest,
+    decode_message,
+    encode_message,
+)
 from firmware_bridge.mk_protocol import FrameDecoder
 from quadlink.camera import CameraStreamClient
 from sim_sitl.config import SitlConfig
