@@ -105,12 +105,16 @@ def test_lockstep_camera_wait_keeps_serving_the_serial_ports():
     """While a camera ack is outstanding the sim time stands still, yet a setpoint sent on port 1 reaches the
     firmware at once, the IMU of the frame's own tick has been delivered on port 2, and a version request
     sent during the wait is answered (on the simulated wire, right after the ack)."""
-    opts = SitlOptions(config=SitlConfig(scenario="empty"), port1=0, port2=0, camera_port=0, camera=True,
-                       truth_url=None, lockstep=True, progress_every_s=60.0)
+    # a long lock-step bound: on a loaded machine the test's own pauses must not look like a lost consumer
+    opts = SitlOptions(config=SitlConfig(scenario="empty", lockstep_timeout_s=20.0), port1=0, port2=0, camera_port=0,
+                       camera=True, truth_url=None, lockstep=True, progress_every_s=60.0)
     sitl = Sitl(opts).start()
-    cam = CameraStreamClient(f"tcp://127.0.0.1:{sitl.camera_server.port}")
     p1 = socket.create_connection(sitl.port1.address, timeout=5)
     p2 = socket.create_connection(sitl.port2.address, timeout=5)
+    deadline = time.monotonic() + 10
+    while (sitl.port1.tcp_client_count, sitl.port2.tcp_client_count) != (1, 1) and time.monotonic() < deadline:
+        time.sleep(0.01)  # both serial clients accepted before the camera (and so the lock-step) starts
+    cam = CameraStreamClient(f"tcp://127.0.0.1:{sitl.camera_server.port}")
     try:
         frame = None
         deadline = time.monotonic() + 30
