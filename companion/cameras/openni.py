@@ -7,15 +7,16 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from companion.cameras.base import CameraUnavailable
+from companion.cameras.base import CameraUnavailable, DeviceCamera
 from quadlink.camera import CameraIntrinsics, RgbdFrame
 
 
-class OpenNI2Camera:
+class OpenNI2Camera(DeviceCamera):
     """Depth (mm) registered to colour; ``read`` waits at most ``timeout_s`` per stream (wait_for_any_stream)."""
 
     def __init__(self, hfov_deg: float = 58.0, vfov_deg: float = 45.0, R_qc: NDArray[np.float64] | None = None,
                  p_qc_m: NDArray[np.float64] | None = None) -> None:
+        super().__init__(R_qc, p_qc_m)
         try:
             from openni import openni2  # type: ignore[import-not-found]
         except ImportError as exc:
@@ -32,14 +33,6 @@ class OpenNI2Camera:
         self._color.start()
         self._openni2 = openni2
         self._fov = (hfov_deg, vfov_deg)
-        self._R_qc = np.eye(3) if R_qc is None else np.asarray(R_qc, dtype=float)
-        self._p_qc_m = np.zeros(3) if p_qc_m is None else np.asarray(p_qc_m, dtype=float)
-        self._seq = 0
-        self._running = True
-
-    @property
-    def connected(self) -> bool:
-        return self._running
 
     def _ready(self, stream: Any, timeout_s: float) -> bool:
         return self._openni2.wait_for_any_stream([stream], timeout_s) is not None  # timeout in s (the bindings' unit)
@@ -54,17 +47,9 @@ class OpenNI2Camera:
         depth = np.frombuffer(d.get_buffer_as_uint16(), dtype=np.uint16).reshape(d.height, d.width)
         rgb = np.frombuffer(c.get_buffer_as_triplet(), dtype=np.uint8).reshape(c.height, c.width, 3).copy()
         k = CameraIntrinsics.from_fov(d.width, d.height, *self._fov)
-        frame = RgbdFrame(self._seq, d.timestamp * 1e-6, rgb, depth.astype(np.float32) * 1e-3, k, self._R_qc,
-                          self._p_qc_m)
-        self._seq += 1
-        return frame
+        return self._frame(d.timestamp * 1e-6, rgb, depth.astype(np.float32) * 1e-3, k)
 
-    def ack(self, seq: int) -> None:
-        return None
-
-    def close(self) -> None:
-        if self._running:
-            self._running = False
-            self._depth.stop()
-            self._color.stop()
-            self._openni2.unload()
+    def _stop(self) -> None:
+        self._depth.stop()
+        self._color.stop()
+        self._openni2.unload()

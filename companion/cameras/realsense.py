@@ -7,15 +7,16 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from companion.cameras.base import CameraUnavailable
+from companion.cameras.base import CameraUnavailable, DeviceCamera
 from quadlink.camera import CameraIntrinsics, RgbdFrame
 
 
-class RealSenseCamera:
+class RealSenseCamera(DeviceCamera):
     """Frames stamped with the device's clock (s); ``read`` waits at most ``timeout_s`` (try_wait_for_frames)."""
 
     def __init__(self, width: int = 640, height: int = 480, rate_hz: int = 30,
                  R_qc: NDArray[np.float64] | None = None, p_qc_m: NDArray[np.float64] | None = None) -> None:
+        super().__init__(R_qc, p_qc_m)
         try:
             import pyrealsense2 as rs  # type: ignore[import-not-found]
         except ImportError as exc:
@@ -33,14 +34,6 @@ class RealSenseCamera:
         self._align = rs.align(rs.stream.depth)
         intr = profile.get_stream(rs.stream.depth).as_video_stream_profile().get_intrinsics()
         self.intrinsics = CameraIntrinsics(intr.fx, intr.fy, intr.ppx, intr.ppy, intr.width, intr.height)
-        self._R_qc = np.eye(3) if R_qc is None else np.asarray(R_qc, dtype=float)
-        self._p_qc_m = np.zeros(3) if p_qc_m is None else np.asarray(p_qc_m, dtype=float)
-        self._seq = 0
-        self._running = True
-
-    @property
-    def connected(self) -> bool:
-        return self._running
 
     def read(self, timeout_s: float) -> RgbdFrame | None:
         ok, fs = self._pipe.try_wait_for_frames(max(1, int(timeout_s * 1000)))
@@ -49,14 +42,7 @@ class RealSenseCamera:
         fs = self._align.process(fs)
         depth: NDArray[Any] = np.asanyarray(fs.get_depth_frame().get_data()).astype(np.float32) * self._depth_scale_m
         rgb = np.asanyarray(fs.get_color_frame().get_data()).copy()
-        frame = RgbdFrame(self._seq, fs.get_timestamp() * 1e-3, rgb, depth, self.intrinsics, self._R_qc, self._p_qc_m)
-        self._seq += 1
-        return frame
+        return self._frame(fs.get_timestamp() * 1e-3, rgb, depth, self.intrinsics)
 
-    def ack(self, seq: int) -> None:
-        return None
-
-    def close(self) -> None:
-        if self._running:
-            self._running = False
-            self._pipe.stop()
+    def _stop(self) -> None:
+        self._pipe.stop()
