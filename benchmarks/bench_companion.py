@@ -77,9 +77,9 @@ def synthetic_frames(n: int) -> tuple[list[RgbdFrame], np.ndarray]:
 
 
 def tum_frames(folder: str, n: int) -> tuple[list[RgbdFrame], np.ndarray]:
-    from perception.sources import TumFolderSource
+    from quadlink.datasets.tum import TumSequence
 
-    src = TumFolderSource(folder, max_frames=n, resize_to=(320, 240))
+    src = TumSequence(folder, max_frames=n, resize_to=(320, 240))
     cam = CameraConfig()
     out = []
     for f in src.frames():

@@ -44,13 +44,14 @@ from perception.attitude import AttitudeFilter  # noqa: E402
 from perception.baselines import Open3dOdometry, OpenCvOdometry  # noqa: E402
 from perception.obstacle_map import ObstacleMap  # noqa: E402
 from perception.obstacles import extract_obstacles  # noqa: E402
-from perception.odometry import RgbdOdometry, inv_T, prepare_frame  # noqa: E402
+from perception.odometry import RgbdOdometry, prepare_frame  # noqa: E402
 from perception.pipeline import PerceptionConfig, PerceptionPipeline  # noqa: E402
-from perception.sources import TumFolderSource, read_tum_trajectory  # noqa: E402
 from perception.synthetic import SyntheticFlight, pose, qvga_intrinsics, render  # noqa: E402
 from perception.ukf import Ukf  # noqa: E402
 from quadlink.camera import RgbdFrame  # noqa: E402
+from quadlink.datasets.tum import TumSequence, read_tum_trajectory  # noqa: E402
 from quadlink.frames import R_from_euler  # noqa: E402
+from quadlink.lie import inv_T  # noqa: E402
 from quadlink.vehicle import load_vehicle  # noqa: E402
 
 TUM = Path(__file__).resolve().parent.parent.parent / "shared" / "data" / "tum_fr1_xyz_head"
@@ -60,7 +61,7 @@ METHODS = {"ours": RgbdOdometry, "open3d": Open3dOdometry, "opencv": OpenCvOdome
 def tum_sequence() -> tuple[list[RgbdFrame], np.ndarray] | None:
     if not (TUM / "rgb.txt").is_file():
         return None
-    frames = list(TumFolderSource(TUM, resize_to=(320, 240)).frames())
+    frames = list(TumSequence(TUM, resize_to=(320, 240)).frames())
     gs, gp = read_tum_trajectory(TUM / "groundtruth.txt")
     st = np.array([f.stamp_s for f in frames])
     ie, ig = metrics.associate_stamps(st, gs)

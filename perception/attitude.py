@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from quadlink.frames import GRAVITY_M_S2, skew
+from quadlink.frames import GRAVITY_M_S2
 
 Vec3 = NDArray[np.float64]
 
@@ -40,14 +40,6 @@ class AttitudeEstimate:
     omega_q_rad_s: Vec3               # low-passed, bias-corrected body rates
     gyro_bias_rad_s: Vec3
     R_wq: NDArray[np.float64]         # body -> level world (yaw from gyro integration)
-
-
-def so3_exp(w: Vec3) -> NDArray[np.float64]:
-    theta = float(np.linalg.norm(w))
-    W = skew(w)
-    if theta < 1e-9:
-        return np.eye(3) + W
-    return np.eye(3) + math.sin(theta) / theta * W + (1.0 - math.cos(theta)) / theta**2 * (W @ W)
 
 
 def orthonormalise(R: NDArray[np.float64]) -> NDArray[np.float64]:

@@ -17,9 +17,10 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from perception.odometry import OdometryResult, inv_T
+from perception.odometry import OdometryResult
 from quadlink.camera import CameraIntrinsics
 from quadlink.errors import QuadlinkError
+from quadlink.lie import inv_T
 
 
 def _to_working(rgb: NDArray[Any], depth_m: NDArray[Any], K: CameraIntrinsics, width: int

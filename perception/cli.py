@@ -19,7 +19,7 @@ import numpy as np
 
 from perception import metrics
 from perception.odometry import OdometryResult, RgbdOdometry
-from perception.sources import TumFolderSource, read_tum_trajectory, write_tum_trajectory
+from quadlink.datasets.tum import TumSequence, read_tum_trajectory, write_tum_trajectory
 from quadlink.errors import QuadlinkError
 
 log = logging.getLogger(__name__)
@@ -53,7 +53,7 @@ def command(path: Path, out: Path | None, fx: float | None, fy: float | None, cx
             depth_scale: float | None, method: str, max_frames: int | None, threads: int) -> None:
     cv2.setNumThreads(threads)
     os.environ.setdefault("OMP_NUM_THREADS", str(threads))
-    source = TumFolderSource(path, {"fx": fx, "fy": fy, "cx": cx, "cy": cy, "depth_scale": depth_scale},
+    source = TumSequence(path, {"fx": fx, "fy": fy, "cx": cx, "cy": cy, "depth_scale": depth_scale},
                              max_frames=max_frames)
     p = source.params
     log.info("sequence %s: %d frames, fx %.1f fy %.1f cx %.1f cy %.1f, depth scale %.0f/m, method %s",

@@ -17,6 +17,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from quadlink.lie import inv_T, rotation_angle_rad
+
 Poses = NDArray[np.float64]
 
 
@@ -50,19 +52,6 @@ def associate_stamps(stamps_est: NDArray[np.float64], stamps_gt: NDArray[np.floa
     return np.asarray(ie, dtype=np.intp), np.asarray(ig, dtype=np.intp)
 
 
-def _inv(T: NDArray[np.float64]) -> NDArray[np.float64]:
-    out = np.eye(4)
-    out[:3, :3] = T[:3, :3].T
-    out[:3, 3] = -T[:3, :3].T @ T[:3, 3]
-    return out
-
-
-def _angle(R: NDArray[np.float64]) -> float:
-    """Rotation angle, accurate near zero (atan2 of the skew part and the trace, not acos alone)."""
-    s = 0.5 * math.sqrt((R[2, 1] - R[1, 2]) ** 2 + (R[0, 2] - R[2, 0]) ** 2 + (R[1, 0] - R[0, 1]) ** 2)
-    return math.atan2(s, (float(np.trace(R)) - 1.0) / 2.0)
-
-
 def rpe(stamps: NDArray[np.float64], est: Poses, gt: Poses, delta_s: float | None = None) -> RpeResult:
     """Relative pose error per second on associated poses (same length, same stamps).
 
@@ -83,9 +72,9 @@ def rpe(stamps: NDArray[np.float64], est: Poses, gt: Poses, delta_s: float | Non
         dt = stamps[j] - stamps[i]
         if dt <= 0:
             continue
-        E = _inv(_inv(gt[i]) @ gt[j]) @ (_inv(est[i]) @ est[j])
+        E = inv_T(inv_T(gt[i]) @ gt[j]) @ (inv_T(est[i]) @ est[j])
         t_err.append(float(np.linalg.norm(E[:3, 3])) / dt)
-        r_err.append(math.degrees(_angle(E[:3, :3])) / dt)
+        r_err.append(math.degrees(rotation_angle_rad(E[:3, :3])) / dt)
     if not t_err:
         return RpeResult(0, math.nan, math.nan, math.nan, math.nan)
     t = np.asarray(t_err)

@@ -37,6 +37,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from quadlink.camera import CameraIntrinsics
+from quadlink.lie import inv_T, so3_log
 
 Mat4 = NDArray[np.float64]
 
@@ -135,26 +136,6 @@ def se3_exp(xi: NDArray[np.float64]) -> Mat4:
          (-b * w1 + c * x02, b * w0 + c * x12, 1.0 + c * x22))
     t = [Vr[0] * v0 + Vr[1] * v1 + Vr[2] * v2 for Vr in V]
     return np.array([[*R[0], t[0]], [*R[1], t[1]], [*R[2], t[2]], [0.0, 0.0, 0.0, 1.0]])
-
-
-def so3_log(R: NDArray[np.float64]) -> NDArray[np.float64]:
-    """Rotation vector of a rotation matrix."""
-    c = max(-1.0, min(1.0, (float(np.trace(R)) - 1.0) / 2.0))
-    theta = math.acos(c)
-    w = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
-    if theta < 1e-7:
-        return 0.5 * w
-    if math.pi - theta < 1e-5:
-        rv, _ = cv2.Rodrigues(R)
-        return np.asarray(rv, dtype=float).ravel()
-    return theta / (2.0 * math.sin(theta)) * w
-
-
-def inv_T(T: Mat4) -> Mat4:
-    out = np.eye(4)
-    out[:3, :3] = T[:3, :3].T
-    out[:3, 3] = -T[:3, :3].T @ T[:3, 3]
-    return out
 
 
 Image = NDArray[Any]   # float32 images (OpenCV's stubs type them loosely)

@@ -26,7 +26,7 @@ from perception.odometry import OdometryConfig, RgbdOdometry
 from perception.ukf import Ukf, UkfConfig
 from perception.velocity import VelocityConfig, VelocityEstimator, body_pose_in_world
 from quadlink.camera import CameraIntrinsics, RgbdFrame
-from quadlink.frames import R_hq, Rz, euler_from_R
+from quadlink.frames import R_hq, Rz, euler_from_R, euler_yaw_rate_rad_s
 
 log = logging.getLogger(__name__)
 
@@ -68,12 +68,6 @@ class PerceptionOutput:
     processing_time_s: float
     yaw_rate_rad_s: float = 0.0             # Euler yaw rate from the filtered gyro and roll/pitch
     estimator: str = "filters"
-
-
-def euler_yaw_rate(omega_q_rad_s: NDArray[np.float64], roll_rad: float, pitch_rad: float) -> float:
-    """psi_dot = (q sin(phi) + r cos(phi)) / cos(theta)."""
-    _, q, r = omega_q_rad_s
-    return float((q * math.sin(roll_rad) + r * math.cos(roll_rad)) / max(math.cos(pitch_rad), 1e-3))
 
 
 class PerceptionPipeline:
@@ -169,7 +163,7 @@ class PerceptionPipeline:
                 self._ukf.on_pose(frame.stamp_s, p_w, Rz(yaw) @ R_hq(roll, pitch))
             st = self._ukf.state        # the UKF runs on the IMU: fresh on every frame
             v_h, v_h_cov = st.v_h_m_s, st.v_h_cov
-        yaw_rate = euler_yaw_rate(omega, roll, pitch)
+        yaw_rate = euler_yaw_rate_rad_s(omega, roll, pitch)
         # local obstacle map: time update to this frame (eq. 14), then the measurement
         if self._prev_frame_stamp is not None:
             dt = frame.stamp_s - self._prev_frame_stamp

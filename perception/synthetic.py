@@ -12,6 +12,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from quadlink.camera import CameraIntrinsics, RgbdFrame
+from quadlink.lie import so3_log
 
 # room bounds in the world frame (m): x, y, z ranges
 ROOM_MIN = np.array([-2.0, -1.5, -1.2])
@@ -131,7 +132,6 @@ class SyntheticFlight:
         return R_from_euler(*self.euler(t))
 
     def gyro(self, t: float, h: float = 1e-5) -> NDArray[np.float64]:
-        from perception.odometry import so3_log
 
         return so3_log(self.R_wq(t - h).T @ self.R_wq(t + h)) / (2 * h)
 

@@ -22,8 +22,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from perception.attitude import so3_exp
 from quadlink.frames import GRAVITY_M_S2, R_from_quat_wxyz, euler_from_R, quat_wxyz_from_R
+from quadlink.lie import so3_exp, so3_exp_batch, so3_log_batch
 
 Vec3 = NDArray[np.float64]
 N_ERR = 12  # p(3) v(3) dtheta(3) b_a(3)
@@ -72,29 +72,6 @@ class UkfState:
         c, s = math.cos(yaw), math.sin(yaw)
         Rz_t = np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]])
         return Rz_t @ self.covariance[3:6, 3:6] @ Rz_t.T
-
-
-def _exp_batch(w: NDArray[np.float64]) -> NDArray[np.float64]:
-    """Rodrigues for (N, 3) rotation vectors -> (N, 3, 3)."""
-    theta = np.linalg.norm(w, axis=1)
-    small = theta < 1e-9
-    th = np.where(small, 1.0, theta)
-    a = np.where(small, 1.0, np.sin(th) / th)
-    b = np.where(small, 0.5, (1.0 - np.cos(th)) / th**2)
-    K = np.zeros((w.shape[0], 3, 3))
-    K[:, 0, 1], K[:, 0, 2] = -w[:, 2], w[:, 1]
-    K[:, 1, 0], K[:, 1, 2] = w[:, 2], -w[:, 0]
-    K[:, 2, 0], K[:, 2, 1] = -w[:, 1], w[:, 0]
-    return np.eye(3) + a[:, None, None] * K + b[:, None, None] * (K @ K)
-
-
-def _log_batch(R: NDArray[np.float64]) -> NDArray[np.float64]:
-    c = np.clip((np.trace(R, axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0)
-    theta = np.arccos(c)
-    w = np.stack([R[:, 2, 1] - R[:, 1, 2], R[:, 0, 2] - R[:, 2, 0], R[:, 1, 0] - R[:, 0, 1]], axis=1)
-    s = np.sin(theta)
-    f = np.where(theta < 1e-7, 0.5, theta / (2.0 * np.where(np.abs(s) < 1e-12, 1.0, s)))
-    return w * f[:, None]
 
 
 class Ukf:
@@ -176,7 +153,7 @@ class Ukf:
         D = self._sigma()
         p = self._p + D[:, 0:3]
         v = self._v + D[:, 3:6]
-        R = self._R @ _exp_batch(D[:, 6:9])
+        R = self._R @ so3_exp_batch(D[:, 6:9])
         b = self._b + D[:, 9:12]
         f = accel_q_m_s2 - b                                         # bias-corrected specific force
         a_w = np.einsum("nij,nj->ni", R, f) + np.array([0.0, 0.0, GRAVITY_M_S2])
@@ -185,7 +162,7 @@ class Ukf:
         R = R @ so3_exp(np.asarray(gyro_q_rad_s, dtype=float) * dt_s)
         # mean: arithmetic for vectors, attitude about the propagated central point
         R0 = R[0]
-        dth = _log_batch(np.einsum("ji,njk->nik", R0, R))
+        dth = so3_log_batch(np.einsum("ji,njk->nik", R0, R))
         wm, wc = self._wm, self._wc
         mean_dth = wm @ dth
         self._p, self._v, self._b = wm @ p, wm @ v, wm @ b
@@ -210,7 +187,7 @@ class Ukf:
         H = np.zeros((6, N_ERR))
         H[0:3, 0:3] = np.eye(3)
         H[3:6, 6:9] = np.eye(3)
-        dth = _log_batch((self._R.T @ np.asarray(R_wq, dtype=float))[None])[0]
+        dth = so3_log_batch((self._R.T @ np.asarray(R_wq, dtype=float))[None])[0]
         y = np.concatenate([np.asarray(position_w_m, dtype=float) - self._p, dth])
         Rn = np.diag([cfg.position_noise_m**2] * 3 + [cfg.attitude_noise_rad**2] * 3)
         S = H @ self._P @ H.T + Rn

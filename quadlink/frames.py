@@ -10,6 +10,7 @@ Conventions used everywhere in quadlink:
   convert only through :func:`quat_wxyz_from_R` / :func:`R_from_quat_wxyz`.
 * The world frame W of the papers is NWU; on every interface quadlink uses local NED.
   :data:`R_NED_NWU` converts once, at the edge (it is its own inverse: Rx(pi)).
+* The group math (exp/log maps, rigid-transform inverse, geodesic angles) is in :mod:`quadlink.lie`.
 """
 
 from __future__ import annotations
@@ -22,8 +23,10 @@ from numpy.typing import NDArray
 Vec3 = NDArray[np.float64]
 Mat3 = NDArray[np.float64]
 
-#: NWU -> NED (x stays, y and z flip); equals the paper's Rx(pi) and is its own inverse.
+#: NWU -> NED (x stays, y and z flip); equals the paper's Rx(pi) and is its own inverse. The same matrix
+#: maps body FLU (pybullet's) to FRD: :data:`R_FRD_FLU`.
 R_NED_NWU: Mat3 = np.diag([1.0, -1.0, -1.0])
+R_FRD_FLU: Mat3 = R_NED_NWU
 
 GRAVITY_M_S2 = 9.80665
 
@@ -54,6 +57,22 @@ def euler_from_R(R: Mat3) -> tuple[float, float, float]:
     roll = math.atan2(float(R[2, 1]), float(R[2, 2]))
     yaw = math.atan2(float(R[1, 0]), float(R[0, 0]))
     return roll, pitch, yaw
+
+
+def euler_yaw_rate_rad_s(omega_q_rad_s: NDArray[np.float64] | list[float] | tuple[float, ...], roll_rad: float,
+                         pitch_rad: float) -> float:
+    """ZYX Euler yaw rate from body rates: psi_dot = (q sin(phi) + r cos(phi)) / cos(theta).
+
+    At gimbal lock (``|cos(theta)| < 1e-3``, pitch within 0.06 deg of +-90 deg) psi_dot is undefined; the
+    body yaw rate ``r`` is returned, which stays bounded and is what a level-ish flight reads anyway. The
+    sign of cos(theta) is kept (a clamp to ``max(cos, 1e-3)`` flips the sign beyond 90 deg of pitch and
+    jumps to 1000x the rates there).
+    """
+    w = np.asarray(omega_q_rad_s, dtype=float)
+    c = math.cos(pitch_rad)
+    if abs(c) < 1e-3:
+        return float(w[2])
+    return float((w[1] * math.sin(roll_rad) + w[2] * math.cos(roll_rad)) / c)
 
 
 def R_hq(roll_rad: float, pitch_rad: float) -> Mat3:
@@ -102,17 +121,6 @@ def euler_from_quat_wxyz(q_wxyz: NDArray[np.float64] | list[float]) -> tuple[flo
     return euler_from_R(R_from_quat_wxyz(q_wxyz))
 
 
-def rotation_angle_rad(R_a: Mat3, R_b: Mat3) -> float:
-    """Geodesic distance between two rotations (for rotation-aware test comparisons)."""
-    c = (np.trace(np.asarray(R_a).T @ np.asarray(R_b)) - 1.0) / 2.0
-    return math.acos(max(-1.0, min(1.0, float(c))))
-
-
 def wrap_pi(angle_rad: float) -> float:
     """Wrap an angle to [-pi, pi)."""
     return (angle_rad + math.pi) % (2.0 * math.pi) - math.pi
-
-
-def skew(v: Vec3) -> Mat3:
-    x, y, z = v
-    return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])

@@ -19,7 +19,7 @@ import numpy as np
 import pybullet as p
 from numpy.typing import NDArray
 
-from quadlink.frames import GRAVITY_M_S2, Rz
+from quadlink.frames import GRAVITY_M_S2, R_NED_NWU, Rz
 from quadlink.vehicle import VehicleConfig
 from sim_sitl.config import ScenarioConfig, SitlConfig
 from sim_sitl.motors import body_wrench, motor_lag, rotor_layout
@@ -35,7 +35,7 @@ from sim_sitl.scene import (
 
 log = logging.getLogger(__name__)
 
-D = np.diag([1.0, -1.0, -1.0])  # NED <-> pybullet NWU, FRD <-> FLU
+D = R_NED_NWU  # NED <-> pybullet NWU, and (the same matrix) FRD <-> FLU
 _D_SANDWICH = np.outer(np.diag(D), np.diag(D))  # elementwise form of D @ R @ D
 
 __all__ = ["D", "SURFACE_CEILING", "SURFACE_FLOOR", "SURFACE_OBJECT", "SURFACE_WALL", "RigidState", "World"]

@@ -38,3 +38,19 @@ def _register_fuzz_profile() -> None:
 
 
 _register_fuzz_profile()
+
+
+def _assert_poses_close(T_a: np.ndarray, T_b: np.ndarray, atol_m: float, atol_rad: float) -> None:
+    """Two 4x4 poses in the same frame agree: translation within ``atol_m``, geodesic angle within ``atol_rad``."""
+    from quadlink.lie import pose_error
+
+    d_m, d_rad = pose_error(np.asarray(T_a, dtype=float), np.asarray(T_b, dtype=float))
+    assert d_m <= atol_m, f"translation differs by {d_m:.3g} m > {atol_m:.3g} m"
+    assert d_rad <= atol_rad, f"rotation differs by {d_rad:.3g} rad > {atol_rad:.3g} rad"
+
+
+@pytest.fixture
+def assert_poses_close():  # noqa: ANN201
+    """Rotation-aware pose comparison (cflib's assertPosesAlmostEqual): ``assert_poses_close(T1, T2, atol_m,
+    atol_rad)`` compares the translation and the geodesic angle of ``R1^T R2``, never matrix elements."""
+    return _assert_poses_close

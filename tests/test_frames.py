@@ -5,10 +5,12 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
 from quadlink import frames
+from quadlink.lie import angle_between_rad, skew
 
 angles = st.floats(min_value=-3.0, max_value=3.0)
 
@@ -33,7 +35,7 @@ def test_quaternion_round_trip_wxyz(roll: float, pitch: float, yaw: float) -> No
     R = frames.R_from_euler(roll, pitch, yaw)
     q = frames.quat_wxyz_from_R(R)
     assert q[0] >= 0 and math.isclose(float(np.linalg.norm(q)), 1.0, rel_tol=1e-12)
-    assert frames.rotation_angle_rad(frames.R_from_quat_wxyz(q), R) < 1e-6
+    assert angle_between_rad(frames.R_from_quat_wxyz(q), R) < 1e-6
 
 
 def test_quaternion_order_is_wxyz() -> None:
@@ -53,4 +55,24 @@ def test_nwu_ned_is_involution_and_wrap() -> None:
     assert np.allclose(frames.R_NED_NWU @ frames.R_NED_NWU, np.eye(3))
     assert frames.wrap_pi(3 * math.pi) == -math.pi
     assert math.isclose(frames.wrap_pi(-0.5), -0.5)
-    assert np.allclose(frames.skew(np.array([1.0, 2, 3])) @ [4, 5, 6], np.cross([1, 2, 3], [4, 5, 6]))
+    assert np.allclose(skew(np.array([1.0, 2, 3])) @ [4, 5, 6], np.cross([1, 2, 3], [4, 5, 6]))
+
+
+@given(angles, st.floats(min_value=-1.5, max_value=1.5), st.tuples(angles, angles, angles))
+def test_euler_yaw_rate_is_the_derivative_of_yaw(roll: float, pitch: float, omega: tuple[float, float, float]) -> None:
+    """Independent check: integrate the body rates over a tiny step and difference the ZYX yaw."""
+    from quadlink.lie import so3_exp
+
+    w = np.array(omega)
+    R0 = frames.R_from_euler(roll, pitch, 0.3)
+    h = 1e-6
+    yaw1 = frames.euler_from_R(R0 @ so3_exp(w * h))[2]
+    yaw0 = frames.euler_from_R(R0 @ so3_exp(-w * h))[2]
+    expected = frames.wrap_pi(yaw1 - yaw0) / (2 * h)
+    assert math.isclose(frames.euler_yaw_rate_rad_s(w, roll, pitch), expected, rel_tol=1e-4, abs_tol=1e-4)
+
+
+def test_euler_yaw_rate_beyond_90_deg_pitch_keeps_its_sign_and_is_bounded_at_gimbal_lock() -> None:
+    w = [0.0, 0.0, 0.5]
+    assert frames.euler_yaw_rate_rad_s(w, 0.0, math.radians(120)) == pytest.approx(0.5 / math.cos(math.radians(120)))
+    assert frames.euler_yaw_rate_rad_s(w, 0.0, math.pi / 2) == 0.5

@@ -13,17 +13,18 @@ from click.testing import CliRunner
 
 from perception import metrics
 from perception.cli import command as vo_eval
-from perception.odometry import OdometryConfig, RgbdOdometry, _reference, inv_T, prepare_frame, se3_exp, so3_log
-from perception.sources import (
-    SourceUnavailable,
-    TumFolderSource,
+from perception.odometry import OdometryConfig, RgbdOdometry, _reference, prepare_frame, se3_exp
+from perception.synthetic import pose, qvga_intrinsics, render
+from quadlink.datasets.tum import (
+    DatasetUnavailable,
+    TumSequence,
     associate,
     read_tum_trajectory,
     write_tum_trajectory,
 )
-from perception.synthetic import pose, qvga_intrinsics, render
 from quadlink.errors import ConfigError
 from quadlink.frames import R_from_euler
+from quadlink.lie import inv_T, so3_log
 
 K = qvga_intrinsics()
 
@@ -309,7 +310,7 @@ def test_keyframe_failure_falls_back_to_the_previous_frame() -> None:
 
 
 def test_tum_frames_against_ground_truth(tum_head: Path) -> None:
-    src = TumFolderSource(tum_head, resize_to=(320, 240))
+    src = TumSequence(tum_head, resize_to=(320, 240))
     assert len(src) == 10
     odo = RgbdOdometry()
     st, est = [], []
@@ -386,18 +387,18 @@ def _write_sequence(folder: Path, jpeg: bool, camera_yaml: str | None) -> None:
 def test_tum_folder_source_camera_yaml_jpeg_and_overrides(tmp_path: Path) -> None:
     yaml_text = f"fx: {K.fx}\nfy: {K.fy}\ncx: {K.cx}\ncy: {K.cy}\ndepth_scale: 1000\n"
     _write_sequence(tmp_path / "seq", jpeg=True, camera_yaml=yaml_text)
-    src = TumFolderSource(tmp_path / "seq")
+    src = TumSequence(tmp_path / "seq")
     frames = list(src.frames())
     assert len(frames) == 3
     assert frames[0].intrinsics.fx == pytest.approx(K.fx) and frames[0].rgb.shape == (240, 320, 3)
     assert float(np.median(frames[0].depth_m[frames[0].depth_m > 0])) > 1.0       # metres, scale 1000
-    src2 = TumFolderSource(tmp_path / "seq", {"fx": 100.0, "depth_scale": 5000.0})
+    src2 = TumSequence(tmp_path / "seq", {"fx": 100.0, "depth_scale": 5000.0})
     assert src2.params.fx == 100.0 and src2.params.fy == pytest.approx(K.fy) and src2.params.depth_scale == 5000.0
     (tmp_path / "seq" / "camera.yaml").write_text("fx: 1\nfocal: 2\n")
     with pytest.raises(ConfigError, match="focal"):
-        TumFolderSource(tmp_path / "seq")
-    with pytest.raises(SourceUnavailable):
-        TumFolderSource(tmp_path / "missing")
+        TumSequence(tmp_path / "seq")
+    with pytest.raises(DatasetUnavailable):
+        TumSequence(tmp_path / "missing")
 
 
 def test_vo_eval_cli_prints_metrics_and_writes_trajectory(tum_head: Path, tmp_path: Path) -> None:
