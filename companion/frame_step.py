@@ -26,6 +26,7 @@ from companion.reference import (
     nearest_obstacle,
     reference_velocity,
 )
+from quadlink.frames import euler_yaw_rate_rad_s
 from quadlink.operator_image import MAX_OBSTACLE_POINTS, OperatorImageMeta, PanScanMeta
 
 NO_SCAN = PanScanState(0.0, 0.0, False)
@@ -93,7 +94,7 @@ def feedback_message(stamp_s: float, out: Any | None, ref: ReferenceOutput | Non
     v_cmd = zero if ref is None else ref.v_ref_h_m_s
     v_rep = zero if ref is None else ref.v_repulsion_h_m_s
     return msgs.teleop_feedback_message(stamp_s, v_est, v_cmd, v_rep, alpha, scan.yaw_rate_rad_s, yaw_cmd,
-                                        msgs.euler_yaw_rate_rad_s(gyro_q_rad_s, roll, pitch), obst, dist,
+                                        euler_yaw_rate_rad_s(gyro_q_rad_s, roll, pitch), obst, dist,
                                         mode, flags)
 
 
@@ -111,7 +112,7 @@ def operator_image_meta(stamp_s: float, out: Any, ref: ReferenceOutput, scan: Pa
     return OperatorImageMeta(
         stamp_s=float(stamp_s), roll_rad=float(out.roll_rad), pitch_rad=float(out.pitch_rad),
         yaw_rad=float(out.yaw_rad),
-        gyro_yaw_rate_rad_s=msgs.euler_yaw_rate_rad_s(gyro_q_rad_s, out.roll_rad, out.pitch_rad),
+        gyro_yaw_rate_rad_s=euler_yaw_rate_rad_s(gyro_q_rad_s, out.roll_rad, out.pitch_rad),
         obstacle_points_c_m=tuple(_vec3(p) for p in np.round(pts, 3)),
         v_cmd_h_m_s=_vec3(ref.v_ref_h_m_s), v_est_h_m_s=_vec3(out.v_h_m_s),
         pan_scan=PanScanMeta(enabled=bool(scan.enabled), yaw_rate_rad_s=float(scan.yaw_rate_rad_s),

@@ -145,15 +145,6 @@ def feedback_flags(pan_scan_on: bool, odometry_ok: bool, gcs_ok: bool, obstacles
             | (FLAG_GCS_OK if gcs_ok else 0) | (FLAG_OBSTACLES_FRESH if obstacles_fresh else 0))
 
 
-def euler_yaw_rate_rad_s(omega_q_rad_s: ArrayLike, roll_rad: float, pitch_rad: float) -> float:
-    """psi_dot from body rates: (q sin(phi) + r cos(phi)) / cos(theta)."""
-    w = np.asarray(omega_q_rad_s, dtype=float)
-    c = math.cos(pitch_rad)
-    if abs(c) < 1e-3:
-        return float(w[2])
-    return float((w[1] * math.sin(roll_rad) + w[2] * math.cos(roll_rad)) / c)
-
-
 def teleop_feedback_message(time_s: float, v_est_h_m_s: ArrayLike, v_cmd_h_m_s: ArrayLike, v_rep_h_m_s: ArrayLike,
                             alpha_rad: float, pan_scan_yaw_rate_rad_s: float, yaw_rate_cmd_rad_s: float,
                             gyro_yaw_rate_rad_s: float, nearest_obstacle_h_m: ArrayLike, obstacle_distance_m: float,

@@ -8,7 +8,6 @@ import numpy as np
 import pytest
 
 from companion.messages import (
-    euler_yaw_rate_rad_s,
     obstacle_distance_message,
     obstacle_distances_cm,
     odometry_message,
@@ -18,7 +17,7 @@ from companion.messages import (
 )
 from companion.timesync import TimeSync
 from perception.pipeline import ObstacleSectors
-from quadlink.frames import R_from_quat_wxyz, R_hq
+from quadlink.frames import R_from_quat_wxyz, R_hq, euler_yaw_rate_rad_s
 from quadlink.mavlink import mavlink
 
 
