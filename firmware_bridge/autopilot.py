@@ -43,6 +43,7 @@ from firmware_bridge.vertical_estimator import VerticalEstimator
 from quadlink import __version__
 from quadlink.frames import GRAVITY_M_S2, R_from_quat_wxyz, R_hq, Rz, euler_from_R, quat_wxyz_from_euler, wrap_pi
 from quadlink.mavlink import mavlink
+from quadlink.mk.flags import BoardError, BoardFlightState
 from quadlink.vehicle import VehicleConfig
 
 log = logging.getLogger(__name__)
@@ -131,9 +132,6 @@ CAPABILITIES = (mavlink.MAV_PROTOCOL_CAPABILITY_MAVLINK2 | mavlink.MAV_PROTOCOL_
                 | mavlink.MAV_PROTOCOL_CAPABILITY_SET_ATTITUDE_TARGET
                 | mavlink.MAV_PROTOCOL_CAPABILITY_PARAM_ENCODE_BYTEWISE)
 
-BOARD_FLIGHT_LANDED, BOARD_FLIGHT_FLYING, BOARD_FLIGHT_FAILSAFE = 0, 1, 2
-# BoardStatus.error_flags (mk_messages.ERROR_*; the autopilot stays free of the MK codec)
-BOARD_ERROR_SETPOINT_TIMEOUT, BOARD_ERROR_BATTERY_LOW, BOARD_ERROR_IMU_SATURATED = 0x0001, 0x0002, 0x0004
 TOUCHDOWN_HOLD_S = 0.5
 SETPOINT_FRESH_FOR_OFFBOARD_S = 0.5  # PX4 wants the stream running before the switch
 IMU_PREDICTION_HORIZON_S = 0.3
@@ -145,7 +143,7 @@ BLIND_DESCENT_EXTRA_S = 3.0  # the blind descent probes for the ground after hei
 
 
 class BoardStatusLike(Protocol):
-    """What the autopilot reads of ``mk_messages.BoardStatus`` (kept free of the MK codec)."""
+    """What the autopilot reads of ``quadlink.mk.messages.BoardStatus`` (kept free of the MK codec)."""
 
     @property
     def armed(self) -> bool: ...
@@ -380,7 +378,7 @@ class Autopilot:
             self._board_failsafe_reported = False
         if prev is not None and bool(prev.armed) != bool(status.armed):
             self._event(mavlink.MAV_SEVERITY_INFO, "Board armed" if status.armed else "Board disarmed")
-        if status.flight_state == BOARD_FLIGHT_FLYING and self.armed_cmd:
+        if status.flight_state == BoardFlightState.FLYING and self.armed_cmd:
             self.in_air = True
         return self._flush_events()
 
@@ -608,7 +606,7 @@ class Autopilot:
         below hover without vertical acceleration, flight without odometry), held for LNDMC_TIME_S."""
         p = self.params
         board_landed = (self.board_link_ok and self.board_status is not None
-                        and self.board_status.flight_state == BOARD_FLIGHT_LANDED)
+                        and self.board_status.flight_state == BoardFlightState.LANDED)
         low_thrust = cmd.thrust_fraction < p["LNDMC_THR_MAX"] * self.tracker.hover_thrust_fraction
         if ground_contact or (vz_abs_m_s < p["LNDMC_Z_VEL_MAX"] and (low_thrust or board_landed)):
             if self._touchdown_since_s is None:
@@ -739,9 +737,9 @@ class Autopilot:
     def sys_status(self, now_s: float) -> Any:
         flags = self.board_status.error_flags if self.board_status is not None else 0
         imu_ok = self._fresh(self.imu_time_s, now_s, self.params["BRG_BOARD_LOSS_T"]) \
-            and not flags & BOARD_ERROR_IMU_SATURATED
+            and not flags & BoardError.IMU_SATURATED
         board_ok = self.board_link_ok and self.board_status is not None and not self.board_status.failsafe \
-            and not flags & BOARD_ERROR_SETPOINT_TIMEOUT
+            and not flags & BoardError.SETPOINT_TIMEOUT
         # No geofence here (not present, not enabled); its health bit means "not breached", as ArduPilot
         # reports it: left clear, MAVProxy's fence module announces a "fence breach" at connect.
         health = mavlink.MAV_SYS_STATUS_GEOFENCE
@@ -754,7 +752,7 @@ class Autopilot:
             health |= mavlink.MAV_SYS_STATUS_SENSOR_ANGULAR_RATE_CONTROL | \
                 mavlink.MAV_SYS_STATUS_SENSOR_ATTITUDE_STABILIZATION | mavlink.MAV_SYS_STATUS_SENSOR_MOTOR_OUTPUTS
         frac = self.battery_fraction()
-        if frac is not None and frac > 0.05 and not flags & BOARD_ERROR_BATTERY_LOW:
+        if frac is not None and frac > 0.05 and not flags & BoardError.BATTERY_LOW:
             health |= mavlink.MAV_SYS_STATUS_SENSOR_BATTERY
         voltage_mv = int(self.board_status.battery_mv) if self.board_status is not None else 0xFFFF
         remaining = int(round(frac * 100)) if frac is not None else -1

@@ -27,13 +27,13 @@ from typing import Any
 
 import numpy as np
 
-from firmware_bridge import mk_messages as mk
 from firmware_bridge.autopilot import Autopilot, BoardCommand, Outbound
-from firmware_bridge.mk_protocol import ADDR_FC, FrameDecoder, encode_frame
 from firmware_bridge.params import DEFAULT_PARAMS_PATH, ParamTable, load_param_file, save_param_file
 from quadlink.errors import LinkError, ProtocolError
 from quadlink.links import ByteStream, open_stream
 from quadlink.mavlink.connection import open_mavlink
+from quadlink.mk import messages as mk
+from quadlink.mk.protocol import ADDR_FC, FrameDecoder, encode_frame
 from quadlink.realtime import MAX_PRIORITY
 from quadlink.vehicle import VehicleConfig
 

@@ -12,11 +12,11 @@ import math
 import numpy as np
 import pytest
 
-from firmware_bridge import mk_messages as mk
 from firmware_bridge.autopilot import CAPABILITIES, Autopilot, FlightMode
 from firmware_bridge.params import PARAM_SPECS, ParamTable
 from quadlink.frames import GRAVITY_M_S2, R_from_euler, quat_wxyz_from_euler
 from quadlink.mavlink import mavlink
+from quadlink.mk import messages as mk
 from quadlink.vehicle import VehicleConfig
 
 GCS = mavlink.MAVLink(None, 255, 190)

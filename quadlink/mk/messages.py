@@ -3,7 +3,7 @@
 Each message is a frozen dataclass with a class attribute ``COMMAND`` (its frame letter), ``pack() -> bytes``
 (the raw payload; :func:`encode_message` frames it) and ``@classmethod unpack(payload) -> message``.
 All layouts are explicit little-endian :mod:`struct` formats (the AVR's byte order), stated in each docstring
-as ``field: type, unit, scaling``. ``firmware_bridge/PROTOCOL.md`` documents the same on the wire.
+as ``field: type, unit, scaling``. ``PROTOCOL.md`` beside this module documents the same on the wire.
 
 Conventions:
 
@@ -26,416 +26,53 @@ Conventions:
 from __future__ import annotations
 
 import logging
-import math
 import struct
 from collections.abc import Iterable
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, ClassVar, Protocol
+from typing import TYPE_CHECKING, ClassVar
 
 import numpy as np
 
-from firmware_bridge.mk_protocol import ADDR_FC, Frame, encode_frame
 from quadlink.errors import ProtocolError
+from quadlink.mk.fields import (
+    CENTIDEG_RAD,
+    DECIDEG_S_RAD_S,
+    IMU_COUNT_MASK,
+    IMU_COUNT_MAX,
+    IMU_COUNTER_MODULO,
+    INT16,
+    THRUST_FULL_SCALE,
+    UINT8,
+    UINT16,
+    MkMessage,
+    finite,
+    ints,
+    need,
+    sat_int,
+    scaled,
+    three_floats,
+    wrap,
+)
+from quadlink.mk.flags import SetpointFlag, StatusFlag
+from quadlink.mk.protocol import ADDR_FC, Frame, encode_frame
+from quadlink.mk.standard import (
+    Data3D,
+    Data3DRequest,
+    DebugData,
+    DebugLabel,
+    DebugLabelRequest,
+    DebugRequest,
+    ExternControl,
+    ExternControlAck,
+    MotorTest,
+    Version,
+    VersionRequest,
+)
 
 if TYPE_CHECKING:
     from quadlink.vehicle import ImuConfig
 
 logger = logging.getLogger(__name__)
-
-DECIDEG_RAD = math.radians(0.1)  # one LSB of a 0.1-degree angle, rad
-CENTIDEG_RAD = math.radians(0.01)  # one LSB of a 0.01-degree angle, rad
-DECIDEG_S_RAD_S = math.radians(0.1)  # one LSB of a 0.1 deg/s rate, rad/s
-THRUST_FULL_SCALE = 65535  # uint16 thrust count for fraction 1.0
-
-IMU_COUNT_MAX = 1023  # 10-bit ADC
-IMU_COUNT_MASK = 0x3FF
-IMU_COUNTER_MODULO = 4096  # 12-bit rolling sample counter
-
-INT8 = (-128, 127)
-UINT8 = (0, 255)
-INT16 = (-32768, 32767)
-UINT16 = (0, 65535)
-
-
-class MkMessage(Protocol):
-    """What every message class provides."""
-
-    COMMAND: ClassVar[str]
-
-    def pack(self) -> bytes: ...
-
-
-def _finite(value: float, name: str) -> float:
-    value = float(value)
-    if not math.isfinite(value):
-        raise ProtocolError(f"{name} must be finite, got {value!r}")
-    return value
-
-
-def _sat_int(value: float, bounds: tuple[int, int]) -> int:
-    """Round to the nearest integer and clamp to ``bounds`` (inclusive)."""
-    lo, hi = bounds
-    return max(lo, min(hi, round(value)))
-
-
-def _scaled(value: float, lsb: float, bounds: tuple[int, int], name: str) -> int:
-    """``value / lsb`` rounded and saturated to ``bounds``; ProtocolError if not finite."""
-    return _sat_int(_finite(value, name) / lsb, bounds)
-
-
-def _wrap(value: int, modulo: int, name: str) -> int:
-    """A rolling counter modulo ``modulo``; ProtocolError if not a finite number."""
-    return int(_finite(value, name)) % modulo
-
-
-def _need(payload: bytes, size: int, cls: type) -> None:
-    if len(payload) < size:
-        raise ProtocolError(f"{cls.__name__} payload needs {size} bytes, got {len(payload)}")
-
-
-def _ints(values: Iterable[float], n: int, bounds: tuple[int, int], name: str) -> tuple[int, ...]:
-    """``n`` values rounded and saturated to ``bounds`` (fast path for in-range ints: the common case)."""
-    lo, hi = bounds
-    out = tuple(
-        (v if lo <= v <= hi else (lo if v < lo else hi)) if type(v) is int else _sat_int(_finite(v, name), bounds)
-        for v in values
-    )
-    if len(out) != n:
-        raise ProtocolError(f"{name} needs {n} values, got {len(out)}")
-    return out
-
-
-def _three_floats(values: Iterable[float] | np.ndarray, name: str) -> tuple[float, float, float]:
-    """Three finite floats from a sequence or array (plain Python: numpy is slow on 3 elements)."""
-    seq: Iterable[float] = values.tolist() if isinstance(values, np.ndarray) else values
-    try:
-        x, y, z = (float(v) for v in seq)
-    except (TypeError, ValueError) as exc:
-        raise ProtocolError(f"{name} needs 3 numbers, got {values!r}") from exc
-    if not (math.isfinite(x) and math.isfinite(y) and math.isfinite(z)):
-        raise ProtocolError(f"{name} values must be finite, got {values!r}")
-    return x, y, z
-
-
-# --------------------------------------------------------------------------------------------------------------
-# Standard MK messages
-# --------------------------------------------------------------------------------------------------------------
-
-
-@dataclass(frozen=True)
-class VersionRequest:
-    """``'v'``: ask a board for its version. Empty payload. Answer: :class:`Version`."""
-
-    COMMAND: ClassVar[str] = "v"
-
-    def pack(self) -> bytes:
-        return b""
-
-    @classmethod
-    def unpack(cls, payload: bytes) -> VersionRequest:
-        return cls()
-
-
-@dataclass(frozen=True)
-class Version:
-    """``'V'``: a board's firmware version (MK ``str_VersionInfo``), 10 bytes, ``<10B``.
-
-    ==================  =========  ======================================================
-    field               type       meaning
-    ==================  =========  ======================================================
-    sw_major            uint8      firmware major version
-    sw_minor            uint8      firmware minor version (84 -> "0.84")
-    proto_major         uint8      serial protocol major version (11 for FC 0.84)
-    proto_minor         uint8      serial protocol minor version
-    sw_patch            uint8      patch level, shown as a letter ('a' + sw_patch)
-    hardware_error      uint8[5]   hardware error flag bytes (0 = ok)
-    ==================  =========  ======================================================
-    """
-
-    COMMAND: ClassVar[str] = "V"
-    STRUCT: ClassVar[struct.Struct] = struct.Struct("<10B")
-
-    sw_major: int
-    sw_minor: int
-    proto_major: int
-    proto_minor: int
-    sw_patch: int = 0
-    hardware_error: tuple[int, int, int, int, int] = (0, 0, 0, 0, 0)
-
-    @property
-    def version_str(self) -> str:
-        """MK's spelling, e.g. ``"0.84a"`` (patch 0 -> 'a')."""
-        patch = chr(ord("a") + self.sw_patch) if 0 <= self.sw_patch < 26 else f"+{self.sw_patch}"
-        return f"{self.sw_major}.{self.sw_minor:02d}{patch}"
-
-    def pack(self) -> bytes:
-        head = _ints(
-            (self.sw_major, self.sw_minor, self.proto_major, self.proto_minor, self.sw_patch), 5, UINT8, "version"
-        )
-        return self.STRUCT.pack(*head, *_ints(self.hardware_error, 5, UINT8, "hardware_error"))
-
-    @classmethod
-    def unpack(cls, payload: bytes) -> Version:
-        _need(payload, cls.STRUCT.size, cls)
-        v = cls.STRUCT.unpack_from(payload)
-        return cls(v[0], v[1], v[2], v[3], v[4], tuple(v[5:10]))  # type: ignore[arg-type]
-
-
-@dataclass(frozen=True)
-class DebugRequest:
-    """``'d'``: start (or refresh) the :class:`DebugData` stream. ``<B``: interval_10ms uint8, 10 ms units, 0 stops.
-
-    MK stops streaming after a timeout (about 4 s on FlightCtrl) unless the request is repeated; the stack's
-    firmware keeps that behaviour, so a reader re-sends it every second or two.
-    """
-
-    COMMAND: ClassVar[str] = "d"
-    STRUCT: ClassVar[struct.Struct] = struct.Struct("<B")
-
-    interval_10ms: int
-
-    def pack(self) -> bytes:
-        return self.STRUCT.pack(_sat_int(_finite(self.interval_10ms, "interval_10ms"), UINT8))
-
-    @classmethod
-    def unpack(cls, payload: bytes) -> DebugRequest:
-        _need(payload, cls.STRUCT.size, cls)
-        return cls(payload[0])
-
-
-@dataclass(frozen=True)
-class DebugData:
-    """``'D'``: MK debug values (``str_DebugOut``), 66 bytes, ``<2B32h``.
-
-    status: uint8[2] (status bytes); analog: int16[32] (the debug channels; their names come from
-    ``'a'``/:class:`DebugLabel`; units are whatever each channel's firmware variable holds).
-    """
-
-    COMMAND: ClassVar[str] = "D"
-    STRUCT: ClassVar[struct.Struct] = struct.Struct("<2B32h")
-    N_ANALOG: ClassVar[int] = 32
-
-    status: tuple[int, int] = (0, 0)
-    analog: tuple[int, ...] = (0,) * 32
-
-    def pack(self) -> bytes:
-        return self.STRUCT.pack(*_ints(self.status, 2, UINT8, "status"), *_ints(self.analog, 32, INT16, "analog"))
-
-    @classmethod
-    def unpack(cls, payload: bytes) -> DebugData:
-        _need(payload, cls.STRUCT.size, cls)
-        v = cls.STRUCT.unpack_from(payload)
-        return cls((v[0], v[1]), tuple(v[2:]))
-
-
-@dataclass(frozen=True)
-class DebugLabelRequest:
-    """``'a'``: ask for the name of debug channel ``index``. ``<B``: index uint8 (0..31)."""
-
-    COMMAND: ClassVar[str] = "a"
-    STRUCT: ClassVar[struct.Struct] = struct.Struct("<B")
-
-    index: int
-
-    def pack(self) -> bytes:
-        return self.STRUCT.pack(_sat_int(_finite(self.index, "index"), UINT8))
-
-    @classmethod
-    def unpack(cls, payload: bytes) -> DebugLabelRequest:
-        _need(payload, cls.STRUCT.size, cls)
-        return cls(payload[0])
-
-
-@dataclass(frozen=True)
-class DebugLabel:
-    """``'A'``: name of one debug channel, 17 bytes, ``<B16s``: index uint8; label char[16] (ASCII, space/NUL padded).
-
-    ``pack`` truncates a longer label to 16 bytes and replaces non-ASCII characters by '?'.
-    """
-
-    COMMAND: ClassVar[str] = "A"
-    STRUCT: ClassVar[struct.Struct] = struct.Struct("<B16s")
-
-    index: int
-    label: str
-
-    def pack(self) -> bytes:
-        text = self.label.encode("ascii", errors="replace")[:16].ljust(16, b" ")
-        return self.STRUCT.pack(_sat_int(_finite(self.index, "index"), UINT8), text)
-
-    @classmethod
-    def unpack(cls, payload: bytes) -> DebugLabel:
-        _need(payload, cls.STRUCT.size, cls)
-        index, raw = cls.STRUCT.unpack_from(payload)
-        return cls(index, raw.decode("ascii", errors="replace").rstrip(" \x00"))
-
-
-@dataclass(frozen=True)
-class Data3DRequest:
-    """``'c'``: start (or refresh) the :class:`Data3D` stream. ``<B``: interval_10ms uint8, 10 ms units, 0 stops."""
-
-    COMMAND: ClassVar[str] = "c"
-    STRUCT: ClassVar[struct.Struct] = struct.Struct("<B")
-
-    interval_10ms: int
-
-    def pack(self) -> bytes:
-        return self.STRUCT.pack(_sat_int(_finite(self.interval_10ms, "interval_10ms"), UINT8))
-
-    @classmethod
-    def unpack(cls, payload: bytes) -> Data3DRequest:
-        _need(payload, cls.STRUCT.size, cls)
-        return cls(payload[0])
-
-
-@dataclass(frozen=True)
-class Data3D:
-    """``'C'``: attitude as the board sees it (MK ``Data3D_t``), 14 bytes, ``<3h3B5B``.
-
-    ==============  ==========  ========================================================================
-    wire field      type        unit / mapping
-    ==============  ==========  ========================================================================
-    angle[0] nick   int16       0.1 deg -> ``pitch_rad`` (MK "Nick" is pitch)
-    angle[1] roll   int16       0.1 deg -> ``roll_rad``
-    angle[2] yaw    int16       0.1 deg -> ``yaw_rad`` (heading; MK sends 0..3599, decoded to [-pi, pi))
-    centroid        uint8[3]    raw (MK: centre-of-gravity estimate), kept as is
-    reserve         uint8[5]    reserved, sent as zeros, kept as received
-    ==============  ==========  ========================================================================
-
-    Angles follow the stack's convention (body FRD, ZYX Euler of ``quadlink.frames.R_from_euler``: positive
-    pitch = nose up, positive roll = right side down, yaw clockwise from north seen from above); the stack's
-    firmware sends them that way. The stock MK firmware's signs are not guaranteed to match.
-    ``pack`` wraps ``yaw_rad`` to [-180 deg, 180 deg) and saturates roll/pitch to the int16 range (+-3276.7 deg).
-    """
-
-    COMMAND: ClassVar[str] = "C"
-    STRUCT: ClassVar[struct.Struct] = struct.Struct("<3h3B5B")
-
-    roll_rad: float
-    pitch_rad: float
-    yaw_rad: float
-    centroid: tuple[int, int, int] = (0, 0, 0)
-    reserve: tuple[int, int, int, int, int] = (0, 0, 0, 0, 0)
-
-    def pack(self) -> bytes:
-        yaw = _finite(self.yaw_rad, "yaw_rad")
-        yaw_wrapped = (yaw + math.pi) % (2.0 * math.pi) - math.pi
-        nick = _scaled(self.pitch_rad, DECIDEG_RAD, INT16, "pitch_rad")
-        roll = _scaled(self.roll_rad, DECIDEG_RAD, INT16, "roll_rad")
-        yaw_dd = _sat_int(yaw_wrapped / DECIDEG_RAD, (-1800, 1799))
-        return self.STRUCT.pack(
-            nick, roll, yaw_dd, *_ints(self.centroid, 3, UINT8, "centroid"), *_ints(self.reserve, 5, UINT8, "reserve")
-        )
-
-    @classmethod
-    def unpack(cls, payload: bytes) -> Data3D:
-        _need(payload, cls.STRUCT.size, cls)
-        v = cls.STRUCT.unpack_from(payload)
-        yaw_dd = (v[2] + 1800) % 3600 - 1800  # heading 0..3599 -> [-1800, 1800)
-        return cls(
-            roll_rad=v[1] * DECIDEG_RAD,
-            pitch_rad=v[0] * DECIDEG_RAD,
-            yaw_rad=yaw_dd * DECIDEG_RAD,
-            centroid=(v[3], v[4], v[5]),
-            reserve=(v[6], v[7], v[8], v[9], v[10]),
-        )
-
-
-@dataclass(frozen=True)
-class ExternControl:
-    """``'b'``: MK external control (the classic 11-byte ``ExternControl_t``), ``<2BBbbbBbBBB``.
-
-    =================  ========  ==============================================================
-    field              type      meaning (stick units as the MK firmware scales them)
-    =================  ========  ==============================================================
-    digital            uint8[2]  digital channels
-    remote_buttons     uint8     remote buttons
-    nick               int8      pitch stick
-    roll               int8      roll stick
-    yaw                int8      yaw stick
-    gas                uint8     throttle
-    height             int8      height setpoint
-    free               uint8     unused
-    frame              uint8     frame counter, echoed by the board in ``'B'`` (:class:`ExternControlAck`)
-    config             uint8     config flags (bit0: the board uses the external values)
-    =================  ========  ==============================================================
-
-    FlightCtrl 2.10+ ignores this 11-byte form (it expects 7 bytes). The stack's own firmware does not use
-    ExternControl (it takes :class:`AttitudeSetpoint`); the class exists for standard MK tools and boards.
-    """
-
-    COMMAND: ClassVar[str] = "b"
-    STRUCT: ClassVar[struct.Struct] = struct.Struct("<2BBbbbBbBBB")
-
-    digital: tuple[int, int] = (0, 0)
-    remote_buttons: int = 0
-    nick: int = 0
-    roll: int = 0
-    yaw: int = 0
-    gas: int = 0
-    height: int = 0
-    free: int = 0
-    frame: int = 0
-    config: int = 0
-
-    def pack(self) -> bytes:
-        d0, d1 = _ints(self.digital, 2, UINT8, "digital")
-        return self.STRUCT.pack(
-            d0,
-            d1,
-            _sat_int(_finite(self.remote_buttons, "remote_buttons"), UINT8),
-            _sat_int(_finite(self.nick, "nick"), INT8),
-            _sat_int(_finite(self.roll, "roll"), INT8),
-            _sat_int(_finite(self.yaw, "yaw"), INT8),
-            _sat_int(_finite(self.gas, "gas"), UINT8),
-            _sat_int(_finite(self.height, "height"), INT8),
-            _sat_int(_finite(self.free, "free"), UINT8),
-            _sat_int(_finite(self.frame, "frame"), UINT8),
-            _sat_int(_finite(self.config, "config"), UINT8),
-        )
-
-    @classmethod
-    def unpack(cls, payload: bytes) -> ExternControl:
-        _need(payload, cls.STRUCT.size, cls)
-        v = cls.STRUCT.unpack_from(payload)
-        return cls((v[0], v[1]), *v[2:])
-
-
-@dataclass(frozen=True)
-class ExternControlAck:
-    """``'B'``: the board's receipt of an :class:`ExternControl`, ``<B``: frame uint8 (the echoed frame counter)."""
-
-    COMMAND: ClassVar[str] = "B"
-    STRUCT: ClassVar[struct.Struct] = struct.Struct("<B")
-
-    frame: int
-
-    def pack(self) -> bytes:
-        return self.STRUCT.pack(_sat_int(_finite(self.frame, "frame"), UINT8))
-
-    @classmethod
-    def unpack(cls, payload: bytes) -> ExternControlAck:
-        _need(payload, cls.STRUCT.size, cls)
-        return cls(payload[0])
-
-
-@dataclass(frozen=True)
-class MotorTest:
-    """``'t'``: motor test, ``<16B``: motor uint8[16] (0 off .. 255 full). Boards obey it only when disarmed."""
-
-    COMMAND: ClassVar[str] = "t"
-    STRUCT: ClassVar[struct.Struct] = struct.Struct("<16B")
-
-    motor: tuple[int, ...] = (0,) * 16
-
-    def pack(self) -> bytes:
-        return self.STRUCT.pack(*_ints(self.motor, 16, UINT8, "motor"))
-
-    @classmethod
-    def unpack(cls, payload: bytes) -> MotorTest:
-        _need(payload, cls.STRUCT.size, cls)
-        return cls(tuple(cls.STRUCT.unpack_from(payload)))
-
 
 # --------------------------------------------------------------------------------------------------------------
 # The stack's firmware additions
@@ -479,14 +116,14 @@ class ImuSample:
     sample_counter: int = 0
 
     def pack(self) -> bytes:
-        ax, ay, az = _ints(self.accel_counts, 3, (0, IMU_COUNT_MAX), "accel_counts")
-        gx, gy, gz = _ints(self.gyro_counts, 3, (0, IMU_COUNT_MAX), "gyro_counts")
-        counter = _wrap(self.sample_counter, IMU_COUNTER_MODULO, "sample_counter")
+        ax, ay, az = ints(self.accel_counts, 3, (0, IMU_COUNT_MAX), "accel_counts")
+        gx, gy, gz = ints(self.gyro_counts, 3, (0, IMU_COUNT_MAX), "gyro_counts")
+        counter = wrap(self.sample_counter, IMU_COUNTER_MODULO, "sample_counter")
         return self.STRUCT.pack(ax | (counter & 0x3F) << 10, ay | (counter >> 6) << 10, az, gx, gy, gz)
 
     @classmethod
     def unpack(cls, payload: bytes) -> ImuSample:
-        _need(payload, cls.STRUCT.size, cls)
+        need(payload, cls.STRUCT.size, cls)
         w = cls.STRUCT.unpack_from(payload)
         m = IMU_COUNT_MASK
         return cls(
@@ -517,8 +154,8 @@ class ImuSample:
         zero = imu_cfg.zero_count
         a_lsb = imu_cfg.accel_lsb_m_s2
         g_lsb = imu_cfg.gyro_lsb_rad_s
-        ax, ay, az = _three_floats(accel_m_s2, "accel_m_s2")
-        gx, gy, gz = _three_floats(gyro_rad_s, "gyro_rad_s")
+        ax, ay, az = three_floats(accel_m_s2, "accel_m_s2")
+        gx, gy, gz = three_floats(gyro_rad_s, "gyro_rad_s")
 
         def count(value: float) -> int:
             c = round(value) + zero
@@ -527,11 +164,8 @@ class ImuSample:
         return cls(
             accel_counts=(count(ax / a_lsb), count(ay / a_lsb), count(az / a_lsb)),
             gyro_counts=(count(gx / g_lsb), count(gy / g_lsb), count(gz / g_lsb)),
-            sample_counter=_wrap(counter, IMU_COUNTER_MODULO, "counter"),
+            sample_counter=wrap(counter, IMU_COUNTER_MODULO, "counter"),
         )
-
-
-SETPOINT_FLAG_ARMED = 0x01
 
 
 @dataclass(frozen=True)
@@ -568,40 +202,26 @@ class AttitudeSetpoint:
 
     def pack(self) -> bytes:
         return self.STRUCT.pack(
-            _scaled(self.roll_rad, CENTIDEG_RAD, INT16, "roll_rad"),
-            _scaled(self.pitch_rad, CENTIDEG_RAD, INT16, "pitch_rad"),
-            _scaled(self.yaw_rate_rad_s, DECIDEG_S_RAD_S, INT16, "yaw_rate_rad_s"),
-            _scaled(self.thrust, 1.0 / THRUST_FULL_SCALE, UINT16, "thrust"),
-            SETPOINT_FLAG_ARMED if self.armed else 0,
-            _wrap(self.seq, 256, "seq"),
+            scaled(self.roll_rad, CENTIDEG_RAD, INT16, "roll_rad"),
+            scaled(self.pitch_rad, CENTIDEG_RAD, INT16, "pitch_rad"),
+            scaled(self.yaw_rate_rad_s, DECIDEG_S_RAD_S, INT16, "yaw_rate_rad_s"),
+            scaled(self.thrust, 1.0 / THRUST_FULL_SCALE, UINT16, "thrust"),
+            SetpointFlag.ARMED if self.armed else 0,
+            wrap(self.seq, 256, "seq"),
         )
 
     @classmethod
     def unpack(cls, payload: bytes) -> AttitudeSetpoint:
-        _need(payload, cls.STRUCT.size, cls)
+        need(payload, cls.STRUCT.size, cls)
         roll, pitch, yaw_rate, thrust, flags, seq = cls.STRUCT.unpack_from(payload)
         return cls(
             roll_rad=roll * CENTIDEG_RAD,
             pitch_rad=pitch * CENTIDEG_RAD,
             yaw_rate_rad_s=yaw_rate * DECIDEG_S_RAD_S,
             thrust=thrust / THRUST_FULL_SCALE,
-            armed=bool(flags & SETPOINT_FLAG_ARMED),
+            armed=bool(flags & SetpointFlag.ARMED),
             seq=seq,
         )
-
-
-FLIGHT_STATE_LANDED = 0
-FLIGHT_STATE_FLYING = 1
-FLIGHT_STATE_FAILSAFE_DESCEND = 2
-
-STATUS_FLAG_ARMED = 0x01
-STATUS_FLAG_FAILSAFE = 0x02
-
-# BoardStatus.error_flags bits (uint16). One definition for firmware (SITL) and bridge.
-ERROR_SETPOINT_TIMEOUT = 0x0001  # no valid 's' frame within the firmware's timeout (failsafe trigger)
-ERROR_BATTERY_LOW = 0x0002  # battery below the warning threshold
-ERROR_IMU_SATURATED = 0x0004  # an IMU channel hit 0 or 1023 since the last status
-ERROR_RX_FRAMES_DROPPED = 0x0008  # the board dropped received frames (checksum/garbage) since the last status
 
 
 @dataclass(frozen=True)
@@ -612,9 +232,9 @@ class BoardStatus:
     wire field         type    meaning
     =================  ======  ================================================================================
     flags              uint8   bit0 ``armed``, bit1 ``failsafe``, bits 2-7 zero
-    flight_state       uint8   ``flight_state``: 0 landed, 1 flying, 2 failsafe descend
+    flight_state       uint8   ``BoardFlightState``: 0 landed, 1 flying, 2 failsafe descend
     battery_mv         uint16  battery voltage, mV (saturates at 0..65535)
-    error_flags        uint16  ``ERROR_*`` bits (masked to 16 bits)
+    error_flags        uint16  ``BoardError`` bits (masked to 16 bits)
     board_time_ms      uint32  board time, ms (= 2 x imu_sample_count on the stack's firmware; wraps at 2**32)
     imu_sample_count   uint32  IMU samples emitted so far (sample k at board time k * 2 ms; wraps at 2**32)
     last_setpoint_seq  uint8   ``seq`` of the last valid ``'s'`` frame received (the setpoint acknowledgement)
@@ -636,25 +256,25 @@ class BoardStatus:
     last_setpoint_seq: int
 
     def pack(self) -> bytes:
-        flags = (STATUS_FLAG_ARMED if self.armed else 0) | (STATUS_FLAG_FAILSAFE if self.failsafe else 0)
+        flags = (StatusFlag.ARMED if self.armed else 0) | (StatusFlag.FAILSAFE if self.failsafe else 0)
         return self.STRUCT.pack(
             flags,
-            _sat_int(_finite(self.flight_state, "flight_state"), UINT8),
-            _sat_int(_finite(self.battery_mv, "battery_mv"), UINT16),
-            _wrap(self.error_flags, 0x10000, "error_flags"),
-            _wrap(self.board_time_ms, 2**32, "board_time_ms"),
-            _wrap(self.imu_sample_count, 2**32, "imu_sample_count"),
-            _wrap(self.last_setpoint_seq, 256, "last_setpoint_seq"),
+            sat_int(finite(self.flight_state, "flight_state"), UINT8),
+            sat_int(finite(self.battery_mv, "battery_mv"), UINT16),
+            wrap(self.error_flags, 0x10000, "error_flags"),
+            wrap(self.board_time_ms, 2**32, "board_time_ms"),
+            wrap(self.imu_sample_count, 2**32, "imu_sample_count"),
+            wrap(self.last_setpoint_seq, 256, "last_setpoint_seq"),
         )
 
     @classmethod
     def unpack(cls, payload: bytes) -> BoardStatus:
-        _need(payload, cls.STRUCT.size, cls)
+        need(payload, cls.STRUCT.size, cls)
         flags, state, mv, errors, t_ms, n_imu, seq = cls.STRUCT.unpack_from(payload)
         return cls(
-            armed=bool(flags & STATUS_FLAG_ARMED),
+            armed=bool(flags & StatusFlag.ARMED),
             flight_state=state,
-            failsafe=bool(flags & STATUS_FLAG_FAILSAFE),
+            failsafe=bool(flags & StatusFlag.FAILSAFE),
             battery_mv=mv,
             error_flags=errors,
             board_time_ms=t_ms,
