@@ -35,6 +35,11 @@ BATTERY_HEALTHY_FRACTION = 0.05  # SYS_STATUS battery health bit above this rema
 VERSION_UID_PREFIX = 0x514C  # "QL" in AUTOPILOT_VERSION.uid
 
 
+def encode_sw_version(major: int, minor: int, patch: int, version_type: int = 0) -> int:
+    """AUTOPILOT_VERSION's ``*_sw_version`` word: major, minor, patch, FIRMWARE_VERSION_TYPE from the top byte."""
+    return int.from_bytes(bytes([version_type & 0xFF, patch & 0xFF, minor & 0xFF, major & 0xFF]), "little")
+
+
 class TelemetryService(BridgeState):
     """Periodic and on-request telemetry over the shared :class:`~firmware_bridge.state.BridgeState`."""
 
@@ -146,7 +151,7 @@ class TelemetryService(BridgeState):
 
     def autopilot_version(self) -> Any:
         major, minor, patch = (int(x) for x in (__version__.split(".") + ["0", "0"])[:3])
-        sw = (major << 24) | (minor << 16) | (patch << 8) | mavlink.FIRMWARE_VERSION_TYPE_OFFICIAL
+        sw = encode_sw_version(major, minor, patch, mavlink.FIRMWARE_VERSION_TYPE_OFFICIAL)
         uid = (VERSION_UID_PREFIX << 48) | (self.sysid << 8) | self.compid
         return self.mav.autopilot_version_encode(CAPABILITIES, sw, self.board_version_int, 0, 0,
                                                  [0] * 8, [0] * 8, [0] * 8, 0, 0, uid)
