@@ -201,7 +201,8 @@ def test_parameter_protocol_list_read_set_and_clamp():
     out = sim.send(GCS.param_set_encode(1, 1, b"MPC_TILTMAX_AIR", 500.0, mavlink.MAV_PARAM_TYPE_REAL32))
     # out of bounds: refused, answered with the unchanged value and a STATUSTEXT (issue 16)
     values = [o.msg for o in out if o.msg.get_type() == "PARAM_VALUE"]
-    assert len(values) == 1 and values[0].param_value == pytest.approx(25.0) and sim.ap.params["MPC_TILTMAX_AIR"] == 25.0
+    assert len(values) == 1 and values[0].param_value == pytest.approx(25.0)
+    assert sim.ap.params["MPC_TILTMAX_AIR"] == 25.0
     assert any(o.msg.get_type() == "STATUSTEXT" and "MPC_TILTMAX_AIR" in o.msg.text for o in out)
     out = sim.send(GCS.param_request_read_encode(1, 1, b"COM_OF_LOSS_T", -1))
     assert out[0].msg.param_id == "COM_OF_LOSS_T" and out[0].msg.param_value == pytest.approx(1.0)
