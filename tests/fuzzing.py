@@ -1,8 +1,7 @@
 """Shared helpers of the property (fuzz) tests: example budget and MAVLink message strategies.
 
-CI runs a bounded number of examples; a soak run is one command:
-
-    QUADLINK_FUZZ_EXAMPLES=20000 pytest tests/test_bridge_fuzz.py tests/test_mk_fuzz.py -q
+CI runs a bounded number of examples (the ``quadlink`` hypothesis profile of ``tests/conftest.py``); a soak
+is one command: ``QUADLINK_FUZZ_EXAMPLES=20000 scripts/fuzz.sh -k "bridge or mk"``.
 
 Messages are generated from pymavlink's own field tables (types, array lengths), packed by a real codec
 and parsed back, so a handler sees exactly what the wire can carry.
@@ -10,17 +9,16 @@ and parsed back, so a handler sees exactly what the wire can carry.
 
 from __future__ import annotations
 
-import os
 from typing import Any
 
-from hypothesis import HealthCheck, settings
+from hypothesis import settings
 from hypothesis import strategies as st
 
 from quadlink.mavlink import mavlink
 
-FUZZ_EXAMPLES = int(os.environ.get("QUADLINK_FUZZ_EXAMPLES", "60"))
-FUZZ = settings(max_examples=FUZZ_EXAMPLES, deadline=None, derandomize=FUZZ_EXAMPLES <= 500,
-                suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
+# the example count comes from the "quadlink" hypothesis profile (tests/conftest.py, QUADLINK_FUZZ_EXAMPLES);
+# small CI runs are derandomized so a failure reproduces, soaks explore
+FUZZ = settings(derandomize=settings.default.max_examples <= 500)
 
 _INT_RANGES = {"int8_t": (-2**7, 2**7 - 1), "uint8_t": (0, 2**8 - 1), "int16_t": (-2**15, 2**15 - 1),
                "uint16_t": (0, 2**16 - 1), "int32_t": (-2**31, 2**31 - 1), "uint32_t": (0, 2**32 - 1),

@@ -3,7 +3,7 @@
 From a hovering point-mass flight (``test_bridge_autopilot.Sim``), each example sends a few generated
 messages of every type the bridge handles, then flies on. Properties: no handler raises or trips the
 catch-all, every board command is finite, the heartbeat keeps its 1 Hz, parameters stay inside their
-bounds. Budget: ``QUADLINK_FUZZ_EXAMPLES`` (see ``tests/fuzzing.py``).
+bounds. Marked ``fuzz``; budget: ``QUADLINK_FUZZ_EXAMPLES`` (``scripts/fuzz.sh`` soaks).
 """
 
 from __future__ import annotations
@@ -45,6 +45,8 @@ MESSAGES = st.one_of(
     message_strategy(mavlink.MAVLink_odometry_message, frame_id=_frames, child_frame_id=_frames),
     message_strategy(mavlink.MAVLink_heartbeat_message),
 )
+
+pytestmark = pytest.mark.fuzz
 
 
 @pytest.fixture(scope="module")

@@ -2,13 +2,15 @@
 
 Properties: ``FrameDecoder.feed`` and ``decode_message`` never raise; the decoder's buffer stays bounded;
 valid frames hidden in garbage are all found, in order, with their typed messages intact; every decoded
-message re-encodes to a frame that decodes to the same message. Budget: ``QUADLINK_FUZZ_EXAMPLES``.
+message re-encodes to a frame that decodes to the same message.
+Marked ``fuzz``; budget: ``QUADLINK_FUZZ_EXAMPLES`` (``scripts/fuzz.sh`` soaks).
 """
 
 from __future__ import annotations
 
 import math
 
+import pytest
 from fuzzing import FUZZ
 from hypothesis import given
 from hypothesis import strategies as st
@@ -20,6 +22,8 @@ _letters = st.sampled_from(sorted(MESSAGE_TYPES) + ["x", "Z"])
 _hostile_bytes = st.one_of(st.binary(max_size=400),
                            st.lists(st.sampled_from([b"#", b"\r", b"#a", b"=", b"|", b"\x00", b"\xff", b"#aS===\r"]),
                                     max_size=60).map(b"".join))
+
+pytestmark = pytest.mark.fuzz
 
 
 def _chunks(data: bytes, cuts: list[int]) -> list[bytes]:
