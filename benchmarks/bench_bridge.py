@@ -44,10 +44,10 @@ import psutil
 REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
 
-from firmware_bridge import mk_messages as mk  # noqa: E402
-from firmware_bridge.mk_protocol import ADDR_FC, FrameDecoder, encode_frame  # noqa: E402
 from quadlink.frames import GRAVITY_M_S2  # noqa: E402
 from quadlink.mavlink import mavlink  # noqa: E402
+from quadlink.mk import messages as mk  # noqa: E402
+from quadlink.mk.protocol import ADDR_FC, FrameDecoder, encode_frame  # noqa: E402
 from quadlink.realtime import set_realtime_priority  # noqa: E402
 from quadlink.vehicle import VehicleConfig  # noqa: E402
 

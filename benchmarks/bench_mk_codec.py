@@ -1,4 +1,4 @@
-"""Speed of the MK frame codec (firmware_bridge.mk_protocol / mk_messages) against a naive reference.
+"""Speed of the MK frame codec (quadlink.mk.protocol / quadlink.mk.messages) against a naive reference.
 
 Run: ``.venv/bin/python benchmarks/bench_mk_codec.py [--frames N]``
 
@@ -18,8 +18,8 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from firmware_bridge.mk_messages import DebugData, ImuSample, decode_message, encode_message  # noqa: E402
-from firmware_bridge.mk_protocol import Frame, FrameDecoder, encode_frame  # noqa: E402
+from quadlink.mk.messages import DebugData, ImuSample, decode_message, encode_message  # noqa: E402
+from quadlink.mk.protocol import Frame, FrameDecoder, encode_frame  # noqa: E402
 
 CHUNK_BYTES = 64
 IMU_RATE_HZ = 500

@@ -26,10 +26,10 @@ import time
 
 import numpy as np
 
-from firmware_bridge.mk_messages import AttitudeSetpoint, ImuSample, decode_message, encode_message
-from firmware_bridge.mk_protocol import FrameDecoder
 from quadlink.camera import CameraStreamClient
 from quadlink.frames import GRAVITY_M_S2
+from quadlink.mk.messages import AttitudeSetpoint, ImuSample, decode_message, encode_message
+from quadlink.mk.protocol import FrameDecoder
 from quadlink.vehicle import load_vehicle
 from sim_sitl.config import load_sitl_config
 from sim_sitl.runner import Sitl, SitlOptions

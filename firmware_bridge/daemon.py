@@ -27,13 +27,14 @@ from typing import Any
 
 import numpy as np
 
-from firmware_bridge import mk_messages as mk
 from firmware_bridge.autopilot import Autopilot, BoardCommand, Outbound
-from firmware_bridge.mk_protocol import ADDR_FC, FrameDecoder, encode_frame
 from firmware_bridge.params import DEFAULT_PARAMS_PATH, ParamTable, load_param_file, save_param_file
+from firmware_bridge.telemetry import encode_sw_version
 from quadlink.errors import LinkError, ProtocolError
 from quadlink.links import ByteStream, open_stream
 from quadlink.mavlink.connection import open_mavlink
+from quadlink.mk import messages as mk
+from quadlink.mk.protocol import ADDR_FC, FrameDecoder, encode_frame
 from quadlink.realtime import MAX_PRIORITY
 from quadlink.vehicle import VehicleConfig
 
@@ -364,7 +365,7 @@ class BridgeDaemon:
                 text = f"FlightCtrl {version.version_str} (protocol {version.proto_major}.{version.proto_minor})"
                 self._version_requests = self.config.version_request_attempts  # done
                 self.autopilot.on_board_version(
-                    text, (version.sw_major << 24) | (version.sw_minor << 16) | (version.sw_patch << 8))
+                    text, encode_sw_version(version.sw_major, version.sw_minor, version.sw_patch))
         except (ProtocolError, ValueError) as exc:
             self.autopilot.note_malformed("mk_bad", now, f"'{frame.command}' frame: {exc}")
 

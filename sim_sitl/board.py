@@ -15,7 +15,7 @@ import logging
 import math
 from dataclasses import dataclass
 
-from firmware_bridge.mk_messages import (
+from quadlink.mk.messages import (
     AttitudeSetpoint,
     BoardStatus,
     Data3D,
@@ -31,7 +31,7 @@ from firmware_bridge.mk_messages import (
     decode_message,
     encode_message,
 )
-from firmware_bridge.mk_protocol import ADDR_ANY, ADDR_FC, FrameDecoder
+from quadlink.mk.protocol import ADDR_ANY, ADDR_FC, FrameDecoder
 from sim_sitl.firmware import AttitudeCommand
 
 log = logging.getLogger(__name__)

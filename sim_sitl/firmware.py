@@ -18,15 +18,10 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from firmware_bridge.mk_messages import ERROR_SETPOINT_TIMEOUT as ERR_SETPOINT_TIMEOUT
+from quadlink.mk.flags import BoardError, BoardFlightState
 from quadlink.vehicle import VehicleConfig
 from sim_sitl.config import FirmwareConfig
 from sim_sitl.motors import mix, rotor_layout
-
-FLIGHT_LANDED = 0
-FLIGHT_FLYING = 1
-FLIGHT_FAILSAFE = 2
-
 
 
 @dataclass(frozen=True)
@@ -72,7 +67,7 @@ class Firmware:
         self.last_setpoint_t_s: float | None = None
         self.armed = False
         self.failsafe = False
-        self.flight_state = FLIGHT_LANDED
+        self.flight_state = BoardFlightState.LANDED
         self.error_flags = 0
         self.setpoints_received = 0
         self.rejected_setpoints = 0
@@ -97,7 +92,7 @@ class Firmware:
         self.setpoints_received += 1
         if self.failsafe:
             self.failsafe = False
-            self.error_flags &= ~ERR_SETPOINT_TIMEOUT
+            self.error_flags &= ~int(BoardError.SETPOINT_TIMEOUT)
         if clamped.armed and not self.armed:
             self._reset_loops()
         self.armed = clamped.armed
@@ -116,17 +111,17 @@ class Firmware:
         m = self.vehicle.motor
         if self.armed and not self.failsafe and self.last_setpoint_t_s is not None \
                 and t_s - self.last_setpoint_t_s > c.setpoint_timeout_s:
-            self.error_flags |= ERR_SETPOINT_TIMEOUT
-            if self.flight_state == FLIGHT_FLYING:
+            self.error_flags |= BoardError.SETPOINT_TIMEOUT
+            if self.flight_state == BoardFlightState.FLYING:
                 self.failsafe = True
                 self._failsafe_start_s = t_s
                 self._still_since_s = None
             else:
                 self._disarm()  # not flying: just cut
         if not self.armed:
-            self.flight_state = FLIGHT_LANDED
+            self.flight_state = BoardFlightState.LANDED
             self.failsafe = False
-            return FirmwareOutput(np.zeros(4), False, FLIGHT_LANDED, False)
+            return FirmwareOutput(np.zeros(4), False, BoardFlightState.LANDED, False)
 
         if self.failsafe:
             # hold level attitude and descend; cut once stopped on the ground
@@ -139,11 +134,11 @@ class Firmware:
                 self._still_since_s = t_s
             elif t_s - self._still_since_s > 0.5:
                 self._disarm()
-                return FirmwareOutput(np.zeros(4), False, FLIGHT_LANDED, False)
+                return FirmwareOutput(np.zeros(4), False, BoardFlightState.LANDED, False)
         else:
             cmd = self.command
-        self.flight_state = FLIGHT_FAILSAFE if self.failsafe else (
-            FLIGHT_FLYING if cmd.thrust > c.landed_thrust_fraction else FLIGHT_LANDED)
+        self.flight_state = BoardFlightState.FAILSAFE_DESCEND if self.failsafe else (
+            BoardFlightState.FLYING if cmd.thrust > c.landed_thrust_fraction else BoardFlightState.LANDED)
 
         rates = np.asarray(sense.rates_q_rad_s, dtype=float)
         rate_sp = np.array([
@@ -152,7 +147,7 @@ class Firmware:
             cmd.yaw_rate_rad_s,
         ])
         err = rate_sp - rates
-        if self.flight_state == FLIGHT_LANDED:
+        if self.flight_state == BoardFlightState.LANDED:
             self._integ[:] = 0.0  # no wind-up while sitting on the ground
         else:
             self._integ[:2] += c.rate_ki_1_s2 * err[:2] * dt_s

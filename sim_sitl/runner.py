@@ -20,15 +20,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from firmware_bridge.mk_messages import (
-    ERROR_BATTERY_LOW,
-    ERROR_IMU_SATURATED,
-    ERROR_RX_FRAMES_DROPPED,
-    ImuSample,
-    encode_message,
-)
 from quadlink.camera import CameraStreamServer
 from quadlink.frames import euler_from_R
+from quadlink.mk.flags import BoardError
+from quadlink.mk.messages import ImuSample, encode_message
 from quadlink.vehicle import load_vehicle
 from sim_sitl.board import BoardTelemetry, Port1Protocol
 from sim_sitl.config import SitlConfig, load_scenario
@@ -295,11 +290,11 @@ class Sitl:
         b = self.vehicle.battery
         errors = fw.error_flags
         if mv < b.cells * 3.5 * 1000:
-            errors |= ERROR_BATTERY_LOW
+            errors |= BoardError.BATTERY_LOW
         if self._imu_saturated:
-            errors |= ERROR_IMU_SATURATED
+            errors |= BoardError.IMU_SATURATED
         if self.protocol.rx_frames_dropped:
-            errors |= ERROR_RX_FRAMES_DROPPED
+            errors |= BoardError.RX_FRAMES_DROPPED
         return BoardTelemetry(
             t_s=res.t_s, imu_sample_count=res.tick + 1, armed=res.firmware.armed,
             flight_state=res.firmware.flight_state, failsafe=res.firmware.failsafe, battery_mv=mv,

@@ -12,11 +12,11 @@ import math
 import numpy as np
 import pytest
 
-from firmware_bridge import mk_messages as mk
 from firmware_bridge.autopilot import CAPABILITIES, Autopilot, FlightMode
 from firmware_bridge.params import PARAM_SPECS, ParamTable
 from quadlink.frames import GRAVITY_M_S2, R_from_euler, quat_wxyz_from_euler
 from quadlink.mavlink import mavlink
+from quadlink.mk import messages as mk
 from quadlink.vehicle import VehicleConfig
 
 GCS = mavlink.MAVLink(None, 255, 190)
@@ -199,7 +199,11 @@ def test_parameter_protocol_list_read_set_and_clamp():
     assert sim.ap.tracker.gains.kp_xy_1_s == pytest.approx(3.5)
     assert sim.ap.params.dirty
     out = sim.send(GCS.param_set_encode(1, 1, b"MPC_TILTMAX_AIR", 500.0, mavlink.MAV_PARAM_TYPE_REAL32))
-    assert out[0].msg.param_value == pytest.approx(60.0)  # clamped to the bound, and said so in the echo
+    # out of bounds: refused, answered with the unchanged value and a STATUSTEXT (issue 16)
+    values = [o.msg for o in out if o.msg.get_type() == "PARAM_VALUE"]
+    assert len(values) == 1 and values[0].param_value == pytest.approx(25.0)
+    assert sim.ap.params["MPC_TILTMAX_AIR"] == 25.0
+    assert any(o.msg.get_type() == "STATUSTEXT" and "MPC_TILTMAX_AIR" in o.msg.text for o in out)
     out = sim.send(GCS.param_request_read_encode(1, 1, b"COM_OF_LOSS_T", -1))
     assert out[0].msg.param_id == "COM_OF_LOSS_T" and out[0].msg.param_value == pytest.approx(1.0)
     out = sim.send(GCS.param_request_read_encode(1, 1, b"", 0))

@@ -15,12 +15,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from firmware_bridge import mk_messages as mk
 from firmware_bridge.daemon import BridgeConfig, BridgeDaemon, _align
-from firmware_bridge.mk_protocol import ADDR_FC, FrameDecoder, encode_frame
 from quadlink.errors import LinkError
 from quadlink.frames import GRAVITY_M_S2
 from quadlink.mavlink.connection import open_mavlink
+from quadlink.mk import messages as mk
+from quadlink.mk.protocol import ADDR_FC, FrameDecoder, encode_frame
 from quadlink.vehicle import VehicleConfig
 
 

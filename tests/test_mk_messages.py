@@ -10,10 +10,10 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from firmware_bridge.mk_messages import (
-    CENTIDEG_RAD,
-    DECIDEG_RAD,
-    DECIDEG_S_RAD_S,
+from quadlink.errors import ProtocolError
+from quadlink.frames import GRAVITY_M_S2
+from quadlink.mk.fields import CENTIDEG_RAD, DECIDEG_RAD, DECIDEG_S_RAD_S
+from quadlink.mk.messages import (
     MESSAGE_TYPES,
     AttitudeSetpoint,
     BoardStatus,
@@ -32,9 +32,7 @@ from firmware_bridge.mk_messages import (
     decode_message,
     encode_message,
 )
-from firmware_bridge.mk_protocol import ADDR_ANY, ADDR_FC, Frame, FrameDecoder, decode_frame
-from quadlink.errors import ProtocolError
-from quadlink.frames import GRAVITY_M_S2
+from quadlink.mk.protocol import ADDR_ANY, ADDR_FC, Frame, FrameDecoder, decode_frame
 from quadlink.vehicle import ImuConfig
 
 IMU = ImuConfig()

@@ -6,7 +6,8 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from firmware_bridge.mk_protocol import (
+from quadlink.errors import ProtocolError
+from quadlink.mk.protocol import (
     ADDR_ANY,
     ADDR_FC,
     ADDR_MAX,
@@ -19,7 +20,6 @@ from firmware_bridge.mk_protocol import (
     mk_b64decode,
     mk_b64encode,
 )
-from quadlink.errors import ProtocolError
 
 # (address, command, payload, frame) from /work/shared/MK_PROTOCOL.md "Vectors"
 VECTORS = [

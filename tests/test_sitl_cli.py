@@ -8,10 +8,10 @@ import time
 import pytest
 from click.testing import CliRunner
 
-from firmware_bridge.mk_messages import ImuSample, Version, VersionRequest, decode_message, encode_message
-from firmware_bridge.mk_protocol import FrameDecoder
 from quadlink.cli import main
 from quadlink.errors import ConfigError
+from quadlink.mk.messages import ImuSample, Version, VersionRequest, decode_message, encode_message
+from quadlink.mk.protocol import FrameDecoder
 from sim_sitl.config import SitlConfig, known_scenarios, load_scenario
 from sim_sitl.runner import Sitl, SitlOptions
 

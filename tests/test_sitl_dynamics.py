@@ -8,9 +8,10 @@ import numpy as np
 import pytest
 
 from quadlink.frames import GRAVITY_M_S2, Rz, euler_from_R
+from quadlink.mk.flags import BoardFlightState
 from quadlink.vehicle import VehicleConfig, load_vehicle
 from sim_sitl.config import SitlConfig, load_scenario, load_sitl_config
-from sim_sitl.firmware import FLIGHT_FAILSAFE, FLIGHT_LANDED, AttitudeCommand
+from sim_sitl.firmware import AttitudeCommand
 from sim_sitl.motors import body_wrench, mix, rotor_layout
 from sim_sitl.vehicle_sim import SimVehicle
 
@@ -134,14 +135,14 @@ def test_failsafe_levels_descends_and_cuts_on_the_ground(sim):
         states.append(sim.tick())
         if not states[-1].firmware.armed:
             break
-    fs = [r for r in states if r.firmware.flight_state == FLIGHT_FAILSAFE]
+    fs = [r for r in states if r.firmware.flight_state == BoardFlightState.FAILSAFE_DESCEND]
     assert fs, "failsafe never engaged"
     t_engage = fs[0].t_s - states[0].t_s
     assert t_engage == pytest.approx(sim.cfg.firmware.setpoint_timeout_s, abs=0.01)
     assert abs(euler_from_R(fs[-1].state.R_ned_q)[0]) < 0.03  # levelled
     assert max(r.state.v_ned_m_s[2] for r in fs) > 0.1  # descending
     final = states[-1]
-    assert not final.firmware.armed and final.firmware.flight_state == FLIGHT_LANDED
+    assert not final.firmware.armed and final.firmware.flight_state == BoardFlightState.LANDED
     assert final.state.p_ned_m[2] > -0.15  # on the floor (CoM 0.1 m up on its landing gear)
     assert sim.firmware.error_flags & 0x01
 
@@ -151,7 +152,7 @@ def test_setpoint_timeout_on_the_ground_just_disarms(sim):
     assert sim.firmware.armed
     res = [sim.tick() for _ in range(400)]
     assert not res[-1].firmware.armed
-    assert all(r.firmware.flight_state != FLIGHT_FAILSAFE for r in res)
+    assert all(r.firmware.flight_state != BoardFlightState.FAILSAFE_DESCEND for r in res)
 
 
 def test_nan_setpoint_is_ignored(sim):

@@ -7,8 +7,8 @@ import math
 import numpy as np
 import pytest
 
-from firmware_bridge.mk_messages import ImuSample
 from quadlink.frames import GRAVITY_M_S2, R_from_euler
+from quadlink.mk.messages import ImuSample
 from quadlink.vehicle import ImuConfig
 from sim_sitl.config import ImuNoiseConfig
 from sim_sitl.imu import ImuModel, specific_force_q

@@ -7,7 +7,8 @@ import time
 
 import pytest
 
-from firmware_bridge.mk_messages import (
+from quadlink.camera import CameraStreamClient
+from quadlink.mk.messages import (
     AttitudeSetpoint,
     ImuSample,
     Version,
@@ -15,8 +16,7 @@ from firmware_bridge.mk_messages import (
     decode_message,
     encode_message,
 )
-from firmware_bridge.mk_protocol import FrameDecoder
-from quadlink.camera import CameraStreamClient
+from quadlink.mk.protocol import FrameDecoder
 from sim_sitl.config import SitlConfig
 from sim_sitl.pacing import MAX_SETPOINT_CREDIT, RealTimePacer, SetpointGate, wait_serving
 from sim_sitl.runner import Sitl, SitlOptions

@@ -8,7 +8,8 @@ import time
 import numpy as np
 import pytest
 
-from firmware_bridge.mk_messages import (
+from quadlink.frames import GRAVITY_M_S2
+from quadlink.mk.messages import (
     AttitudeSetpoint,
     BoardStatus,
     Data3D,
@@ -21,8 +22,7 @@ from firmware_bridge.mk_messages import (
     decode_message,
     encode_message,
 )
-from firmware_bridge.mk_protocol import FrameDecoder
-from quadlink.frames import GRAVITY_M_S2
+from quadlink.mk.protocol import FrameDecoder
 from quadlink.vehicle import ImuConfig
 from sim_sitl.board import BoardTelemetry, Port1Protocol
 from sim_sitl.config import SitlConfig
@@ -208,7 +208,7 @@ def test_lockstep_waits_for_setpoints_and_flies_them():
 @pytest.mark.sitl
 def test_port1_over_budget_drops_frames_and_reports_them(caplog):
     """Debug + 3D data every 10 ms plus status need ~12.3 kB/s: more than 115200 Bd carries."""
-    from firmware_bridge.mk_messages import DebugData, DebugRequest
+    from quadlink.mk.messages import DebugData, DebugRequest
 
     sitl = Sitl(_options(progress_every_s=0.5)).start()
     try:

@@ -1,4 +1,4 @@
-"""I/O-free codec of MikroKopter's framed serial protocol (see ``firmware_bridge/PROTOCOL.md``).
+"""I/O-free codec of MikroKopter's framed serial protocol (see ``PROTOCOL.md`` beside this module).
 
 A frame is ``'#' address command data... crc1 crc2 '\\r'``:
 

@@ -1,0 +1,249 @@
+"""Flight-control service: the 100 Hz step (closed loop on the odometry, blind take-off and landing before
+any odometry, heading hold, touchdown detection). Pure: time is ``now_s``, the board command is returned.
+
+Every :class:`~firmware_bridge.state.BoardCommand` is finite by construction (its constructor refuses
+NaN/inf); :meth:`FlightControlService._finish` is the one place a tracker output becomes a board command.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+
+from firmware_bridge.commander import CommanderService
+from firmware_bridge.modes import FlightMode
+from firmware_bridge.state import AttitudeSetpoint, BoardCommand
+from firmware_bridge.velocity_tracker import AttitudeCommand
+from quadlink.frames import wrap_pi
+from quadlink.mavlink import mavlink
+from quadlink.mk.flags import BoardFlightState
+
+MAX_HEADING_ERROR_RAD = 0.5
+HOVER_LEARN_TAU_S = 1.0  # low-pass of the thrust in the open-loop climb: the hover thrust actually needed
+GROUND_CONTACT_ACCEL_M_S2 = 0.3  # below hover thrust, less vertical acceleration than this = the ground carries it
+BLIND_DESCENT_EXTRA_S = 3.0  # the blind descent probes for the ground after height / rate + this
+CONTROL_DT_S = 0.01  # nominal step (every 5th IMU sample); the measured dt is bounded to [1 ms, 100 ms]
+YAW_TRACK_GAIN_1_S = 2.0  # an absolute yaw target is tracked through the yaw-rate command
+
+
+class FlightControlService(CommanderService):
+    """The control step over the shared :class:`BridgeState`."""
+
+    def control_step(self, now_s: float) -> BoardCommand:
+        """The 100 Hz step: failsafes, mode logic, the velocity tracker; the board's next setpoint."""
+        dt = CONTROL_DT_S if self._control_time_s is None else min(max(now_s - self._control_time_s, 1e-3), 0.1)
+        self._control_time_s = now_s
+        self._check_links(now_s)
+        self._update_height(dt)
+        est = self.filter.estimate
+        if not self.in_air or (not self.odom_ok and not self.blind) or \
+                (self.mode == FlightMode.OFFBOARD and self._att_sp is not None):
+            self._yaw_sp_rad = None  # heading hold only in velocity control (or the blind climb) in the air
+        if not self.armed_cmd:
+            self.in_air = False
+            self.blind = False
+            self.takeoff_phase = None
+            self._blind_descent = None
+            self.tracker.reset()
+            self._on_ground_armed_since_s = None
+            return self._board(BoardCommand(0.0, 0.0, 0.0, 0.0, False))
+        if not self.in_air:
+            # armed on the ground: motors at idle, level, nothing integrates (PX4's "landed" state)
+            self.tracker.reset()
+            self._dv_h_imu[:] = 0.0
+            if self._on_ground_armed_since_s is None:
+                self._on_ground_armed_since_s = now_s
+            timeout = self.params["COM_DISARM_PRFLT"]
+            if timeout > 0 and now_s - self._on_ground_armed_since_s > timeout:
+                self._disarm(now_s, "Auto-disarm: no takeoff")
+                return self._board(BoardCommand(0.0, 0.0, 0.0, 0.0, False))
+            if self.mode == FlightMode.LAND:
+                self._disarm(now_s, "Landed, disarming")
+                return self._board(BoardCommand(0.0, 0.0, 0.0, 0.0, False))
+            return self._board(BoardCommand(0.0, 0.0, 0.0, 0.0, True))
+        self._on_ground_armed_since_s = None
+
+        # ---- no odometry yet in this flight: take-off phase 1, or the landing that ends it
+        if self.blind and not self.odom_ok and not (self.mode == FlightMode.OFFBOARD and self._att_sp is not None):
+            return self._blind_step(now_s, dt, est)
+
+        # ---- odometry lost in the air: level attitude hold and descend on the IMU's vertical speed
+        if not self.odom_ok and not (self.mode == FlightMode.OFFBOARD and self._att_sp is not None):
+            v_ref = np.array([0.0, 0.0, self.params["MPC_LAND_SPEED"]])
+            v_est = np.array([0.0, 0.0, self._vz_dead_reckoned])
+            cmd = self.tracker.update(dt, v_ref, 0.0, v_est, est.roll_rad, est.pitch_rad)
+            cmd = AttitudeCommand(0.0, 0.0, 0.0, cmd.thrust_fraction, cmd.a_des_h_m_s2, cmd.saturated)
+            self._detect_touchdown(now_s, cmd, abs(self._vz_dead_reckoned))
+            return self._finish(cmd)
+
+        if self.mode == FlightMode.OFFBOARD and self._att_sp is not None:
+            return self._finish(self._attitude_command(self._att_sp, est))
+
+        v_ref = np.zeros(3)
+        yaw_rate = 0.0
+        if self.mode == FlightMode.OFFBOARD and self._vel_sp is not None:
+            v_ref, yaw_rate = self._velocity_reference(self._vel_sp, est.yaw_rad)
+        elif self.mode == FlightMode.TAKEOFF:
+            remaining = self.takeoff_target_m - self.height_m
+            v_ref[2] = -min(self.params["MPC_TKO_SPEED"], max(1.0 * remaining, 0.1))
+            if remaining <= 0.05:
+                self._event(mavlink.MAV_SEVERITY_INFO, f"Takeoff complete at {self.height_m:.2f} m")
+                self.takeoff_phase = None
+                self.set_mode(FlightMode.LOITER, now_s, "takeoff complete")
+                v_ref[2] = 0.0
+        elif self.mode == FlightMode.LAND:
+            v_ref[2] = self.params["MPC_LAND_SPEED"]
+        elif self._fs_hover_until_s is not None and now_s >= self._fs_hover_until_s:
+            self._fs_hover_until_s = None
+            self._event(mavlink.MAV_SEVERITY_WARNING, "Failsafe: hover done, landing")
+            self.set_mode(FlightMode.LAND, now_s, "failsafe")
+        sp = self._vel_sp
+        if self.mode == FlightMode.OFFBOARD and sp is not None and sp.yaw_rate_rad_s is None and sp.yaw_rad is not None:
+            self._yaw_sp_rad = None  # an absolute yaw target is tracked in _velocity_reference
+        else:
+            yaw_rate = self._heading_hold(dt, yaw_rate, est.yaw_rad)
+        v_est = self.v_est_h(now_s)
+        cmd = self.tracker.update(dt, v_ref, yaw_rate, v_est, est.roll_rad, est.pitch_rad)
+        if self.mode == FlightMode.LAND:
+            self._detect_touchdown(now_s, cmd, abs(v_est[2]))
+        return self._finish(cmd)
+
+    def _blind_step(self, now_s: float, dt: float, est: Any) -> BoardCommand:
+        """Flight before any odometry: level (roll = pitch = 0), heading hold on the gyro, vertical velocity
+        tracked on the accelerometer-only estimate, thrust under a ceiling. TAKEOFF climbs at BRG_TKO_OL_SPD
+        toward the take-off height (thrust ramped up to hover x (1 + BRG_TKO_THR_MRG) over BRG_TKO_RAMP_T)
+        until odometry arrives, at most BRG_TKO_OL_ALT (estimated) or BRG_TKO_OL_T; then, or in any other
+        mode, it descends at BRG_OL_LAND_SPD with the thrust capped at the hover thrust learnt in the climb
+        (it can not climb on a drifting estimate). Once the estimate says ground (height 0, or the descent
+        took BLIND_DESCENT_EXTRA_S longer than height / rate) the cap drops to BRG_FS_DESC_THR x hover: in the
+        air the vehicle then accelerates downwards, on the ground the accelerometer shows nothing, which is
+        the touchdown test that does not depend on the drifting velocity."""
+        p = self.params
+        hover_prior = self.tracker.hover_thrust_fraction
+        margin = p["BRG_TKO_THR_MRG"]
+        vz_est = self.vertical.vz_m_s
+        elapsed = 0.0
+        if self.mode == FlightMode.TAKEOFF:
+            elapsed = now_s - (self._takeoff_start_s if self._takeoff_start_s is not None else now_s)
+            height = self.vertical.height_m
+            if height >= p["BRG_TKO_OL_ALT"] or elapsed >= p["BRG_TKO_OL_T"]:
+                self._event(mavlink.MAV_SEVERITY_CRITICAL,
+                            f"No odometry in takeoff ({elapsed:.1f}s, {height:.2f}m): land")
+                self.failsafe_reason = "no odometry in takeoff"
+                self.takeoff_phase = None
+                self.set_mode(FlightMode.LAND, now_s, "no odometry in takeoff")
+        elif self.mode != FlightMode.LAND:
+            self._event(mavlink.MAV_SEVERITY_CRITICAL, "No odometry: landing")
+            self.set_mode(FlightMode.LAND, now_s, "no odometry")
+        if self.mode == FlightMode.TAKEOFF:
+            remaining = self.takeoff_target_m - self.vertical.height_m
+            vz_ref = -min(p["BRG_TKO_OL_SPD"], max(remaining, 0.0))  # slows into the target, then holds
+            ceiling = hover_prior * (1.0 + margin)
+            ramp_s = p["BRG_TKO_RAMP_T"]
+            if ramp_s > 0:
+                ceiling *= min(1.0, elapsed / ramp_s)
+        probing = False
+        if self.mode != FlightMode.TAKEOFF:
+            vz_ref = p["BRG_OL_LAND_SPD"]
+            if self._blind_descent is None:
+                self._blind_descent = (now_s, self.vertical.height_m)
+            start_s, height0 = self._blind_descent
+            learned = self._hover_thrust_learned if self._hover_thrust_learned is not None else hover_prior
+            ceiling = min(max(learned, hover_prior * (1.0 - margin)), hover_prior * (1.0 + margin))
+            probing = self.vertical.height_m <= 0.0 or \
+                now_s - start_s > height0 / vz_ref + BLIND_DESCENT_EXTRA_S
+            if probing:
+                ceiling *= p["BRG_FS_DESC_THR"]
+        if self.vertical.estimate.pinned:
+            self.tracker.reset()  # the ground carries the vehicle while the thrust ramps: nothing to integrate
+        yaw_rate = self._heading_hold(dt, 0.0, est.yaw_rad)
+        cmd = self.tracker.update(dt, np.array([0.0, 0.0, vz_ref]), yaw_rate, np.array([0.0, 0.0, vz_est]),
+                                  est.roll_rad, est.pitch_rad)
+        thrust = min(cmd.thrust_fraction, ceiling)
+        cmd = AttitudeCommand(0.0, 0.0, cmd.yaw_rate_rad_s, thrust, cmd.a_des_h_m_s2,
+                              cmd.saturated or thrust < cmd.thrust_fraction)
+        if self.mode == FlightMode.TAKEOFF and not self.vertical.estimate.pinned:
+            # what the climb needs, tilt-compensated: the descent's thrust ceiling
+            level = thrust * math.cos(est.roll_rad) * math.cos(est.pitch_rad)
+            if self._hover_thrust_learned is None:
+                self._hover_thrust_learned = level
+            self._hover_thrust_learned += (level - self._hover_thrust_learned) * dt / HOVER_LEARN_TAU_S
+        if self.mode == FlightMode.LAND:
+            ground = probing and thrust <= ceiling + 1e-6 and \
+                abs(self.vertical.estimate.accel_z_m_s2) < GROUND_CONTACT_ACCEL_M_S2
+            self._detect_touchdown(now_s, cmd, abs(vz_est), ground_contact=ground)
+        return self._finish(cmd)
+
+    def _heading_hold(self, dt: float, yaw_rate_ref: float, yaw_rad: float) -> float:
+        """Yaw rate tracked through a heading setpoint (like PX4's yaw control): the setpoint integrates the
+        reference rate, and the heading error (yaw anchored to the odometry) adds ``MC_YAW_P`` * error, so a
+        zero yaw rate holds the heading instead of letting the board's rate loop drift."""
+        if self._yaw_sp_rad is None:
+            self._yaw_sp_rad = yaw_rad
+        self._yaw_sp_rad = wrap_pi(self._yaw_sp_rad + yaw_rate_ref * dt)
+        error = wrap_pi(self._yaw_sp_rad - yaw_rad)
+        if abs(error) > MAX_HEADING_ERROR_RAD:  # do not wind up behind a saturated or blocked yaw
+            self._yaw_sp_rad = wrap_pi(yaw_rad + math.copysign(MAX_HEADING_ERROR_RAD, error))
+            error = math.copysign(MAX_HEADING_ERROR_RAD, error)
+        return yaw_rate_ref + self.params["MC_YAW_P"] * error
+
+    def _finish(self, cmd: AttitudeCommand) -> BoardCommand:
+        self.last_command = cmd
+        values = (cmd.roll_rad, cmd.pitch_rad, cmd.yaw_rate_rad_s, cmd.thrust_fraction)
+        if not all(math.isfinite(v) for v in values):
+            # cannot happen with finite inputs (every boundary checks them); if it does, fly level at the
+            # last finite thrust rather than send a NaN or nothing (the board would cut or failsafe)
+            self.counters["nonfinite_commands"] = self.counters.get("nonfinite_commands", 0) + 1
+            self._event(mavlink.MAV_SEVERITY_CRITICAL, "Non-finite control output: level hold")
+            self.tracker.reset()
+            return self._board(BoardCommand(0.0, 0.0, 0.0, self.last_board_command.thrust, self.armed_cmd))
+        return self._board(BoardCommand(cmd.roll_rad, cmd.pitch_rad, cmd.yaw_rate_rad_s, cmd.thrust_fraction,
+                                        self.armed_cmd))
+
+    def _board(self, command: BoardCommand) -> BoardCommand:
+        self.last_board_command = command
+        return command
+
+    def _attitude_command(self, sp: AttitudeSetpoint, est: Any) -> AttitudeCommand:
+        g = self.tracker.gains
+        roll = min(max(sp.roll_rad, -g.max_tilt_rad), g.max_tilt_rad)
+        pitch = min(max(sp.pitch_rad, -g.max_tilt_rad), g.max_tilt_rad)
+        if sp.yaw_rate_rad_s is not None:
+            yaw_rate = sp.yaw_rate_rad_s
+        elif sp.yaw_rad is not None:
+            yaw_rate = YAW_TRACK_GAIN_1_S * wrap_pi(sp.yaw_rad - est.yaw_rad)
+        else:
+            yaw_rate = 0.0
+        yaw_rate = min(max(yaw_rate, -g.max_yaw_rate_rad_s), g.max_yaw_rate_rad_s)
+        thrust = self.tracker.hover_thrust_fraction if sp.thrust is None else sp.thrust
+        thrust = min(max(thrust, 0.0), g.thrust_max_fraction)
+        return AttitudeCommand(roll, pitch, yaw_rate, thrust)
+
+    def _update_height(self, dt: float) -> None:
+        if self.blind:
+            self.height_m = self.vertical.height_m
+        elif self._z_ground_m is not None and self._odom_z_m is not None:
+            self.height_m = -(self._odom_z_m - self._z_ground_m)
+        elif self.in_air:
+            self.height_m -= float(self.v_est_h(self._control_time_s or 0.0)[2]) * dt
+        else:
+            self.height_m = 0.0
+
+    def _detect_touchdown(self, now_s: float, cmd: AttitudeCommand, vz_abs_m_s: float,
+                          ground_contact: bool = False) -> None:
+        """Low vertical speed with low thrust (or the board saying landed), or ``ground_contact`` (thrust
+        below hover without vertical acceleration, flight without odometry), held for LNDMC_TIME_S."""
+        p = self.params
+        board_landed = (self.board_link_ok and self.board_status is not None
+                        and self.board_status.flight_state == BoardFlightState.LANDED)
+        low_thrust = cmd.thrust_fraction < p["LNDMC_THR_MAX"] * self.tracker.hover_thrust_fraction
+        if ground_contact or (vz_abs_m_s < p["LNDMC_Z_VEL_MAX"] and (low_thrust or board_landed)):
+            if self._touchdown_since_s is None:
+                self._touchdown_since_s = now_s
+            elif now_s - self._touchdown_since_s >= p["LNDMC_TIME_S"]:
+                self.in_air = False
+                self._disarm(now_s, "Landed, disarming")
+        else:
+            self._touchdown_since_s = None

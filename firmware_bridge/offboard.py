@@ -1,0 +1,209 @@
+"""Offboard service: setpoint and odometry ingestion, and the velocity estimate in H (pure; time as argument).
+
+Velocity setpoints (SET_POSITION_TARGET_LOCAL_NED, type_mask 1479 velocity + yaw rate, 3527 velocity only,
+2503 velocity + yaw): in MAV_FRAME_BODY_NED, BODY_OFFSET_NED and BODY_FRD the velocity is taken in the
+yaw-aligned body frame H (rotated by yaw only), which is what PX4's mavlink receiver and ArduCopter's GUIDED
+mode do with these frames; in MAV_FRAME_LOCAL_NED / LOCAL_OFFSET_NED it is in the odometry's local NED frame
+and rotated into H with the yaw estimate. A setpoint with any used field non-finite is refused and counted
+(issue 16), so no NaN reaches the control step. ODOMETRY gives the velocity in H; the IMU propagates it
+between odometry messages (``a_h = R_hq f_q + g e3``, at most :data:`IMU_PREDICTION_HORIZON_S`).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from typing import Any
+
+import numpy as np
+
+from firmware_bridge.modes import FlightMode, TakeoffPhase
+from firmware_bridge.state import AttitudeSetpoint, Outbound, VelocitySetpoint
+from firmware_bridge.telemetry import TelemetryService
+from quadlink.frames import GRAVITY_M_S2, R_from_quat_wxyz, R_hq, Rz, euler_from_R, wrap_pi
+from quadlink.mavlink import mavlink
+
+log = logging.getLogger("firmware_bridge.autopilot")
+
+# SET_POSITION_TARGET_LOCAL_NED type_mask bits (POSITION_TARGET_TYPEMASK)
+TM_POSITION = (mavlink.POSITION_TARGET_TYPEMASK_X_IGNORE | mavlink.POSITION_TARGET_TYPEMASK_Y_IGNORE
+               | mavlink.POSITION_TARGET_TYPEMASK_Z_IGNORE)
+TM_VELOCITY = (mavlink.POSITION_TARGET_TYPEMASK_VX_IGNORE | mavlink.POSITION_TARGET_TYPEMASK_VY_IGNORE
+               | mavlink.POSITION_TARGET_TYPEMASK_VZ_IGNORE)
+TM_ACCEL = (mavlink.POSITION_TARGET_TYPEMASK_AX_IGNORE | mavlink.POSITION_TARGET_TYPEMASK_AY_IGNORE
+            | mavlink.POSITION_TARGET_TYPEMASK_AZ_IGNORE)
+TM_FORCE = mavlink.POSITION_TARGET_TYPEMASK_FORCE_SET
+TM_YAW = mavlink.POSITION_TARGET_TYPEMASK_YAW_IGNORE
+TM_YAW_RATE = mavlink.POSITION_TARGET_TYPEMASK_YAW_RATE_IGNORE
+BODY_FRAMES = (mavlink.MAV_FRAME_BODY_NED, mavlink.MAV_FRAME_BODY_OFFSET_NED, mavlink.MAV_FRAME_BODY_FRD)
+LOCAL_FRAMES = (mavlink.MAV_FRAME_LOCAL_NED, mavlink.MAV_FRAME_LOCAL_OFFSET_NED, mavlink.MAV_FRAME_LOCAL_FRD)
+ODOM_WORLD_FRAMES = (mavlink.MAV_FRAME_LOCAL_NED, mavlink.MAV_FRAME_LOCAL_FRD)
+ODOM_BODY_FRAMES = (mavlink.MAV_FRAME_BODY_FRD, mavlink.MAV_FRAME_BODY_NED)
+
+# SET_ATTITUDE_TARGET type_mask bits (ATTITUDE_TARGET_TYPEMASK)
+ATM_YAW_RATE = mavlink.ATTITUDE_TARGET_TYPEMASK_BODY_YAW_RATE_IGNORE
+ATM_THRUST = mavlink.ATTITUDE_TARGET_TYPEMASK_THROTTLE_IGNORE
+ATM_ATTITUDE = mavlink.ATTITUDE_TARGET_TYPEMASK_ATTITUDE_IGNORE
+
+IMU_PREDICTION_HORIZON_S = 0.3
+ODOM_LOST_VZ_LEAK_TAU_S = 3.0
+IMU_DT_MAX_S = 0.1  # a longer gap (or a step back) restarts the integration at the nominal sample period
+QUAT_NORM_TOLERANCE = 0.1
+YAW_TRACK_GAIN_1_S = 2.0  # an absolute yaw target is tracked through the yaw-rate command
+
+
+class OffboardService(TelemetryService):
+    """Setpoint, odometry and IMU ingestion over the shared :class:`~firmware_bridge.state.BridgeState`."""
+
+    def on_imu(self, now_s: float, time_usec: int, accel_q_m_s2: np.ndarray,
+               gyro_q_rad_s: np.ndarray) -> list[Outbound]:
+        """One IMU sample (SI, body FRD) at board time ``time_usec``; returns its telemetry."""
+        dt = 0.0 if self.imu_time_s is None else now_s - self.imu_time_s
+        if self.imu_time_s is None or dt < 0 or dt > IMU_DT_MAX_S:
+            dt = 1.0 / self.vehicle.imu.rate_hz
+        self.imu_time_s = now_s
+        self.last_imu_time_usec = int(time_usec)
+        self.imu_samples += 1
+        self._last_accel_q = np.asarray(accel_q_m_s2, dtype=float)
+        self._last_gyro_q = np.asarray(gyro_q_rad_s, dtype=float)
+        est = self.filter.update(now_s, self._last_gyro_q, self._last_accel_q)
+        # acceleration in H from the specific force: a_h = R_hq f_q + g e3
+        a_h = R_hq(est.roll_rad, est.pitch_rad) @ self._last_accel_q + np.array([0.0, 0.0, GRAVITY_M_S2])
+        if self.in_air:
+            self._dv_h_imu += a_h * dt
+            self._vz_dead_reckoned += a_h[2] * dt - self._vz_dead_reckoned * dt / ODOM_LOST_VZ_LEAK_TAU_S
+        board = self.last_board_command
+        self.vertical.update(dt, float(a_h[2]), board.thrust if board.armed else 0.0, on_ground=not self.in_air)
+        return self._imu_telemetry(now_s, int(time_usec), est)
+
+    def v_est_h(self, now_s: float) -> np.ndarray:
+        """Velocity in H: last odometry plus the IMU-integrated change since (short horizon)."""
+        if self.odom_time_s is not None and now_s - self.odom_time_s <= IMU_PREDICTION_HORIZON_S:
+            return self._v_h_odom + self._dv_h_imu
+        return self._v_h_odom.copy()
+
+    def _velocity_reference(self, sp: VelocitySetpoint, yaw_rad: float) -> tuple[np.ndarray, float]:
+        if sp.v_h is not None:
+            v_ref = np.array(sp.v_h)
+        else:
+            assert sp.v_ned is not None
+            v_ref = Rz(-yaw_rad) @ np.array(sp.v_ned)  # local NED -> H: rotate by -yaw about z
+        if sp.yaw_rate_rad_s is not None:
+            yaw_rate = sp.yaw_rate_rad_s
+        elif sp.yaw_rad is not None:
+            yaw_rate = YAW_TRACK_GAIN_1_S * wrap_pi(sp.yaw_rad - yaw_rad)  # yaw tracked through the yaw-rate command
+        else:
+            yaw_rate = 0.0
+        return v_ref, yaw_rate
+
+    def _on_set_position_target_local_ned(self, now_s: float, msg: Any, link: int) -> list[Outbound]:
+        if not self._for_us(msg):
+            return []
+        tm = msg.type_mask
+        velocity = (msg.vx, msg.vy, msg.vz)
+        frame = msg.coordinate_frame
+        usable = (tm & TM_POSITION) == TM_POSITION and (tm & TM_ACCEL) == TM_ACCEL and not tm & TM_FORCE \
+            and not tm & TM_VELOCITY
+        if not usable or frame not in BODY_FRAMES + LOCAL_FRAMES:
+            self._reject_setpoint(f"Setpoint rejected: mask {tm} frame {frame} (velocity only)")
+            return []
+        yaw_rate = None if tm & TM_YAW_RATE else float(msg.yaw_rate)
+        yaw = None if tm & TM_YAW or yaw_rate is not None else float(msg.yaw)
+        used = [float(v) for v in velocity] + [x for x in (yaw_rate, yaw) if x is not None]
+        if not all(math.isfinite(x) for x in used):
+            self._reject_setpoint("Setpoint rejected: non-finite field")  # issue 16: never a NaN to the board
+            return []
+        v = (float(velocity[0]), float(velocity[1]), float(velocity[2]))
+        self._vel_sp = VelocitySetpoint(v if frame in BODY_FRAMES else None,
+                                         v if frame in LOCAL_FRAMES else None, yaw_rate, yaw)
+        self._att_sp = None
+        self.setpoint_time_s = now_s
+        if self.mode == FlightMode.OFFBOARD and self.armed_cmd and not self.in_air and v[2] < -0.1:
+            self.in_air = True  # a climb command from the ground takes off
+            self._z_ground_m = self._odom_z_m
+        return []
+
+    def _on_set_attitude_target(self, now_s: float, msg: Any, link: int) -> list[Outbound]:
+        if not self._for_us(msg):
+            return []
+        tm = msg.type_mask
+        q = np.asarray(msg.q, dtype=float)
+        if tm & ATM_ATTITUDE:
+            roll = pitch = 0.0
+            yaw = None
+        else:
+            if not np.all(np.isfinite(q)) or abs(np.linalg.norm(q) - 1.0) > QUAT_NORM_TOLERANCE:
+                self._reject_setpoint("Attitude setpoint rejected: quaternion")
+                return []
+            roll, pitch, yaw_q = euler_from_R(R_from_quat_wxyz(q / np.linalg.norm(q)))
+            yaw = yaw_q
+        yaw_rate = None if tm & ATM_YAW_RATE else float(msg.body_yaw_rate)
+        if yaw_rate is not None:
+            yaw = None
+        thrust = None if tm & ATM_THRUST else float(msg.thrust)
+        if not all(math.isfinite(x) for x in (yaw_rate, thrust) if x is not None):
+            self._reject_setpoint("Attitude setpoint rejected: non-finite field")  # min(max(NaN)) passes NaN
+            return []
+        self._att_sp = AttitudeSetpoint(float(roll), float(pitch), yaw_rate, yaw, thrust)
+        self._vel_sp = None
+        self.setpoint_time_s = now_s
+        if self.mode == FlightMode.OFFBOARD and self.armed_cmd and not self.in_air and thrust is not None \
+                and thrust > 0.5 * self.tracker.hover_thrust_fraction:
+            self.in_air = True
+        return []
+
+    def _on_odometry(self, now_s: float, msg: Any, link: int) -> list[Outbound]:
+        q = np.asarray(msg.q, dtype=float)
+        v = np.array([msg.vx, msg.vy, msg.vz], dtype=float)
+        if not np.all(np.isfinite(v)) or msg.frame_id not in ODOM_WORLD_FRAMES or \
+                msg.child_frame_id not in ODOM_BODY_FRAMES + ODOM_WORLD_FRAMES:
+            self.counters["odometry_rejected"] += 1
+            if self.counters["odometry_rejected"] in (1, 10, 100, 1000):
+                self._event(mavlink.MAV_SEVERITY_WARNING,
+                            f"Odometry rejected: frames {msg.frame_id}/{msg.child_frame_id}")
+            return []
+        if getattr(msg, "quality", 0) < self.params["BRG_ODOM_QMIN"]:
+            # the companion's "failed" (0; MAVLink's -1): not a velocity source, it simply does not refresh
+            self.counters["odometry_low_quality"] += 1
+            return []
+        est = self.filter.estimate
+        roll, pitch, yaw = est.roll_rad, est.pitch_rad, est.yaw_rad
+        if np.all(np.isfinite(q)) and abs(np.linalg.norm(q) - 1.0) < QUAT_NORM_TOLERANCE:
+            roll, pitch, yaw = euler_from_R(R_from_quat_wxyz(q / np.linalg.norm(q)))
+            self.filter.set_yaw(yaw)  # anchor the heading to the companion's local frame
+        if msg.child_frame_id in ODOM_BODY_FRAMES:
+            v_h = R_hq(roll, pitch) @ v  # body FRD -> H (paper 000: H is yaw-aligned, level)
+        else:
+            v_h = Rz(-yaw) @ v  # local NED -> H
+        self._v_h_odom = v_h
+        self._dv_h_imu[:] = 0.0
+        self._vz_dead_reckoned = float(v_h[2])
+        z = float(msg.z) if math.isfinite(msg.z) else None
+        reset = self._odom_reset_counter is not None and msg.reset_counter != self._odom_reset_counter
+        self._odom_reset_counter = int(msg.reset_counter)
+        if self.in_air and z is not None and (self.blind or reset or self._z_ground_m is None):
+            # the odometry's frame began (or was reset) in the air: anchor it so the height stays continuous
+            self._z_ground_m = z + self.height_m
+        self._odom_z_m = z
+        self.odom_time_s = now_s
+        if not self.odom_ok:
+            self.odom_ok = True
+            self._odometry_ok_event()
+        if self.blind and self.in_air:
+            self.blind = False
+            if self.mode == FlightMode.TAKEOFF:
+                self.takeoff_phase = TakeoffPhase.CLOSED_LOOP
+            self._event(mavlink.MAV_SEVERITY_INFO, f"Odometry at {self.height_m:.2f} m: closed loop")
+        return []
+
+    def _odometry_ok_event(self) -> None:
+        if self.in_air:
+            self._event(mavlink.MAV_SEVERITY_INFO, "Odometry ok")
+        else:  # on the ground odometry comes and goes (the camera sees the floor too close): the health bit says it
+            log.info("odometry ok")
+
+    def _reject_setpoint(self, text: str) -> None:
+        """Count a refused setpoint; STATUSTEXT on the 1st, 10th, 100th, 1000th."""
+        self.counters["setpoint_rejected"] += 1
+        if self.counters["setpoint_rejected"] in (1, 10, 100, 1000):
+            self._event(mavlink.MAV_SEVERITY_WARNING, text)

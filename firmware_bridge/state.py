@@ -1,0 +1,207 @@
+"""The bridge's one state machine: its state and the few helpers every service shares.
+
+:class:`BridgeState` holds everything the autopilot knows (board, IMU, odometry, setpoints, mode, arming,
+take-off, counters). The services are mixins over it, one module each, none with sockets, threads or a
+wall clock (time is always ``now_s``): :mod:`~firmware_bridge.commander` (arming, commands, mode requests,
+failsafes), :mod:`~firmware_bridge.flight_control` (the 100 Hz closed loop, blind take-off, heading hold),
+:mod:`~firmware_bridge.offboard` (setpoints and odometry -> H), :mod:`~firmware_bridge.telemetry`
+(heartbeat, SYS_STATUS, streams); :class:`firmware_bridge.autopilot.Autopilot` composes them with the
+shared parameter service.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any, Protocol
+
+import numpy as np
+
+from firmware_bridge.attitude_filter import BridgeAttitude
+from firmware_bridge.modes import FlightMode, TakeoffPhase
+from firmware_bridge.params import ParamTable
+from firmware_bridge.streams import StreamScheduler
+from firmware_bridge.velocity_tracker import AttitudeCommand, VelocityTracker
+from firmware_bridge.vertical_estimator import VerticalEstimator
+from quadlink.frames import GRAVITY_M_S2
+from quadlink.mavlink import mavlink
+from quadlink.vehicle import VehicleConfig
+
+log = logging.getLogger("firmware_bridge.autopilot")
+
+MALFORMED_LOG_INTERVAL_S = 5.0  # bad input is counted always, logged at most this often
+
+
+class BoardStatusLike(Protocol):
+    """What the autopilot reads of ``quadlink.mk.messages.BoardStatus`` (kept free of the MK codec)."""
+
+    @property
+    def armed(self) -> bool: ...
+    @property
+    def flight_state(self) -> int: ...
+    @property
+    def failsafe(self) -> bool: ...
+    @property
+    def battery_mv(self) -> int: ...
+    @property
+    def error_flags(self) -> int: ...
+    @property
+    def imu_sample_count(self) -> int: ...
+
+
+class NonFiniteCommand(ValueError):
+    """A board command with a NaN or infinite field: a bug upstream, never sent to the board."""
+
+
+@dataclass(frozen=True)
+class BoardCommand:
+    """What the board gets at 100 Hz (the daemon packs it into an MK ``AttitudeSetpoint``).
+
+    Every field is finite: the constructor refuses NaN/inf (issue 16: no NaN ever reaches the board).
+    """
+
+    roll_rad: float
+    pitch_rad: float
+    yaw_rate_rad_s: float
+    thrust: float  # fraction 0..1 of the max total thrust
+    armed: bool
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.roll_rad) and math.isfinite(self.pitch_rad)
+                and math.isfinite(self.yaw_rate_rad_s) and math.isfinite(self.thrust)):
+            raise NonFiniteCommand(f"non-finite board command {self}")
+
+
+@dataclass(frozen=True)
+class Outbound:
+    """A MAVLink message to send: to every endpoint (``link`` None) or back to one."""
+
+    msg: Any
+    link: int | None = None
+
+
+@dataclass(frozen=True)
+class VelocitySetpoint:
+    """An accepted SET_POSITION_TARGET_LOCAL_NED (all present fields finite)."""
+
+    v_h: tuple[float, float, float] | None  # already in H, or None when in local NED
+    v_ned: tuple[float, float, float] | None
+    yaw_rate_rad_s: float | None
+    yaw_rad: float | None
+
+
+@dataclass(frozen=True)
+class AttitudeSetpoint:
+    """An accepted SET_ATTITUDE_TARGET (all present fields finite)."""
+
+    roll_rad: float
+    pitch_rad: float
+    yaw_rate_rad_s: float | None
+    yaw_rad: float | None
+    thrust: float | None
+
+
+class BridgeState:
+    """The autopilot's state (see the module docstring); services add behaviour, never state of their own."""
+
+    def __init__(self, vehicle: VehicleConfig, params: ParamTable, sysid: int = 1, compid: int = 1,
+                 unix_clock: Callable[[], float] | None = None) -> None:
+        self.vehicle = vehicle
+        self.params = params
+        self.sysid, self.compid = sysid, compid
+        self._unix_clock = unix_clock  # injected (time.time in the daemon); SYSTEM_TIME only
+        self.mav = mavlink.MAVLink(None, sysid, compid)  # encoder only, no file
+        self.tracker = VelocityTracker(vehicle.mass_kg, vehicle.max_total_thrust_n, params.tracker_gains())
+        self.filter = BridgeAttitude(tau_s=params["BRG_ATT_TAU"])
+        self.mode = FlightMode.POSCTL
+        self.armed_cmd = False
+        self.in_air = False
+        self.failsafe_reason: str | None = None
+        self.events: list[tuple[int, str]] = []  # (MAV_SEVERITY, text), flushed by tick()/control_step()
+        # board
+        self.board_status: BoardStatusLike | None = None
+        self.board_status_time_s: float | None = None
+        self.board_version: str | None = None
+        self.board_version_int = 0
+        self.board_link_ok = False
+        self._board_failsafe_reported = False
+        self._arm_mismatch_since_s: float | None = None
+        # IMU
+        self.imu_time_s: float | None = None
+        self.last_imu_time_usec = 0
+        self.imu_samples = 0
+        self._last_accel_q = np.array([0.0, 0.0, -GRAVITY_M_S2])
+        self._last_gyro_q = np.zeros(3)
+        # odometry
+        self.odom_time_s: float | None = None
+        self._v_h_odom = np.zeros(3)
+        self._dv_h_imu = np.zeros(3)
+        self._odom_z_m: float | None = None
+        self.odom_ok = False
+        self._vz_dead_reckoned = 0.0
+        self._odom_reset_counter: int | None = None
+        # flight without odometry (take-off phase 1 and the landing after it): accelerometer-only vertical
+        self.vertical = VerticalEstimator(vehicle.hover_thrust_fraction, params["MPC_Z_VEL_MAX_UP"],
+                                          params["MPC_Z_VEL_MAX_DN"])
+        self.blind = False  # in the air and no odometry acquired yet in this flight
+        self.takeoff_phase: TakeoffPhase | None = None
+        self._takeoff_start_s: float | None = None
+        self._hover_thrust_learned: float | None = None
+        self._blind_descent: tuple[float, float] | None = None  # (start time, estimated height then)
+        # setpoints
+        self.setpoint_time_s: float | None = None
+        self._vel_sp: VelocitySetpoint | None = None
+        self._att_sp: AttitudeSetpoint | None = None
+        # takeoff / landing
+        self.height_m = 0.0  # above the take-off point, integrated or from odometry z
+        self._z_ground_m: float | None = None
+        self.takeoff_target_m = params["MIS_TAKEOFF_ALT"]
+        self._touchdown_since_s: float | None = None
+        self._fs_hover_until_s: float | None = None
+        self._on_ground_armed_since_s: float | None = None
+        self.last_command: AttitudeCommand | None = None
+        self.last_board_command = BoardCommand(0.0, 0.0, 0.0, 0.0, False)
+        self._control_time_s: float | None = None
+        self._yaw_sp_rad: float | None = None
+        # streams and counters
+        self.streams = StreamScheduler()
+        self.stream_interval_s = self.streams.interval_s  # the same dict: the scheduler's table
+        self.counters: dict[str, int] = {"mavlink_bad": 0, "mk_bad": 0, "setpoint_rejected": 0,
+                                         "odometry_rejected": 0, "odometry_low_quality": 0, "commands": 0,
+                                         "unsupported_commands": 0, "commands_refused": 0,
+                                         "handler_errors": 0, "param_refused": 0}
+        self._last_counter_report_s = -math.inf
+
+    def _event(self, severity: int, text: str) -> None:
+        log.log(logging.WARNING if severity <= mavlink.MAV_SEVERITY_WARNING else logging.INFO, "%s", text)
+        self.events.append((severity, text[:50]))
+
+    def _flush_events(self) -> list[Outbound]:
+        out = [Outbound(self.mav.statustext_encode(sev, text.encode("ascii", "replace"))) for sev, text in self.events]
+        self.events.clear()
+        return out
+
+    def _fresh(self, stamp_s: float | None, now_s: float, timeout_s: float) -> bool:
+        return stamp_s is not None and now_s - stamp_s <= timeout_s
+
+    @property
+    def armed(self) -> bool:
+        """Armed as reported on MAVLink: the board's word when it talks, else our request."""
+        if self.board_link_ok and self.board_status is not None:
+            return bool(self.board_status.armed)
+        return self.armed_cmd
+
+    def note_malformed(self, kind: str, now_s: float, detail: str = "") -> None:
+        """Count bad input (``mavlink_bad`` or ``mk_bad``); log at most once every 5 s."""
+        self.counters[kind] = self.counters.get(kind, 0) + 1
+        if now_s - self._last_counter_report_s >= MALFORMED_LOG_INTERVAL_S:
+            self._last_counter_report_s = now_s
+            log.warning("malformed input: %s %s (counts: mavlink %d, mk %d)", kind, detail,
+                        self.counters["mavlink_bad"], self.counters["mk_bad"])
+
+    def _for_us(self, msg: Any) -> bool:
+        ts = getattr(msg, "target_system", 0)
+        tc = getattr(msg, "target_component", 0)
+        return ts in (0, self.sysid) and tc in (0, self.compid)
