@@ -1,28 +1,38 @@
-"""``quadlink vo-eval PATH``: run an RGB-D odometry on a TUM-format sequence and print RPE/ATE.
+"""``quadlink vo-eval PATH [PATH ...]``: run an RGB-D odometry on TUM-format sequences and print TUM's metrics.
 
-Metrics as the TUM RGB-D benchmark tools define them (see :mod:`perception.metrics`): RPE between
-consecutive frames, per second (translational m/s, rotational deg/s; RMSE and median), ATE RMSE after
-Horn alignment. Needs ``groundtruth.txt`` in the folder for the metrics; without it only the trajectory
-and timing are produced.
+Each sequence's colour and depth frames are associated by nearest stamp (TUM's ``associate.py`` rule, at most
+20 ms apart; the colour stamp is the frame's), the odometry runs on every frame, and the 100 Hz ground truth
+(``groundtruth.txt``) is interpolated at the colour stamps (frames in a motion-capture gap longer than
+20 ms are left out of the metrics). Metrics (:mod:`perception.metrics`, checked against ``evo`` in the tests):
+RPE over 1 s windows (translation m, rotation deg; RMSE over all pairs 1 s apart), ATE RMSE after Horn
+alignment (rigid, no scale), per-frame RPE (consecutive frames; RMSE), and the wall and CPU time per frame.
+Without ``groundtruth.txt`` only the trajectory and timing are produced.
 """
 
 from __future__ import annotations
 
 import logging
+import math
 import os
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import click
 import cv2
 import numpy as np
+from numpy.typing import NDArray
 
 from perception import metrics
 from perception.odometry import OdometryResult, RgbdOdometry
+from quadlink.camera import RgbdFrame
 from quadlink.datasets.tum import TumSequence, read_tum_trajectory, write_tum_trajectory
 from quadlink.errors import QuadlinkError
 
 log = logging.getLogger(__name__)
+
+METHODS = ("ours", "opencv", "open3d")
+GT_MAX_GAP_S = 0.02   # ground-truth samples around a frame at most this far apart (TUM: twice the 100 Hz interval)
 
 
 def make_odometry(method: str):  # type: ignore[no-untyped-def]
@@ -35,74 +45,134 @@ def make_odometry(method: str):  # type: ignore[no-untyped-def]
         return baselines.Open3dOdometry()
     if method == "opencv":
         return baselines.OpenCvOdometry()
-    raise QuadlinkError(f"unknown odometry method {method!r} (ours, open3d, opencv)")
+    raise QuadlinkError(f"unknown odometry method {method!r} ({', '.join(METHODS)})")
+
+
+@dataclass(frozen=True)
+class SequenceRun:
+    """One method's trajectory on one sequence, with its per-frame cost (the first frame excluded)."""
+
+    name: str
+    method: str
+    stamps_s: NDArray[np.float64]     # colour stamps
+    T_c0_ck: NDArray[np.float64]      # (N, 4, 4)
+    failures: int
+    wall_ms: NDArray[np.float64]
+    cpu_ms: NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class SequenceMetrics:
+    """TUM's metrics of a run against its ground truth interpolated at the colour stamps."""
+
+    frames_evaluated: int
+    rpe_1s: metrics.WindowRpeResult
+    rpe_frame: metrics.WindowRpeResult
+    ate: metrics.AteResult
+
+
+def run_sequence(frames: list[RgbdFrame], method: str, name: str = "") -> SequenceRun:
+    """Run ``method`` on the frames (already loaded, so reading files is not timed)."""
+    odometry = make_odometry(method)
+    stamps, poses, wall, cpu = [], [], [], []
+    failures = 0
+    for frame in frames:
+        if frame.depth_m is None:
+            raise QuadlinkError(f"{name}: frame {frame.seq} has no depth")
+        t0, c0 = time.perf_counter(), time.process_time()
+        result: OdometryResult = odometry.process(frame.stamp_s, frame.rgb, frame.depth_m, frame.intrinsics)
+        wall.append(time.perf_counter() - t0)
+        cpu.append(time.process_time() - c0)
+        failures += 0 if result.ok else 1
+        stamps.append(frame.stamp_s)
+        poses.append(result.T_c0_ck)
+    return SequenceRun(name, method, np.asarray(stamps), np.asarray(poses), failures,
+                       np.asarray(wall[1:] or wall) * 1e3, np.asarray(cpu[1:] or cpu) * 1e3)
+
+
+def ground_truth_at(folder: Path, stamps_s: NDArray[np.float64], max_gap_s: float = GT_MAX_GAP_S
+                    ) -> tuple[NDArray[np.bool_], NDArray[np.float64]] | None:
+    """(mask of the stamps with ground truth, its poses there), or None without ``groundtruth.txt``."""
+    gt_file = folder / "groundtruth.txt"
+    if not gt_file.is_file():
+        return None
+    gs, gp = read_tum_trajectory(gt_file)
+    return metrics.interpolate_poses(gs, gp, stamps_s, max_gap_s)
+
+
+def evaluate(run: SequenceRun, ok: NDArray[np.bool_], gt: NDArray[np.float64]) -> SequenceMetrics:
+    """Metrics on the frames with ground truth (``ok``); pairs are chosen by time among them."""
+    st, est = run.stamps_s[ok], run.T_c0_ck[ok]
+    if len(st) < 3:
+        raise QuadlinkError(f"{run.name}: fewer than three frames have ground truth")
+    frame_dt = float(np.median(np.diff(run.stamps_s)))
+    return SequenceMetrics(len(st), metrics.rpe_window(st, est, gt, 1.0),
+                           metrics.rpe_window(st, est, gt, frame_dt), metrics.ate(est, gt))
+
+
+def load_frames(path: Path, overrides: dict[str, float | None], max_frames: int | None) -> list[RgbdFrame]:
+    source = TumSequence(path, overrides, max_frames=max_frames)
+    p = source.params
+    log.info("sequence %s: %d frames, fx %.1f fy %.1f cx %.1f cy %.1f, depth scale %.0f/m",
+             path, len(source), p.fx, p.fy, p.cx, p.cy, p.depth_scale)
+    return list(source.frames())
+
+
+def _fmt(x: float, spec: str) -> str:
+    return "-" if not math.isfinite(x) else format(x, spec)
+
+
+HEADER = (f"{'sequence':20s} {'method':7s} {'frames':>8s} {'RPE1s m':>8s} {'RPE1s deg':>9s} {'pairs':>5s} "
+          f"{'ATE m':>7s} {'RPEfr mm':>8s} {'RPEfr deg':>9s} {'ms/fr':>6s} {'CPU ms':>6s} {'fails':>5s}")
+
+
+def table_row(run: SequenceRun, m: SequenceMetrics | None) -> str:
+    n = f"{m.frames_evaluated if m else 0}/{len(run.stamps_s)}"
+    nan = math.nan
+    r1, rf, a = (m.rpe_1s, m.rpe_frame, m.ate) if m else (None, None, None)
+    return (f"{run.name[:20]:20s} {run.method:7s} {n:>8s} {_fmt(r1.trans_rmse_m if r1 else nan, '8.4f')} "
+            f"{_fmt(r1.rot_rmse_deg if r1 else nan, '9.3f')} {r1.pairs if r1 else 0:5d} "
+            f"{_fmt(a.rmse_m if a else nan, '7.4f')} {_fmt(rf.trans_rmse_m * 1e3 if rf else nan, '8.2f')} "
+            f"{_fmt(rf.rot_rmse_deg if rf else nan, '9.3f')} {float(np.median(run.wall_ms)):6.1f} "
+            f"{float(np.median(run.cpu_ms)):6.1f} {run.failures:5d}")
 
 
 @click.command(help=__doc__)
-@click.argument("path", type=click.Path(path_type=Path))
-@click.option("--out", type=click.Path(path_type=Path), default=None, help="write the trajectory (TUM format)")
+@click.argument("paths", nargs=-1, required=True, type=click.Path(path_type=Path))
+@click.option("--out", type=click.Path(path_type=Path), default=None,
+              help="write the trajectory (TUM format): a file for one sequence and method, else a directory "
+                   "(SEQUENCE_METHOD.txt)")
 @click.option("--fx", type=float, default=None, help="override focal length x (px)")
 @click.option("--fy", type=float, default=None, help="override focal length y (px)")
 @click.option("--cx", type=float, default=None, help="override principal point x (px)")
 @click.option("--cy", type=float, default=None, help="override principal point y (px)")
 @click.option("--depth-scale", type=float, default=None, help="override depth units per metre (TUM: 5000)")
-@click.option("--method", type=click.Choice(["ours", "open3d", "opencv"]), default="ours", show_default=True)
+@click.option("--method", "methods", type=click.Choice(METHODS), multiple=True, default=("ours",),
+              show_default=True, help="odometry method (repeat for several)")
 @click.option("--max-frames", type=int, default=None, help="use only the first N frames")
 @click.option("--threads", type=int, default=1, show_default=True, help="OpenCV threads (timing is per thread)")
-def command(path: Path, out: Path | None, fx: float | None, fy: float | None, cx: float | None, cy: float | None,
-            depth_scale: float | None, method: str, max_frames: int | None, threads: int) -> None:
+def command(paths: tuple[Path, ...], out: Path | None, fx: float | None, fy: float | None, cx: float | None,
+            cy: float | None, depth_scale: float | None, methods: tuple[str, ...], max_frames: int | None,
+            threads: int) -> None:
     cv2.setNumThreads(threads)
     os.environ.setdefault("OMP_NUM_THREADS", str(threads))
-    source = TumSequence(path, {"fx": fx, "fy": fy, "cx": cx, "cy": cy, "depth_scale": depth_scale},
-                             max_frames=max_frames)
-    p = source.params
-    log.info("sequence %s: %d frames, fx %.1f fy %.1f cx %.1f cy %.1f, depth scale %.0f/m, method %s",
-             path, len(source), p.fx, p.fy, p.cx, p.cy, p.depth_scale, method)
-    odometry = make_odometry(method)
-    stamps: list[float] = []
-    poses: list[np.ndarray] = []
-    times_s: list[float] = []
-    cpu_s: list[float] = []
-    failures = 0
-    size = (0, 0)
-    width = getattr(getattr(odometry, "config", None), "working_width_px", None) or getattr(
-        odometry, "working_width_px", 0)
-    for frame in source.frames():
-        if frame.depth_m is None:
-            raise QuadlinkError(f"{path}: frame {frame.seq} has no depth")
-        t0, c0 = time.perf_counter(), time.process_time()
-        result: OdometryResult = odometry.process(frame.stamp_s, frame.rgb, frame.depth_m, frame.intrinsics)
-        times_s.append(time.perf_counter() - t0)
-        cpu_s.append(time.process_time() - c0)
-        failures += 0 if result.ok else 1
-        stamps.append(frame.stamp_s)
-        size = (frame.rgb.shape[1], frame.rgb.shape[0])
-        poses.append(result.T_c0_ck)
-        if frame.seq % 100 == 0 and frame.seq:
-            log.info("frame %d / %d", frame.seq, len(source))
-    est = np.asarray(poses)
-    st = np.asarray(stamps)
-    click.echo(f"sequence: {path}  frames: {len(st)}  method: {method}  failed alignments: {failures}")
-    gt_file = path / "groundtruth.txt"
-    if gt_file.is_file():
-        gs, gp = read_tum_trajectory(gt_file)
-        ie, ig = metrics.associate_stamps(st, gs)
-        if len(ie) < 2:
-            raise QuadlinkError(f"{gt_file}: fewer than two ground-truth poses match the frame stamps")
-        r = metrics.rpe(st[ie], est[ie], gp[ig])
-        a = metrics.ate(est[ie], gp[ig])
-        click.echo(f"RPE (consecutive frames, {r.pairs} pairs): translational RMSE {r.trans_rmse_m_s:.4f} m/s, "
-                   f"median {r.trans_median_m_s:.4f} m/s; rotational RMSE {r.rot_rmse_deg_s:.3f} deg/s, "
-                   f"median {r.rot_median_deg_s:.3f} deg/s")
-        click.echo(f"ATE ({a.pairs} poses, Horn-aligned): RMSE {a.rmse_m:.4f} m, median {a.median_m:.4f} m, "
-                   f"max {a.max_m:.4f} m")
-    else:
-        click.echo(f"no {gt_file.name}: metrics skipped")
-    per_frame_ms = np.asarray(times_s[1:] or times_s) * 1e3
-    cpu_ms = np.asarray(cpu_s[1:] or cpu_s) * 1e3
-    click.echo(f"time per frame: median {np.median(per_frame_ms):.1f} ms, mean {np.mean(per_frame_ms):.1f} ms, "
-               f"max {np.max(per_frame_ms):.1f} ms wall; median {np.median(cpu_ms):.1f} ms CPU "
-               f"(threads: {threads}; frames {size[0]}x{size[1]}, odometry at <= {width} px wide)")
-    if out is not None:
-        write_tum_trajectory(out, st, est)
-        click.echo(f"trajectory written to {out}")
+    overrides = {"fx": fx, "fy": fy, "cx": cx, "cy": cy, "depth_scale": depth_scale}
+    several = len(paths) * len(methods) > 1
+    if out is not None and several:
+        out.mkdir(parents=True, exist_ok=True)
+    click.echo("RPE1s: RMSE over all frame pairs 1 s apart; ATE: RMSE after Horn alignment (no scale); RPEfr: "
+               f"consecutive frames; ms/fr wall and CPU ms: median per frame (threads: {threads})")
+    click.echo(HEADER)
+    for path in paths:
+        frames = load_frames(path, overrides, max_frames)
+        for method in methods:
+            run = run_sequence(frames, method, path.name)
+            gt = ground_truth_at(path, run.stamps_s)
+            m = None if gt is None else evaluate(run, *gt)
+            click.echo(table_row(run, m))
+            if gt is None:
+                click.echo(f"  no {path / 'groundtruth.txt'}: metrics skipped")
+            if out is not None:
+                target = out / f"{path.name}_{method}.txt" if several else out
+                write_tum_trajectory(target, run.stamps_s, run.T_c0_ck)
+                log.info("trajectory written to %s", target)
