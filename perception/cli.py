@@ -26,7 +26,7 @@ from numpy.typing import NDArray
 from perception import metrics
 from perception.odometry import OdometryResult, RgbdOdometry
 from quadlink.camera import RgbdFrame
-from quadlink.datasets.tum import TumSequence, read_tum_trajectory, write_tum_trajectory
+from quadlink.datasets.tum import TumSequence, read_tum_list, read_tum_trajectory, write_tum_trajectory
 from quadlink.errors import QuadlinkError
 
 log = logging.getLogger(__name__)
@@ -72,15 +72,18 @@ class SequenceMetrics:
 
 
 def run_sequence(frames: list[RgbdFrame], method: str, name: str = "") -> SequenceRun:
-    """Run ``method`` on the frames (already loaded, so reading files is not timed)."""
+    """Run ``method`` on the frames (already loaded, so reading files is not timed). Ours also gets each
+    frame's depth-minus-colour stamp offset (``meta["depth_offset_s"]``, see :func:`load_frames`)."""
     odometry = make_odometry(method)
     stamps, poses, wall, cpu = [], [], [], []
     failures = 0
     for frame in frames:
         if frame.depth_m is None:
             raise QuadlinkError(f"{name}: frame {frame.seq} has no depth")
+        extra = {"depth_offset_s": frame.meta.get("depth_offset_s", 0.0)} if method == "ours" else {}
         t0, c0 = time.perf_counter(), time.process_time()
-        result: OdometryResult = odometry.process(frame.stamp_s, frame.rgb, frame.depth_m, frame.intrinsics)
+        result: OdometryResult = odometry.process(frame.stamp_s, frame.rgb, frame.depth_m, frame.intrinsics,
+                                                  **extra)
         wall.append(time.perf_counter() - t0)
         cpu.append(time.process_time() - c0)
         failures += 0 if result.ok else 1
@@ -110,12 +113,19 @@ def evaluate(run: SequenceRun, ok: NDArray[np.bool_], gt: NDArray[np.float64]) -
                            metrics.rpe_window(st, est, gt, frame_dt), metrics.ate(est, gt))
 
 
-def load_frames(path: Path, overrides: dict[str, float | None], max_frames: int | None) -> list[RgbdFrame]:
-    source = TumSequence(path, overrides, max_frames=max_frames)
+def load_frames(path: Path, overrides: dict[str, float | None] | None = None, max_frames: int | None = None
+                ) -> list[RgbdFrame]:
+    """The associated frames of a TUM folder, each with ``meta["depth_offset_s"]``: its depth image's stamp
+    (from ``depth.txt``) minus its colour stamp (Kinect v1 takes them up to 20 ms apart)."""
+    source = TumSequence(path, overrides or {}, max_frames=max_frames)
     p = source.params
     log.info("sequence %s: %d frames, fx %.1f fy %.1f cx %.1f cy %.1f, depth scale %.0f/m",
              path, len(source), p.fx, p.fy, p.cx, p.cy, p.depth_scale)
-    return list(source.frames())
+    depth_stamp = {name: stamp for stamp, name in read_tum_list(path / "depth.txt")}
+    frames = list(source.frames())
+    for f in frames:
+        f.meta["depth_offset_s"] = depth_stamp[f.meta["depth"]] - f.stamp_s
+    return frames
 
 
 def _fmt(x: float, spec: str) -> str:

@@ -82,6 +82,7 @@ class OdometryConfig:
     keyframe_max_translation_m: float = 0.1
     keyframe_max_rotation_rad: float = 0.087         # 5 degrees
     keyframe_min_fitness: float = 0.7
+    register_depth_in_time: bool = True              # turn an unsynchronised depth image to the colour instant
 
 
 @dataclass(frozen=True)
@@ -242,10 +243,31 @@ def _compute_gradients(gray: Image, depth: Image) -> _Gradients:
     return _Gradients(gx=gx, gy=gy, zx=zx, zy=zy, select=sel)
 
 
+def rotate_depth(depth: Image, K: CameraIntrinsics, R_c_d: NDArray[np.float64]) -> Image:
+    """The depth image a camera turned by ``R_c_d`` (depth-time camera -> colour-time camera) would have seen.
+
+    A rotation moves pixels by the homography ``x_d = K R_c_d^T K^-1 x_c`` whatever their depth, and turns the
+    ray's z: ``Z_c = Z_d / (R_c_d^T K^-1 x_c)_z``. Nearest-neighbour sampling, so no depth mixes with an invalid
+    one; pixels that come from outside the image are invalid (0)."""
+    Kf = np.array([[K.fx, 0.0, K.cx], [0.0, K.fy, K.cy], [0.0, 0.0, 1.0]])
+    Kinv = np.linalg.inv(Kf)
+    M = Kf @ R_c_d.T @ Kinv
+    h, w = depth.shape
+    out = cv2.warpPerspective(depth, M, (w, h), flags=cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP,
+                              borderMode=cv2.BORDER_CONSTANT, borderValue=0.0)
+    # (R^T K^-1 x)_z = c . K^-1 x with c the third column of R_c_d: a plane in (u, v)
+    a, b, c = (R_c_d[:, 2] @ Kinv).tolist()
+    u = np.arange(w, dtype=np.float32) * np.float32(a)
+    v = np.arange(h, dtype=np.float32) * np.float32(b) + np.float32(c)
+    out /= v[:, None] + u[None, :]
+    return out
+
+
 def prepare_frame(rgb: NDArray[np.uint8], depth_m: NDArray[np.float32], K: CameraIntrinsics,
-                  config: OdometryConfig) -> PreparedFrame:
+                  config: OdometryConfig, R_c_d: NDArray[np.float64] | None = None) -> PreparedFrame:
     """Pyramids and the sampling texture of one frame (finest level first); gradients come later, and only
-    if the frame becomes a reference."""
+    if the frame becomes a reference. ``R_c_d`` (the camera's rotation from the depth image's instant to the
+    colour image's) registers an unsynchronised depth image to the colour instant (:func:`rotate_depth`)."""
     gray = _gray01(rgb)
     d = np.asarray(depth_m, dtype=np.float32)
     # NaN and inf fall outside the range too: they and out-of-range depths become 0 (invalid)
@@ -259,6 +281,8 @@ def prepare_frame(rgb: NDArray[np.uint8], depth_m: NDArray[np.float32], K: Camer
         if depth.shape[1] != size[0]:
             depth = cv2.resize(depth, size, interpolation=cv2.INTER_NEAREST)
         K = K.scaled(factor)
+    if R_c_d is not None:
+        depth = rotate_depth(depth, K, R_c_d)
     out = PreparedFrame()
     for lvl in range(config.levels):
         if lvl > 0:
@@ -432,15 +456,18 @@ class RgbdOdometry:
         return self._T_c0_ck.copy()
 
     def process(self, stamp_s: float, rgb: NDArray[np.uint8], depth_m: NDArray[np.float32], K: CameraIntrinsics,
-                R_ckm1_ck_prior: NDArray[np.float64] | None = None) -> OdometryResult:
-        """Add a frame; ``R_ckm1_ck_prior`` is the camera rotation since the last frame from the gyro.
+                R_ckm1_ck_prior: NDArray[np.float64] | None = None, depth_offset_s: float = 0.0) -> OdometryResult:
+        """Add a frame; ``R_ckm1_ck_prior`` is the camera rotation since the last frame from the gyro;
+        ``depth_offset_s`` = depth stamp - colour stamp (``stamp_s``) for sensors whose depth and colour are not
+        taken at once (Kinect v1: up to 20 ms): the depth is turned to the colour instant by the rotation rate
+        (the gyro's, else the last motion's), see :func:`rotate_depth`.
 
         If the alignment against the keyframe fails, the previous frame is tried as the reference (when it is
         not the keyframe). A failed alignment keeps the last pose (turned by the gyro's rotation, if any) and
         reports ``ok=False``; the frame becomes the keyframe. The first frame defines C0.
         """
         cfg = self.config
-        cur = prepare_frame(rgb, depth_m, K, cfg)
+        cur = prepare_frame(rgb, depth_m, K, cfg, self._depth_rotation(stamp_s, depth_offset_s, R_ckm1_ck_prior))
         if self._kf is None:
             self._set_keyframe(cur)
             self._prev = cur
@@ -484,6 +511,28 @@ class RgbdOdometry:
             self._T_c0_ck = self._T_c0_ck @ T_ckm1_ck
             self._set_keyframe(cur)
         return OdometryResult(stamp_s, self._T_c0_ck.copy(), T_ckm1_ck, pair.ok, pair.fitness)
+
+    def _depth_rotation(self, stamp_s: float, depth_offset_s: float, R_ckm1_ck_prior: NDArray[np.float64] | None
+                        ) -> NDArray[np.float64] | None:
+        """``R_c_d``: the camera's rotation over ``depth_offset_s`` at the current rotation rate (the gyro's since
+        the last frame, else the last tracked motion's: constant angular velocity over a few ms), None when
+        there is no offset, no rate or it turns the image by less than a tenth of a pixel."""
+        if depth_offset_s == 0.0 or not self.config.register_depth_in_time:
+            return None
+        if R_ckm1_ck_prior is not None and self._kf is not None:
+            w_dt, dt = so3_log(np.asarray(R_ckm1_ck_prior, dtype=float)), stamp_s - self._stamp_s
+        elif self._last_motion is not None:
+            T_last, dt = self._last_motion                  # T_ck_ckm1 of the last pair
+            w_dt = so3_log(T_last[:3, :3].T)                # rotation of T_ckm1_ck
+        else:
+            return None
+        if dt <= 0.0:
+            return None
+        w = w_dt * (depth_offset_s / dt)                    # rotation vector from colour to depth instant
+        if float(np.linalg.norm(w)) * 300.0 < 0.1:          # ~f at QVGA: under 0.1 px
+            return None
+        # R_c(t) c(t+offset) = exp(offset w^) maps depth-instant points into the colour-instant camera
+        return se3_exp(np.concatenate([np.zeros(3), w]))[:3, :3]
 
     def _set_keyframe(self, frame: PreparedFrame) -> None:
         self._kf = frame
