@@ -113,6 +113,7 @@ class OdometryResult:
 _I3 = np.eye(3)
 _MAX_DEPTH_SLOPE = float(np.tan(np.radians(75.0)))
 _INLIER_INTENSITY = 0.06   # photometric error (0..1) below which a finest-level point counts for fitness
+_MIN_DEPTH_OFFSET_S = 1e-3  # depth-colour offsets below this count as synchronised (2 rad/s: 0.5 px at QVGA)
 
 
 def se3_exp(xi: NDArray[np.float64]) -> Mat4:
@@ -179,6 +180,7 @@ class PreparedFrame:
     # robust scales (s_I^2, s_Z^2) per level of the last alignment against this frame: the next frame aligned
     # against the same reference starts from them (one fixed-point step an iteration instead of five at first)
     scales: dict[int, tuple[float, float]] = field(default_factory=dict)
+    depth_at_colour_instant: bool = True   # False: an unsynchronised depth image that could not be turned yet
 
     def reference(self, level: int, max_points: int, gradient_fraction: float, affine: bool) -> _Reference:
         key = (level, max_points, gradient_fraction, affine)
@@ -247,14 +249,19 @@ def rotate_depth(depth: Image, K: CameraIntrinsics, R_c_d: NDArray[np.float64]) 
     """The depth image a camera turned by ``R_c_d`` (depth-time camera -> colour-time camera) would have seen.
 
     A rotation moves pixels by the homography ``x_d = K R_c_d^T K^-1 x_c`` whatever their depth, and turns the
-    ray's z: ``Z_c = Z_d / (R_c_d^T K^-1 x_c)_z``. Nearest-neighbour sampling, so no depth mixes with an invalid
-    one; pixels that come from outside the image are invalid (0)."""
+    ray's z: ``Z_c = Z_d / (R_c_d^T K^-1 x_c)_z``. Bilinear samples (nearest-neighbour ones shift the depth by
+    up to half a pixel, which on slanted surfaces costs the depth term more than the registration gains), kept
+    only where all four neighbours are valid, so no depth mixes with an invalid one; pixels that come from
+    outside the image are invalid (0)."""
     Kf = np.array([[K.fx, 0.0, K.cx], [0.0, K.fy, K.cy], [0.0, 0.0, 1.0]])
     Kinv = np.linalg.inv(Kf)
     M = Kf @ R_c_d.T @ Kinv
     h, w = depth.shape
-    out = cv2.warpPerspective(depth, M, (w, h), flags=cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP,
-                              borderMode=cv2.BORDER_CONSTANT, borderValue=0.0)
+    flags = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
+    out = cv2.warpPerspective(depth, M, (w, h), flags=flags, borderMode=cv2.BORDER_CONSTANT, borderValue=0.0)
+    valid = cv2.warpPerspective((depth > 0).view(np.uint8).astype(np.float32), M, (w, h), flags=flags,
+                                borderMode=cv2.BORDER_CONSTANT, borderValue=0.0)
+    out[valid < np.float32(0.999)] = 0.0
     # (R^T K^-1 x)_z = c . K^-1 x with c the third column of R_c_d: a plane in (u, v)
     a, b, c = (R_c_d[:, 2] @ Kinv).tolist()
     u = np.arange(w, dtype=np.float32) * np.float32(a)
@@ -421,6 +428,15 @@ def _sample(tex: Image, u: NDArray[np.float32], v: NDArray[np.float32]) -> Image
     return out.reshape(rows * width, -1)[:n]
 
 
+def _turn(rate_rad_s: NDArray[np.float64], depth_offset_s: float) -> NDArray[np.float64] | None:
+    """``R_c_d`` of :func:`rotate_depth`: R_c(t) c(t + offset) = exp(offset w^) maps depth-instant points into the
+    colour-instant camera; None when it moves the image by less than a tenth of a pixel."""
+    w = rate_rad_s * depth_offset_s
+    if float(np.linalg.norm(w)) * 300.0 < 0.1:          # ~f at QVGA: under 0.1 px
+        return None
+    return se3_exp(np.concatenate([np.zeros(3), w]))[:3, :3]
+
+
 class RgbdOdometry:
     """Keyframe-based direct RGB-D odometry producing the chained camera pose ``T_c0_ck``.
 
@@ -467,13 +483,20 @@ class RgbdOdometry:
         reports ``ok=False``; the frame becomes the keyframe. The first frame defines C0.
         """
         cfg = self.config
-        cur = prepare_frame(rgb, depth_m, K, cfg, self._depth_rotation(stamp_s, depth_offset_s, R_ckm1_ck_prior))
+        # an unsynchronised depth image is turned to the colour instant once the rotation rate is known; a frame
+        # and its reference must agree (both turned, or both not: then both terms measure the motion between
+        # the same instants), so while the keyframe could not be turned the frame is not turned either
+        register = abs(depth_offset_s) >= _MIN_DEPTH_OFFSET_S and cfg.register_depth_in_time
+        dt_s = stamp_s - self._stamp_s
+        rate = self._rotation_rate(dt_s, R_ckm1_ck_prior) if register else None
+        turn = register and rate is not None and (self._kf is None or self._kf.depth_at_colour_instant)
+        cur = prepare_frame(rgb, depth_m, K, cfg, _turn(rate, depth_offset_s) if turn and rate is not None else None)
+        cur.depth_at_colour_instant = turn or not register
         if self._kf is None:
             self._set_keyframe(cur)
             self._prev = cur
             self._stamp_s = stamp_s
             return OdometryResult(stamp_s, self._T_c0_ck.copy(), np.eye(4), True, 1.0)
-        dt_s = stamp_s - self._stamp_s
         T_pred = self._predict(dt_s)                  # T_ck_ckm1 guess
         T_ckm1_kf = inv_T(self._T_kf_ckm1)
         R_kf_ck_prior = None if R_ckm1_ck_prior is None else self._T_kf_ckm1[:3, :3] @ R_ckm1_ck_prior
@@ -510,29 +533,26 @@ class RgbdOdometry:
         else:   # the keyframe failed: this frame, whatever its own pose's quality, becomes the next one
             self._T_c0_ck = self._T_c0_ck @ T_ckm1_ck
             self._set_keyframe(cur)
+        if register and not cur.depth_at_colour_instant and self._last_motion is not None:
+            # the rate is known now (at the start, after a failure): this frame, turned, becomes the keyframe
+            rate = self._rotation_rate(0.0, None)
+            if rate is not None:
+                cur = prepare_frame(rgb, depth_m, K, cfg, _turn(rate, depth_offset_s))
+                cur.depth_at_colour_instant = True
+                self._prev = cur
+                self._set_keyframe(cur)
         return OdometryResult(stamp_s, self._T_c0_ck.copy(), T_ckm1_ck, pair.ok, pair.fitness)
 
-    def _depth_rotation(self, stamp_s: float, depth_offset_s: float, R_ckm1_ck_prior: NDArray[np.float64] | None
-                        ) -> NDArray[np.float64] | None:
-        """``R_c_d``: the camera's rotation over ``depth_offset_s`` at the current rotation rate (the gyro's since
-        the last frame, else the last tracked motion's: constant angular velocity over a few ms), None when
-        there is no offset, no rate or it turns the image by less than a tenth of a pixel."""
-        if depth_offset_s == 0.0 or not self.config.register_depth_in_time:
-            return None
-        if R_ckm1_ck_prior is not None and self._kf is not None:
-            w_dt, dt = so3_log(np.asarray(R_ckm1_ck_prior, dtype=float)), stamp_s - self._stamp_s
-        elif self._last_motion is not None:
-            T_last, dt = self._last_motion                  # T_ck_ckm1 of the last pair
-            w_dt = so3_log(T_last[:3, :3].T)                # rotation of T_ckm1_ck
-        else:
-            return None
-        if dt <= 0.0:
-            return None
-        w = w_dt * (depth_offset_s / dt)                    # rotation vector from colour to depth instant
-        if float(np.linalg.norm(w)) * 300.0 < 0.1:          # ~f at QVGA: under 0.1 px
-            return None
-        # R_c(t) c(t+offset) = exp(offset w^) maps depth-instant points into the colour-instant camera
-        return se3_exp(np.concatenate([np.zeros(3), w]))[:3, :3]
+    def _rotation_rate(self, dt_s: float, R_ckm1_ck_prior: NDArray[np.float64] | None
+                       ) -> NDArray[np.float64] | None:
+        """The camera's rotation rate (rad/s, camera frame): the gyro's since the last frame when given, else
+        the last tracked motion's (constant angular velocity over a few ms); None when unknown."""
+        if R_ckm1_ck_prior is not None and self._kf is not None and dt_s > 0.0:
+            return so3_log(np.asarray(R_ckm1_ck_prior, dtype=float)) / dt_s
+        if self._last_motion is not None and self._last_motion[1] > 0.0:
+            T_last, dt = self._last_motion                   # T_ck_ckm1 of the last pair
+            return so3_log(T_last[:3, :3].T) / dt            # rotation of T_ckm1_ck per second
+        return None
 
     def _set_keyframe(self, frame: PreparedFrame) -> None:
         self._kf = frame
