@@ -258,7 +258,8 @@ def rotate_depth(depth: Image, K: CameraIntrinsics, R_c_d: NDArray[np.float64]) 
     M = Kf @ R_c_d.T @ Kinv
     h, w = depth.shape
     flags = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
-    out = cv2.warpPerspective(depth, M, (w, h), flags=flags, borderMode=cv2.BORDER_CONSTANT, borderValue=0.0)
+    out: Image = cv2.warpPerspective(depth, M, (w, h), flags=flags, borderMode=cv2.BORDER_CONSTANT,
+                                     borderValue=0.0)
     valid = cv2.warpPerspective((depth > 0).view(np.uint8).astype(np.float32), M, (w, h), flags=flags,
                                 borderMode=cv2.BORDER_CONSTANT, borderValue=0.0)
     out[valid < np.float32(0.999)] = 0.0
@@ -266,7 +267,7 @@ def rotate_depth(depth: Image, K: CameraIntrinsics, R_c_d: NDArray[np.float64]) 
     a, b, c = (R_c_d[:, 2] @ Kinv).tolist()
     u = np.arange(w, dtype=np.float32) * np.float32(a)
     v = np.arange(h, dtype=np.float32) * np.float32(b) + np.float32(c)
-    out /= v[:, None] + u[None, :]
+    np.divide(out, v[:, None] + u[None, :], out=out)
     return out
 
 
