@@ -14,6 +14,7 @@ from typing import Literal
 from quadlink import CONFIG_DIR
 from quadlink.config import find_config, load_config
 from quadlink.errors import ConfigError
+from sim_sitl.disturbance import Push
 
 
 @dataclass(frozen=True)
@@ -145,6 +146,7 @@ class ScenarioConfig:
     room: RoomConfig = field(default_factory=RoomConfig)
     start: StartPose = field(default_factory=StartPose)
     objects: tuple[SceneObject, ...] = ()
+    disturbances: tuple[Push, ...] = ()  # scripted pushes on the vehicle (sim_sitl/disturbance.py), SITL time
 
 
 SCENARIO_DIR = Path(CONFIG_DIR) / "scenarios"

@@ -14,6 +14,7 @@ import numpy as np
 from quadlink.frames import euler_from_R
 from quadlink.vehicle import VehicleConfig
 from sim_sitl.config import ScenarioConfig, SitlConfig
+from sim_sitl.disturbance import DisturbanceSchedule
 from sim_sitl.firmware import AttitudeCommand, BoardSensing, Firmware, FirmwareOutput
 from sim_sitl.imu import ImuModel, ImuReading
 from sim_sitl.world import RigidState, World
@@ -45,6 +46,7 @@ class SimVehicle:
         self.imu = ImuModel(cfg.imu_noise, rng, vehicle.motor.max_thrust_n)
         self.ticks = 0
         self.flying_time_s = 0.0
+        self.disturbances = DisturbanceSchedule(scenario.disturbances)  # scripted pushes; .push() adds more
 
     @property
     def t_s(self) -> float:
@@ -59,7 +61,8 @@ class SimVehicle:
         roll, pitch, yaw = euler_from_R(s.R_ned_q)
         out = self.firmware.step(t, self.tick_s, BoardSensing(roll, pitch, yaw, s.omega_q_rad_s, float(s.v_ned_m_s[2])))
         reading = self.imu.measure(t, self.tick_s, s.R_ned_q, s.a_ned_m_s2, s.omega_q_rad_s, s.motor_thrust_n)
-        for _ in range(self.substeps):
+        for i in range(self.substeps):
+            self.world.external_force_ned_n = self.disturbances.force_ned_n(t + i * self.world.dt_s)
             self.world.step(out.motor_cmd_n)
         if out.armed:
             self.flying_time_s += self.tick_s

@@ -88,6 +88,7 @@ class World:
         self._build_vehicle()
         self.t_s = 0.0
         self.motor_thrust_n = np.zeros(4)
+        self.external_force_ned_n = np.zeros(3)  # a push at the centre of mass (sim_sitl/disturbance.py), NED
         self._state = self._read_state(None)
         self._settle(0.5)
 
@@ -190,7 +191,7 @@ class World:
         v_q = R.T @ s.v_ned_m_s
         drag_q = -np.asarray(self.vehicle.linear_drag_n_s_m) * v_q
         drag_q[:2] -= self.cfg.physics.rotor_drag_n_s_m_per_n * thrust_n * v_q[:2]  # rotor (induced) drag
-        force_ned = R @ (np.array([0.0, 0.0, -thrust_n]) + drag_q)
+        force_ned = R @ (np.array([0.0, 0.0, -thrust_n]) + drag_q) + self.external_force_ned_n
         torque_ned = R @ torque_q
         pos_pb = (D @ s.p_ned_m).tolist()
         p.applyExternalForce(self.body, -1, (D @ force_ned).tolist(), pos_pb, p.WORLD_FRAME,
