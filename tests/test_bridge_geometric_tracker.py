@@ -66,10 +66,13 @@ class RigidBody:
         d = np.zeros(3) if force_n is None else np.asarray(force_n, dtype=float)
         for _ in range(SUBSTEPS):
             self.roll += a * (roll_c - self.roll)
-            self.pitch += a * (pitch_c - self.pitch)
-            self.yaw_rate += a * (yaw_rate_c - self.yaw_rate)
-            # body z rate r -> heading rate: psi_dot = (q sin phi + r cos phi) / cos theta, q ~ 0 here
-            self.yaw += h * self.yaw_rate * math.cos(self.roll) / math.cos(self.pitch)
+            pitch_rate = a * (pitch_c - self.pitch) / h
+            self.pitch += h * pitch_rate
+            self.yaw_rate += a * (yaw_rate_c - self.yaw_rate)  # the board's yaw loop tracks the body z rate r
+            # ZYX kinematics with q = theta_dot cos(phi) + psi_dot cos(theta) sin(phi) and
+            # r = -theta_dot sin(phi) + psi_dot cos(theta) cos(phi):  psi_dot = (r + theta_dot sin phi) / (c_th c_ph)
+            self.yaw += h * (self.yaw_rate + pitch_rate * math.sin(self.roll)) \
+                / (math.cos(self.pitch) * math.cos(self.roll))
             acc = GRAVITY_M_S2 * np.array([0.0, 0.0, 1.0]) - thrust_fraction * T_MAX_N / self.mass_kg \
                 * (self.R @ np.array([0.0, 0.0, 1.0])) + (d - np.asarray(self.drag_n_s_m) * self.v) / self.mass_kg
             self.p = self.p + self.v * h + 0.5 * acc * h * h
