@@ -27,6 +27,7 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "identify-yaw": ("companion.identify_cli", "Identify the yaw response to the pan-scan (eq. 5) from a flight log."),
     "keygen": ("quadlink.keygen_cli", "Create a MAVLink 2 signing key file for signed ground-station links."),
     "netem": ("quadlink.netem.cli", "A UDP/TCP link with delay, jitter, loss, reordering and a rate limit."),
+    "trajectory": ("quadlink.trajectory.cli", "Stream a minimum-snap trajectory (YAML) as MAVLink setpoints."),
 }
 
 
