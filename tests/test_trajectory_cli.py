@@ -50,6 +50,7 @@ def test_waypoint_velocities_from_the_file(tmp_path: Path) -> None:
     np.testing.assert_allclose(traj.derivative(traj.knots_s[1], 1), [0.8, 0.2, 0.0], atol=1e-9)
 
 
+@pytest.mark.integration
 def test_stream_sends_px4_style_setpoints_the_tracker_decodes() -> None:
     """Over loopback UDP with pymavlink on both ends; the clock is injected (no waiting)."""
     traj = minimum_snap([[0.0, 0.0, -1.0], [1.0, 0.5, -1.5]], [1.0])
@@ -86,6 +87,7 @@ def test_stream_sends_px4_style_setpoints_the_tracker_decodes() -> None:
         rx.close()
 
 
+@pytest.mark.integration
 def test_command_line_dry_run_and_bad_input(tmp_path: Path) -> None:
     csv = tmp_path / "oval.csv"
     r = subprocess.run([sys.executable, "-m", "quadlink.cli", "trajectory", str(OVAL_YAML), "--dry-run",
