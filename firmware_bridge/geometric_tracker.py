@@ -88,8 +88,10 @@ class GeometricGains:
 
     k_x_1_s2: float = 4.0  # m/s^2 per m of position error (used only when a position is given)
     k_v_1_s: float = 3.2  # m/s^2 per m/s of velocity error
-    k_i_1_s2: float = 0.5  # m/s^2 per m of integrated velocity error (0: eq. (4) alone)
+    k_i_1_s2: float = 1.0  # m/s^2 per m of the integrated composite error (0: eq. (4) alone)
     integral_max_m_s2: float = 2.0  # clamp of the integral term, per axis
+    integral_input_max_m_s: float = 0.3  # the integrated error is clipped to this per axis: a push or a large
+    #   transient fills the integral at most k_i * 0.3 m/s^2 per second, so it cannot wind up into an overshoot
     k_yaw_1_s: float = 1.5  # heading error (rad) -> yaw rate (rad/s) added to Omega_c's z, world-frame mode
     omega_c_cutoff_hz: float = 5.0  # low-pass of the finite-differenced Omega_c
     max_omega_c_rad_s: float = 3.0  # clamp of Omega_c (a setpoint jump is not a rate)
@@ -267,6 +269,7 @@ class GeometricTracker:
         # position error, in velocity-only mode the velocity error (the companion's e_x is inside v_ref then);
         # conditional integration: not further into a saturation
         composite = e_v if e_x is None or k.k_v_1_s <= 0.0 else e_v + (k.k_x_1_s2 / k.k_v_1_s) * e_x
+        composite = np.clip(composite, -k.integral_input_max_m_s, k.integral_input_max_m_s)  # a push is not a bias
         step = -k.k_i_1_s2 * composite * dt_s
         excess = a_unsat - a_cmd
         winding_up = (np.abs(excess) > 1e-9) & (np.sign(step) == np.sign(excess))
@@ -363,7 +366,7 @@ GEOMETRIC_PARAM_SPECS: tuple[ParamSpec, ...] = (
     ParamSpec("BRG_TRACKER", 0.0, 0.0, 1.0, "velocity tracker: 0 PID (paper 000), 1 geometric SE(3) (paper 003)"),
     ParamSpec("BRG_GEO_KX", 4.0, 0.0, 20.0, "geometric tracker: position gain k_x/m, (m/s^2)/m"),
     ParamSpec("BRG_GEO_KV", 3.2, 0.0, 20.0, "geometric tracker: velocity gain k_v/m, (m/s^2)/(m/s)"),
-    ParamSpec("BRG_GEO_KI", 0.5, 0.0, 10.0, "geometric tracker: velocity-error integral gain, (m/s^2)/m"),
+    ParamSpec("BRG_GEO_KI", 1.0, 0.0, 10.0, "geometric tracker: velocity-error integral gain, (m/s^2)/m"),
     ParamSpec("BRG_GEO_I_MAX", 2.0, 0.0, 10.0, "geometric tracker: integral clamp, m/s^2"),
 )
 assert all(len(p.name) <= 16 for p in GEOMETRIC_PARAM_SPECS)

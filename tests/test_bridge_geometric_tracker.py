@@ -189,7 +189,7 @@ def test_recovers_from_a_0p7_m_offset_within_3_s(axis: int) -> None:
     back = t[np.argmax(err < 0.05)] if np.any(err < 0.05) else math.inf
     assert back < 3.0, f"back within 5 cm after {back:.2f} s"
     assert np.all(err[t >= 3.0] < 0.05)  # and stays there
-    assert np.max(err[t > 4.0]) < 0.01
+    assert np.max(err[t > 4.0]) < 0.02  # the integral's small overshoot decays
     assert err.max() <= 0.7 + 1e-9  # no overshoot beyond the start
 
 
