@@ -8,11 +8,13 @@ MAVLink, the bridge's services) is the lead's wiring and is not in these figures
 from __future__ import annotations
 
 import dataclasses
+from pathlib import Path
 
 import numpy as np
 import pytest
 
 from firmware_bridge.geometric_tracker import GeometricTracker, TrackingState, TrajectoryTarget
+from quadlink.demo import paper003
 from quadlink.frames import GRAVITY_M_S2
 from quadlink.trajectory import minimum_snap
 from quadlink.vehicle import load_vehicle
@@ -80,7 +82,7 @@ def test_hover_recovers_from_the_three_pushes_within_3_s() -> None:
         assert np.all(err[after & (t >= end + 3.0) & (t < start + 10.0)] < 0.05)
 
 
-def test_oval_tracking_errors_on_the_sitl_physics() -> None:
+def test_oval_tracking_errors_on_the_sitl_physics(tmp_path: Path) -> None:
     traj = minimum_snap(OVAL_NED_M, (3.0, 1.7, 4.3))
 
     def target(t: float) -> TrajectoryTarget:
@@ -95,5 +97,9 @@ def test_oval_tracking_errors_on_the_sitl_physics() -> None:
     assert np.all(rmse_p <= 0.05), rmse_p  # issue 19's targets (there: on the estimate, full stack)
     assert np.all(rmse_v <= 0.06), rmse_v
     assert rmse_p[:2].max() > 1e-3  # it is a real flight, not a replay of the reference
+    # the report pieces the full-stack demo will use: the same figures, and the plots
+    tab = paper003.tables(paper003.Paper003Series(t, p_d, v_d, p, v))
+    np.testing.assert_allclose(tab["true_position_vs_desired_m"], rmse_p, rtol=1e-12)
+    assert len(paper003.make_plots(paper003.Paper003Series(t, p_d, v_d, p, v), tmp_path)) == 3
 
 
