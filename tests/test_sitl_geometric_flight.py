@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from firmware_bridge.geometric_tracker import GeometricTracker, TrackingState, TrajectoryTarget
+from firmware_bridge.geometric_tracker import GeometricGains, GeometricTracker, TrackingState, TrajectoryTarget
 from quadlink.demo import paper003
 from quadlink.frames import GRAVITY_M_S2
 from quadlink.trajectory import minimum_snap
@@ -26,7 +26,8 @@ HOVER_NED_M = np.array([0.2, 2.2, -1.2])  # paper 003's goal p = [0.2 2.2 1.2] (
 OVAL_NED_M = np.array([[-1.0, -1.5, -1.2], [0.0, -0.5, -1.2], [0.0, 0.5, -1.2], [-1.0, -1.5, -1.2]])
 
 
-def _fly(scenario_name: str, start_ned_m: np.ndarray, target_at, seconds: float, push_shift_s: float | None = None):
+def _fly(scenario_name: str, start_ned_m: np.ndarray, target_at, seconds: float, push_shift_s: float | None = None,
+         gains: GeometricGains | None = None):
     vehicle = load_vehicle()
     scenario = load_scenario(scenario_name)
     if push_shift_s is not None:  # the scripted pushes, moved to this flight's clock
@@ -36,7 +37,7 @@ def _fly(scenario_name: str, start_ned_m: np.ndarray, target_at, seconds: float,
     try:
         sim.world.reset_pose(start_ned_m, np.eye(3))
         sim.world.motor_thrust_n[:] = vehicle.mass_kg * GRAVITY_M_S2 / 4.0
-        tracker = GeometricTracker(vehicle.mass_kg, vehicle.max_total_thrust_n)
+        tracker = GeometricTracker(vehicle.mass_kg, vehicle.max_total_thrust_n, gains=gains)
         rows = []
         for _ in range(round(seconds / sim.tick_s)):
             s = sim.world.state
@@ -82,19 +83,25 @@ def test_hover_recovers_from_the_three_pushes_within_3_s() -> None:
         assert np.all(err[after & (t >= end + 3.0) & (t < start + 10.0)] < 0.05)
 
 
-def test_oval_tracking_errors_on_the_sitl_physics(tmp_path: Path) -> None:
+# the SITL's horizontal linear drag per unit mass: airframe 0.25 N s/m + rotor drag 0.02 N s/m per N at hover (1 kg)
+SITL_DRAG_1_S = 0.25 + 0.02 * GRAVITY_M_S2
+
+
+@pytest.mark.parametrize("drag_ff_1_s", [0.0, SITL_DRAG_1_S], ids=["eq4", "drag-ff"])
+def test_oval_tracking_errors_on_the_sitl_physics(tmp_path: Path, drag_ff_1_s: float) -> None:
     traj = minimum_snap(OVAL_NED_M, (3.0, 1.7, 4.3))
 
     def target(t: float) -> TrajectoryTarget:
         s = traj.sample(t)
         return TrajectoryTarget(s.v_m_s, s.a_m_s2, s.p_m, yaw_rad=0.0)
 
-    t, p, v, p_d, v_d = _fly("empty", OVAL_NED_M[0].copy(), target, traj.duration_s)
+    t, p, v, p_d, v_d = _fly("empty", OVAL_NED_M[0].copy(), target, traj.duration_s,
+                             gains=GeometricGains(drag_ff_1_s=drag_ff_1_s))
     rmse_p = np.sqrt(np.mean((p - p_d) ** 2, axis=0))
     rmse_v = np.sqrt(np.mean((v - v_d) ** 2, axis=0))
-    print(f"SITL oval (true state): position RMSE {np.round(rmse_p, 4)} m, velocity RMSE {np.round(rmse_v, 4)} m/s, "
-          f"max position error {np.linalg.norm(p - p_d, axis=1).max():.3f} m")
-    assert np.all(rmse_p <= 0.05), rmse_p  # issue 19's targets (there: on the estimate, full stack)
+    print(f"SITL oval (true state, drag ff {drag_ff_1_s:.2f} 1/s): position RMSE {np.round(rmse_p, 4)} m, "
+          f"velocity RMSE {np.round(rmse_v, 4)} m/s, max position error {np.linalg.norm(p - p_d, axis=1).max():.3f} m")
+    assert np.all(rmse_p <= (0.05 if drag_ff_1_s == 0.0 else 0.025)), rmse_p  # issue 19: 0.05 (on the estimate)
     assert np.all(rmse_v <= 0.06), rmse_v
     assert rmse_p[:2].max() > 1e-3  # it is a real flight, not a replay of the reference
     # the report pieces the full-stack demo will use: the same figures, and the plots
