@@ -20,14 +20,22 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from quadlink.frames import Rz
+from quadlink.mavlink import mavlink
 from quadlink.trajectory import MinSnapTrajectory, TrajectorySample
 
 Vec3 = NDArray[np.float64]
+
+#: velocity + acceleration + yaw rate (position and yaw ignored): 1479 (the companion's velocity setpoint) with the
+#: acceleration bits cleared
+TYPE_MASK_VELOCITY_ACCEL_YAW_RATE = (
+    mavlink.POSITION_TARGET_TYPEMASK_X_IGNORE | mavlink.POSITION_TARGET_TYPEMASK_Y_IGNORE
+    | mavlink.POSITION_TARGET_TYPEMASK_Z_IGNORE | mavlink.POSITION_TARGET_TYPEMASK_YAW_IGNORE)
 
 
 @dataclass(frozen=True)
@@ -50,6 +58,18 @@ class FollowCommand:
     def in_h(self, yaw_rad: float) -> tuple[Vec3, Vec3]:
         R_hw = Rz(-yaw_rad)
         return R_hw @ self.v_ref_ned_m_s, R_hw @ self.a_ff_ned_m_s2
+
+    def setpoint_message(self, time_s: float, target_system: int, target_component: int, yaw_rad: float,
+                         yaw_rate_rad_s: float) -> Any:
+        """SET_POSITION_TARGET_LOCAL_NED with velocity and acceleration in H (MAV_FRAME_BODY_OFFSET_NED, as the
+        companion's velocity setpoints: rotated by the companion's yaw, so its world frame need not be the bridge's)
+        and a yaw rate. ``firmware_bridge.geometric_tracker.decode_trajectory_setpoint`` reads it back."""
+        v_h, a_h = self.in_h(yaw_rad)
+        return mavlink.MAVLink_set_position_target_local_ned_message(
+            int(max(time_s, 0.0) * 1e3) & 0xFFFFFFFF, target_system, target_component,
+            mavlink.MAV_FRAME_BODY_OFFSET_NED, TYPE_MASK_VELOCITY_ACCEL_YAW_RATE, 0.0, 0.0, 0.0,
+            float(v_h[0]), float(v_h[1]), float(v_h[2]), float(a_h[0]), float(a_h[1]), float(a_h[2]), 0.0,
+            float(yaw_rate_rad_s))
 
 
 def position_loop(sample: TrajectorySample, p_est_ned_m: ArrayLike, gains: FollowGains | None = None,

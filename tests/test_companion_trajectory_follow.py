@@ -87,3 +87,20 @@ def test_follower_starts_where_asked_and_ends() -> None:
     assert not f.done(18.9) and f.done(19.0)
     with pytest.raises(ValueError):
         f.step(11.0, [np.nan, 0.0, 0.0])
+
+
+def test_setpoint_message_reaches_the_bridge_decoder_unchanged() -> None:
+    """The companion's message through the real codec into the bridge's decoder (yaw-aligned frame both ways)."""
+    from firmware_bridge.geometric_tracker import decode_trajectory_setpoint
+    from quadlink.mavlink import mavlink
+
+    s = OVAL.sample(2.0)
+    cmd = position_loop(s, s.p_m + [0.05, -0.02, 0.01])
+    yaw = 0.9
+    buf = cmd.setpoint_message(12.0, 1, 1, yaw, 0.2).pack(mavlink.MAVLink(None, 1, 191))
+    msg = mavlink.MAVLink(None).parse_char(buf)
+    assert msg.type_mask == 1479 & ~0x1C0 == 1031
+    tgt = decode_trajectory_setpoint(msg, yaw_rad=yaw)  # the bridge's yaw anchored to the same heading
+    np.testing.assert_allclose(tgt.v_ned_m_s, cmd.v_ref_ned_m_s, atol=1e-6)
+    np.testing.assert_allclose(tgt.a_ned_m_s2, cmd.a_ff_ned_m_s2, atol=1e-6)
+    assert tgt.p_ned_m is None and tgt.yaw_rate_rad_s == pytest.approx(0.2)
