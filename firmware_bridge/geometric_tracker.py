@@ -79,6 +79,7 @@ from firmware_bridge.params import ParamSpec
 from firmware_bridge.velocity_tracker import AttitudeCommand, TrackerGains, VelocityTracker
 from quadlink.errors import ProtocolError
 from quadlink.frames import GRAVITY_M_S2, R_hq, Rz, wrap_pi
+from quadlink.lie import so3_log
 from quadlink.mavlink import mavlink
 
 E3 = np.array([0.0, 0.0, 1.0])
@@ -169,15 +170,6 @@ def attitude_from_force(f_des: ArrayLike, b1d: ArrayLike) -> Mat3:
     b1c /= n1
     b2c = _cross(b3c, b1c)
     return np.column_stack([b1c, b2c, b3c])
-
-
-def so3_log(R: Mat3) -> Vec3:
-    """The rotation vector of R (vee of the matrix logarithm), for rotations short of pi (one control step's)."""
-    skew_part = 0.5 * np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
-    s = float(np.linalg.norm(skew_part))  # sin(angle)
-    c = 0.5 * (float(R[0, 0] + R[1, 1] + R[2, 2]) - 1.0)  # cos(angle)
-    angle = math.atan2(s, c)
-    return skew_part if s < 1e-12 else skew_part * (angle / s)
 
 
 def board_angles(R_c: Mat3, yaw_rad: float) -> tuple[float, float]:

@@ -29,7 +29,8 @@ from firmware_bridge.geometric_tracker import (
     make_tracker,
 )
 from firmware_bridge.velocity_tracker import TrackerGains, VelocityTracker
-from quadlink.frames import GRAVITY_M_S2, R_from_euler, Rz, euler_from_R, rotation_angle_rad
+from quadlink.frames import GRAVITY_M_S2, R_from_euler, Rz, euler_from_R
+from quadlink.lie import angle_between_rad
 from quadlink.mavlink import mavlink
 from quadlink.trajectory import minimum_snap
 
@@ -107,7 +108,7 @@ def test_hover_is_exactly_level_at_hover_thrust() -> None:
     for _ in range(3):
         out = tr.step(DT_S, TrajectoryTarget(np.zeros(3), np.zeros(3), p_d, yaw_rad=0.0),
                       TrackingState(np.zeros(3), np.eye(3), p_d.copy()))
-    assert rotation_angle_rad(out.R_c, np.eye(3)) < 1e-12
+    assert angle_between_rad(out.R_c, np.eye(3)) < 1e-12
     assert out.thrust_n == pytest.approx(MASS_KG * GRAVITY_M_S2, abs=1e-12)
     assert out.attitude.thrust_fraction == pytest.approx(tr.hover_thrust_fraction, abs=1e-12)
     assert out.attitude.roll_rad == 0.0 and out.attitude.pitch_rad == 0.0
@@ -119,7 +120,7 @@ def test_hover_is_exactly_level_at_hover_thrust() -> None:
     tr.reset()
     out = tr.step(DT_S, TrajectoryTarget(np.zeros(3), np.zeros(3), p_d, yaw_rad=0.7),
                   TrackingState(np.zeros(3), Rz(0.7), p_d.copy()))
-    assert rotation_angle_rad(out.R_c, Rz(0.7)) < 1e-12
+    assert angle_between_rad(out.R_c, Rz(0.7)) < 1e-12
 
 
 def test_thrust_is_the_desired_force_projected_on_the_measured_body_z() -> None:
@@ -129,7 +130,7 @@ def test_thrust_is_the_desired_force_projected_on_the_measured_body_z() -> None:
     R = R_from_euler(tilt, 0.0, 0.3)
     out = tr.step(DT_S, TrajectoryTarget(np.zeros(3), yaw_rad=0.3), TrackingState(np.zeros(3), R))
     assert out.thrust_n == pytest.approx(MASS_KG * GRAVITY_M_S2 * math.cos(tilt), rel=1e-12)
-    assert rotation_angle_rad(out.R_c, Rz(0.3)) < 1e-12  # and it commands level at the heading
+    assert angle_between_rad(out.R_c, Rz(0.3)) < 1e-12  # and it commands level at the heading
 
 
 def test_commanded_attitude_points_the_thrust_along_the_desired_force() -> None:
@@ -147,26 +148,13 @@ def test_commanded_attitude_points_the_thrust_along_the_desired_force() -> None:
     roll, pitch, yaw = euler_from_R(out.R_c)
     assert yaw == pytest.approx(0.4, abs=1e-12)
     assert (roll, pitch) == pytest.approx((out.attitude.roll_rad, out.attitude.pitch_rad), abs=1e-12)
-    assert rotation_angle_rad(R_from_euler(out.attitude.roll_rad, out.attitude.pitch_rad, 0.4), out.R_c) < 1e-12
+    assert angle_between_rad(R_from_euler(out.attitude.roll_rad, out.attitude.pitch_rad, 0.4), out.R_c) < 1e-12
     assert pitch < 0.0  # accelerating north = nose down in FRD/NED
     # while the vehicle still faces elsewhere, roll/pitch put its thrust axis on R_c's at *its* heading
     tr.reset()
     out = tr.step(DT_S, TrajectoryTarget(np.zeros(3), a_d, yaw_rad=0.4), TrackingState(np.zeros(3), Rz(-0.6)))
     b3 = R_from_euler(out.attitude.roll_rad, out.attitude.pitch_rad, -0.6) @ np.array([0.0, 0.0, 1.0])
     np.testing.assert_allclose(b3, out.R_c[:, 2], atol=1e-12)
-
-
-def test_so3_log_matches_scipy() -> None:
-    from scipy.spatial.transform import Rotation
-
-    from firmware_bridge.geometric_tracker import so3_log
-
-    rng = np.random.default_rng(3)
-    for _ in range(50):
-        rv = rng.normal(size=3)
-        rv *= rng.uniform(0.0, 3.0) / np.linalg.norm(rv)
-        np.testing.assert_allclose(so3_log(Rotation.from_rotvec(rv).as_matrix()), rv, atol=1e-9)
-    np.testing.assert_allclose(so3_log(np.eye(3)), 0.0)
 
 
 def test_attitude_from_force_degenerate_heading() -> None:
