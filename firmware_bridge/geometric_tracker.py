@@ -75,12 +75,12 @@ from typing import Protocol
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from firmware_bridge.params import ParamSpec
 from firmware_bridge.velocity_tracker import AttitudeCommand, TrackerGains, VelocityTracker
 from quadlink.errors import ProtocolError
 from quadlink.frames import GRAVITY_M_S2, R_hq, Rz, wrap_pi
 from quadlink.lie import so3_log
 from quadlink.mavlink import mavlink
+from quadlink.mavlink.param_service import ParamSpec
 
 E3 = np.array([0.0, 0.0, 1.0])
 Vec3 = NDArray[np.float64]
@@ -358,14 +358,15 @@ class TrackerKind(enum.IntEnum):
     GEOMETRIC = 1
 
 
-#: Parameters the autopilot adds to ``params.PARAM_SPECS`` to select and tune the geometric tracker.
+#: Parameters to append to ``firmware_bridge.params.PARAM_SPECS`` to select and tune the geometric tracker.
 GEOMETRIC_PARAM_SPECS: tuple[ParamSpec, ...] = (
-    ParamSpec("BRG_TRACKER", 0.0, 0.0, 1.0, "velocity tracker: 0 PID (paper 000), 1 geometric SE(3) (paper 003)"),
-    ParamSpec("BRG_GEO_KX", 4.0, 0.0, 20.0, "geometric tracker: position gain k_x/m, (m/s^2)/m"),
-    ParamSpec("BRG_GEO_KV", 3.2, 0.0, 20.0, "geometric tracker: velocity gain k_v/m, (m/s^2)/(m/s)"),
-    ParamSpec("BRG_GEO_KI", 1.0, 0.0, 10.0, "geometric tracker: velocity-error integral gain, (m/s^2)/m"),
-    ParamSpec("BRG_GEO_I_MAX", 2.0, 0.0, 10.0, "geometric tracker: integral clamp, m/s^2"),
-    ParamSpec("BRG_GEO_DRAG", 0.0, 0.0, 5.0, "geometric tracker: horizontal drag feed-forward (drag/m) on v_d, 1/s"),
+    # REAL32 like every bridge parameter (PX4's and ArduPilot's encodings agree on it): 0.0 or 1.0
+    ParamSpec("BRG_TRACKER", 0.0, 0.0, 1.0, "enum", "velocity tracker: 0 PID (paper 000), 1 geometric (paper 003)"),
+    ParamSpec("BRG_GEO_KX", 4.0, 0.0, 20.0, "(m/s^2)/m", "geometric tracker: position gain k_x/m"),
+    ParamSpec("BRG_GEO_KV", 3.2, 0.0, 20.0, "(m/s^2)/(m/s)", "geometric tracker: velocity gain k_v/m"),
+    ParamSpec("BRG_GEO_KI", 1.0, 0.0, 10.0, "(m/s^2)/m", "geometric tracker: composite-error integral gain"),
+    ParamSpec("BRG_GEO_I_MAX", 2.0, 0.0, 10.0, "m/s^2", "geometric tracker: integral clamp"),
+    ParamSpec("BRG_GEO_DRAG", 0.0, 0.0, 5.0, "1/s", "geometric tracker: horizontal drag feed-forward (drag/m) on v_d"),
 )
 assert all(len(p.name) <= 16 for p in GEOMETRIC_PARAM_SPECS)
 
