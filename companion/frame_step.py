@@ -57,7 +57,8 @@ def frame_step(out: Any | None, op: OperatorInput, R_qc: NDArray[np.float64], sc
     ref = reference_velocity(op, R_qc, scan, points, params, sectors_m=sectors,
                              block_unknown=out is None or not allow_unknown_when_fresh,
                              operator_enabled=operator_enabled, sector_offset_rad=math.radians(offset_deg),
-                             height_m=height_m(out))
+                             height_m=height_m(out),
+                             v_est_h_m_s=None if out is None or not out.odometry_ok else out.v_h_m_s)
     return FrameStep(ref, nearest_obstacle(points, params))
 
 
