@@ -35,6 +35,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from companion.pan_scan import PanScanState
+from companion.vertical_limits import VerticalLimits, VerticalParams, apply_vertical_limits, vertical_limits
 
 MANUAL_XY_FULL_SCALE = 1000.0  # MANUAL_CONTROL x, y: -1000..1000
 MANUAL_Z_CENTRE = 500.0  # MANUAL_CONTROL z: 0..1000, 500 = no climb (QGroundControl joystick)
@@ -89,6 +90,16 @@ class ReferenceParams:
     stopping_time_s: float = 0.8
     surface_gap_m: float = 0.9
     out_of_band_3d: bool = True
+    max_height_m: float | None = None
+    room_height_m: float | None = None
+    floor_min_height_m: float = 0.3
+
+    def vertical(self) -> VerticalParams:
+        """The vertical limits' parameters (:mod:`companion.vertical_limits`), sharing the safe distance and
+        the closing-speed law."""
+        return VerticalParams(self.max_height_m, self.room_height_m, self.safe_distance_m, self.floor_min_height_m,
+                              self.approach_gain_per_s if math.isfinite(self.approach_gain_per_s) else 1.2,
+                              self.stopping_time_s)
 
 
 @dataclass(frozen=True)
@@ -103,6 +114,7 @@ class ReferenceOutput:
     pan_scan_yaw_rate_rad_s: float  # eq. (4)
     operator_yaw_rate_rad_s: float  # eq. (3)
     constrained: bool  # a safety constraint removed part of the command
+    vertical_limits: VerticalLimits | None = None  # the climb/descent bounds applied (None: height not used)
 
 
 def _deadband(value: float, width: float) -> float:
@@ -220,6 +232,9 @@ def surface_points(points_h_m: NDArray[np.float64], max_gap_m: float, reach_m: f
     k = min(neighbours, n - 1)
     i = np.repeat(np.arange(n), k)
     j = (i + np.tile(np.arange(1, k + 1), n)) % n
+    if 2 * k >= n:   # few points: the cyclic neighbours repeat pairs
+        pair = np.unique(np.minimum(i, j) * n + np.maximum(i, j))
+        i, j = pair // n, pair % n
     a, ab = p[i], p[j] - p[i]
     length2 = np.einsum("ij,ij->i", ab, ab)
     t = -np.einsum("ij,ij->i", a, ab) / np.maximum(length2, 1e-12)
@@ -402,7 +417,9 @@ def reference_velocity(op: OperatorInput, R_qc: ArrayLike, scan: PanScanState,
                        obstacle_points_h_m: ArrayLike | None, params: ReferenceParams,
                        sectors_m: ArrayLike | None = None, block_unknown: bool = False,
                        operator_enabled: bool = True, sector_offset_rad: float = 0.0,
-                       height_m: float | None = None, v_est_h_m_s: ArrayLike | None = None) -> ReferenceOutput:
+                       height_m: float | None = None, v_est_h_m_s: ArrayLike | None = None,
+                       v_command_h_m_s: ArrayLike | None = None, command_yaw_rate_rad_s: float = 0.0
+                       ) -> ReferenceOutput:
     """Eqs. (2)-(8) with the safety constraints (see module doc).
 
     ``operator_enabled`` False (hold, link lost) zeroes the operator part but keeps the repulsion;
@@ -410,12 +427,19 @@ def reference_velocity(op: OperatorInput, R_qc: ArrayLike, scan: PanScanState,
     (the caller sets it when the obstacle data are stale, passing ``sectors_m=None``). ``height_m``:
     height above the take-off floor (odometry), to tell the floor from obstacles; None = unknown.
     ``v_est_h_m_s``: the estimated velocity in H, for the closing-speed law's stopping distance (None: the
-    law without it).
+    law without it). ``v_command_h_m_s`` / ``command_yaw_rate_rad_s``: a scripted command (from
+    :mod:`companion.arbiter`) that replaces eqs. (2)-(3); everything after them applies to it alike.
     """
     alpha = camera_yaw_rad(R_qc) + scan.yaw_offset_rad  # eq. (6)
     if not operator_enabled:
         op = OperatorInput()
-    v_d, yaw_rate_d = operator_velocity(op, alpha, params)  # eqs. (2)-(3)
+    if v_command_h_m_s is not None and operator_enabled:
+        v_d = np.array(v_command_h_m_s, dtype=float).reshape(3)
+        if not np.all(np.isfinite(v_d)):
+            v_d = np.zeros(3)
+        yaw_rate_d = float(command_yaw_rate_rad_s) if math.isfinite(command_yaw_rate_rad_s) else 0.0
+    else:
+        v_d, yaw_rate_d = operator_velocity(op, alpha, params)  # eqs. (2)-(3)
     constrained = False
     if block_unknown:
         v_d, constrained = remove_toward_unknown(v_d, sectors_m, params.unknown_sector_guard_rad, sector_offset_rad)
@@ -431,9 +455,13 @@ def reference_velocity(op: OperatorInput, R_qc: ArrayLike, scan: PanScanState,
     c = _constraint_points(obstacle_points_h_m, params, height_m, reach, band=p)
     v_r, removed = _limit_speed(v_r, c, params.safe_distance_m, params.approach_gain_per_s, reach, v_est_h_m_s,
                                 params.stopping_time_s)
+    v_up = None if v_est_h_m_s is None else -float(np.asarray(v_est_h_m_s, dtype=float)[2])
+    limits = vertical_limits(height_m, v_up, params.vertical())
+    v_r, vertical = apply_vertical_limits(v_r, limits)
     speed = float(np.linalg.norm(v_r))
     if speed > params.max_speed_m_s:
         v_r *= params.max_speed_m_s / speed
         constrained = True
     yaw_rate = yaw_rate_d + scan.yaw_rate_rad_s  # eq. (8)
-    return ReferenceOutput(v_r, yaw_rate, v_d, v_o, alpha, scan.yaw_rate_rad_s, yaw_rate_d, constrained or removed)
+    return ReferenceOutput(v_r, yaw_rate, v_d, v_o, alpha, scan.yaw_rate_rad_s, yaw_rate_d,
+                           constrained or removed or vertical, limits)

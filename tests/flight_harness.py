@@ -201,7 +201,8 @@ class Flight:
         self.stack.start(ProcessSpec("sitl", tuple(sitl), ready_after_s=2.0))
         # as tests/test_companion_sitl.py: a loaded machine can stall the lock-step IMU stream longer than
         # the bridge's 0.5 s board-loss timeout; these flights are about the companion
-        (out_dir / "bridge_params.yaml").write_text("BRG_BOARD_LOSS_T: 3.0\n")
+        # (likewise its odometry-loss timeout: a starved companion stalls the odometry stream)
+        (out_dir / "bridge_params.yaml").write_text("BRG_BOARD_LOSS_T: 3.0\nBRG_ODOM_LOSS_T: 2.0\n")
         _wait_tcp(p.mk1, self.stack.check, 120.0)
         _wait_tcp(p.camera, self.stack.check, 60.0)
         self.stack.start(ProcessSpec("bridge", ("bridge", "--mk-cmd", f"socket://127.0.0.1:{p.mk1}",
@@ -212,8 +213,11 @@ class Flight:
         comp = ["companion", "--autopilot", f"udpin:127.0.0.1:{p.autopilot}", "--gcs", f"udpin:127.0.0.1:{p.vehicle}",
                 "--camera", f"tcp://127.0.0.1:{p.camera}", "--image-port", "0",
                 "--tlog", str(out_dir / "companion.tlog")]
-        if companion_config is not None:
-            comp += ["--config", str(companion_config)]
+        if companion_config is None:
+            # a process starved for 0.5 s on a loaded 2-core machine reads as a lost ground station (wall
+            # clock): these flights test the safety layer, not the link timeouts
+            companion_config = companion_config_with(out_dir, modes={"gcs_timeout_s": 2.0})
+        comp += ["--config", str(companion_config)]
         self.stack.start(ProcessSpec("companion", tuple(comp), ready_after_s=1.0))
 
     # --- I/O
@@ -303,6 +307,22 @@ def flight(out_dir: Path, scenario: str = "paper-arena", offset: int = 4000, loc
             f.log.save_csv(out_dir / "truth_clearance.csv")
 
 
+def companion_config_with(out_dir: Path, **sections: dict[str, object]) -> Path:
+    """configs/companion.yaml with some keys replaced (``reference={"room_height_m": 3.0}``), written to
+    ``out_dir/companion.yaml``."""
+    import yaml
+
+    from quadlink import CONFIG_DIR
+
+    data = yaml.safe_load((CONFIG_DIR / "companion.yaml").read_text())
+    for section, values in sections.items():
+        data[section] = {**data.get(section, {}), **values}
+    out_dir.mkdir(parents=True, exist_ok=True)
+    path = out_dir / "companion.yaml"
+    path.write_text(yaml.safe_dump(data))
+    return path
+
+
 # ---------------------------------------------------------------- command line
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -315,12 +335,18 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--scenario", default="paper-arena")
     ap.add_argument("--realtime", action="store_true")
     ap.add_argument("--config", type=Path, default=None, help="companion config YAML")
+    ap.add_argument("--room-height", type=float, default=None, help="companion reference.room_height_m "
+                    "(and no max_height_m fence)")
     ap.add_argument("--out", type=Path, default=Path("/tmp/safety-flight"))
     a = ap.parse_args(argv)
     import logging
 
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
-    with flight(a.out, a.scenario, a.offset, not a.realtime, a.config) as f:
+    config = a.config
+    if a.room_height is not None:
+        config = companion_config_with(a.out, reference={"room_height_m": a.room_height, "max_height_m": None},
+                                       modes={"gcs_timeout_s": 2.0})
+    with flight(a.out, a.scenario, a.offset, not a.realtime, config) as f:
         f.take_off()
         t0 = f.t_s
         if a.case == "push":
@@ -330,7 +356,7 @@ def main(argv: list[str] | None = None) -> int:
         f.run_for(2.0, lambda: f.manual(0))
         print(f"{a.case} x={a.x} y={a.y} z={a.z} {a.seconds:.0f} s {'real time' if a.realtime else 'lock-step'}: "
               f"{f.log.summary(t0)}")
-        print("modes:", f.log.modes)
+        print("modes:", f.log.modes[:12], "..." if len(f.log.modes) > 12 else "")
         print("\n".join(f.log.statustexts[-10:]))
     return 0
 
