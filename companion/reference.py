@@ -70,6 +70,23 @@ class ReferenceParams:
     obstacle to horizontal motion); False is the paper's 3D form. When the height above the take-off
     floor is known, points within ``floor_margin_m`` of the floor are the floor, not obstacles (a low
     vehicle sees the floor ahead at its own height: repelled by it, it would back away blindly).
+
+    Safety constraints (issue 14): ``stopping_time_s`` is the distance the vehicle travels, per m/s of its
+    speed, after its reference drops to zero — the bridge's velocity loop (PI, time constant ~0.5 s, with
+    its integral's overshoot: ~0.7 s in a closed-loop simulation of the real tracker) plus the
+    camera-to-setpoint latency; the closing-speed bound toward a point counts the measured closing speed
+    times this time as distance already used up (see :func:`limit_speed_toward_obstacles`).
+    ``surface_gap_m``: neighbouring map points closer than this are taken as one surface and the segment
+    between them constrains the motion (the camera samples a wall with one point per image sector:
+    between two samples 0.5 m apart a vehicle kept 0.45 m from both is only 0.37 m from the wall;
+    bridging gaps narrower than twice the safe distance forbids no passage the vehicle could take).
+    ``out_of_band_3d``: points outside the height band (a box top below the vehicle, a ceiling point
+    above it) constrain the motion by their 3D distance instead of being ignored. Vertical limits
+    (:mod:`companion.vertical_limits`): ``max_height_m`` above the take-off floor (an altitude fence),
+    ``room_height_m`` (the ceiling, kept ``safe_distance_m`` away), ``floor_min_height_m`` (the lowest
+    height the reference descends to; take-off and landing are the autopilot's). ``takeoff_height_m``:
+    height of the vehicle's origin above the floor when it stands on it (its landing gear):
+    :func:`reference_velocity`'s ``height_m`` is the odometry's, counted from the take-off pose.
     """
 
     k_v_m_s: float = 0.6
@@ -93,6 +110,7 @@ class ReferenceParams:
     max_height_m: float | None = None
     room_height_m: float | None = None
     floor_min_height_m: float = 0.3
+    takeoff_height_m: float = 0.0
 
     def vertical(self) -> VerticalParams:
         """The vertical limits' parameters (:mod:`companion.vertical_limits`), sharing the safe distance and
@@ -426,11 +444,15 @@ def reference_velocity(op: OperatorInput, R_qc: ArrayLike, scan: PanScanState,
     ``block_unknown`` forbids horizontal operator motion toward unknown sectors of ``sectors_m``
     (the caller sets it when the obstacle data are stale, passing ``sectors_m=None``). ``height_m``:
     height above the take-off floor (odometry), to tell the floor from obstacles; None = unknown.
-    ``v_est_h_m_s``: the estimated velocity in H, for the closing-speed law's stopping distance (None: the
-    law without it). ``v_command_h_m_s`` / ``command_yaw_rate_rad_s``: a scripted command (from
-    :mod:`companion.arbiter`) that replaces eqs. (2)-(3); everything after them applies to it alike.
+    The odometry counts ``height_m`` from the take-off pose: ``params.takeoff_height_m`` is added to make it
+    the height above the floor. ``v_est_h_m_s``: the estimated velocity in H, for the closing-speed law's
+    stopping distance (None: the law without it). ``v_command_h_m_s`` / ``command_yaw_rate_rad_s``: a
+    scripted command (from :mod:`companion.arbiter`) that replaces eqs. (2)-(3); everything after them
+    applies to it alike.
     """
     alpha = camera_yaw_rad(R_qc) + scan.yaw_offset_rad  # eq. (6)
+    if height_m is not None:
+        height_m = height_m + params.takeoff_height_m
     if not operator_enabled:
         op = OperatorInput()
     if v_command_h_m_s is not None and operator_enabled:

@@ -342,6 +342,12 @@ def main(argv: list[str] | None = None) -> int:
     import logging
 
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
+    import signal
+
+    def _stop(signum: int, frame: object) -> None:   # SIGTERM: stop the stack in the finally blocks
+        raise KeyboardInterrupt
+
+    signal.signal(signal.SIGTERM, _stop)
     config = a.config
     if a.room_height is not None:
         config = companion_config_with(a.out, reference={"room_height_m": a.room_height, "max_height_m": None},
