@@ -282,7 +282,7 @@ class Flight:
         self.run_for(30.0, hold, until=lambda: bool(self.flags & 8))  # camera frames fresh
         self.run_for(1.0, hold)
         self.gcs.mav.command_long_send(1, COMPANION_COMPID, mavlink.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, 0, 0, 0, 1.0)
-        self.run_for(15.0, hold, until=lambda: self.mode == MODE_TELEOP and self.p_arena[2] < -0.7)
+        self.run_for(30.0, hold, until=lambda: self.mode == MODE_TELEOP and self.p_arena[2] < -0.7)
         if self.mode != MODE_TELEOP:
             raise AssertionError(f"companion not in teleop after takeoff (mode {self.mode}); "
                                  f"status: {self.log.statustexts[-5:]}")
