@@ -32,6 +32,10 @@ from quadlink.frames import euler_from_quat_wxyz
 from quadlink.mavlink import mavlink
 
 COMPANION_COMPID = 191
+# A process starved for 0.5 s on a loaded 2-core machine reads as a lost operator or ground station (wall
+# clock): these flights test the safety layer, not the link timeouts (the arbiter's are unit-tested).
+LOADED_MACHINE: dict[str, dict[str, object]] = {"modes": {"gcs_timeout_s": 2.0},
+                                                "arbiter": {"operator_timeout_s": 2.0, "script_timeout_s": 2.0}}
 MODE_TELEOP = 2
 MODE_HOLD = 3
 
@@ -214,9 +218,7 @@ class Flight:
                 "--camera", f"tcp://127.0.0.1:{p.camera}", "--image-port", "0",
                 "--tlog", str(out_dir / "companion.tlog")]
         if companion_config is None:
-            # a process starved for 0.5 s on a loaded 2-core machine reads as a lost ground station (wall
-            # clock): these flights test the safety layer, not the link timeouts
-            companion_config = companion_config_with(out_dir, modes={"gcs_timeout_s": 2.0})
+            companion_config = companion_config_with(out_dir, **LOADED_MACHINE)
         comp += ["--config", str(companion_config)]
         self.stack.start(ProcessSpec("companion", tuple(comp), ready_after_s=1.0))
 
@@ -351,7 +353,7 @@ def main(argv: list[str] | None = None) -> int:
     config = a.config
     if a.room_height is not None:
         config = companion_config_with(a.out, reference={"room_height_m": a.room_height, "max_height_m": None},
-                                       modes={"gcs_timeout_s": 2.0})
+                                       **LOADED_MACHINE)
     with flight(a.out, a.scenario, a.offset, not a.realtime, config) as f:
         f.take_off()
         t0 = f.t_s

@@ -18,7 +18,7 @@ from typing import Any
 
 import numpy as np
 import pytest
-from flight_harness import MODE_HOLD, MODE_TELEOP, Flight, companion_config_with, flight
+from flight_harness import LOADED_MACHINE, MODE_HOLD, MODE_TELEOP, Flight, companion_config_with, flight
 
 from quadlink.mavlink import mavlink
 
@@ -64,7 +64,7 @@ def test_operator_pushes_along_the_south_wall_into_the_corner(tmp_path: Path) ->
 def test_operator_climbing_at_full_deflection_stops_below_the_ceiling(tmp_path: Path) -> None:
     """Issue 14: 15 s of full climb in paper-arena (3 m ceiling) reached 2.80 m (0.10 m to the ceiling)."""
     config = companion_config_with(tmp_path, reference={"room_height_m": 3.0, "max_height_m": None},
-                                   modes={"gcs_timeout_s": 2.0})
+                                   **LOADED_MACHINE)
     with flight(tmp_path, offset=_offset(1), companion_config=config) as f:
         f.take_off()
         t0 = f.t_s
@@ -102,7 +102,7 @@ def test_script_stops_sending_and_the_operator_overrides_it(tmp_path: Path) -> N
         assert f.p_arena[2] < p1[2] - 0.3, "the operator's climb did not take over"
         assert np.linalg.norm(f.p_arena[:2] - p1[:2]) < 0.5
         # the script goes silent (and the operator centres the handle): hover
-        f.run_for(2.0, lambda: f.manual(0))
+        f.run_for(3.0, lambda: f.manual(0))     # the script's timeout (2 s here, 1 s by default) passes
         p2 = f.p_arena.copy()
         f.run_for(4.0, lambda: f.manual(0))
         assert np.linalg.norm(f.p_arena - p2) < 0.3, f"drifted {np.linalg.norm(f.p_arena - p2):.2f} m"
