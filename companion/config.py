@@ -7,6 +7,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
+from companion.arbiter import ArbiterParams
 from companion.modes import ModeParams
 from companion.pan_scan import PanScanParams
 from companion.reference import ReferenceParams
@@ -88,6 +89,7 @@ class CompanionConfig:
     pan_scan: PanScanConfig = field(default_factory=PanScanConfig)
     modes: ModeParams = field(default_factory=ModeParams)
     obstacles: ObstacleConfig = field(default_factory=ObstacleConfig)
+    arbiter: ArbiterParams = field(default_factory=ArbiterParams)   # sources of motion (companion.arbiter)
     vehicle: str = "vehicle"  # vehicle config (camera mount R_qc, p_qc) by name or path
     perception_config: str | None = None  # YAML for perception.pipeline.PerceptionConfig; None = defaults
     seed: int = 0

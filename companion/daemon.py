@@ -10,6 +10,8 @@ without ever waiting on a viewer).
 The parts it wires (each pure, each tested on its own):
 
 * :mod:`companion.router` — which message goes where;
+* :mod:`companion.arbiter` — every source of motion (MANUAL_CONTROL, scripted setpoints, mode changes)
+  becomes one command for the reference pipeline; scripted setpoints never reach the autopilot raw;
 * :mod:`companion.frame_step` — perception output + operator input + mode -> setpoint and feedback;
 * :mod:`companion.scheduler` — the periodic deadlines;
 * :mod:`companion.params` — the PARAM_* service for compid 191;
@@ -33,6 +35,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from companion import messages as msgs
+from companion.arbiter import Arbiter, MotionCommand, Pose, Setpoint, Source
 from companion.cameras import CameraInput
 from companion.commands import CommandQueue
 from companion.config import CompanionConfig
@@ -60,6 +63,7 @@ from quadlink.camera import RgbdFrame
 from quadlink.errors import QuadlinkError
 from quadlink.mavlink import mavlink
 from quadlink.operator_image import OperatorImageMeta
+from quadlink.px4_modes import AUTO_LOITER, OFFBOARD, POSCTL, Px4MainMode, decode_custom_mode
 
 log = logging.getLogger(__name__)
 
@@ -101,6 +105,10 @@ class Companion:
         self.vehicle = VehicleState()
         self.stats = Stats()
         self.op = OperatorInput()
+        self.arbiter = Arbiter(cfg.arbiter)
+        self.last_command: MotionCommand | None = None
+        self._ap_codec = mavlink.MAVLink(None, self.sysid, self.ap_compid)   # replies made for the autopilot
+        self._last_refusal = ""
         # perception / reference state (held between frames for the 50 Hz feedback)
         self.last_output: Any | None = None
         self.last_ref: ReferenceOutput | None = None
@@ -260,8 +268,31 @@ class Companion:
                     self._actions(self.modes.on_request_failed(req, self.clock(), why))
             elif kind == "TIMESYNC":
                 self._on_timesync(msg)
-        if route.forward and self._forward(self.gcs, msg):
+        if route.forward and kind == "HEARTBEAT" and self.modes.in_control and \
+                msg.autopilot != mavlink.MAV_AUTOPILOT_INVALID and msg.get_srcComponent() == self.ap_compid:
+            self._forward_mode_heartbeat(msg)
+        elif route.forward and self._forward(self.gcs, msg):
             self.stats.routed_to_gcs += 1
+
+    def reported_mode(self) -> int:
+        """The PX4 custom mode the ground station sees while the companion flies the vehicle: OFFBOARD while a
+        script is engaged (MAVSDK's offboard plugin checks it), POSCTL while the operator flies, else hold."""
+        now = self.clock()
+        if self.arbiter.offboard_engaged:
+            return OFFBOARD.custom_mode
+        return (POSCTL if self.arbiter.operator_alive(now) else AUTO_LOITER).custom_mode
+
+    def _forward_mode_heartbeat(self, msg: Any) -> None:
+        """The autopilot's heartbeat with the mode of the motion authority (the companion's arbiter)."""
+        base_mode = msg.base_mode | mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
+        hb = mavlink.MAVLink_heartbeat_message(msg.type, msg.autopilot, base_mode, self.reported_mode(),
+                                               msg.system_status, msg.mavlink_version)
+        self._ap_codec.srcSystem, self._ap_codec.srcComponent = msg.get_srcSystem(), msg.get_srcComponent()
+        try:
+            self.gcs.write(bytes(hb.pack(self._ap_codec)))
+            self.stats.routed_to_gcs += 1
+        except OSError as exc:
+            log.debug("routing HEARTBEAT failed: %s", exc)
 
     def _on_autopilot_heartbeat(self, msg: Any) -> None:
         src = msg.get_srcSystem()
@@ -307,11 +338,26 @@ class Companion:
         self._log_packet(msg.get_msgbuf())
         kind = msg.get_type()
         target_system = msg.target if kind == "MANUAL_CONTROL" else getattr(msg, "target_system", None)
+        if kind == "HEARTBEAT":
+            self.arbiter.on_heartbeat(self.clock())
+        elif kind == "COMMAND_LONG" and msg.command == mavlink.MAV_CMD_DO_SET_MODE and \
+                target_system in (0, self.sysid) and msg.target_component in (0, self.ap_compid) and \
+                self._on_gcs_set_mode(msg, msg.param1, msg.param2, msg.param3):
+            return
         route = route_from_gcs(kind, target_system, getattr(msg, "target_component", None), self.sysid,
                                self.compid)
         if route.consume:
             if kind == "MANUAL_CONTROL":
                 self._on_manual_control(msg)
+            elif kind == "SET_POSITION_TARGET_LOCAL_NED":
+                self._on_gcs_setpoint(msg)
+            elif kind in ("SET_POSITION_TARGET_GLOBAL_INT", "SET_ATTITUDE_TARGET"):
+                self._refuse(f"{kind} not supported: use SET_POSITION_TARGET_LOCAL_NED velocity")
+            elif kind == "SET_MODE":
+                mode = decode_custom_mode(msg.custom_mode)
+                if not self._on_gcs_set_mode(msg, msg.base_mode, mode.main, mode.sub, ack=False) and \
+                        self._forward(self.autopilot, msg):
+                    self.stats.routed_to_autopilot += 1   # not ours to answer: the autopilot's mode
             elif kind == "COMMAND_LONG":
                 self._on_gcs_command(msg)
             else:
@@ -326,8 +372,73 @@ class Companion:
 
     def _on_manual_control(self, msg: Any) -> None:
         self.op = operator_from_manual_control(msg.x, msg.y, msg.z, self.ref_params.deadband)
+        self.arbiter.on_manual_control(self.clock(), msg.x, msg.y, msg.z)
         self.modes.on_manual_control(self.clock())
         self.stats.manual_controls += 1
+
+    def _pose(self) -> Pose:
+        """What the arbiter needs of the state: the odometry's position and yaw, the pan-scan's offset."""
+        out = self.last_output
+        scan = self._scan_state(self.last_frame_stamp_s) if self.last_frame_stamp_s is not None else NO_SCAN
+        if out is None or not out.odometry_ok or out.position_m is None:
+            return Pose(None, None, scan.yaw_offset_rad)
+        p = np.asarray(out.position_m, dtype=float)
+        return Pose((float(p[0]), float(p[1]), float(p[2])), float(out.yaw_rad), scan.yaw_offset_rad)
+
+    def _refuse(self, text: str) -> None:
+        """A refused motion command: STATUSTEXT once per distinct reason (a script streams at 20 Hz)."""
+        if text != self._last_refusal:
+            self._last_refusal = text
+            self._status_text(StatusText(mavlink.MAV_SEVERITY_WARNING, f"companion: {text}"))
+
+    def _on_gcs_setpoint(self, msg: Any) -> None:
+        sp = Setpoint(msg.coordinate_frame, msg.type_mask, (msg.x, msg.y, msg.z), (msg.vx, msg.vy, msg.vz), msg.yaw,
+                      msg.yaw_rate)
+        refusal = self.arbiter.on_setpoint(self.clock(), sp, self._pose())
+        if refusal is not None:
+            self._refuse(refusal.text)
+        else:
+            self._last_refusal = ""
+
+    def _on_gcs_set_mode(self, msg: Any, base_mode: float, main: float, sub: float, ack: bool = True) -> bool:
+        """A mode change for the autopilot. OFFBOARD engages a script, a hold-like mode (POSCTL, ALTCTL,
+        AUTO_LOITER) disengages it — answered here, as the autopilot would, while the companion flies the
+        vehicle (its heartbeat reports the arbiter's mode). Other modes (LAND, RTL, ...) and every mode
+        change while the companion is not in control go on to the autopilot. Handled here?"""
+        if not (int(base_mode) & mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED) or not all(map(math.isfinite, (main, sub))):
+            return False
+        main_i, sub_i = int(main), int(sub)
+        offboard = main_i == Px4MainMode.OFFBOARD
+        hold = main_i in (Px4MainMode.POSCTL, Px4MainMode.ALTCTL) or \
+            (main_i == AUTO_LOITER.main and sub_i == AUTO_LOITER.sub)
+        if not (offboard or hold):
+            return False
+        accepted = self.arbiter.on_set_mode(self.clock(), offboard)
+        for text in self.arbiter.take_events():
+            self._status_text(StatusText(mavlink.MAV_SEVERITY_INFO, f"companion: {text}"))
+        if not self.modes.in_control:
+            return False   # the autopilot flies its own mode: it answers
+        if ack:
+            result = mavlink.MAV_RESULT_ACCEPTED if accepted else mavlink.MAV_RESULT_DENIED
+            reply = mavlink.MAVLink_command_ack_message(mavlink.MAV_CMD_DO_SET_MODE, result, 0, 0, msg.get_srcSystem(),
+                                                        msg.get_srcComponent())
+            self._ap_codec.srcSystem, self._ap_codec.srcComponent = self.sysid, self.ap_compid
+            try:
+                self.gcs.write(bytes(reply.pack(self._ap_codec)))
+            except OSError as exc:
+                log.debug("mode ack failed: %s", exc)
+        return True
+
+    def _command(self) -> MotionCommand:
+        """The arbiter's command now, its transitions as STATUSTEXT."""
+        cmd = self.arbiter.command(self.clock(), self._pose())
+        for text in self.arbiter.take_events():
+            self._status_text(StatusText(mavlink.MAV_SEVERITY_WARNING if "lost" in text else mavlink.MAV_SEVERITY_INFO,
+                                         f"companion: {text}"))
+        if self.last_command is None or cmd.source != self.last_command.source:
+            log.info("motion source: %s (%s)", cmd.source.name, cmd.reason)
+        self.last_command = cmd
+        return cmd
 
     def _camera_fresh(self) -> bool:
         return self.last_frame_wall_s is not None and \
@@ -392,8 +503,12 @@ class Companion:
         if out is not None:
             self.last_output = out
             self.stats.perception_s.append(float(out.processing_time_s))
-        step: FrameStep = frame_step(out, self.op, self._R_qc, self._scan_state(stamp), self.ref_params,
-                                     self.modes.operator_enabled, self.cfg.obstacles.allow_unknown_when_fresh)
+        cmd = self._command()
+        op = cmd.operator if cmd.source == Source.OPERATOR and cmd.operator is not None else OperatorInput()
+        step: FrameStep = frame_step(out, op, self._R_qc, self._scan_state(stamp), self.ref_params,
+                                     self.modes.operator_enabled, self.cfg.obstacles.allow_unknown_when_fresh,
+                                     v_command_h_m_s=cmd.v_h_m_s if cmd.source == Source.SCRIPT else None,
+                                     command_yaw_rate_rad_s=cmd.yaw_rate_rad_s)
         self._nearest = step.nearest   # for TELEOP_FEEDBACK at 50 Hz
         self.last_ref = step.ref
         self._send_setpoint(stamp, step.ref)
@@ -438,10 +553,16 @@ class Companion:
         ob = self.cfg.obstacles
         self.send_gcs(msgs.obstacle_distance_message(stamp_s, out.sectors, ob.min_distance_cm, ob.max_distance_cm))
 
+    def reported_companion_mode(self) -> Mode:
+        """The mode machine's mode, HOLD while it is TELEOP but no source commands motion (the arbiter holds)."""
+        if self.modes.mode == Mode.TELEOP and self.last_command is not None and self.last_command.hold:
+            return Mode.HOLD
+        return self.modes.mode
+
     def _send_feedback(self, stamp_s: float) -> None:
         self.send_gcs(feedback_message(stamp_s, self.last_output, self.last_ref, self._scan_state(stamp_s),
-                                       self._R_qc, self._nearest, self._gyro_q, self.modes.mode, self.odometry_ok,
-                                       self.modes.gcs_ok, self._camera_fresh()))
+                                       self._R_qc, self._nearest, self._gyro_q, self.reported_companion_mode(),
+                                       self.odometry_ok, self.modes.gcs_ok, self._camera_fresh()))
         self.stats.feedback += 1
 
     def image_meta(self, frame: RgbdFrame, out: Any, ref: ReferenceOutput) -> OperatorImageMeta:
@@ -461,6 +582,10 @@ class Companion:
         camera_silent = self.last_frame_wall_s is None or now - self.last_frame_wall_s > t.camera_timeout_s
         if camera_silent:
             self.odometry_ok = False
+        if self.arbiter.link_alive(now):
+            # the ground station is there while it sends heartbeats, setpoints or MANUAL_CONTROL; a silent
+            # motion source is the arbiter's business (it holds), not a lost link
+            self.modes.on_manual_control(now)
         self._actions(self.modes.update(now, self.vehicle.status(), self.odometry_ok))
         send, failed = self.commands.poll(now)
         for req, why in failed:
@@ -477,7 +602,9 @@ class Companion:
             self.send_autopilot(mavlink.MAVLink_timesync_message(0, int(now * 1e9)))
         if camera_silent and self.deadlines.due("fallback", now, 1.0 / t.fallback_setpoint_rate_hz):
             # keeps the autopilot's stream alive without a camera (frame_step.fallback_step)
-            ref = fallback_step(self.last_output, self.op, self._R_qc, self.ref_params, self.modes.operator_enabled)
+            cmd = self._command()
+            op = cmd.operator if cmd.source == Source.OPERATOR and cmd.operator is not None else OperatorInput()
+            ref = fallback_step(self.last_output, op, self._R_qc, self.ref_params, self.modes.operator_enabled)
             self.last_ref = ref
             self._send_setpoint(self._fallback_stamp(now), ref)
         imu_silent = self._imu_wall_s is None or now - self._imu_wall_s > IMU_SILENT_S

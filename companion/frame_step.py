@@ -50,14 +50,19 @@ def height_m(out: Any) -> float | None:
 
 
 def frame_step(out: Any | None, op: OperatorInput, R_qc: NDArray[np.float64], scan: PanScanState,
-               params: ReferenceParams, operator_enabled: bool, allow_unknown_when_fresh: bool) -> FrameStep:
-    """The reference for a frame; ``out`` is perception's output (None: perception failed on it)."""
+               params: ReferenceParams, operator_enabled: bool, allow_unknown_when_fresh: bool,
+               v_command_h_m_s: NDArray[np.float64] | None = None, command_yaw_rate_rad_s: float = 0.0) -> FrameStep:
+    """The reference for a frame; ``out`` is perception's output (None: perception failed on it).
+    ``v_command_h_m_s`` / ``command_yaw_rate_rad_s``: a scripted command (companion.arbiter) instead of
+    the operator's handle ``op``; the measured velocity feeds the closing-speed law's stopping distance."""
     points = None if out is None else out.obstacle_points_h_m
     sectors, _, offset_deg = msgs.sector_arrays(None if out is None else out.sectors)
     ref = reference_velocity(op, R_qc, scan, points, params, sectors_m=sectors,
                              block_unknown=out is None or not allow_unknown_when_fresh,
                              operator_enabled=operator_enabled, sector_offset_rad=math.radians(offset_deg),
-                             height_m=height_m(out))
+                             height_m=height_m(out),
+                             v_est_h_m_s=None if out is None or not out.odometry_ok else out.v_h_m_s,
+                             v_command_h_m_s=v_command_h_m_s, command_yaw_rate_rad_s=command_yaw_rate_rad_s)
     return FrameStep(ref, nearest_obstacle(points, params))
 
 
@@ -66,6 +71,7 @@ def fallback_step(last_out: Any | None, op: OperatorInput, R_qc: NDArray[np.floa
     """No camera: obstacle data stale -> no motion toward unknown (= all) sectors, repulsion from the last
     map kept (conservative), no pan-scan; the operator is zeroed by HOLD (``operator_enabled``)."""
     points = None if last_out is None else last_out.obstacle_points_h_m
+    # the last velocity estimate is stale: the stopping distance uses none (the hold is the vehicle's)
     return reference_velocity(op, R_qc, NO_SCAN, points, params, sectors_m=None, block_unknown=True,
                               operator_enabled=operator_enabled, height_m=height_m(last_out))
 

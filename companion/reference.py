@@ -35,6 +35,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from companion.pan_scan import PanScanState
+from companion.vertical_limits import VerticalLimits, VerticalParams, apply_vertical_limits, vertical_limits
 
 MANUAL_XY_FULL_SCALE = 1000.0  # MANUAL_CONTROL x, y: -1000..1000
 MANUAL_Z_CENTRE = 500.0  # MANUAL_CONTROL z: 0..1000, 500 = no climb (QGroundControl joystick)
@@ -69,6 +70,23 @@ class ReferenceParams:
     obstacle to horizontal motion); False is the paper's 3D form. When the height above the take-off
     floor is known, points within ``floor_margin_m`` of the floor are the floor, not obstacles (a low
     vehicle sees the floor ahead at its own height: repelled by it, it would back away blindly).
+
+    Safety constraints (issue 14): ``stopping_time_s`` is the distance the vehicle travels, per m/s of its
+    speed, after its reference drops to zero — the bridge's velocity loop (PI, time constant ~0.5 s, with
+    its integral's overshoot: ~0.7 s in a closed-loop simulation of the real tracker) plus the
+    camera-to-setpoint latency; the closing-speed bound toward a point counts the measured closing speed
+    times this time as distance already used up (see :func:`limit_speed_toward_obstacles`).
+    ``surface_gap_m``: neighbouring map points closer than this are taken as one surface and the segment
+    between them constrains the motion (the camera samples a wall with one point per image sector:
+    between two samples 0.5 m apart a vehicle kept 0.45 m from both is only 0.37 m from the wall;
+    bridging gaps narrower than twice the safe distance forbids no passage the vehicle could take).
+    ``out_of_band_3d``: points outside the height band (a box top below the vehicle, a ceiling point
+    above it) constrain the motion by their 3D distance instead of being ignored. Vertical limits
+    (:mod:`companion.vertical_limits`): ``max_height_m`` above the take-off floor (an altitude fence),
+    ``room_height_m`` (the ceiling, kept ``safe_distance_m`` away), ``floor_min_height_m`` (the lowest
+    height the reference descends to; take-off and landing are the autopilot's). ``takeoff_height_m``:
+    height of the vehicle's origin above the floor when it stands on it (its landing gear):
+    :func:`reference_velocity`'s ``height_m`` is the odometry's, counted from the take-off pose.
     """
 
     k_v_m_s: float = 0.6
@@ -86,6 +104,20 @@ class ReferenceParams:
     horizontal_only: bool = True
     vertical_band_m: float = 0.3
     floor_margin_m: float = 0.15
+    stopping_time_s: float = 0.8
+    surface_gap_m: float = 0.9
+    out_of_band_3d: bool = True
+    max_height_m: float | None = None
+    room_height_m: float | None = None
+    floor_min_height_m: float = 0.3
+    takeoff_height_m: float = 0.0
+
+    def vertical(self) -> VerticalParams:
+        """The vertical limits' parameters (:mod:`companion.vertical_limits`), sharing the safe distance and
+        the closing-speed law."""
+        return VerticalParams(self.max_height_m, self.room_height_m, self.safe_distance_m, self.floor_min_height_m,
+                              self.approach_gain_per_s if math.isfinite(self.approach_gain_per_s) else 1.2,
+                              self.stopping_time_s)
 
 
 @dataclass(frozen=True)
@@ -100,6 +132,7 @@ class ReferenceOutput:
     pan_scan_yaw_rate_rad_s: float  # eq. (4)
     operator_yaw_rate_rad_s: float  # eq. (3)
     constrained: bool  # a safety constraint removed part of the command
+    vertical_limits: VerticalLimits | None = None  # the climb/descent bounds applied (None: height not used)
 
 
 def _deadband(value: float, width: float) -> float:
@@ -171,6 +204,62 @@ def _points(points_h_m: ArrayLike | None, params: ReferenceParams | None = None,
     return p
 
 
+def _constraint_points(points_h_m: ArrayLike | None, params: ReferenceParams, height_m: float | None,
+                       reach_m: float, band: NDArray[np.float64] | None = None) -> NDArray[np.float64]:
+    """The vectors (vehicle to obstacle, in H) the safety constraints act on: the band's points projected
+    horizontally (``band``, if already computed by :func:`_points` with the same reach), the closest points
+    of the surfaces they sample (:func:`surface_points`) and, with ``out_of_band_3d``, the other non-floor
+    points in 3D."""
+    if band is None:
+        band = _points(points_h_m, params, height_m, reach_m)
+    parts = [band, surface_points(band, params.surface_gap_m, params.influence_distance_m)]
+    if params.horizontal_only and params.out_of_band_3d and points_h_m is not None:
+        p = _finite_rows(points_h_m)
+        keep = np.abs(p[:, 2]) > params.vertical_band_m
+        keep &= np.einsum("ij,ij->i", p, p) < reach_m * reach_m
+        if height_m is not None and math.isfinite(height_m):
+            keep &= (height_m - p[:, 2]) > params.floor_margin_m
+        parts.append(p[keep])
+    return np.concatenate(parts) if any(x.shape[0] for x in parts[1:]) else band
+
+
+def surface_points(points_h_m: NDArray[np.float64], max_gap_m: float, reach_m: float,
+                   grid_m: float = 0.05, neighbours: int = 6) -> NDArray[np.float64]:
+    """Closest points (to the vehicle at the origin) of the segments joining map points less than
+    ``max_gap_m`` apart, for the points within ``reach_m + max_gap_m / 2``.
+
+    A surface sampled by points is nearer than its nearest sample wherever the vehicle faces the gap
+    between two samples; the segment between them is the surface's piecewise-linear stand-in. The points
+    are thinned to one per ``grid_m`` cell first (the map holds several particles per measured point),
+    then each is joined to its ``neighbours`` next points in azimuth as the vehicle sees them (the gaps
+    that matter are between samples adjacent in the view; O(n) segments instead of all pairs). Only
+    segments whose closest point lies strictly between their ends add a point (otherwise the end is
+    itself a map point)."""
+    if points_h_m.shape[0] < 2 or max_gap_m <= 0.0:
+        return np.zeros((0, 3))
+    p = points_h_m[np.einsum("ij,ij->i", points_h_m, points_h_m) < (reach_m + max_gap_m / 2.0) ** 2]
+    if p.shape[0] < 2:
+        return np.zeros((0, 3))
+    cell = np.floor(p / grid_m).astype(np.int64) + (1 << 20)   # non-negative within +-50 km at 5 cm
+    _, first = np.unique((cell[:, 0] << 42) | (cell[:, 1] << 21) | cell[:, 2], return_index=True)
+    p = p[first]
+    n = p.shape[0]
+    if n < 2:
+        return np.zeros((0, 3))
+    p = p[np.argsort(np.arctan2(p[:, 1], p[:, 0]))]
+    k = min(neighbours, n - 1)
+    i = np.repeat(np.arange(n), k)
+    j = (i + np.tile(np.arange(1, k + 1), n)) % n
+    if 2 * k >= n:   # few points: the cyclic neighbours repeat pairs
+        pair = np.unique(np.minimum(i, j) * n + np.maximum(i, j))
+        i, j = pair // n, pair % n
+    a, ab = p[i], p[j] - p[i]
+    length2 = np.einsum("ij,ij->i", ab, ab)
+    t = -np.einsum("ij,ij->i", a, ab) / np.maximum(length2, 1e-12)
+    inner = (length2 < max_gap_m * max_gap_m) & (length2 > 1e-12) & (t > 1e-6) & (t < 1.0 - 1e-6)
+    return a[inner] + t[inner, None] * ab[inner]
+
+
 def repulsion_velocity(points_h_m: ArrayLike | None, params: ReferenceParams,
                        height_m: float | None = None) -> NDArray[np.float64]:
     """v_o of eq. (7): summed repulsive-potential gradients of the map points (vehicle at the origin of H)."""
@@ -202,54 +291,78 @@ def _repulsion(p: NDArray[np.float64], params: ReferenceParams) -> NDArray[np.fl
 def limit_speed_toward_obstacles(v_h_m_s: NDArray[np.float64], points_h_m: ArrayLike | None,
                                  safe_distance_m: float, approach_gain_per_s: float = math.inf,
                                  params: ReferenceParams | None = None, height_m: float | None = None,
-                                 reach_m: float | None = None) -> tuple[NDArray[np.float64], bool]:
-    """Limit the component of v toward each obstacle point to ``approach_gain_per_s (d_j - safe_distance_m)``.
+                                 reach_m: float | None = None, v_est_h_m_s: ArrayLike | None = None,
+                                 stopping_time_s: float = 0.0) -> tuple[NDArray[np.float64], bool]:
+    """Limit the component of v toward each obstacle point j to the closing-speed law
 
-    Inside the safe distance the bound is zero: no component toward the obstacle at all. Outside it (up
-    to ``reach_m``, default the influence distance of ``params``) the closing speed shrinks linearly to zero
-    at the safe distance, like PX4's collision prevention, so the vehicle slows down in time whatever
-    the lag of the velocity loop: the potential alone only balances the push where the two are equal and
-    lets the vehicle coast past that point. ``approach_gain_per_s = inf`` keeps only the safe-distance
-    rule. Projection onto the half-spaces {v . u_j <= b_j}, repeated so that satisfying one constraint
-    cannot leave another violated; if that does not converge the velocity is zero (which satisfies all,
-    as every bound is >= 0). With ``params.horizontal_only`` the points are those of the height band,
-    projected horizontally.
+        v . u_j <= k (d_j - d_safe - t_stop max(v_est . u_j, 0))        (k = ``approach_gain_per_s``)
+
+    Outside the safe distance (up to ``reach_m``, default the influence distance of ``params``) the closing
+    speed shrinks linearly to zero at the safe distance, like PX4's collision prevention, so the vehicle
+    slows down in time whatever the lag of the velocity loop; the measured closing speed ``v_est`` (when
+    given) times ``stopping_time_s`` is the distance the vehicle still travels before a new reference
+    takes effect, and is counted as used up. That term damps the approach: for a velocity loop with time
+    constant tau and t_stop >= tau, e = d - d_safe obeys tau e'' + (1 + k t_stop) e' + k e = 0, which
+    is critically damped or slower for every k (without it, k tau > 1/4 overshoots the safe distance).
+    Inside the safe distance the bound is negative: the vehicle is sent back out at k (d_safe - d), so it
+    never rests inside it. ``approach_gain_per_s = inf`` keeps only the rule "no component toward points
+    within the safe distance". Projection onto the half-spaces {v . u_j <= b_j}, repeated so that
+    satisfying one constraint cannot leave another violated; if the constraints cannot all be met (the
+    vehicle squeezed between points) the non-negative part of the bounds is used, and failing that the
+    velocity is zero. With ``params`` the points are prepared as :func:`reference_velocity` does
+    (height band, floor, surfaces between samples, points out of the band in 3D).
     """
     if reach_m is None:
         reach_m = params.influence_distance_m if params is not None else safe_distance_m
-    return _limit_speed(v_h_m_s, _points(points_h_m, params, height_m), safe_distance_m, approach_gain_per_s,
-                        reach_m)
+    p = _constraint_points(points_h_m, params, height_m, reach_m) if params is not None else \
+        _points(points_h_m, None, None, reach_m)
+    return _limit_speed(v_h_m_s, p, safe_distance_m, approach_gain_per_s, reach_m, v_est_h_m_s, stopping_time_s)
 
 
 def _limit_speed(v_h_m_s: NDArray[np.float64], p: NDArray[np.float64], safe_distance_m: float,
-                 approach_gain_per_s: float, reach_m: float) -> tuple[NDArray[np.float64], bool]:
-    """:func:`limit_speed_toward_obstacles` of points already through :func:`_points`."""
+                 approach_gain_per_s: float, reach_m: float, v_est_h_m_s: ArrayLike | None = None,
+                 stopping_time_s: float = 0.0) -> tuple[NDArray[np.float64], bool]:
+    """:func:`limit_speed_toward_obstacles` of points already prepared."""
     v = np.array(v_h_m_s, dtype=float)
     if p.size == 0:
         return v, False
     d = np.linalg.norm(p, axis=1)
-    reach_m = max(reach_m, safe_distance_m) if math.isfinite(approach_gain_per_s) else safe_distance_m
+    finite_gain = math.isfinite(approach_gain_per_s)
+    reach_m = max(reach_m, safe_distance_m) if finite_gain else safe_distance_m
     close = (d < reach_m) & (d > 1e-6)
     if not np.any(close):
         return v, False
     d = d[close]
     u = p[close] / d[:, None]
-    bound = np.zeros_like(d)
-    if math.isfinite(approach_gain_per_s):
-        bound = approach_gain_per_s * np.maximum(d - safe_distance_m, 0.0)
-    changed = False
-    for _ in range(10):
+    if finite_gain:
+        margin = d - safe_distance_m
+        if v_est_h_m_s is not None and stopping_time_s > 0.0:
+            v_est = np.asarray(v_est_h_m_s, dtype=float)
+            if np.all(np.isfinite(v_est)):
+                margin = margin - stopping_time_s * np.maximum(u @ v_est, 0.0)
+        bound = approach_gain_per_s * margin
+    else:
+        bound = np.zeros_like(d)
+    out, ok = _project(v, u, bound)
+    if not ok:
+        # squeezed: no velocity meets every (negative) bound; settle for not closing in on any point
+        out, ok = _project(v, u, np.maximum(bound, 0.0))
+        if not ok:
+            out[:] = 0.0
+    return out, bool(np.any(np.abs(out - v) > 1e-12))
+
+
+def _project(v: NDArray[np.float64], u: NDArray[np.float64], bound: NDArray[np.float64],
+             iterations: int = 20) -> tuple[NDArray[np.float64], bool]:
+    """Repeated projection of v onto the most violated half-space {x . u_j <= b_j}; converged?"""
+    v = v.copy()
+    for _ in range(iterations):
         excess = u @ v - bound
         worst = int(np.argmax(excess))
         if excess[worst] <= 1e-9:
-            break
+            return v, True
         v = v - excess[worst] * u[worst]
-        changed = True
-    # The repeated projections can stop short for nearly opposed constraints: there the only
-    # command that satisfies all of them for sure is no motion at all.
-    if np.any(u @ v - bound > 1e-6):
-        v[:] = 0.0
-    return v, changed
+    return v, bool(np.all(u @ v - bound <= 1e-6))
 
 
 def remove_toward_close_obstacles(v_h_m_s: NDArray[np.float64], points_h_m: ArrayLike | None,
@@ -322,30 +435,55 @@ def reference_velocity(op: OperatorInput, R_qc: ArrayLike, scan: PanScanState,
                        obstacle_points_h_m: ArrayLike | None, params: ReferenceParams,
                        sectors_m: ArrayLike | None = None, block_unknown: bool = False,
                        operator_enabled: bool = True, sector_offset_rad: float = 0.0,
-                       height_m: float | None = None) -> ReferenceOutput:
+                       height_m: float | None = None, v_est_h_m_s: ArrayLike | None = None,
+                       v_command_h_m_s: ArrayLike | None = None, command_yaw_rate_rad_s: float = 0.0
+                       ) -> ReferenceOutput:
     """Eqs. (2)-(8) with the safety constraints (see module doc).
 
     ``operator_enabled`` False (hold, link lost) zeroes the operator part but keeps the repulsion;
     ``block_unknown`` forbids horizontal operator motion toward unknown sectors of ``sectors_m``
     (the caller sets it when the obstacle data are stale, passing ``sectors_m=None``). ``height_m``:
     height above the take-off floor (odometry), to tell the floor from obstacles; None = unknown.
+    The odometry counts ``height_m`` from the take-off pose: ``params.takeoff_height_m`` is added to make it
+    the height above the floor. ``v_est_h_m_s``: the estimated velocity in H, for the closing-speed law's
+    stopping distance (None: the law without it). ``v_command_h_m_s`` / ``command_yaw_rate_rad_s``: a
+    scripted command (from :mod:`companion.arbiter`) that replaces eqs. (2)-(3); everything after them
+    applies to it alike.
     """
     alpha = camera_yaw_rad(R_qc) + scan.yaw_offset_rad  # eq. (6)
+    if height_m is not None:
+        height_m = height_m + params.takeoff_height_m
     if not operator_enabled:
         op = OperatorInput()
-    v_d, yaw_rate_d = operator_velocity(op, alpha, params)  # eqs. (2)-(3)
+    if v_command_h_m_s is not None and operator_enabled:
+        v_d = np.array(v_command_h_m_s, dtype=float).reshape(3)
+        if not np.all(np.isfinite(v_d)):
+            v_d = np.zeros(3)
+        yaw_rate_d = float(command_yaw_rate_rad_s) if math.isfinite(command_yaw_rate_rad_s) else 0.0
+    else:
+        v_d, yaw_rate_d = operator_velocity(op, alpha, params)  # eqs. (2)-(3)
     constrained = False
     if block_unknown:
         v_d, constrained = remove_toward_unknown(v_d, sectors_m, params.unknown_sector_guard_rad, sector_offset_rad)
     # the map's points once: only those within reach of either rule matter (a few of its ~2000 particles)
-    p = _points(obstacle_points_h_m, params, height_m, max(params.influence_distance_m, params.safe_distance_m))
+    # the constraints look as far as a vehicle at the commanded (or current) speed needs to brake
+    reach = max(params.influence_distance_m, params.safe_distance_m)
+    speed = max(float(np.linalg.norm(v_d)), 0.0 if v_est_h_m_s is None else float(np.linalg.norm(v_est_h_m_s)))
+    if math.isfinite(speed) and math.isfinite(params.approach_gain_per_s) and params.approach_gain_per_s > 0:
+        reach = max(reach, params.safe_distance_m + speed * (params.stopping_time_s + 1.0 / params.approach_gain_per_s))
+    p = _points(obstacle_points_h_m, params, height_m, reach)   # the repulsion uses those within d_0
     v_o = _repulsion(p, params)
     v_r = v_d + v_o  # eq. (7)
-    v_r, removed = _limit_speed(v_r, p, params.safe_distance_m, params.approach_gain_per_s,
-                                params.influence_distance_m)
+    c = _constraint_points(obstacle_points_h_m, params, height_m, reach, band=p)
+    v_r, removed = _limit_speed(v_r, c, params.safe_distance_m, params.approach_gain_per_s, reach, v_est_h_m_s,
+                                params.stopping_time_s)
+    v_up = None if v_est_h_m_s is None else -float(np.asarray(v_est_h_m_s, dtype=float)[2])
+    limits = vertical_limits(height_m, v_up, params.vertical())
+    v_r, vertical = apply_vertical_limits(v_r, limits)
     speed = float(np.linalg.norm(v_r))
     if speed > params.max_speed_m_s:
         v_r *= params.max_speed_m_s / speed
         constrained = True
     yaw_rate = yaw_rate_d + scan.yaw_rate_rad_s  # eq. (8)
-    return ReferenceOutput(v_r, yaw_rate, v_d, v_o, alpha, scan.yaw_rate_rad_s, yaw_rate_d, constrained or removed)
+    return ReferenceOutput(v_r, yaw_rate, v_d, v_o, alpha, scan.yaw_rate_rad_s, yaw_rate_d,
+                           constrained or removed or vertical, limits)

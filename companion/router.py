@@ -5,8 +5,8 @@ companion computer.
   component; the companion also consumes the few kinds it needs (IMU, state, acks, TIMESYNC).
 * From a ground station: a message for the autopilot's system (or broadcast) goes to the autopilot,
   except MANUAL_CONTROL (the operator's command to the companion, consumed here) and what is addressed to
-  this component (COMMAND_LONG, PARAM_* for compid 191). Broadcast parameter requests are answered by
-  both.
+  this component (COMMAND_LONG, PARAM_* for compid 191) and motion commands (setpoints, SET_MODE: the
+  companion arbitrates all motion, issue 14). Broadcast parameter requests are answered by both.
 """
 
 from __future__ import annotations
@@ -15,6 +15,11 @@ from dataclasses import dataclass
 
 AUTOPILOT_CONSUMED = frozenset({"HIGHRES_IMU", "HEARTBEAT", "EXTENDED_SYS_STATE", "COMMAND_ACK", "TIMESYNC"})
 BROADCAST_PARAM_KINDS = frozenset({"PARAM_REQUEST_LIST", "PARAM_REQUEST_READ", "PARAM_SET"})
+# Motion commands from a ground station: the companion is the one arbiter of motion (companion.arbiter),
+# so they are consumed here and never reach the autopilot raw; so are mode changes (the companion answers
+# them for the autopilot while it is in control: see Companion._on_gcs_set_mode).
+MOTION_KINDS = frozenset({"SET_POSITION_TARGET_LOCAL_NED", "SET_POSITION_TARGET_GLOBAL_INT", "SET_ATTITUDE_TARGET",
+                          "SET_MODE"})
 
 
 @dataclass(frozen=True)
@@ -39,7 +44,7 @@ def route_from_gcs(kind: str, target_system: int | None, target_component: int |
         return RouteDecision(consume=target_system in (0, sysid), forward=False)
     if target_system not in (None, 0, sysid):
         return RouteDecision(consume=False, forward=False)  # another system: nothing behind us has it
-    if target_component == compid:
+    if target_component == compid or kind in MOTION_KINDS:
         return RouteDecision(consume=True, forward=False)
     broadcast_param = target_component in (None, 0) and kind in BROADCAST_PARAM_KINDS
     return RouteDecision(consume=broadcast_param, forward=True)

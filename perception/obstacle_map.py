@@ -5,7 +5,8 @@
   ``copies`` particles are placed at the point (reactive behaviour, particles for the spread) — except
   particles nearer the camera than its minimum range, which it cannot see.
 * **Free-space carving** (added to the paper's rule so that an obstacle that moved away is forgotten;
-  never nearer the camera than its minimum range, where it is blind):
+  never nearer the camera than its minimum range plus ``carve_blind_margin_m``, where it is blind or a
+  sector's reading comes from the pixels beyond the blind part):
   a particle inside the camera's view whose sector saw something farther, or nothing within range, is
   removed.
 * **Time update**, eq. (14), per particle j with its own noise samples::
@@ -45,6 +46,9 @@ class ObstacleMapConfig:
                                       # matches the drift of a 0.02 m/s velocity error that persists that long
     yaw_rate_noise_rad_s: float = 0.02  # std of n_psi (eq. 14)
     carve_margin_m: float = 0.15      # a particle this much in front of the measured surface is free space
+    carve_blind_margin_m: float = 0.3  # ... but not within this distance beyond the sensor's minimum range:
+                                       # a surface nearer than the minimum range gives no reading, so a sector
+                                       # that straddles it reports a farther surface (its closest *valid* pixel)
     measurement_noise_per_m: float = 0.02  # std of a measured point's position per metre of distance (depth
                                            # noise and ~1 deg of attitude error): the copies are drawn from it
     sectors: int = 72                 # OBSTACLE_DISTANCE-style summary
@@ -185,6 +189,10 @@ class ObstacleMap:
             # the sensor's range; nan, and -1 = out of view, which indexes the appended nan: never carved)
             sec, rng_p = obs.sector_and_range_of_points_h(p[:, :n].T)
             remove = rng_p < np.concatenate((obs.ranges_m - cfg.carve_margin_m, _NAN))[sec]
+            # near the blind zone a sector's reading does not prove free space (issue 14: a wall 0.5 m ahead,
+            # partly inside the minimum range, was carved away by the farther pixels of the same sectors
+            # and the vehicle, no longer seeing it, was pushed to 0.18 m of it)
+            remove &= rng_p >= obs.min_range_m + cfg.carve_blind_margin_m
         if k:
             # measured cells are overwritten; the zenith only where the azimuth is a measured one (the
             # candidates end with the k measured points themselves, in order)

@@ -14,6 +14,7 @@ from typing import Any
 import numpy as np
 import pytest
 
+from companion.arbiter import ArbiterParams
 from companion.cameras import StreamCamera
 from companion.config import CompanionConfig, LinksConfig, ModeParams, PanScanConfig, TimingConfig
 from companion.daemon import Companion
@@ -143,6 +144,7 @@ class Rig:
             timing=TimingConfig(camera_timeout_s=1.0),
             pan_scan=PanScanConfig(enabled=False),
             modes=ModeParams(gcs_timeout_s=0.5, gcs_land_timeout_s=1.5, takeoff_min_s=0.3),
+            arbiter=ArbiterParams(link_timeout_s=0.5),
         )
         self.server = CameraStreamServer("127.0.0.1", 0)
         ap_link = open_mavlink(cfg.links.autopilot, 1, 191)
@@ -384,3 +386,60 @@ def test_takeoff_commanded_to_the_autopilot_is_followed_into_teleop(rig: Rig) ->
     rig.frame(manual=(0, 0, 500))
     echo = [m for m in rig.gcs.of_type("PARAM_VALUE", src_comp=191) if m.param_id == "PANSCAN_EN"]
     assert echo and echo[-1].param_value == 0.0 and not rig.daemon.scan_params.enabled
+
+
+def test_scripted_offboard_goes_through_the_arbiter_not_raw(rig: Rig) -> None:
+    """MAVSDK's offboard sequence through the companion (issue 14): setpoints before start(), DO_SET_MODE
+    OFFBOARD answered as the autopilot (compid 1), the mode reported in the autopilot's heartbeat, the
+    script's velocity shaped by the same constraints, stop() -> hold."""
+    rig.take_off()
+    gcs = rig.gcs.link.mav
+    n_raw = len([m for m in _setpoints(rig.ap) if m.get_srcComponent() != 191])
+
+    def body(vx: float) -> None:   # set_velocity_body(vx, 0, 0, 0) as MAVSDK packs it
+        gcs.set_position_target_local_ned_send(0, 1, 1, mavlink.MAV_FRAME_BODY_NED, 1479, 0, 0, 0, vx, 0.0, 0.0,
+                                               0, 0, 0, 0, 0)
+        gcs.heartbeat_send(mavlink.MAV_TYPE_GCS, mavlink.MAV_AUTOPILOT_INVALID, 0, 0, 0)
+
+    for _ in range(3):
+        body(0.4)
+        rig.frame()
+    gcs.command_long_send(1, 1, mavlink.MAV_CMD_DO_SET_MODE, 0, mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, 6, 0,
+                          0, 0, 0, 0)
+    for _ in range(45):   # ~1.5 s: a few autopilot heartbeats are routed
+        body(0.4)
+        rig.frame()
+    acks = [m for m in rig.gcs.of_type("COMMAND_ACK", src_comp=1) if m.command == mavlink.MAV_CMD_DO_SET_MODE]
+    assert acks and acks[-1].result == mavlink.MAV_RESULT_ACCEPTED
+    assert not [m for m in rig.ap.of_type("COMMAND_LONG") if m.command == mavlink.MAV_CMD_DO_SET_MODE and
+                m.get_srcSystem() == 255], "the script's mode change reached the autopilot"
+    hb = rig.gcs.of_type("HEARTBEAT", src_comp=1)
+    assert hb and (hb[-1].custom_mode >> 16) & 0xFF == 6 and hb[-1].base_mode & 1   # PX4 OFFBOARD, custom
+    sp = _setpoints(rig.ap)
+    assert len([m for m in sp if m.get_srcComponent() != 191]) == n_raw, "script setpoints routed raw"
+    assert sp[-1].vx == pytest.approx(0.4, abs=1e-4) and abs(sp[-1].vy) < 1e-6   # H = body, no pan-scan
+
+    # an obstacle 0.5 m ahead: the script is shaped like the operator (closing speed k (d - d_safe))
+    rig.pipeline.points_h = np.array([[0.5, 0.0, 0.0]])
+    for _ in range(5):
+        body(0.4)
+        rig.frame()
+    assert _setpoints(rig.ap)[-1].vx < 0.4 * 0.5
+    rig.pipeline.points_h = np.zeros((0, 3))
+
+    # the operator's handle out of the dead-band overrides the script
+    for _ in range(5):
+        body(0.4)
+        rig.frame(manual=(0, 0, 1000))   # full climb, no forward
+    assert abs(_setpoints(rig.ap)[-1].vx) < 1e-6 and _setpoints(rig.ap)[-1].vz < -0.1
+
+    # offboard.stop(): MAVSDK asks for HOLD (AUTO_LOITER): zero command, the companion still flies
+    gcs.command_long_send(1, 1, mavlink.MAV_CMD_DO_SET_MODE, 0, mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, 4, 3,
+                          0, 0, 0, 0)
+    for _ in range(45):
+        body(0.4)
+        rig.frame()
+    assert abs(_setpoints(rig.ap)[-1].vx) < 1e-6
+    hb = rig.gcs.of_type("HEARTBEAT", src_comp=1)
+    assert (hb[-1].custom_mode >> 16) & 0xFF == 4 and (hb[-1].custom_mode >> 24) & 0xFF == 3
+    assert rig.daemon.modes.mode == Mode.TELEOP

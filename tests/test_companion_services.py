@@ -43,6 +43,15 @@ def test_gcs_messages_route_by_target() -> None:
     assert not route_from_gcs("COMMAND_LONG", 0, 0, 1, ME).consume
 
 
+def test_motion_commands_from_a_ground_station_never_reach_the_autopilot_raw() -> None:
+    # issue 14: the companion is the one arbiter of motion
+    for kind in ("SET_POSITION_TARGET_LOCAL_NED", "SET_POSITION_TARGET_GLOBAL_INT", "SET_ATTITUDE_TARGET", "SET_MODE"):
+        for target_comp in (1, 0, None):
+            r = route_from_gcs(kind, 1, target_comp, 1, ME)
+            assert r.consume and not r.forward, (kind, target_comp)
+    assert not route_from_gcs("SET_POSITION_TARGET_LOCAL_NED", 2, 1, 1, ME).forward   # another system
+
+
 def test_deadlines_fire_once_per_period() -> None:
     d = Deadlines()
     fired = [t for t in [0.0, 0.3, 0.99, 1.0, 1.5, 2.0, 2.2] if d.due("hb", t, 1.0)]

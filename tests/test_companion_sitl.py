@@ -138,7 +138,9 @@ def fly_push_toward_column(out_dir: Path, push_s: float, port_offset: int = 700)
                     return
                 if until is not None and until():  # type: ignore[operator]
                     return
-                if time.monotonic() - last_hb > 1.0:
+                # a silent ground station sends nothing, heartbeats included: the companion counts the link
+                # alive while heartbeats arrive (issue 14) and would hover without landing
+                if control is not None and time.monotonic() - last_hb > 1.0:
                     last_hb = time.monotonic()
                     gcs.mav.heartbeat_send(mavlink.MAV_TYPE_GCS, mavlink.MAV_AUTOPILOT_INVALID, 0, 0, 0)
                 if control is not None:

@@ -279,3 +279,21 @@ def test_measured_copies_are_drawn_from_the_measurement_noise(rng: np.random.Gen
     m2 = ObstacleMap(cfg)
     m2.measure(0.0, obs)
     assert np.allclose(m2.points_h_m, centre)
+
+
+def test_particles_just_beyond_the_minimum_range_are_not_carved_by_a_farther_reading(rng: np.random.Generator) -> None:
+    """Issue 14: a wall partly inside the minimum range reads as the farther surface its valid pixels see;
+    a remembered point of it a little beyond the minimum range must survive that reading."""
+    cfg = ObstacleMapConfig(velocity_noise_m_s=0.0, yaw_rate_noise_rad_s=0.0)
+    m = ObstacleMap(cfg)
+    _observe(m, 0.0, _wall_depth(1.2))
+    n0 = len(m)
+    m.predict(1.0, np.array([0.55, 0, 0]), np.array([0.55, 0, 0]), 0.0, 0.0, rng)   # 0.65 m ahead
+    near = float(np.min(np.linalg.norm(m.points_h_m, axis=1)))
+    assert ObstacleConfig().min_range_m < near < ObstacleConfig().min_range_m + cfg.carve_blind_margin_m
+    _observe(m, 1.0, _wall_depth(6.0))     # free to the sensor's range in every sector (carving only)
+    assert len(m) == n0 and m.sectors(1.0).distances_m[0] == pytest.approx(0.65, abs=0.02)
+    # well beyond the blind zone the same reading carves
+    m.predict(1.0, np.array([-0.5, 0, 0]), np.array([-0.5, 0, 0]), 0.0, 0.0, rng)   # back to 1.15 m
+    _observe(m, 2.0, _wall_depth(6.0))
+    assert len(m) == 0

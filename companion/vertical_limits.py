@@ -1,0 +1,98 @@
+"""Vertical safety: a ceiling and a floor margin from what the vehicle can know (issue 14; pure).
+
+The camera looks 30 deg down and never sees the ceiling, so the climb is bounded by what is configured,
+like PX4's (``GF_MAX_VER_DIST``) and ArduPilot's (``FENCE_ALT_MAX``) altitude fences: a maximum height
+above the take-off floor and/or the room's height (its ceiling, minus the safe distance). Ceiling points
+that the obstacle map holds (seen earlier, e.g. under a low beam) act through the reference's 3D
+constraints (:mod:`companion.reference`, ``out_of_band_3d``).
+
+The height is the odometry's, above the take-off floor (NED: height = -z of the position). Both limits
+use the reference's closing-speed law with its stopping distance (:func:`companion.reference.
+limit_speed_toward_obstacles`): the climb speed is at most ``k (h_max - h - t_stop max(v_up, 0))``, the
+descent speed near the floor at most ``k (h - h_min - t_stop max(v_down, 0))`` — zero at ``h_min`` and
+negative (climb back) below it. The floor is exempt only for take-off and landing, which the autopilot
+flies (TAKEOFF/LAND modes), not this reference.
+
+With the height unknown (odometry lost) no climb is allowed toward a configured ceiling and no descent is
+allowed at all: the vehicle holds its altitude (the mode machine holds it anyway).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+
+@dataclass(frozen=True)
+class VerticalParams:
+    """Configured vertical limits (m, above the take-off floor) and the law's gain and stopping time.
+
+    ``max_height_m``: the altitude fence (None = none). ``room_height_m``: the ceiling's height (None =
+    unknown); the vehicle keeps ``safe_distance_m`` below it. ``floor_min_height_m``: the lowest height
+    the reference flies to (the descent slows toward it from ``floor_min_height_m + max_descent / gain``).
+    """
+
+    max_height_m: float | None = None
+    room_height_m: float | None = None
+    safe_distance_m: float = 0.45
+    floor_min_height_m: float = 0.3
+    gain_per_s: float = 1.2
+    stopping_time_s: float = 0.8
+
+
+@dataclass(frozen=True)
+class VerticalLimits:
+    """The vertical limits in force at one instant (for the ground station; m and m/s, up positive).
+
+    ``ceiling_height_m``: the highest height the reference flies to (inf: no limit); ``floor_height_m``
+    the lowest; ``max_climb_m_s`` / ``max_descent_m_s``: the speed bounds now (negative: the vehicle is
+    sent back, down resp. up); ``height_m``: the height they were computed from (nan: unknown)."""
+
+    ceiling_height_m: float
+    floor_height_m: float
+    max_climb_m_s: float
+    max_descent_m_s: float
+    height_m: float
+
+    @property
+    def limiting(self) -> bool:
+        return math.isfinite(self.max_climb_m_s) or math.isfinite(self.max_descent_m_s)
+
+
+def ceiling_height_m(params: VerticalParams) -> float:
+    """The highest height the vehicle's centre may reach: the fence, the room's ceiling minus the margin."""
+    limits = [math.inf]
+    if params.max_height_m is not None:
+        limits.append(params.max_height_m)
+    if params.room_height_m is not None:
+        limits.append(params.room_height_m - params.safe_distance_m)
+    return min(limits)
+
+
+def vertical_limits(height_m: float | None, v_up_est_m_s: float | None, params: VerticalParams) -> VerticalLimits:
+    """The climb and descent bounds at ``height_m`` (above take-off) moving up at ``v_up_est_m_s``."""
+    top = ceiling_height_m(params)
+    bottom = params.floor_min_height_m
+    if height_m is None or not math.isfinite(height_m):
+        return VerticalLimits(top, bottom, 0.0 if math.isfinite(top) else math.inf, 0.0, math.nan)
+    v_up = 0.0 if v_up_est_m_s is None or not math.isfinite(v_up_est_m_s) else v_up_est_m_s
+    k, t_stop = params.gain_per_s, params.stopping_time_s
+    climb = k * (top - height_m - t_stop * max(v_up, 0.0)) if math.isfinite(top) else math.inf
+    descent = k * (height_m - bottom - t_stop * max(-v_up, 0.0))
+    return VerticalLimits(top, bottom, climb, descent, height_m)
+
+
+def apply_vertical_limits(v_h_m_s: ArrayLike, limits: VerticalLimits) -> tuple[NDArray[np.float64], bool]:
+    """Clamp the vertical component of a velocity in H (NED: z down) to the limits; changed?"""
+    v = np.array(v_h_m_s, dtype=float)
+    up = -v[2]
+    clamped = min(up, limits.max_climb_m_s)
+    clamped = max(clamped, -limits.max_descent_m_s)
+    if limits.max_climb_m_s < -limits.max_descent_m_s:   # cannot happen with a sane config: hold
+        clamped = 0.0
+    changed = clamped != up
+    v[2] = -clamped
+    return v, bool(changed)

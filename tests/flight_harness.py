@@ -1,0 +1,373 @@
+"""A reusable SITL flight harness for the safety layer (issue 14): start SITL + bridge + companion, fly
+the vehicle from a pymavlink ground station through the companion's ground-station endpoint, and
+measure the *true* clearance to every non-floor surface from the SITL truth stream and the scenario's
+geometry (independently of the flight code: the clearance is computed here from the scene bodies).
+
+Importable by the SITL tests (``from flight_harness import ...``) and runnable as a script::
+
+    PYTHONPATH=. python tests/flight_harness.py push --x 700 --seconds 30 --offset 4000 [--realtime]
+    PYTHONPATH=. python tests/flight_harness.py climb --seconds 15 --offset 4100
+
+Geometry: the truth's LOCAL_POSITION_NED is relative to the start position (arena NED, not rotated),
+so the arena position is ``start + p_local``. Distances are from the centre of mass (as paper 000's
+Fig. 8) to the walls' and ceiling's inner faces and to the objects (yawed boxes, upright cylinders).
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import math
+import socket
+import sys
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+
+from quadlink.frames import euler_from_quat_wxyz
+from quadlink.mavlink import mavlink
+
+COMPANION_COMPID = 191
+# A process starved for 0.5 s on a loaded 2-core machine reads as a lost operator or ground station (wall
+# clock): these flights test the safety layer, not the link timeouts (the arbiter's are unit-tested).
+LOADED_MACHINE: dict[str, dict[str, object]] = {"modes": {"gcs_timeout_s": 2.0},
+                                                "arbiter": {"operator_timeout_s": 2.0, "script_timeout_s": 2.0}}
+MODE_TELEOP = 2
+MODE_HOLD = 3
+
+
+# ---------------------------------------------------------------- geometry (pure)
+def box_distance_m(p_ned_m: NDArray[np.float64], centre_ned_m: NDArray[np.float64], size_m: NDArray[np.float64],
+                   yaw_rad: float) -> float:
+    """Distance from a point to a solid box turned by ``yaw_rad`` about the down axis (0 inside)."""
+    d = np.asarray(p_ned_m, dtype=float) - np.asarray(centre_ned_m, dtype=float)
+    c, s = math.cos(yaw_rad), math.sin(yaw_rad)
+    local = np.array([c * d[0] + s * d[1], -s * d[0] + c * d[1], d[2]])   # Rz(yaw)^T d
+    q = np.abs(local) - np.asarray(size_m, dtype=float) / 2.0
+    return float(np.linalg.norm(np.maximum(q, 0.0)))
+
+
+def cylinder_distance_m(p_ned_m: NDArray[np.float64], centre_ned_m: NDArray[np.float64], radius_m: float,
+                        height_m: float) -> float:
+    """Distance from a point to a solid upright cylinder (0 inside)."""
+    d = np.asarray(p_ned_m, dtype=float) - np.asarray(centre_ned_m, dtype=float)
+    radial = max(math.hypot(d[0], d[1]) - radius_m, 0.0)
+    axial = max(abs(d[2]) - height_m / 2.0, 0.0)
+    return math.hypot(radial, axial)
+
+
+@dataclass(frozen=True)
+class Clearance:
+    """True distances from the centre of mass (m): walls, objects, ceiling, floor; ``surface`` = nearest
+    non-floor surface (walls, objects and ceiling)."""
+
+    wall_m: float
+    object_m: float
+    ceiling_m: float
+    floor_m: float
+    nearest_name: str
+
+    @property
+    def surface_m(self) -> float:
+        return min(self.wall_m, self.object_m, self.ceiling_m)
+
+
+class ArenaGeometry:
+    """The scenario's bodies as plain geometry (from ``sim_sitl.scene.build_scene``)."""
+
+    def __init__(self, scenario: str) -> None:
+        from sim_sitl.config import load_scenario
+        from sim_sitl.scene import build_scene
+
+        self.scenario = load_scenario(scenario)
+        self.scene = build_scene(self.scenario)
+        self.start_ned_m = np.array([*self.scenario.start.position_m[:2], 0.0])
+        self.room = self.scenario.room
+
+    def clearance(self, p_arena_ned_m: NDArray[np.float64]) -> Clearance:
+        p = np.asarray(p_arena_ned_m, dtype=float)
+        nx, ny = self.room.size_m
+        walls = (p[0] + nx / 2, nx / 2 - p[0], p[1] + ny / 2, ny / 2 - p[1]) if self.room.walls else (math.inf,)
+        wall = min(walls)
+        ceiling = p[2] + self.room.height_m if self.room.ceiling else math.inf
+        floor = -p[2]
+        best, name = math.inf, "wall"
+        for b in self.scene.bodies:
+            if b.surface in ("floor", "ceiling", "wall"):
+                continue
+            if b.kind == "box":
+                d = box_distance_m(p, np.array(b.centre_ned_m), np.array(b.size_m), b.yaw_rad)
+            else:
+                d = cylinder_distance_m(p, np.array(b.centre_ned_m), b.radius_m, b.height_m)
+            if b.surface == "floor":   # a rug: counts as floor
+                floor = min(floor, d)
+                continue
+            if d < best:
+                best, name = d, b.name
+        nearest = min((wall, "wall"), (best, name), (ceiling, "ceiling"))[1]
+        return Clearance(wall, best, ceiling, floor, nearest)
+
+
+# ---------------------------------------------------------------- the flight
+@dataclass
+class TruthSample:
+    t_s: float
+    p_arena_ned_m: NDArray[np.float64]
+    yaw_rad: float
+    clearance: Clearance
+    mode: int
+    sim_obstacle_m: float   # the SITL's own DISTANCE_SENSOR id 1 (objects and walls, pybullet)
+
+
+@dataclass
+class FlightLog:
+    samples: list[TruthSample] = field(default_factory=list)
+    modes: list[tuple[float, int]] = field(default_factory=list)
+    statustexts: list[str] = field(default_factory=list)
+
+    def flying(self, min_height_m: float = 0.3) -> list[TruthSample]:
+        return [s for s in self.samples if s.clearance.floor_m > min_height_m]
+
+    def min_surface(self, since_s: float = -math.inf) -> TruthSample | None:
+        fl = [s for s in self.flying() if s.t_s >= since_s]
+        return min(fl, key=lambda s: s.clearance.surface_m) if fl else None
+
+    def summary(self, since_s: float = -math.inf) -> str:
+        s = self.min_surface(since_s)
+        if s is None:
+            return "never flew"
+        c = s.clearance
+        x, y, z = s.p_arena_ned_m
+        return (f"min clearance {c.surface_m:.3f} m ({c.nearest_name}) at t={s.t_s:.1f} s, p=({x:.2f}, "
+                f"{y:.2f}, {z:.2f}), mode {s.mode}; walls {c.wall_m:.3f} objects "
+                f"{c.object_m:.3f} ceiling {c.ceiling_m:.3f}; min wall/object/ceiling over the flight "
+                f"{min(x.clearance.wall_m for x in self.flying()):.3f}/"
+                f"{min(x.clearance.object_m for x in self.flying()):.3f}/"
+                f"{min(x.clearance.ceiling_m for x in self.flying()):.3f}")
+
+    def save_csv(self, path: Path) -> None:
+        rows = [(s.t_s, *s.p_arena_ned_m, s.yaw_rad, s.clearance.wall_m, s.clearance.object_m, s.clearance.ceiling_m,
+                 s.sim_obstacle_m, s.mode) for s in self.samples]
+        np.savetxt(path, np.asarray(rows).reshape(-1, 10), delimiter=",",
+                   header="t_s,x_m,y_m,z_m,yaw_rad,wall_m,object_m,ceiling_m,sim_obstacle_m,mode")
+
+
+def _wait_tcp(port: int, check: Callable[[], object], timeout_s: float) -> None:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        check()
+        try:
+            with socket.create_connection(("127.0.0.1", port), timeout=0.5):
+                return
+        except OSError:
+            time.sleep(0.5)
+    raise TimeoutError(f"nothing listening on port {port} after {timeout_s:.0f} s")
+
+
+class Flight:
+    """A running stack and a ground station on the companion's endpoint. Use :func:`flight`."""
+
+    def __init__(self, out_dir: Path, scenario: str, offset: int, lockstep: bool,
+                 companion_config: Path | None, sitl_duration_s: float) -> None:
+        from quadlink.demo.cli import Ports
+        from quadlink.demo.orchestrator import ProcessSpec, Stack
+        from quadlink.mavlink.connection import open_mavlink
+
+        self.out_dir = out_dir
+        out_dir.mkdir(parents=True, exist_ok=True)
+        self.geometry = ArenaGeometry(scenario)
+        self.ports = p = Ports(offset)
+        self.lockstep = lockstep
+        self.stack = Stack(out_dir / "logs")
+        self.truth = open_mavlink(f"udpin:127.0.0.1:{p.truth}", 255, 0)
+        self.gcs = open_mavlink(f"udpout:127.0.0.1:{p.vehicle}", 255, 190)
+        self.log = FlightLog()
+        self.t_s = 0.0
+        self.p_arena = self.geometry.start_ned_m.copy()
+        self.yaw_rad = math.radians(self.geometry.scenario.start.yaw_deg)
+        self.mode = 0
+        self.flags = 0
+        self.armed = False
+        self.sim_obstacle_m = math.inf
+        self._last_hb = 0.0
+        # the vehicle rests on the floor with its centre half its collision box above it: the truth's local
+        # z starts there (the start is on the floor in the scenarios used here)
+        from sim_sitl.config import load_sitl_config
+        self._rest_z = -load_sitl_config().physics.body_size_m[2] / 2.0
+        sitl = ["sitl", "--scenario", scenario, "--port1", str(p.mk1), "--port2", str(p.mk2), "--camera-port",
+                str(p.camera), "--truth", f"udpout:127.0.0.1:{p.truth}", "--duration", f"{sitl_duration_s:.0f}"]
+        if lockstep:
+            sitl.append("--lockstep")
+        self.stack.start(ProcessSpec("sitl", tuple(sitl), ready_after_s=2.0))
+        # as tests/test_companion_sitl.py: a loaded machine can stall the lock-step IMU stream longer than
+        # the bridge's 0.5 s board-loss timeout; these flights are about the companion
+        # (likewise its odometry-loss timeout: a starved companion stalls the odometry stream)
+        (out_dir / "bridge_params.yaml").write_text("BRG_BOARD_LOSS_T: 3.0\nBRG_ODOM_LOSS_T: 2.0\n")
+        _wait_tcp(p.mk1, self.stack.check, 120.0)
+        _wait_tcp(p.camera, self.stack.check, 60.0)
+        self.stack.start(ProcessSpec("bridge", ("bridge", "--mk-cmd", f"socket://127.0.0.1:{p.mk1}",
+                                                "--mk-imu", f"socket://127.0.0.1:{p.mk2}",
+                                                "--mavlink", f"udpout:127.0.0.1:{p.autopilot}",
+                                                "--mavlink", f"udpout:127.0.0.1:{p.gcs_bridge}",
+                                                "--params", str(out_dir / "bridge_params.yaml")), ready_after_s=1.0))
+        comp = ["companion", "--autopilot", f"udpin:127.0.0.1:{p.autopilot}", "--gcs", f"udpin:127.0.0.1:{p.vehicle}",
+                "--camera", f"tcp://127.0.0.1:{p.camera}", "--image-port", "0",
+                "--tlog", str(out_dir / "companion.tlog")]
+        if companion_config is None:
+            companion_config = companion_config_with(out_dir, **LOADED_MACHINE)
+        comp += ["--config", str(companion_config)]
+        self.stack.start(ProcessSpec("companion", tuple(comp), ready_after_s=1.0))
+
+    # --- I/O
+    def pump(self) -> None:
+        while (m := self.truth.recv_msg()) is not None:
+            kind = m.get_type()
+            if kind == "LOCAL_POSITION_NED":
+                self.t_s = m.time_boot_ms / 1e3
+                self.p_arena = self.geometry.start_ned_m + np.array([m.x, m.y, m.z])
+                # the start position is the vehicle's resting height: the truth's z is relative to it
+                self.p_arena[2] += self._rest_z
+                self.log.samples.append(TruthSample(self.t_s, self.p_arena.copy(), self.yaw_rad,
+                                                    self.geometry.clearance(self.p_arena), self.mode,
+                                                    self.sim_obstacle_m))
+            elif kind == "ATTITUDE_QUATERNION":
+                self.yaw_rad = euler_from_quat_wxyz([m.q1, m.q2, m.q3, m.q4])[2]
+            elif kind == "DISTANCE_SENSOR" and m.id == 1:
+                self.sim_obstacle_m = m.current_distance / 100.0
+        while (m := self.gcs.recv_msg()) is not None:
+            kind = m.get_type()
+            if kind == "TELEOP_FEEDBACK":
+                if not self.log.modes or self.log.modes[-1][1] != m.mode:
+                    self.log.modes.append((m.time_usec / 1e6, m.mode))
+                self.mode, self.flags = m.mode, m.flags
+            elif kind == "HEARTBEAT" and m.get_srcComponent() == 1:
+                self.armed = bool(m.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED)
+            elif kind == "STATUSTEXT":
+                self.log.statustexts.append(f"{self.t_s:.1f} {m.text}")
+
+
+    def heartbeat(self) -> None:
+        if time.monotonic() - self._last_hb > 1.0:
+            self._last_hb = time.monotonic()
+            self.gcs.mav.heartbeat_send(mavlink.MAV_TYPE_GCS, mavlink.MAV_AUTOPILOT_INVALID, 0, 0, 0)
+
+    def manual(self, x: int, y: int = 0, z: int = 500) -> None:
+        self.gcs.mav.manual_control_send(1, x, y, z, 0, 0)
+
+    def run_for(self, sim_s: float, control: Callable[[], None] | None, until: Callable[[], bool] | None = None,
+                wall_s: float = 600.0, period_s: float = 0.02) -> None:
+        """Call ``control`` every ``period_s`` (wall) for ``sim_s`` simulated seconds (or until ``until``)."""
+        t_end_wall = time.monotonic() + wall_s
+        t_end_sim: float | None = None
+        while time.monotonic() < t_end_wall:
+            self.stack.check()
+            self.pump()
+            if t_end_sim is None and self.t_s > 0:
+                t_end_sim = self.t_s + sim_s
+            if t_end_sim is not None and self.t_s >= t_end_sim:
+                return
+            if until is not None and until():
+                return
+            self.heartbeat()
+            if control is not None:
+                control()
+            time.sleep(period_s)
+
+    def take_off(self) -> None:
+        """Wait for perception, take off through the companion (compid 191), wait for TELEOP."""
+        hold = lambda: self.manual(0)  # noqa: E731
+        self.run_for(2.0, hold)
+        self.run_for(30.0, hold, until=lambda: bool(self.flags & 8))  # camera frames fresh
+        self.run_for(1.0, hold)
+        self.gcs.mav.command_long_send(1, COMPANION_COMPID, mavlink.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, 0, 0, 0, 1.0)
+        self.run_for(30.0, hold, until=lambda: self.mode == MODE_TELEOP and self.p_arena[2] < -0.7)
+        if self.mode != MODE_TELEOP:
+            raise AssertionError(f"companion not in teleop after takeoff (mode {self.mode}); "
+                                 f"status: {self.log.statustexts[-5:]}")
+
+    def close(self) -> None:
+        try:
+            self.stack.stop()
+        finally:
+            self.truth.close()
+            self.gcs.close()
+
+
+@contextlib.contextmanager
+def flight(out_dir: Path, scenario: str = "paper-arena", offset: int = 4000, lockstep: bool = True,
+           companion_config: Path | None = None, sitl_duration_s: float = 400.0) -> Iterator[Flight]:
+    f = Flight(out_dir, scenario, offset, lockstep, companion_config, sitl_duration_s)
+    try:
+        yield f
+    finally:
+        f.close()
+        with contextlib.suppress(OSError):
+            f.log.save_csv(out_dir / "truth_clearance.csv")
+
+
+def companion_config_with(out_dir: Path, **sections: dict[str, object]) -> Path:
+    """configs/companion.yaml with some keys replaced (``reference={"room_height_m": 3.0}``), written to
+    ``out_dir/companion.yaml``."""
+    import yaml
+
+    from quadlink import CONFIG_DIR
+
+    data = yaml.safe_load((CONFIG_DIR / "companion.yaml").read_text())
+    for section, values in sections.items():
+        data[section] = {**data.get(section, {}), **values}
+    out_dir.mkdir(parents=True, exist_ok=True)
+    path = out_dir / "companion.yaml"
+    path.write_text(yaml.safe_dump(data))
+    return path
+
+
+# ---------------------------------------------------------------- command line
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("case", choices=["push", "climb"])
+    ap.add_argument("--x", type=int, default=700, help="MANUAL_CONTROL x while pushing")
+    ap.add_argument("--y", type=int, default=0)
+    ap.add_argument("--z", type=int, default=500)
+    ap.add_argument("--seconds", type=float, default=30.0)
+    ap.add_argument("--offset", type=int, default=4000)
+    ap.add_argument("--scenario", default="paper-arena")
+    ap.add_argument("--realtime", action="store_true")
+    ap.add_argument("--config", type=Path, default=None, help="companion config YAML")
+    ap.add_argument("--room-height", type=float, default=None, help="companion reference.room_height_m "
+                    "(and no max_height_m fence)")
+    ap.add_argument("--out", type=Path, default=Path("/tmp/safety-flight"))
+    a = ap.parse_args(argv)
+    import logging
+
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
+    import signal
+
+    def _stop(signum: int, frame: object) -> None:   # SIGTERM: stop the stack in the finally blocks
+        raise KeyboardInterrupt
+
+    signal.signal(signal.SIGTERM, _stop)
+    config = a.config
+    if a.room_height is not None:
+        config = companion_config_with(a.out, reference={"room_height_m": a.room_height, "max_height_m": None},
+                                       **LOADED_MACHINE)
+    with flight(a.out, a.scenario, a.offset, not a.realtime, config) as f:
+        f.take_off()
+        t0 = f.t_s
+        if a.case == "push":
+            f.run_for(a.seconds, lambda: f.manual(a.x, a.y, a.z))
+        else:
+            f.run_for(a.seconds, lambda: f.manual(0, 0, 1000))
+        f.run_for(2.0, lambda: f.manual(0))
+        print(f"{a.case} x={a.x} y={a.y} z={a.z} {a.seconds:.0f} s {'real time' if a.realtime else 'lock-step'}: "
+              f"{f.log.summary(t0)}")
+        print("modes:", f.log.modes[:12], "..." if len(f.log.modes) > 12 else "")
+        print("\n".join(f.log.statustexts[-10:]))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

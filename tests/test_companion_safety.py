@@ -1,0 +1,189 @@
+"""The safety constraints of the reference (issue 14): the closing-speed law with the stopping distance,
+surfaces between map samples, points out of the height band, the vertical limits, scripted commands.
+
+The closed-loop tests fly the bridge's real velocity tracker (firmware_bridge.velocity_tracker) on a
+point-mass vehicle with the board's attitude lag, the SITL's drag and one camera frame of latency; the
+wall is sampled as the camera's sectors sample it (one point per sector, up to 0.8 m apart).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from companion.pan_scan import PanScanState
+from companion.reference import (
+    OperatorInput,
+    ReferenceParams,
+    limit_speed_toward_obstacles,
+    reference_velocity,
+    surface_points,
+)
+from companion.vertical_limits import VerticalParams, apply_vertical_limits, ceiling_height_m, vertical_limits
+from firmware_bridge.velocity_tracker import VelocityTracker
+from quadlink.frames import GRAVITY_M_S2
+
+NO_SCAN = PanScanState(0.0, 0.0, False)
+R_QC_FORWARD = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+
+
+def _rz(a: float) -> np.ndarray:
+    return np.array([[math.cos(a), -math.sin(a), 0.0], [math.sin(a), math.cos(a), 0.0], [0.0, 0.0, 1.0]])
+
+
+def fly_at_wall(push_m_s: float, angle_deg: float, spacing_m: float, params: ReferenceParams,
+                use_velocity: bool = True, latency_s: float = 1 / 30, duration_s: float = 12.0
+                ) -> tuple[float, float, float]:
+    """Push at a wall 2 m ahead (plane x = 2) at ``angle_deg`` from its normal; returns (closest, final
+    distance, distance slid along the wall)."""
+    tracker = VelocityTracker(1.0, 20.0)
+    p = dataclasses.replace(params, k_v_m_s=max(push_m_s, params.k_v_m_s), max_speed_m_s=max(push_m_s, 1.5))
+    wall_y = np.arange(-40.0, 40.0, spacing_m)
+    x, v, tilt, tilt_cmd = np.zeros(2), np.zeros(2), np.zeros(2), np.zeros(2)
+    dt, t, next_frame, v_ref = 0.002, 0.0, 0.0, np.zeros(2)
+    pending: list[tuple[float, np.ndarray]] = []
+    closest = math.inf
+    R = _rz(math.radians(angle_deg)) @ R_QC_FORWARD
+    step = 0
+    while t < duration_s:
+        if t >= next_frame:
+            next_frame += 1 / 30
+            pts = np.column_stack([2.0 - x[0] + 0 * wall_y, wall_y - x[1], 0 * wall_y])
+            out = reference_velocity(OperatorInput(qx=push_m_s / p.k_v_m_s), R, NO_SCAN, pts, p,
+                                     v_est_h_m_s=np.array([*v, 0.0]) if use_velocity else None)
+            pending.append((t + latency_s, out.v_ref_h_m_s[:2].copy()))
+        while pending and pending[0][0] <= t:
+            v_ref = pending.pop(0)[1]
+        if step % 5 == 0:   # the tracker at 100 Hz
+            cmd = tracker.update(0.01, np.array([*v_ref, 0.0]), 0.0, np.array([*v, 0.0]), -tilt[1], tilt[0])
+            tilt_cmd = np.array([-cmd.pitch_rad, cmd.roll_rad])
+        tilt += (tilt_cmd - tilt) * dt / (1 / 7.0)          # the board's angle loop (angle_kp 7/s)
+        v += (GRAVITY_M_S2 * np.tan(tilt) - 0.45 * v) * dt    # drag of the SITL vehicle, ~0.45 N s/m per kg
+        x += v * dt
+        t += dt
+        step += 1
+        closest = min(closest, 2.0 - x[0])
+    return closest, 2.0 - x[0], x[1]
+
+
+@pytest.mark.parametrize("push, angle", [(0.42, 0.0), (1.5, 0.0), (0.6, 45.0), (1.0, 60.0)])
+def test_pushed_at_a_wall_the_real_tracker_never_enters_the_safe_distance(push: float, angle: float) -> None:
+    params = ReferenceParams()
+    closest, final, slid = fly_at_wall(push, angle, 0.5, params)
+    assert closest >= params.safe_distance_m - 0.01, f"closest {closest:.3f} m"
+    if angle == 0.0:
+        assert final <= 0.6        # no over-blocking: it gets within 0.6 m
+    else:
+        assert slid > 1.0          # pushed obliquely, it slides along the wall
+
+
+def test_without_the_stopping_distance_the_same_push_overshoots() -> None:
+    # the law of issue 6 (no velocity term) lets the real tracker coast through the safe distance
+    closest, _, _ = fly_at_wall(1.0, 0.0, 0.5, ReferenceParams(), use_velocity=False)
+    assert closest < 0.40
+
+
+def test_sparse_wall_samples_are_bridged_into_a_surface() -> None:
+    # two samples 0.6 m apart on a wall 0.4 m ahead: each is 0.5 m away, the wall between them 0.4 m
+    pts = np.array([[0.4, -0.3, 0.0], [0.4, 0.3, 0.0]])
+    sp = surface_points(pts, 0.9, 0.9)
+    assert sp.shape == (1, 3) and sp[0] == pytest.approx([0.4, 0.0, 0.0])
+    params = ReferenceParams(repulsion_gain_m3_s=0.0)
+    v, changed = limit_speed_toward_obstacles(np.array([0.5, 0.0, 0.0]), pts, 0.45, 1.2, params)
+    assert changed and v[0] < 0.0            # inside the safe distance of the surface: sent back
+    # samples farther apart than the gap are two obstacles, not a surface (a passage the vehicle fits)
+    assert surface_points(np.array([[0.4, -0.6, 0.0], [0.4, 0.6, 0.0]]), 0.9, 0.9).shape == (0, 3)
+
+
+def test_points_out_of_the_band_constrain_in_3d() -> None:
+    params = ReferenceParams(repulsion_gain_m3_s=0.0, stopping_time_s=0.0)
+    box_top = [[0.1, 0.0, 0.35]]   # a box top 0.35 m below, just ahead: out of the 0.3 m band
+    v, changed = limit_speed_toward_obstacles(np.array([0.0, 0.0, 0.3]), box_top, 0.45, 1.2, params, height_m=1.0)
+    assert changed and v[2] < 0.3
+    off = dataclasses.replace(params, out_of_band_3d=False)
+    v, changed = limit_speed_toward_obstacles(np.array([0.0, 0.0, 0.3]), box_top, 0.45, 1.2, off, height_m=1.0)
+    assert not changed
+    # the floor (within floor_margin of the take-off floor) never counts
+    v, changed = limit_speed_toward_obstacles(np.array([0.0, 0.0, 0.3]), [[0.1, 0.0, 0.95]], 0.45, 1.2, params,
+                                              height_m=1.0)
+    assert not changed
+
+
+@settings(max_examples=100, deadline=None)
+@given(st.lists(st.tuples(st.floats(-1.5, 1.5), st.floats(-1.5, 1.5)), min_size=1, max_size=10),
+       st.tuples(st.floats(-2, 2), st.floats(-2, 2)), st.tuples(st.floats(-1, 1), st.floats(-1, 1)),
+       st.floats(0.1, 5.0), st.floats(0.0, 1.5))
+def test_closing_speed_law_holds_for_every_point(points: list[tuple[float, float]], v: tuple[float, float],
+                                                v_est: tuple[float, float], gain: float, t_stop: float) -> None:
+    p = np.array([[x, y, 0.0] for x, y in points])
+    p = p[np.linalg.norm(p, axis=1) > 0.05]
+    out, _ = limit_speed_toward_obstacles(np.array([*v, 0.0]), p, 0.45, gain, reach_m=2.0,
+                                          v_est_h_m_s=np.array([*v_est, 0.0]), stopping_time_s=t_stop)
+    d = np.linalg.norm(p, axis=1)
+    near = d < 2.0
+    if not np.any(near):
+        return
+    u = p[near] / d[near, None]
+    bound = gain * (d[near] - 0.45 - t_stop * np.maximum(u @ np.array([*v_est, 0.0]), 0.0))
+    # either every bound holds, or (squeezed) at least no point is approached
+    assert np.all(u @ out <= bound + 1e-6) or np.all(u @ out <= np.maximum(bound, 0.0) + 1e-6)
+
+
+def test_ceiling_from_room_height_and_fence() -> None:
+    assert ceiling_height_m(VerticalParams(room_height_m=3.0, safe_distance_m=0.45)) == pytest.approx(2.55)
+    assert ceiling_height_m(VerticalParams(max_height_m=2.0, room_height_m=3.0)) == pytest.approx(2.0)
+    assert ceiling_height_m(VerticalParams()) == math.inf
+
+
+def test_climb_slows_to_the_ceiling_and_descent_to_the_floor() -> None:
+    p = VerticalParams(room_height_m=3.0, gain_per_s=1.0, stopping_time_s=0.5, floor_min_height_m=0.3)
+    lim = vertical_limits(2.0, 0.2, p)
+    assert lim.max_climb_m_s == pytest.approx(1.0 * (2.55 - 2.0 - 0.5 * 0.2))
+    v, changed = apply_vertical_limits([0.0, 0.0, -1.0], lim)   # full climb
+    assert changed and -v[2] == pytest.approx(lim.max_climb_m_s)
+    above = vertical_limits(2.7, 0.0, p)
+    assert above.max_climb_m_s < 0                              # above the ceiling: sent down
+    v, _ = apply_vertical_limits([0.0, 0.0, 0.0], above)
+    assert v[2] > 0
+    low = vertical_limits(0.5, -0.3, p)
+    assert low.max_descent_m_s == pytest.approx(1.0 * (0.5 - 0.3 - 0.5 * 0.3))
+    v, _ = apply_vertical_limits([0.0, 0.0, 1.0], low)
+    assert v[2] == pytest.approx(low.max_descent_m_s)
+    unknown = vertical_limits(None, None, p)                     # height unknown: hold the altitude
+    v, _ = apply_vertical_limits([0.3, 0.0, -1.0], unknown)
+    assert v == pytest.approx([0.3, 0.0, 0.0])
+
+
+def test_a_full_climb_stops_below_the_ceiling_with_a_lagging_loop() -> None:
+    # the reference's vertical limit with a vehicle whose climb rate follows with 0.3 s lag and 1 frame latency
+    params = ReferenceParams(room_height_m=3.0, max_height_m=None)
+    h, vz_up, dt = 1.0, 0.0, 1 / 30
+    highest = h
+    pending = [0.0, 0.0]
+    for _ in range(int(20 / dt)):
+        out = reference_velocity(OperatorInput(qz=1.0), R_QC_FORWARD, NO_SCAN, None, params, height_m=h,
+                                 v_est_h_m_s=np.array([0.0, 0.0, -vz_up]))
+        pending.append(-float(out.v_ref_h_m_s[2]))
+        vz_up += (pending.pop(0) - vz_up) * dt / 0.3
+        h += vz_up * dt
+        highest = max(highest, h)
+    assert out.vertical_limits is not None and out.vertical_limits.ceiling_height_m == pytest.approx(2.55)
+    assert 2.45 <= highest <= 2.55 + 0.01
+
+
+def test_a_scripted_command_replaces_the_operator_and_obeys_the_same_constraints() -> None:
+    params = ReferenceParams(repulsion_gain_m3_s=0.0, stopping_time_s=0.0)
+    free = reference_velocity(OperatorInput(), R_QC_FORWARD, NO_SCAN, None, params, height_m=1.0,
+                              v_command_h_m_s=[0.5, 0.1, 0.0], command_yaw_rate_rad_s=0.2)
+    assert free.v_ref_h_m_s == pytest.approx([0.5, 0.1, 0.0]) and free.yaw_rate_ref_rad_s == pytest.approx(0.2)
+    wall = reference_velocity(OperatorInput(), R_QC_FORWARD, NO_SCAN, [[0.5, 0.0, 0.0]], params, height_m=1.0,
+                              v_command_h_m_s=[0.5, 0.1, 0.0])
+    assert wall.v_ref_h_m_s[0] == pytest.approx(1.2 * 0.05) and wall.constrained
+    held = reference_velocity(OperatorInput(), R_QC_FORWARD, NO_SCAN, None, params, height_m=1.0,
+                              v_command_h_m_s=[0.5, 0.1, 0.0], operator_enabled=False)
+    assert held.v_ref_h_m_s == pytest.approx([0.0, 0.0, 0.0])
