@@ -1,13 +1,30 @@
-"""Shared pytest setup: paths to the shared data and a deterministic random generator."""
+"""Shared pytest setup: the test tiers, paths to the shared data, a deterministic random generator.
+
+Tests live in tiers, one folder each, and every test is marked with its folder's name so markers select
+them (``pytest -m unit``, ``-m "not sitl"``):
+
+* ``unit/`` — pure algorithms and state machines, in-process, no sockets or threads;
+* ``protocol/`` — codecs on golden bytes and round trips through the real peer codec, property tests;
+* ``integration/`` — real sockets, threads, subprocesses and CLIs, but no flight;
+* ``sitl/`` — flights of the pybullet SITL with the stack's processes over their real links.
+
+Helpers shared across tiers (``fuzzing.py``) sit beside this file, which puts this folder on the path.
+"""
 
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-REPO = Path(__file__).resolve().parent.parent
+TESTS = Path(__file__).resolve().parent
+TIERS = ("unit", "protocol", "integration", "sitl")
+if str(TESTS) not in sys.path:
+    sys.path.insert(0, str(TESTS))
+
+REPO = TESTS.parent
 SHARED = REPO.parent / "shared"
 TUM_HEAD = SHARED / "data" / "tum_fr1_xyz_head"
 
@@ -54,3 +71,11 @@ def assert_poses_close():  # noqa: ANN201
     """Rotation-aware pose comparison (cflib's assertPosesAlmostEqual): ``assert_poses_close(T1, T2, atol_m,
     atol_rad)`` compares the translation and the geodesic angle of ``R1^T R2``, never matrix elements."""
     return _assert_poses_close
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    """Mark every test with its tier (the folder it lives in)."""
+    for item in items:
+        parts = Path(str(item.fspath)).resolve().relative_to(TESTS).parts
+        if parts and parts[0] in TIERS:
+            item.add_marker(getattr(pytest.mark, parts[0]))

@@ -14,7 +14,7 @@ from perception import cli, metrics
 from perception.odometry import se3_exp
 from perception.synthetic import pose
 
-SHARED_DATA = Path(__file__).resolve().parent.parent.parent / "shared" / "data"
+SHARED_DATA = Path(__file__).resolve().parents[3] / "shared" / "data"
 SEQUENCES = ("tum_fr1_xyz_head", "tum_fr1_rpy_mid", "tum_fr3_teddy_head")
 
 

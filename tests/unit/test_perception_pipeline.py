@@ -189,5 +189,5 @@ def test_shipped_defaults_yaml_equals_the_code_defaults() -> None:
 
     from quadlink.config import load_config
 
-    path = Path(__file__).resolve().parent.parent / "perception" / "defaults.yaml"
+    path = Path(__file__).resolve().parents[2] / "perception" / "defaults.yaml"
     assert load_config(path, PerceptionConfig) == PerceptionConfig()

@@ -11,10 +11,10 @@ import numpy as np
 import pytest
 from hypothesis import given
 from hypothesis import strategies as st
+from test_camera_stream import make_frame
 
 from quadlink.camera import MAX_PAYLOAD_BYTES, RecordDecoder, encode_record, jpeg_size
 from quadlink.errors import ProtocolError
-from tests.test_camera_stream import make_frame
 
 pytestmark = pytest.mark.fuzz
 

@@ -27,7 +27,7 @@ from quadlink.mavlink.connection import open_mavlink
 
 pytestmark = [pytest.mark.sitl, pytest.mark.timeout(240)]
 
-REPO = Path(__file__).resolve().parent.parent
+REPO = Path(__file__).resolve().parents[2]
 PX4_OFFBOARD = 6 << 16
 PX4_LOITER = 4 << 16 | 3 << 24
 
