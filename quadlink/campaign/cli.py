@@ -30,15 +30,17 @@ log = logging.getLogger("quadlink.campaign")
               help="Share of flights flown by the scripted offboard client (SET_POSITION_TARGET_LOCAL_NED through "
                    "the companion) instead of the haptic operator's MANUAL_CONTROL.")
 @click.option("--fixed-share", default=0.2, show_default=True, help="Share of flights in paper-arena or office.")
+@click.option("--view/--no-view", default=False, show_default=True,
+              help="Run each flight's operator image view (no effect on the flight; costs CPU).")
 @click.option("--first-index", default=0, show_default=True, help="Index of the first flight (continue a campaign).")
 def command(n_flights: int, seed: int, out_dir: Path, parallel: int, address: str | None, duration_s: float,
             cpus_per_flight: float, port_offset: int, offboard_share: float, fixed_share: float,
-            first_index: int) -> None:
+            view: bool, first_index: int) -> None:
     """Fly N randomized flights (arena, start, operator, vehicle and sensors) and report the safety envelope."""
     from quadlink.campaign.report import summary_text, write_campaign
 
     options = CampaignOptions(n_flights, seed, out_dir, duration_s, parallel, address, cpus_per_flight, port_offset,
-                              offboard_share, fixed_share, first_index)
+                              offboard_share, fixed_share, first_index, view)
     t0 = time.monotonic()
     try:
         results = run_campaign(options, echo=lambda s: click.echo(s, nl=not s.startswith("\r")))

@@ -189,6 +189,8 @@ def main(vehicle: str, plan_path: Path, wall_timeout: float) -> None:
     conn = open_mavlink(vehicle, source_system=255, source_component=190)
     try:
         code = OffboardClient(conn, plan).run(wall_timeout)
+    except KeyboardInterrupt:  # the orchestrator stops its parts with SIGINT
+        code = 0
     finally:
         conn.close()
     sys.exit(code)

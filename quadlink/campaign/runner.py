@@ -59,6 +59,7 @@ class CampaignOptions:
     offboard_share: float = 0.0  # share of flights flown by the offboard client instead of MANUAL_CONTROL
     fixed_share: float = 0.2  # share of flights in paper-arena or office
     first_index: int = 0
+    view: bool = False  # the operator image view in each flight (costs CPU, changes nothing in the flight)
 
 
 @dataclass
@@ -74,6 +75,8 @@ class FlightResult:
     wall_s: float = math.nan
     port_offset: int = 0
     node: str = ""
+    t_start_unix_s: float = math.nan
+    t_end_unix_s: float = math.nan
 
 
 def flight_ports(port_offset: int, slot: int) -> int:
@@ -100,11 +103,11 @@ def fly(options: CampaignOptions, index: int, slot: int, attempt: int,
     offset = flight_ports(options.port_offset, slot)
     t0 = time.monotonic()
     result = FlightResult(index, "ok", attempt, str(folder), draws=draws.record, port_offset=offset,
-                          node=os.uname().nodename)
+                          node=os.uname().nodename, t_start_unix_s=time.time())
     try:
         report = run_demo(str(files.scenario), options.duration_s, folder, files.operator, lockstep=True,
                           port_offset=offset, progress_every_s=30.0, sitl_config=str(files.sitl),
-                          operator=draws.session.kind, should_stop=should_stop)
+                          operator=draws.session.kind, should_stop=should_stop, view=options.view)
         result.report = report
         if report.get("interrupted"):
             result.status = "cancelled"
@@ -114,6 +117,7 @@ def fly(options: CampaignOptions, index: int, slot: int, attempt: int,
         if report_path.is_file():
             result.report = json.loads(report_path.read_text())
     result.wall_s = time.monotonic() - t0
+    result.t_end_unix_s = time.time()
     truth = folder / "truth.tlog"
     if truth.is_file():
         scenario = load_config(files.scenario, ScenarioConfig)

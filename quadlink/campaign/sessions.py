@@ -128,9 +128,10 @@ def generate_session(rng: np.random.Generator, scenario: ScenarioConfig, duratio
             t += dur
         m["to_m"] = [round(plan.x_m, 2), round(plan.y_m, 2)]
         moves.append(m)
-    record = {"kind": "offboard" if offboard else "haptic", "duration_s": duration_s, "manoeuvres": moves}
+    kind = "offboard" if offboard else "haptic"
+    record: dict[str, Any] = {"kind": kind, "duration_s": duration_s, "manoeuvres": moves}
     script = _offboard_plan(moves, duration_s) if offboard else _teleop_script(moves, rng)
-    return Session(record["kind"], script, record)
+    return Session(kind, script, record)
 
 
 def _clip_steps(steps: list[tuple[str, float, float, float, float]], budget_s: float,

@@ -68,6 +68,7 @@ class FlightSpec:
     sitl_config: str | None = None
     lockstep: bool = True
     speed: float = 1.0
+    view: bool = True  # the operator's image view (no effect on the flight; headless saves CPU)
 
     def resolve(self, folder: Path) -> FlightSpec:
         def r(p: str | None) -> str | None:
@@ -80,12 +81,15 @@ class FlightSpec:
             return str(q) if q.exists() or not (folder / q.name).exists() else str(folder / q.name)
 
         return FlightSpec(r(self.scenario) or self.scenario, r(self.script) or self.script, self.duration_s,
-                          self.operator, r(self.sitl_config), self.lockstep, self.speed)
+                          self.operator, r(self.sitl_config), self.lockstep, self.speed, self.view)
 
 
 def build_specs(scenario: str, script: Path, out_dir: Path, ports: Ports, lockstep: bool, speed: float,
                 duration_s: float, record_frames: bool = False, sitl_config: str | None = None,
-                operator: str = "haptic") -> list[ProcessSpec]:
+                operator: str = "haptic", view: bool = True) -> list[ProcessSpec]:
+    """The parts of a flight in start order. ``view=False`` runs headless: no operator image stream from the
+    companion, no view or web page in the ground station (neither feeds back into the flight: the haptic
+    cue's pan-scan estimate comes from TELEOP_FEEDBACK, not from the images), which saves their CPU."""
     sitl = ["sitl", "--scenario", scenario, "--port1", str(ports.mk1), "--port2", str(ports.mk2),
             "--camera-port", str(ports.camera), "--truth", f"udpout:127.0.0.1:{ports.truth}",
             "--duration", f"{duration_s + 30:.0f}"]
@@ -103,8 +107,8 @@ def build_specs(scenario: str, script: Path, out_dir: Path, ports: Ports, lockst
         operator_spec = ProcessSpec(
             "teleop", ("teleop", "--device", "virtual", "--script", str(script),
                        "--vehicle", f"udpout:127.0.0.1:{ports.vehicle}",
-                       "--image-stream", f"tcp://127.0.0.1:{ports.image}",
-                       "--http-port", str(ports.http), "--log-csv", str(out_dir / "teleop.csv"),
+                       "--image-stream", f"tcp://127.0.0.1:{ports.image}" if view else "none",
+                       "--http-port", str(ports.http) if view else "-1", "--log-csv", str(out_dir / "teleop.csv"),
                        "--exit-at-script-end", "--script-clock", "vehicle" if lockstep else "wall"),
             ready_after_s=0.5)
     else:
@@ -120,7 +124,7 @@ def build_specs(scenario: str, script: Path, out_dir: Path, ports: Ports, lockst
                                   "--autopilot", f"udpin:127.0.0.1:{ports.autopilot}",
                                   "--gcs", f"udpin:127.0.0.1:{ports.vehicle}",
                                   "--camera", f"tcp://127.0.0.1:{ports.camera}",
-                                  "--image-port", str(ports.image),
+                                  "--image-port", str(ports.image) if view else "0",
                                   "--tlog", str(out_dir / "companion.tlog"),
                                   *(("--record-frames", str(out_dir / "frames.qlcf")) if record_frames else ())),
                     ready_after_s=3.0),
@@ -131,7 +135,8 @@ def build_specs(scenario: str, script: Path, out_dir: Path, ports: Ports, lockst
 def run_demo(scenario: str, duration_s: float, out_dir: Path, script: Path, lockstep: bool = True,
              speed: float = 1.0, port_offset: int = 0, progress_every_s: float = 3.0,
              record_frames: bool = False, port_base: int | None = None, sitl_config: str | None = None,
-             operator: str = "haptic", should_stop: Callable[[], bool] | None = None) -> dict[str, object]:
+             operator: str = "haptic", should_stop: Callable[[], bool] | None = None,
+             view: bool = True) -> dict[str, object]:
     """Fly the demo; returns the report. Raises :class:`ProcessDied` if a part dies.
 
     Writes ``out_dir/flight.json`` (the :class:`FlightSpec`, what ``--replay`` re-flies) and
@@ -141,7 +146,7 @@ def run_demo(scenario: str, duration_s: float, out_dir: Path, script: Path, lock
     if not Path(script).is_file():
         raise ConfigError(f"{script}: operator script not found")
     out_dir.mkdir(parents=True, exist_ok=True)
-    spec = FlightSpec(str(scenario), str(script), float(duration_s), operator, sitl_config, lockstep, speed)
+    spec = FlightSpec(str(scenario), str(script), float(duration_s), operator, sitl_config, lockstep, speed, view)
     (out_dir / "flight.json").write_text(json.dumps(dataclasses.asdict(spec), indent=2) + "\n")
     ports = Ports(port_offset, port_base)
     stack = Stack(out_dir / "logs")
@@ -160,7 +165,7 @@ def run_demo(scenario: str, duration_s: float, out_dir: Path, script: Path, lock
     previous = signal.signal(signal.SIGINT, on_sigint) if main_thread else None
     t_wall0 = time.monotonic()
     specs = build_specs(scenario, Path(script), out_dir, ports, lockstep, speed, duration_s, record_frames,
-                        sitl_config, operator)
+                        sitl_config, operator, view)
     operator_name = specs[-1].name
     try:
         for part in specs:
@@ -220,7 +225,8 @@ def replay_flight(flight_dir: Path, out_dir: Path | None = None, port_offset: in
         raise ConfigError(f"{path}: not a flight spec: {exc}") from exc
     out = out_dir or flight_dir / "replay"
     report = run_demo(spec.scenario, spec.duration_s, out, Path(spec.script), spec.lockstep, spec.speed, port_offset,
-                      progress_every_s, port_base=port_base, sitl_config=spec.sitl_config, operator=spec.operator)
+                      progress_every_s, port_base=port_base, sitl_config=spec.sitl_config, operator=spec.operator,
+                      view=spec.view)
     return report, out
 
 
@@ -260,10 +266,12 @@ def compare_reports(original: dict[str, Any], replay: dict[str, Any]) -> list[tu
 @click.option("--replay", "replay_dir", type=click.Path(file_okay=False, exists=True, path_type=Path), default=None,
               help="Re-fly the flight recorded in DIR (its flight.json: arena, operator, configs) and compare "
                    "its metrics with DIR/report.json.")
+@click.option("--view/--no-view", default=True, show_default=True,
+              help="The operator's image view (companion image stream, ground-station page); --no-view saves CPU.")
 @click.option("--record-frames", is_flag=True,
               help="Also record the companion's camera frames to OUT/frames.qlcf (~11 MB per second of flight).")
 def command(scenario: str, duration_s: float, out_dir: Path | None, script: Path, lockstep: bool, speed: float,
-            port_offset: int, port_base: int | None, replay_dir: Path | None, record_frames: bool) -> None:
+            port_offset: int, port_base: int | None, replay_dir: Path | None, view: bool, record_frames: bool) -> None:
     """Fly the paper's experiment in the SITL (take off, drive, rotate, approach and push the obstacle, land)."""
     try:
         if replay_dir is not None:
@@ -271,7 +279,7 @@ def command(scenario: str, duration_s: float, out_dir: Path | None, script: Path
         else:
             out_dir = out_dir or Path("flight-report")
             report = run_demo(scenario, duration_s, out_dir, script, lockstep, speed, port_offset,
-                              record_frames=record_frames, port_base=port_base)
+                              record_frames=record_frames, port_base=port_base, view=view)
     except ProcessDied as exc:
         click.echo(f"quadlink demo: {exc}", err=True)
         raise SystemExit(1) from exc

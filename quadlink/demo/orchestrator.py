@@ -99,7 +99,8 @@ class Stack:
         # each part leads its own process group: a supervisor whose runner died kills them by these ids
         with open(self.log_dir / PIDS_FILE, "a") as pids:
             pids.write(f"{popen.pid} {spec.name}\n")
-        log.info("started %s (pid %d): quadlink %s", spec.name, popen.pid, " ".join(spec.args))
+        log.info("started %s (pid %d): %s %s", spec.name, popen.pid,
+                 "quadlink" if spec.module == "quadlink.cli" else f"python -m {spec.module}", " ".join(spec.args))
         deadline = time.monotonic() + spec.ready_after_s
         while time.monotonic() < deadline:
             self.check()
