@@ -47,7 +47,8 @@ def main() -> int:
         sim_s = [float(r.report.get("sim_duration_s", 0.0)) for r in ok]
         cpu = [r.report.get("cpu_core_s_per_sim_s", {}) for r in ok]
         per_part = {k: statistics.mean(c[k] for c in cpu) for k in (cpu[0] if cpu else {})}
-        fig = {"flights": len(results), "ok": len(ok), "wall_s": wall_s, "flights_per_hour": len(results) / wall_s * 3600,
+        fig = {"flights": len(results), "ok": len(ok), "wall_s": wall_s,
+               "flights_per_hour": len(results) / wall_s * 3600,
                "wall_s_per_flight": [r.wall_s for r in results],
                "real_time_factor": [s / r.wall_s for s, r in zip(sim_s, ok)],
                "core_s_per_sim_s": per_part, "core_s_per_sim_s_total": sum(per_part.values())}
