@@ -8,8 +8,9 @@ OFFBOARD mode (MAV_CMD_DO_SET_MODE, custom mode from :mod:`quadlink.px4_modes`) 
 SET_POSITION_TARGET_LOCAL_NED velocity setpoints at 20 Hz like MAVSDK's ``set_velocity_body``
 (MAV_FRAME_BODY_NED, velocity + yaw rate) and ``set_velocity_ned`` (MAV_FRAME_LOCAL_NED, velocity + yaw);
 at the end it commands LAND. The plan's timeline runs on the vehicle's clock (TELEOP_FEEDBACK
-``time_usec``, simulated time in the SITL) so a lock-step flight sees the same setpoint at the same
-simulated time whatever the machine's load.
+``time_usec``, simulated time in the SITL) from the first vehicle time it hears, as the ground station's
+scripts do, so a lock-step flight sees the same setpoints at the same simulated time after the client
+joined whatever the machine's load.
 
 The plan (written by :func:`quadlink.campaign.sessions.generate_session`)::
 
@@ -113,6 +114,7 @@ class OffboardClient:
         self.conn = conn
         self.plan = plan
         self.vehicle_t_s: float | None = None
+        self.origin_s: float | None = None  # vehicle time when the plan started
         self._last_hb_wall = -math.inf
         self._done: set[str] = set()
 
@@ -152,9 +154,11 @@ class OffboardClient:
                 self.conn.mav.heartbeat_send(mavlink.MAV_TYPE_GCS, mavlink.MAV_AUTOPILOT_INVALID, 0, 0,
                                              mavlink.MAV_STATE_ACTIVE)
             self._pump(0.01)
-            t = self.vehicle_t_s
-            if t is None:
+            if self.vehicle_t_s is None:
                 continue
+            if self.origin_s is None:
+                self.origin_s = self.vehicle_t_s
+            t = self.vehicle_t_s - self.origin_s
             if self._once("arm", t >= 2.0):
                 self._command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, (1.0, 0, 0, 0, 0, 0, 0))
             if self._once("takeoff", t >= 3.0):

@@ -44,6 +44,11 @@ from sim_sitl.config import ScenarioConfig
 log = logging.getLogger("quadlink.campaign")
 
 PORT_SLOT_STRIDE = 25  # offsets between slots: every demo port group spans < 25 ports
+RAY_START_ATTEMPTS = 3
+#: simulated time a flight may take beyond its session: the SITL's clock runs in real time until its lock-step
+#: clients connect, so the operator joins some seconds of simulated time after t = 0 (more on a loaded machine);
+#: a flight ends when its operator's session ends, this is only the bound
+STARTUP_ALLOWANCE_S = 45.0
 
 
 @dataclass(frozen=True)
@@ -105,7 +110,8 @@ def fly(options: CampaignOptions, index: int, slot: int, attempt: int,
     result = FlightResult(index, "ok", attempt, str(folder), draws=draws.record, port_offset=offset,
                           node=os.uname().nodename, t_start_unix_s=time.time())
     try:
-        report = run_demo(str(files.scenario), options.duration_s, folder, files.operator, lockstep=True,
+        report = run_demo(str(files.scenario), options.duration_s + STARTUP_ALLOWANCE_S, folder, files.operator,
+                          lockstep=True,
                           port_offset=offset, progress_every_s=30.0, sitl_config=str(files.sitl),
                           operator=draws.session.kind, should_stop=should_stop, view=options.view)
         result.report = report
@@ -143,8 +149,18 @@ def _init_ray(options: CampaignOptions) -> Any:
         # workers inherit this environment: make sure they import this checkout
         paths = [str(REPO_ROOT)] + [p for p in os.environ.get("PYTHONPATH", "").split(os.pathsep) if p]
         os.environ["PYTHONPATH"] = os.pathsep.join(dict.fromkeys(paths))
-        ray.init(num_cpus=os.cpu_count() or 1, include_dashboard=False, log_to_driver=False,
-                 object_store_memory=200 * 1024 * 1024, configure_logging=False)
+        for attempt in range(1, RAY_START_ATTEMPTS + 1):
+            try:
+                ray.init(num_cpus=os.cpu_count() or 1, include_dashboard=False, log_to_driver=False,
+                         object_store_memory=200 * 1024 * 1024, configure_logging=False)
+                break
+            except Exception as exc:  # noqa: BLE001 - Ray raises a bare Exception when its node starts too slowly
+                if "timed out during startup" not in str(exc) or attempt == RAY_START_ATTEMPTS:
+                    raise
+                # Ray waits a fixed 30 s for its raylet; on a loaded machine that is not always enough
+                log.warning("local Ray did not start in time (attempt %d of %d); retrying", attempt,
+                            RAY_START_ATTEMPTS)
+                ray.shutdown()
     return ray
 
 
