@@ -36,7 +36,7 @@ from typing import Any
 
 from quadlink import REPO_ROOT
 from quadlink.campaign.draws import draw_flight, write_flight_files
-from quadlink.campaign.safety import envelope, read_truth
+from quadlink.campaign.safety import Envelope, envelope, read_truth, truth_of_flight
 from quadlink.config import load_config
 from quadlink.demo.orchestrator import kill_leftovers
 from sim_sitl.config import ScenarioConfig
@@ -109,11 +109,14 @@ def fly(options: CampaignOptions, index: int, slot: int, attempt: int,
     t0 = time.monotonic()
     result = FlightResult(index, "ok", attempt, str(folder), draws=draws.record, port_offset=offset,
                           node=os.uname().nodename, t_start_unix_s=time.time())
+    scenario = load_config(files.scenario, ScenarioConfig)
+    envelopes: list[Envelope] = []
     try:
         report = run_demo(str(files.scenario), options.duration_s + STARTUP_ALLOWANCE_S, folder, files.operator,
                           lockstep=True,
                           port_offset=offset, progress_every_s=30.0, sitl_config=str(files.sitl),
-                          operator=draws.session.kind, should_stop=should_stop, view=options.view)
+                          operator=draws.session.kind, should_stop=should_stop, view=options.view,
+                          plots=False, on_flight=lambda f: envelopes.append(envelope(truth_of_flight(f), scenario)))
         result.report = report
         if report.get("interrupted"):
             result.status = "cancelled"
@@ -125,8 +128,9 @@ def fly(options: CampaignOptions, index: int, slot: int, attempt: int,
     result.wall_s = time.monotonic() - t0
     result.t_end_unix_s = time.time()
     truth = folder / "truth.tlog"
-    if truth.is_file():
-        scenario = load_config(files.scenario, ScenarioConfig)
+    if envelopes:
+        result.envelope = asdict(envelopes[0])
+    elif truth.is_file():  # a part died: the demo wrote no report, the truth log is still there
         result.envelope = asdict(envelope(read_truth(truth), scenario))
     (folder / "result.json").write_text(json.dumps(asdict(result), indent=2, default=float) + "\n")
     return result

@@ -18,6 +18,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from quadlink.demo.metrics import interpolate
+from quadlink.demo.report import FlightLog
 from quadlink.mavlink.tlog import read_tlog
 from sim_sitl.config import PhysicsConfig, ScenarioConfig
 
@@ -30,6 +31,11 @@ class TruthSeries:
     p_local_ned_m: Array  # N x 3, origin at the start
     t_obstacle_s: Array
     obstacle_m: Array  # nearest surface excluding floor and ceiling (truth id 1)
+
+
+def truth_of_flight(flight: FlightLog) -> TruthSeries:
+    """The series of a flight already parsed by the demo's report (:func:`quadlink.demo.report.load_flight`)."""
+    return TruthSeries(flight.t_truth, flight.p_ned, flight.t_dist1, flight.dist1_m)
 
 
 def read_truth(path: Path) -> TruthSeries:

@@ -19,7 +19,7 @@ import click
 from quadlink import CONFIG_DIR
 from quadlink.demo.orchestrator import ProcessDied, ProcessSpec, Stack
 from quadlink.demo.recorder import Recorder
-from quadlink.demo.report import summary_table, write_report
+from quadlink.demo.report import FlightLog, compute_report, load_flight, summary_table, write_report
 from quadlink.errors import ConfigError
 
 log = logging.getLogger("quadlink.demo")
@@ -136,12 +136,14 @@ def run_demo(scenario: str, duration_s: float, out_dir: Path, script: Path, lock
              speed: float = 1.0, port_offset: int = 0, progress_every_s: float = 3.0,
              record_frames: bool = False, port_base: int | None = None, sitl_config: str | None = None,
              operator: str = "haptic", should_stop: Callable[[], bool] | None = None,
-             view: bool = True) -> dict[str, object]:
+             view: bool = True, plots: bool = True,
+             on_flight: Callable[[FlightLog], None] | None = None) -> dict[str, object]:
     """Fly the demo; returns the report. Raises :class:`ProcessDied` if a part dies.
 
     Writes ``out_dir/flight.json`` (the :class:`FlightSpec`, what ``--replay`` re-flies) and
     ``out_dir/logs/pids`` (the parts' process ids, so a supervisor can kill them if this process dies).
-    ``should_stop`` is polled five times a second: True ends the flight early as Ctrl-C does.
+    ``should_stop`` is polled five times a second: True ends the flight early as Ctrl-C does. With
+    ``plots=False`` only ``report.json`` is written, and ``on_flight`` gets the logs' time series (parsed once).
     """
     if not Path(script).is_file():
         raise ConfigError(f"{script}: operator script not found")
@@ -204,7 +206,15 @@ def run_demo(scenario: str, duration_s: float, out_dir: Path, script: Path, lock
         codes = stack.stop()
         recorder.stop()
         log.info("stopped (exit statuses: %s)", ", ".join(f"{k}={v}" for k, v in codes.items()))
-    report = write_report(out_dir, cpu, str(scenario))
+    if plots:
+        report = write_report(out_dir, cpu, str(scenario))
+    else:  # the metrics alone (a campaign draws its own figures; the plots cost seconds on a loaded machine)
+        flight = load_flight(out_dir)
+        if on_flight is not None:
+            on_flight(flight)
+        report = compute_report(flight, cpu, str(scenario))
+        report["plots"] = []
+        (out_dir / "report.json").write_text(json.dumps(report, indent=2, default=float) + "\n")
     report["interrupted"] = interrupted
     report["failure"] = str(failure) if failure else None
     report["wall_time_s"] = time.monotonic() - t_wall0
