@@ -26,7 +26,7 @@ from quadlink.demo.report import compute_report, load_flight
 from sim_sitl.config import ScenarioConfig, load_scenario
 from sim_sitl.scenario_gen import nearest_obstacle_2d
 
-pytestmark = [pytest.mark.sitl, pytest.mark.integration]
+pytestmark = pytest.mark.sitl
 
 # the campaign helper's port lane (offsets 3000-3900), one slice per test process
 OFFSET = 3300 + (os.getpid() % 8) * 60
