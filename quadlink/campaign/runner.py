@@ -51,6 +51,23 @@ RAY_START_ATTEMPTS = 3
 STARTUP_ALLOWANCE_S = 45.0
 
 
+class CampaignCancelled(KeyboardInterrupt):
+    """Ctrl-C during a campaign: carries the flights that finished before it."""
+
+    def __init__(self, results: list[FlightResult]) -> None:
+        super().__init__(f"campaign cancelled after {len(results)} flights")
+        self.results = results
+
+
+def load_results(out_dir: Path) -> list[FlightResult]:
+    """The finished flights of a campaign folder (each ``flight-NNNN/result.json``)."""
+    out = []
+    for path in sorted(out_dir.glob("flight-*/result.json")):
+        data = json.loads(path.read_text())
+        out.append(FlightResult(**{k: v for k, v in data.items() if k in FlightResult.__dataclass_fields__}))
+    return out
+
+
 @dataclass(frozen=True)
 class CampaignOptions:
     flights: int
@@ -250,7 +267,7 @@ def run_campaign(options: CampaignOptions, on_result: Callable[[FlightResult], N
     except KeyboardInterrupt:
         echo(f"\ncancelling {len(pending)} flights in the air ...")
         _cancel(ray, pending, options, TaskCancelledError)
-        raise
+        raise CampaignCancelled(sorted(results, key=lambda r: r.index)) from None
     finally:
         ray.shutdown()
     if tty:
