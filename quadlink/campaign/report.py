@@ -47,6 +47,8 @@ def flight_row(r: FlightResult) -> dict[str, Any]:
         "max_setpoint_gap_s": rep.get("max_setpoint_gap_s", math.nan),
         "fraction_estimate_le_truth": rep.get("fraction_estimate_le_truth", math.nan),
         "sim_duration_s": rep.get("sim_duration_s", math.nan),
+        "flying_time_s": rep.get("flying_time_s", math.nan),
+        "max_height_m": env.get("max_height_m", math.nan),
         "replay": f"quadlink demo --replay {r.folder}",
     }
 
@@ -70,6 +72,8 @@ def summarize(results: list[FlightResult], options: CampaignOptions, wall_s: flo
             "flights": len(rows), "ok": sum(r["status"] == "ok" for r in rows),
             "failed": [r["index"] for r in rows if r["status"] not in ("ok",)],
             "retried": [r["index"] for r in rows if r["retried"]],
+            # a flight that never left the ground says nothing about the envelope: listed, not hidden
+            "did_not_take_off": [r["index"] for r in rows if not (r.get("max_height_m", 0.0) > 0.5)],
             "min_nonfloor_distance_m": float(d.min()) if d.size else math.nan,
             "share_below_target": float(np.mean(d < TARGET_M)) if d.size else math.nan,
             "share_below_safe_distance": float(np.mean(d < SAFE_DISTANCE_M)) if d.size else math.nan,
@@ -132,15 +136,16 @@ def write_campaign(results: list[FlightResult], options: CampaignOptions, wall_s
 def summary_text(campaign: dict[str, Any]) -> str:
     s = campaign["summary"]
     lines = [f"{'flight':>6} {'status':<9} {'layout':<18} {'operator':<8} {'min d':>6} {'surface':<8} "
-             f"{'v RMSE':>7} {'track':>7} {'gaps':>4} {'sitl seed':>10}"]
+             f"{'v RMSE':>7} {'track':>7} {'gaps':>4} {'flying':>6} {'sitl seed':>10}"]
     for r in campaign["flights"]:
         lines.append(f"{r['index']:>6} {r['status'] + ('*' if r['retried'] else ''):<9} {str(r['layout']):<18} "
                      f"{str(r['operator']):<8} {r['min_nonfloor_distance_m']:6.2f} {str(r['closest_surface']):<8} "
                      f"{r['velocity_rmse_m_s']:7.3f} {r['tracking_rmse_m_s']:7.3f} "
-                     f"{str(r['setpoint_gaps_over_100ms']):>4} {str(r['seed']['sitl']):>10}")
+                     f"{str(r['setpoint_gaps_over_100ms']):>4} {r['flying_time_s']:5.1f}s {str(r['seed']['sitl']):>10}")
     lines += [
         "",
-        f"flights {s['flights']} (ok {s['ok']}; failed {s['failed'] or 'none'}; retried (*) {s['retried'] or 'none'})",
+        f"flights {s['flights']} (ok {s['ok']}; failed {s['failed'] or 'none'}; retried (*) {s['retried'] or 'none'}; "
+        f"did not take off {s['did_not_take_off'] or 'none'})",
         f"min true distance to walls/obstacles/ceiling: {s['min_nonfloor_distance_m']:.3f} m; "
         f"below {TARGET_M} m in {100 * s['share_below_target']:.0f} % of flights, below {SAFE_DISTANCE_M} m in "
         f"{100 * s['share_below_safe_distance']:.0f} %",
