@@ -23,6 +23,7 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "companion": ("companion.cli", "Start the companion daemon (perception, reference velocity, routing)."),
     "teleop": ("teleop.cli", "Start the ground station: haptic device, force feedback, operator view."),
     "demo": ("quadlink.demo", "Fly the paper's experiment in the SITL and write a flight report."),
+    "campaign": ("quadlink.campaign", "Fly N randomized flights of the stack on Ray; report the safety envelope."),
     "vo-eval": ("perception.cli", "Run the RGB-D odometry on a TUM-format sequence and print RPE/ATE."),
     "identify-yaw": ("companion.identify_cli", "Identify the yaw response to the pan-scan (eq. 5) from a flight log."),
     "keygen": ("quadlink.keygen_cli", "Create a MAVLink 2 signing key file for signed ground-station links."),

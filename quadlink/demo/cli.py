@@ -2,19 +2,24 @@
 
 from __future__ import annotations
 
+import dataclasses
+import json
 import logging
 import math
 import signal
+import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import click
 
 from quadlink import CONFIG_DIR
 from quadlink.demo.orchestrator import ProcessDied, ProcessSpec, Stack
 from quadlink.demo.recorder import Recorder
-from quadlink.demo.report import summary_table, write_report
+from quadlink.demo.report import FlightLog, compute_report, load_flight, summary_table, write_report
 from quadlink.errors import ConfigError
 
 log = logging.getLogger("quadlink.demo")
@@ -22,29 +27,92 @@ log = logging.getLogger("quadlink.demo")
 DEFAULT_SCRIPT = CONFIG_DIR / "teleop_scripts" / "paper_experiment.yaml"
 
 
+PORT_NAMES = ("mk1", "mk2", "camera", "image", "autopilot", "gcs_bridge", "vehicle", "truth", "http")
+DEFAULT_PORTS = {"mk1": 5760, "mk2": 5761, "camera": 5762, "image": 5770, "autopilot": 14540, "gcs_bridge": 14551,
+                 "vehicle": 14555, "truth": 14560, "http": 8080}
+PORT_BLOCK_SIZE = len(PORT_NAMES)  # ports per flight with ``base``
+
+
 @dataclass(frozen=True)
 class Ports:
-    """Every port of a demo flight, shifted by one offset so several stacks can share a machine."""
+    """Every port of a demo flight: the defaults shifted by ``offset``, or, with ``base``, the contiguous block
+    ``base .. base + PORT_BLOCK_SIZE - 1`` (in :data:`PORT_NAMES` order), so several stacks can share a machine."""
 
     offset: int = 0
+    base: int | None = None
 
     def __getattr__(self, name: str) -> int:
-        base = {"mk1": 5760, "mk2": 5761, "camera": 5762, "image": 5770, "autopilot": 14540, "gcs_bridge": 14551,
-                "vehicle": 14555, "truth": 14560, "http": 8080}
-        if name not in base:
+        if name not in DEFAULT_PORTS:
             raise AttributeError(name)
-        return base[name] + self.offset
+        if self.base is not None:
+            return self.base + PORT_NAMES.index(name)
+        return DEFAULT_PORTS[name] + self.offset
+
+    def as_dict(self) -> dict[str, int]:
+        return {name: getattr(self, name) for name in PORT_NAMES}
+
+
+@dataclass(frozen=True)
+class FlightSpec:
+    """Everything a flight is made of besides ports: what ``flight.json`` holds and ``--replay`` re-flies.
+
+    ``operator`` is ``haptic`` (the ground station with the virtual device running ``script``, a teleop
+    script) or ``offboard`` (:mod:`quadlink.campaign.offboard_client` flying ``script``, an offboard plan).
+    Paths are absolute or relative to the flight's folder.
+    """
+
+    scenario: str
+    script: str
+    duration_s: float
+    operator: str = "haptic"
+    sitl_config: str | None = None
+    lockstep: bool = True
+    speed: float = 1.0
+    view: bool = True  # the operator's image view (no effect on the flight; headless saves CPU)
+
+    def resolve(self, folder: Path) -> FlightSpec:
+        def r(p: str | None) -> str | None:
+            """Relative to the folder; an absolute path that is gone (a moved or copied flight) by its name."""
+            if p is None:
+                return None
+            q = Path(p)
+            if not q.is_absolute():
+                return str(folder / q) if (folder / q).exists() else p
+            return str(q) if q.exists() or not (folder / q.name).exists() else str(folder / q.name)
+
+        return FlightSpec(r(self.scenario) or self.scenario, r(self.script) or self.script, self.duration_s,
+                          self.operator, r(self.sitl_config), self.lockstep, self.speed, self.view)
 
 
 def build_specs(scenario: str, script: Path, out_dir: Path, ports: Ports, lockstep: bool, speed: float,
-                duration_s: float, record_frames: bool = False) -> list[ProcessSpec]:
+                duration_s: float, record_frames: bool = False, sitl_config: str | None = None,
+                operator: str = "haptic", view: bool = True) -> list[ProcessSpec]:
+    """The parts of a flight in start order. ``view=False`` runs headless: no operator image stream from the
+    companion, no view or web page in the ground station (neither feeds back into the flight: the haptic
+    cue's pan-scan estimate comes from TELEOP_FEEDBACK, not from the images), which saves their CPU."""
     sitl = ["sitl", "--scenario", scenario, "--port1", str(ports.mk1), "--port2", str(ports.mk2),
             "--camera-port", str(ports.camera), "--truth", f"udpout:127.0.0.1:{ports.truth}",
             "--duration", f"{duration_s + 30:.0f}"]
+    if sitl_config is not None:
+        sitl += ["--config", sitl_config]
     if lockstep:
         sitl.append("--lockstep")
     if speed != 1.0:
         sitl += ["--speed", str(speed)]
+    if operator == "offboard":
+        operator_spec = ProcessSpec("operator", ("--vehicle", f"udpout:127.0.0.1:{ports.vehicle}",
+                                                 "--plan", str(script)),
+                                    ready_after_s=0.5, module="quadlink.campaign.offboard_client")
+    elif operator == "haptic":
+        operator_spec = ProcessSpec(
+            "teleop", ("teleop", "--device", "virtual", "--script", str(script),
+                       "--vehicle", f"udpout:127.0.0.1:{ports.vehicle}",
+                       "--image-stream", f"tcp://127.0.0.1:{ports.image}" if view else "none",
+                       "--http-port", str(ports.http) if view else "-1", "--log-csv", str(out_dir / "teleop.csv"),
+                       "--exit-at-script-end", "--script-clock", "vehicle" if lockstep else "wall"),
+            ready_after_s=0.5)
+    else:
+        raise ConfigError(f"unknown operator {operator!r} (haptic or offboard)")
     return [
         ProcessSpec("sitl", tuple(sitl), ready_after_s=4.0),
         ProcessSpec("bridge", ("bridge", "--mk-cmd", f"socket://127.0.0.1:{ports.mk1}",
@@ -56,27 +124,33 @@ def build_specs(scenario: str, script: Path, out_dir: Path, ports: Ports, lockst
                                   "--autopilot", f"udpin:127.0.0.1:{ports.autopilot}",
                                   "--gcs", f"udpin:127.0.0.1:{ports.vehicle}",
                                   "--camera", f"tcp://127.0.0.1:{ports.camera}",
-                                  "--image-port", str(ports.image),
+                                  "--image-port", str(ports.image) if view else "0",
                                   "--tlog", str(out_dir / "companion.tlog"),
                                   *(("--record-frames", str(out_dir / "frames.qlcf")) if record_frames else ())),
                     ready_after_s=3.0),
-        ProcessSpec("teleop", ("teleop", "--device", "virtual", "--script", str(script),
-                               "--vehicle", f"udpout:127.0.0.1:{ports.vehicle}",
-                               "--image-stream", f"tcp://127.0.0.1:{ports.image}",
-                               "--http-port", str(ports.http), "--log-csv", str(out_dir / "teleop.csv"),
-                               "--exit-at-script-end", "--script-clock", "vehicle" if lockstep else "wall"),
-                    ready_after_s=0.5),
+        operator_spec,
     ]
 
 
 def run_demo(scenario: str, duration_s: float, out_dir: Path, script: Path, lockstep: bool = True,
              speed: float = 1.0, port_offset: int = 0, progress_every_s: float = 3.0,
-             record_frames: bool = False) -> dict[str, object]:
-    """Fly the demo; returns the report. Raises :class:`ProcessDied` if a part dies."""
-    if not script.is_file():
+             record_frames: bool = False, port_base: int | None = None, sitl_config: str | None = None,
+             operator: str = "haptic", should_stop: Callable[[], bool] | None = None,
+             view: bool = True, plots: bool = True,
+             on_flight: Callable[[FlightLog], None] | None = None) -> dict[str, object]:
+    """Fly the demo; returns the report. Raises :class:`ProcessDied` if a part dies.
+
+    Writes ``out_dir/flight.json`` (the :class:`FlightSpec`, what ``--replay`` re-flies) and
+    ``out_dir/logs/pids`` (the parts' process ids, so a supervisor can kill them if this process dies).
+    ``should_stop`` is polled five times a second: True ends the flight early as Ctrl-C does. With
+    ``plots=False`` only ``report.json`` is written, and ``on_flight`` gets the logs' time series (parsed once).
+    """
+    if not Path(script).is_file():
         raise ConfigError(f"{script}: operator script not found")
     out_dir.mkdir(parents=True, exist_ok=True)
-    ports = Ports(port_offset)
+    spec = FlightSpec(str(scenario), str(script), float(duration_s), operator, sitl_config, lockstep, speed, view)
+    (out_dir / "flight.json").write_text(json.dumps(dataclasses.asdict(spec), indent=2) + "\n")
+    ports = Ports(port_offset, port_base)
     stack = Stack(out_dir / "logs")
     recorder = Recorder()
     recorder.record("truth", f"udpin:127.0.0.1:{ports.truth}", out_dir / "truth.tlog", is_truth=True)
@@ -88,18 +162,27 @@ def run_demo(scenario: str, duration_s: float, out_dir: Path, script: Path, lock
         nonlocal interrupted
         interrupted = True
 
-    previous = signal.signal(signal.SIGINT, on_sigint)
+    # signal handlers can only be set from the main thread (a Ray task or a test thread may run us elsewhere)
+    main_thread = threading.current_thread() is threading.main_thread()
+    previous = signal.signal(signal.SIGINT, on_sigint) if main_thread else None
     t_wall0 = time.monotonic()
+    specs = build_specs(scenario, Path(script), out_dir, ports, lockstep, speed, duration_s, record_frames,
+                        sitl_config, operator, view)
+    operator_name = specs[-1].name
     try:
-        for spec in build_specs(scenario, script, out_dir, ports, lockstep, speed, duration_s, record_frames):
-            if interrupted:
+        for part in specs:
+            if interrupted or (should_stop is not None and should_stop()):
+                interrupted = True
                 break
-            stack.start(spec)
+            stack.start(part)
         log.info("all parts running; operator view at http://127.0.0.1:%d ; logs in %s", ports.http, stack.log_dir)
         next_progress = 0.0
         while not interrupted:
             time.sleep(0.2)
-            if "teleop" in stack.check(may_finish=frozenset({"teleop"})):
+            if should_stop is not None and should_stop():
+                interrupted = True
+                break
+            if operator_name in stack.check(may_finish=frozenset({operator_name})):
                 log.info("operator script finished")
                 break
             t = recorder.truth
@@ -117,41 +200,107 @@ def run_demo(scenario: str, duration_s: float, out_dir: Path, script: Path, lock
         failure = exc
         log.error("stopping: %s", exc)
     finally:
-        signal.signal(signal.SIGINT, previous)
+        if previous is not None:
+            signal.signal(signal.SIGINT, previous)
         cpu = stack.cpu_seconds()
         codes = stack.stop()
         recorder.stop()
         log.info("stopped (exit statuses: %s)", ", ".join(f"{k}={v}" for k, v in codes.items()))
-    report = write_report(out_dir, cpu, scenario)
+    if plots:
+        report = write_report(out_dir, cpu, str(scenario))
+    else:  # the metrics alone (a campaign draws its own figures; the plots cost seconds on a loaded machine)
+        flight = load_flight(out_dir)
+        if on_flight is not None:
+            on_flight(flight)
+        report = compute_report(flight, cpu, str(scenario))
+        report["plots"] = []
+        (out_dir / "report.json").write_text(json.dumps(report, indent=2, default=float) + "\n")
     report["interrupted"] = interrupted
     report["failure"] = str(failure) if failure else None
+    report["wall_time_s"] = time.monotonic() - t_wall0
     if failure:
         raise failure
     return report
 
 
+def replay_flight(flight_dir: Path, out_dir: Path | None = None, port_offset: int = 0,
+                  port_base: int | None = None, progress_every_s: float = 3.0) -> tuple[dict[str, object], Path]:
+    """Fly ``flight_dir/flight.json`` again (into ``flight_dir/replay`` by default); returns (report, folder)."""
+    path = flight_dir / "flight.json"
+    if not path.is_file():
+        raise ConfigError(f"{path}: no flight.json (fly it with quadlink demo or quadlink campaign first)")
+    try:
+        spec = FlightSpec(**json.loads(path.read_text())).resolve(flight_dir)
+    except (TypeError, json.JSONDecodeError) as exc:
+        raise ConfigError(f"{path}: not a flight spec: {exc}") from exc
+    out = out_dir or flight_dir / "replay"
+    report = run_demo(spec.scenario, spec.duration_s, out, Path(spec.script), spec.lockstep, spec.speed, port_offset,
+                      progress_every_s, port_base=port_base, sitl_config=spec.sitl_config, operator=spec.operator,
+                      view=spec.view)
+    return report, out
+
+
+def compare_reports(original: dict[str, Any], replay: dict[str, Any]) -> list[tuple[str, Any, Any]]:
+    """The metrics (numbers, flattened ``a.b`` keys) that differ between two reports: (key, original, replay)."""
+    def flat(d: dict[str, Any], prefix: str = "") -> dict[str, Any]:
+        out: dict[str, Any] = {}
+        for k, v in d.items():
+            if k in ("cpu_core_s_per_sim_s", "plots", "wall_time_s", "targets"):
+                continue
+            if isinstance(v, dict):
+                out.update(flat(v, f"{prefix}{k}."))
+            elif isinstance(v, (int, float)) and not isinstance(v, bool):
+                out[prefix + k] = v
+        return out
+
+    a, b = flat(original), flat(replay)
+    return [(k, a.get(k), b.get(k)) for k in sorted(set(a) | set(b))
+            if not (a.get(k) == b.get(k) or (isinstance(a.get(k), float) and isinstance(b.get(k), float)
+                                             and math.isnan(a[k]) and math.isnan(b[k])))]
+
+
 @click.command(name="demo")
-@click.option("--scenario", default="paper-arena", show_default=True, help="SITL scenario (configs/scenarios/).")
+@click.option("--scenario", default="paper-arena", show_default=True,
+              help="SITL scenario (configs/scenarios/) or YAML path.")
 @click.option("--duration", "duration_s", default=90.0, show_default=True, help="Simulated seconds at most.")
-@click.option("--out", "out_dir", default="flight-report", show_default=True, type=click.Path(path_type=Path),
-              help="Folder for tlogs, report.json and plots.")
+@click.option("--out", "out_dir", default=None, type=click.Path(path_type=Path),
+              help="Folder for tlogs, report.json and plots [flight-report; with --replay: DIR/replay].")
 @click.option("--script", default=str(DEFAULT_SCRIPT), show_default=True, type=click.Path(path_type=Path),
               help="Scripted operator for the virtual haptic device.")
 @click.option("--lockstep/--realtime", default=True, show_default=True,
               help="Lock-step keeps every part in step with simulated time on a loaded machine.")
 @click.option("--speed", default=1.0, show_default=True, help="Real-time factor in --realtime mode.")
 @click.option("--port-offset", default=0, show_default=True, help="Shift every port (run beside another stack).")
+@click.option("--port-base", type=int, default=None,
+              help=f"Use the {PORT_BLOCK_SIZE} ports BASE.. ({', '.join(PORT_NAMES)}) instead of the defaults.")
+@click.option("--replay", "replay_dir", type=click.Path(file_okay=False, exists=True, path_type=Path), default=None,
+              help="Re-fly the flight recorded in DIR (its flight.json: arena, operator, configs) and compare "
+                   "its metrics with DIR/report.json.")
+@click.option("--view/--no-view", default=True, show_default=True,
+              help="The operator's image view (companion image stream, ground-station page); --no-view saves CPU.")
 @click.option("--record-frames", is_flag=True,
               help="Also record the companion's camera frames to OUT/frames.qlcf (~11 MB per second of flight).")
-def command(scenario: str, duration_s: float, out_dir: Path, script: Path, lockstep: bool, speed: float,
-            port_offset: int, record_frames: bool) -> None:
+def command(scenario: str, duration_s: float, out_dir: Path | None, script: Path, lockstep: bool, speed: float,
+            port_offset: int, port_base: int | None, replay_dir: Path | None, view: bool, record_frames: bool) -> None:
     """Fly the paper's experiment in the SITL (take off, drive, rotate, approach and push the obstacle, land)."""
     try:
-        report = run_demo(scenario, duration_s, out_dir, script, lockstep, speed, port_offset,
-                          record_frames=record_frames)
+        if replay_dir is not None:
+            report, out_dir = replay_flight(replay_dir, out_dir, port_offset, port_base)
+        else:
+            out_dir = out_dir or Path("flight-report")
+            report = run_demo(scenario, duration_s, out_dir, script, lockstep, speed, port_offset,
+                              record_frames=record_frames, port_base=port_base, view=view)
     except ProcessDied as exc:
         click.echo(f"quadlink demo: {exc}", err=True)
         raise SystemExit(1) from exc
     plots = ", ".join(str(p) for p in report.get("plots", []))  # type: ignore[attr-defined]
     click.echo(f"\nFlight report ({out_dir}/report.json, plots: {plots}):")
     click.echo(summary_table(report))
+    if replay_dir is not None and (replay_dir / "report.json").is_file():
+        diffs = compare_reports(json.loads((replay_dir / "report.json").read_text()), report)
+        if not diffs:
+            click.echo(f"replay: every metric equals the original flight's ({replay_dir}/report.json)")
+        else:
+            click.echo(f"replay: {len(diffs)} metrics differ from {replay_dir}/report.json:")
+            for key, a, b in diffs:
+                click.echo(f"  {key:<44} {a!s:>14} -> {b!s:<14}")

@@ -20,13 +20,40 @@ import psutil
 
 log = logging.getLogger(__name__)
 
+PIDS_FILE = "pids"  # in the log folder: "PID NAME" per started part
+
+
+def kill_leftovers(log_dir: Path) -> list[int]:
+    """Kill (SIGKILL, whole process group) the parts listed in ``log_dir/pids`` that still run.
+
+    For a supervisor after the process that ran the :class:`Stack` died without stopping it. A pid is killed
+    only if it still runs ``quadlink`` code (a recycled pid belongs to someone else). Returns the pids killed.
+    """
+    path = log_dir / PIDS_FILE
+    killed: list[int] = []
+    if not path.is_file():
+        return killed
+    for line in path.read_text().splitlines():
+        try:
+            pid = int(line.split()[0])
+            proc = psutil.Process(pid)
+            if not any("quadlink" in part for part in proc.cmdline()):
+                continue
+            os.killpg(pid, signal.SIGKILL)
+            killed.append(pid)
+        except (ValueError, IndexError, psutil.NoSuchProcess, psutil.AccessDenied, psutil.ZombieProcess,
+                ProcessLookupError, PermissionError):
+            continue
+    return killed
+
 
 @dataclass(frozen=True)
 class ProcessSpec:
     name: str
-    args: tuple[str, ...]  # arguments after ``quadlink``
+    args: tuple[str, ...]  # arguments after ``quadlink`` (or after ``python -m MODULE``)
     ready_after_s: float = 0.5  # settle time before the next part starts
     env: dict[str, str] = field(default_factory=dict)
+    module: str = "quadlink.cli"  # a part that is not a quadlink subcommand (the campaign's offboard client)
 
 
 @dataclass
@@ -62,14 +89,18 @@ class Stack:
 
     def start(self, spec: ProcessSpec) -> Running:
         log_path = self.log_dir / f"{spec.name}.log"
-        argv = [sys.executable, "-m", "quadlink.cli", *spec.args]
+        argv = [sys.executable, "-m", spec.module, *spec.args]
         env = {**os.environ, "PYTHONUNBUFFERED": "1", **spec.env}
         with open(log_path, "wb") as out:
             popen = subprocess.Popen(argv, stdout=out, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
                                      env=env, start_new_session=True)
         running = Running(spec, popen, log_path)
         self.running.append(running)
-        log.info("started %s (pid %d): quadlink %s", spec.name, popen.pid, " ".join(spec.args))
+        # each part leads its own process group: a supervisor whose runner died kills them by these ids
+        with open(self.log_dir / PIDS_FILE, "a") as pids:
+            pids.write(f"{popen.pid} {spec.name}\n")
+        log.info("started %s (pid %d): %s %s", spec.name, popen.pid,
+                 "quadlink" if spec.module == "quadlink.cli" else f"python -m {spec.module}", " ".join(spec.args))
         deadline = time.monotonic() + spec.ready_after_s
         while time.monotonic() < deadline:
             self.check()

@@ -13,11 +13,11 @@ from quadlink.cli import SUBCOMMANDS, main
 def test_help_lists_all_parts() -> None:
     result = CliRunner().invoke(main, ["--help"])
     assert result.exit_code == 0
-    for name in ("sitl", "bridge", "companion", "teleop", "demo", "vo-eval", "identify-yaw", "keygen", "netem",
-                 "trajectory"):
+    names = {"sitl", "bridge", "companion", "teleop", "demo", "campaign", "vo-eval", "identify-yaw", "keygen", "netem",
+             "trajectory"}
+    for name in names:
         assert name in result.output
-    assert set(SUBCOMMANDS) == {"sitl", "bridge", "companion", "teleop", "demo", "vo-eval", "identify-yaw", "keygen",
-                                "netem", "trajectory"}
+    assert set(SUBCOMMANDS) == names
 
 
 def test_console_script_runs() -> None:

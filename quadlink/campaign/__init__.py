@@ -1,0 +1,11 @@
+"""Flight campaigns (issue 15): randomized flights of the whole stack on Ray, and their statistics.
+
+``draws`` (every random choice of a flight, from its seed), ``sessions`` (operator sessions),
+``offboard_client`` (a MAVSDK-style scripted operator), ``safety`` (the minimum true distance to walls,
+obstacles and the ceiling), ``runner`` (Ray), ``report`` (campaign.json, campaign.png), ``cli``.
+The arenas come from :mod:`sim_sitl.scenario_gen`.
+"""
+
+from quadlink.campaign.cli import command
+
+__all__ = ["command"]

@@ -1,0 +1,63 @@
+"""``quadlink campaign``: N randomized flights of the whole stack on Ray, and the campaign report."""
+
+from __future__ import annotations
+
+import logging
+import time
+from pathlib import Path
+
+import click
+
+from quadlink.campaign.runner import CampaignCancelled, CampaignOptions, load_results, run_campaign
+
+log = logging.getLogger("quadlink.campaign")
+
+
+@click.command(name="campaign")
+@click.option("--flights", "n_flights", type=click.IntRange(min=1), required=True, help="Number of flights.")
+@click.option("--seed", type=int, required=True, help="Campaign seed (flight i draws from SeedSequence(seed).spawn).")
+@click.option("--out", "out_dir", type=click.Path(file_okay=False, path_type=Path), required=True,
+              help="Folder for flight-NNNN/ folders, campaign.json and campaign.png.")
+@click.option("--parallel", type=click.IntRange(min=1), default=1, show_default=True,
+              help="Flights in the air at once (each on its own port slot).")
+@click.option("--address", default=None, help="Join this Ray cluster (ray://HOST:10001 or HOST:6379) instead of "
+                                              "starting an embedded local Ray.")
+@click.option("--duration", "duration_s", default=60.0, show_default=True, help="Simulated seconds per flight.")
+@click.option("--cpus-per-flight", default=1.0, show_default=True, help="CPUs each flight reserves (Ray num_cpus).")
+@click.option("--port-offset", default=3000, show_default=True,
+              help="Port slot k flies on the demo's ports shifted by PORT_OFFSET + 25 k.")
+@click.option("--offboard-share", default=0.0, show_default=True,
+              help="Share of flights flown by the scripted offboard client (SET_POSITION_TARGET_LOCAL_NED through "
+                   "the companion) instead of the haptic operator's MANUAL_CONTROL.")
+@click.option("--fixed-share", default=0.2, show_default=True, help="Share of flights in paper-arena or office.")
+@click.option("--view/--no-view", default=False, show_default=True,
+              help="Run each flight's operator image view (no effect on the flight; costs CPU).")
+@click.option("--report-only", is_flag=True,
+              help="Fly nothing: rebuild campaign.json and the summary from OUT's finished flights (wall time "
+                   "estimated from the flights' wall times and --parallel).")
+@click.option("--first-index", default=0, show_default=True, help="Index of the first flight (continue a campaign).")
+def command(n_flights: int, seed: int, out_dir: Path, parallel: int, address: str | None, duration_s: float,
+            cpus_per_flight: float, port_offset: int, offboard_share: float, fixed_share: float,
+            view: bool, report_only: bool, first_index: int) -> None:
+    """Fly N randomized flights (arena, start, operator, vehicle and sensors) and report the safety envelope."""
+    from quadlink.campaign.report import summary_text, write_campaign
+
+    options = CampaignOptions(n_flights, seed, out_dir, duration_s, parallel, address, cpus_per_flight, port_offset,
+                              offboard_share, fixed_share, first_index, view)
+    t0 = time.monotonic()
+    cancelled = False
+    if report_only:
+        results = load_results(out_dir)
+        wall_s = sum(r.wall_s for r in results if r.wall_s == r.wall_s) / max(1, parallel)
+    else:
+        try:
+            results = run_campaign(options, echo=lambda s: click.echo(s, nl=not s.startswith("\r")))
+        except CampaignCancelled as exc:
+            results, cancelled = exc.results, True
+        wall_s = time.monotonic() - t0
+    campaign = write_campaign(results, options, wall_s)
+    click.echo(f"\nCampaign report ({out_dir}/campaign.json, {campaign['plot']}):")
+    click.echo(summary_text(campaign))
+    if cancelled:
+        click.echo(f"quadlink campaign: cancelled; the report covers the {len(results)} finished flights", err=True)
+        raise SystemExit(130)

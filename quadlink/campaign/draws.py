@@ -1,0 +1,119 @@
+"""Every random choice of one campaign flight, from its seed (pure but for :func:`write_flight_files`).
+
+Flight ``i`` of a campaign with seed ``S`` draws from ``SeedSequence(S).spawn(N)[i]`` (the same as
+``SeedSequence(S, spawn_key=(i,))``, so a flight's draws do not depend on N), split again into independent
+streams for the arena, the operator, the vehicle and sensors, and the SITL's own seed. The draws go into
+the flight's folder as the files the parts load (``scenario.yaml``, ``operator.yaml``, ``vehicle.yaml``,
+``sitl.yaml``) and as one record, ``draws.json``.
+
+Vehicle and sensor draws (the SITL's truth; the companion keeps its nominal model, so each is a model or
+calibration error the stack must tolerate):
+
+* mass ``mass_kg`` x U(0.9, 1.1) (``configs/vehicle.yaml``);
+* camera mount ``camera.R_qc`` turned by U(-2, 2) deg about each body axis (``configs/vehicle.yaml``);
+* IMU bias spreads ``imu_noise.accel_bias_init_m_s2`` and ``gyro_bias_init_rad_s`` x U(0.5, 2) (the
+  biases themselves are drawn by the SITL from its seed, which is drawn here too; ``configs/sitl.yaml``);
+* depth noise ``camera_noise.depth_sigma_per_m2`` x U(0.5, 2) (``configs/sitl.yaml``).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+from quadlink import CONFIG_DIR
+from quadlink.campaign.sessions import Session, generate_session
+from sim_sitl.config import CameraNoiseConfig, ImuNoiseConfig, ScenarioConfig
+from sim_sitl.scenario_gen import generate_scenario, scenario_to_dict
+
+MASS_SPREAD = 0.10
+CAMERA_TILT_DEG = 2.0
+IMU_BIAS_SCALE = (0.5, 2.0)
+DEPTH_NOISE_SCALE = (0.5, 2.0)
+
+
+def _rot(axis: int, a_rad: float) -> np.ndarray:
+    c, s = math.cos(a_rad), math.sin(a_rad)
+    i, j = [(1, 2), (2, 0), (0, 1)][axis]
+    R = np.eye(3)
+    R[i, i], R[i, j], R[j, i], R[j, j] = c, -s, s, c
+    return R
+
+
+@dataclass(frozen=True)
+class FlightDraws:
+    index: int
+    campaign_seed: int
+    scenario: ScenarioConfig
+    session: Session
+    vehicle: dict[str, Any]  # the vehicle config (YAML data) the SITL flies
+    sitl: dict[str, Any]  # the SITL config (YAML data), without the file paths
+    record: dict[str, Any]  # draws.json
+
+
+def draw_flight(campaign_seed: int, index: int, duration_s: float, offboard_share: float = 0.0,
+                fixed_share: float = 0.2) -> FlightDraws:
+    seq = np.random.SeedSequence(campaign_seed, spawn_key=(index,))
+    arena_ss, operator_ss, vehicle_ss, sitl_ss = seq.spawn(4)
+    arena = generate_scenario(np.random.default_rng(arena_ss), f"campaign-{campaign_seed}-{index:04d}", fixed_share)
+    op_rng = np.random.default_rng(operator_ss)
+    offboard = bool(op_rng.random() < offboard_share)
+    session = generate_session(op_rng, arena.scenario, duration_s, offboard=offboard)
+    rng = np.random.default_rng(vehicle_ss)
+    vehicle = yaml.safe_load((CONFIG_DIR / "vehicle.yaml").read_text())
+    mass_scale = float(rng.uniform(1 - MASS_SPREAD, 1 + MASS_SPREAD))
+    vehicle["mass_kg"] = round(vehicle["mass_kg"] * mass_scale, 6)
+    tilt_deg = [float(x) for x in rng.uniform(-CAMERA_TILT_DEG, CAMERA_TILT_DEG, 3)]
+    dR = _rot(2, math.radians(tilt_deg[2])) @ _rot(1, math.radians(tilt_deg[1])) @ _rot(0, math.radians(tilt_deg[0]))
+    R_qc = dR @ np.asarray(vehicle["camera"]["R_qc"], dtype=float)  # the mount turned in the body frame
+    vehicle["camera"]["R_qc"] = [[round(float(v), 9) for v in row] for row in R_qc]
+    imu_nominal, cam_nominal = ImuNoiseConfig(), CameraNoiseConfig()
+    accel_scale, gyro_scale = (float(x) for x in rng.uniform(*IMU_BIAS_SCALE, 2))
+    depth_scale = float(rng.uniform(*DEPTH_NOISE_SCALE))
+    sitl = yaml.safe_load((CONFIG_DIR / "sitl.yaml").read_text())
+    sitl_seed = int(np.random.default_rng(sitl_ss).integers(0, 2**31 - 1))
+    sitl["seed"] = sitl_seed
+    sitl.setdefault("imu_noise", {})
+    sitl["imu_noise"]["accel_bias_init_m_s2"] = imu_nominal.accel_bias_init_m_s2 * accel_scale
+    sitl["imu_noise"]["gyro_bias_init_rad_s"] = imu_nominal.gyro_bias_init_rad_s * gyro_scale
+    sitl.setdefault("camera_noise", {})
+    sitl["camera_noise"]["depth_sigma_per_m2"] = cam_nominal.depth_sigma_per_m2 * depth_scale
+    record = {
+        "campaign_seed": campaign_seed, "index": index, "seed_sequence": {"entropy": seq.entropy,
+                                                                          "spawn_key": list(seq.spawn_key)},
+        "arena": arena.record, "operator": session.record,
+        "vehicle": {"mass_scale": mass_scale, "mass_kg": vehicle["mass_kg"], "camera_tilt_deg_xyz": tilt_deg,
+                    "accel_bias_sigma_scale": accel_scale, "gyro_bias_sigma_scale": gyro_scale,
+                    "depth_noise_scale": depth_scale},
+        "sitl_seed": sitl_seed,
+    }
+    return FlightDraws(index, campaign_seed, arena.scenario, session, vehicle, sitl, record)
+
+
+@dataclass(frozen=True)
+class FlightFiles:
+    scenario: Path
+    operator: Path
+    vehicle: Path
+    sitl: Path
+    draws: Path
+
+
+def write_flight_files(draws: FlightDraws, folder: Path) -> FlightFiles:
+    """Write the configs the parts load, and ``draws.json``, into ``folder``."""
+    folder.mkdir(parents=True, exist_ok=True)
+    files = FlightFiles(folder / "scenario.yaml", folder / "operator.yaml", folder / "vehicle.yaml",
+                        folder / "sitl.yaml", folder / "draws.json")
+    files.scenario.write_text(yaml.safe_dump(scenario_to_dict(draws.scenario), sort_keys=False))
+    files.operator.write_text(yaml.safe_dump(draws.session.script, sort_keys=False))
+    files.vehicle.write_text(yaml.safe_dump(draws.vehicle, sort_keys=False))
+    sitl = {**draws.sitl, "vehicle": str(files.vehicle.resolve()), "scenario": str(files.scenario.resolve())}
+    files.sitl.write_text(yaml.safe_dump(sitl, sort_keys=False))
+    files.draws.write_text(json.dumps(draws.record, indent=2) + "\n")
+    return files

@@ -1,0 +1,204 @@
+"""A scripted offboard operator (issue 15): what a MAVSDK script does, in plain pymavlink.
+
+``python -m quadlink.campaign.offboard_client --vehicle udpout:127.0.0.1:14555 --plan PLAN.yaml``
+
+Connects to the companion's ground-station endpoint, sends a 1 Hz GCS HEARTBEAT, arms and takes off
+through the companion (COMMAND_LONG to component 191, as the ground station does), switches to PX4's
+OFFBOARD mode (MAV_CMD_DO_SET_MODE, custom mode from :mod:`quadlink.px4_modes`) and then streams
+SET_POSITION_TARGET_LOCAL_NED velocity setpoints at 20 Hz like MAVSDK's ``set_velocity_body``
+(MAV_FRAME_BODY_NED, velocity + yaw rate) and ``set_velocity_ned`` (MAV_FRAME_LOCAL_NED, velocity + yaw);
+at the end it commands LAND. The plan's timeline runs on the vehicle's clock (TELEOP_FEEDBACK
+``time_usec``, simulated time in the SITL) from the first vehicle time it hears, as the ground station's
+scripts do, so a lock-step flight sees the same setpoints at the same simulated time after the client
+joined whatever the machine's load.
+
+The plan (written by :func:`quadlink.campaign.sessions.generate_session`)::
+
+    takeoff_s: 10.0        # offboard starts here (vehicle time)
+    landing_s: 8.0
+    duration_s: 40.0
+    segments:              # one after the other from takeoff_s
+      - {frame: body, forward_m_s: 0.3, right_m_s: 0.3, down_m_s: 0.0, yawspeed_deg_s: 0.0, duration_s: 3.0}
+      - {frame: ned, north_m_s: 0.2, east_m_s: 0.0, down_m_s: 0.0, yaw_deg: 90.0, duration_s: 2.0}
+
+Whether the companion shapes these setpoints with its safety layer is the companion's business (issue
+14); this client only speaks the protocol.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import click
+import yaml
+
+from quadlink.errors import ConfigError
+from quadlink.mavlink import mavlink
+from quadlink.px4_modes import Px4MainMode, encode_custom_mode
+
+log = logging.getLogger("quadlink.campaign.offboard")
+
+SETPOINT_PERIOD_S = 0.05  # MAVSDK streams offboard setpoints at 20 Hz
+COMPANION_COMPONENT = 191
+VEHICLE_SYSTEM = 1
+# type_mask (POSITION_TARGET_TYPEMASK): velocity only, with the yaw or the yaw rate
+_M = mavlink
+_IGNORE_POS = _M.POSITION_TARGET_TYPEMASK_X_IGNORE | _M.POSITION_TARGET_TYPEMASK_Y_IGNORE | \
+    _M.POSITION_TARGET_TYPEMASK_Z_IGNORE
+_IGNORE_ACC = _M.POSITION_TARGET_TYPEMASK_AX_IGNORE | _M.POSITION_TARGET_TYPEMASK_AY_IGNORE | \
+    _M.POSITION_TARGET_TYPEMASK_AZ_IGNORE
+_IGNORE_YAW = _M.POSITION_TARGET_TYPEMASK_YAW_IGNORE
+_IGNORE_YAW_RATE = _M.POSITION_TARGET_TYPEMASK_YAW_RATE_IGNORE
+TYPE_MASK_VELOCITY_YAW_RATE = _IGNORE_POS | _IGNORE_ACC | _IGNORE_YAW
+TYPE_MASK_VELOCITY_YAW = _IGNORE_POS | _IGNORE_ACC | _IGNORE_YAW_RATE
+
+
+@dataclass(frozen=True)
+class VelocitySetpoint:
+    """One SET_POSITION_TARGET_LOCAL_NED velocity setpoint (frame: MAV_FRAME_BODY_NED or LOCAL_NED)."""
+
+    frame: int
+    vx_m_s: float
+    vy_m_s: float
+    vz_m_s: float
+    yaw_rad: float
+    yaw_rate_rad_s: float
+    type_mask: int
+
+
+HOVER = VelocitySetpoint(mavlink.MAV_FRAME_BODY_NED, 0.0, 0.0, 0.0, 0.0, 0.0, TYPE_MASK_VELOCITY_YAW_RATE)
+
+
+def setpoint_at(plan: dict[str, Any], t_s: float) -> VelocitySetpoint | None:
+    """The plan's setpoint at vehicle time ``t_s`` (pure); None before take-off-plus-offboard and after."""
+    t = plan["takeoff_s"]
+    if t_s < t:
+        return None
+    for seg in plan["segments"]:
+        if t_s < t + seg["duration_s"]:
+            if seg.get("frame", "body") == "body":
+                return VelocitySetpoint(mavlink.MAV_FRAME_BODY_NED, seg.get("forward_m_s", 0.0),
+                                        seg.get("right_m_s", 0.0), seg.get("down_m_s", 0.0), 0.0,
+                                        math.radians(seg.get("yawspeed_deg_s", 0.0)), TYPE_MASK_VELOCITY_YAW_RATE)
+            return VelocitySetpoint(mavlink.MAV_FRAME_LOCAL_NED, seg.get("north_m_s", 0.0), seg.get("east_m_s", 0.0),
+                                    seg.get("down_m_s", 0.0), math.radians(seg.get("yaw_deg", 0.0)), 0.0,
+                                    TYPE_MASK_VELOCITY_YAW)
+        t += seg["duration_s"]
+    return None
+
+
+def plan_end_s(plan: dict[str, Any]) -> float:
+    return float(plan["takeoff_s"] + sum(s["duration_s"] for s in plan["segments"]))
+
+
+def load_plan(path: Path) -> dict[str, Any]:
+    try:
+        plan = yaml.safe_load(path.read_text())
+    except (OSError, yaml.YAMLError) as exc:
+        raise ConfigError(f"{path}: cannot read offboard plan: {exc}") from exc
+    if not isinstance(plan, dict) or "segments" not in plan or "takeoff_s" not in plan:
+        raise ConfigError(f"{path}: an offboard plan needs takeoff_s and segments")
+    return plan
+
+
+class OffboardClient:
+    """The I/O side: one pymavlink connection, driven by :meth:`run`."""
+
+    def __init__(self, conn: Any, plan: dict[str, Any]) -> None:
+        self.conn = conn
+        self.plan = plan
+        self.vehicle_t_s: float | None = None
+        self.origin_s: float | None = None  # vehicle time when the plan started
+        self._last_hb_wall = -math.inf
+        self._done: set[str] = set()
+
+    def _command(self, command: int, params: tuple[float, ...]) -> None:
+        self.conn.mav.command_long_send(VEHICLE_SYSTEM, COMPANION_COMPONENT, command, 0, *params)
+
+    def _send_setpoint(self, sp: VelocitySetpoint) -> None:
+        ms = int((self.vehicle_t_s or 0.0) * 1000) & 0xFFFFFFFF
+        self.conn.mav.set_position_target_local_ned_send(
+            ms, VEHICLE_SYSTEM, COMPANION_COMPONENT, sp.frame, sp.type_mask, 0.0, 0.0, 0.0, sp.vx_m_s, sp.vy_m_s,
+            sp.vz_m_s, 0.0, 0.0, 0.0, sp.yaw_rad, sp.yaw_rate_rad_s)
+
+    def _pump(self, timeout_s: float) -> None:
+        msg = self.conn.recv_match(blocking=True, timeout=timeout_s)
+        while msg is not None:
+            if msg.get_type() == "TELEOP_FEEDBACK":
+                self.vehicle_t_s = msg.time_usec * 1e-6
+            elif msg.get_type() == "STATUSTEXT":
+                log.info("vehicle: %s", msg.text)
+            msg = self.conn.recv_match(blocking=False)
+
+    def _once(self, name: str, due: bool) -> bool:
+        if due and name not in self._done:
+            self._done.add(name)
+            return True
+        return False
+
+    def run(self, wall_timeout_s: float) -> int:
+        deadline = time.monotonic() + wall_timeout_s
+        next_sp_s = 0.0
+        end_s = plan_end_s(self.plan)
+        total_s = float(self.plan.get("duration_s", end_s + self.plan.get("landing_s", 8.0)))
+        while time.monotonic() < deadline:
+            now = time.monotonic()
+            if now - self._last_hb_wall >= 1.0:
+                self._last_hb_wall = now
+                self.conn.mav.heartbeat_send(mavlink.MAV_TYPE_GCS, mavlink.MAV_AUTOPILOT_INVALID, 0, 0,
+                                             mavlink.MAV_STATE_ACTIVE)
+            self._pump(0.01)
+            if self.vehicle_t_s is None:
+                continue
+            if self.origin_s is None:
+                self.origin_s = self.vehicle_t_s
+            t = self.vehicle_t_s - self.origin_s
+            if self._once("arm", t >= 2.0):
+                self._command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, (1.0, 0, 0, 0, 0, 0, 0))
+            if self._once("takeoff", t >= 3.0):
+                self._command(mavlink.MAV_CMD_NAV_TAKEOFF, (0, 0, 0, math.nan, math.nan, math.nan, 1.0))
+            sp = setpoint_at(self.plan, t)
+            if sp is not None and t >= next_sp_s:
+                next_sp_s = t + SETPOINT_PERIOD_S
+                self._send_setpoint(sp)
+                # PX4 wants setpoints streaming before the switch (MAVSDK offboard.start() sends one first)
+                if self._once("offboard", True):
+                    self._command(mavlink.MAV_CMD_DO_SET_MODE,
+                                  (mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED,
+                                   float(encode_custom_mode(Px4MainMode.OFFBOARD)), 0, 0, 0, 0, 0))
+            if self._once("land", t >= end_s):
+                self._command(mavlink.MAV_CMD_NAV_LAND, (0, 0, 0, math.nan, math.nan, math.nan, 0.0))
+            if t >= total_s:
+                return 0
+        log.error("vehicle time did not reach %.1f s within %.0f s of wall time", total_s, wall_timeout_s)
+        return 1
+
+
+@click.command()
+@click.option("--vehicle", required=True, help="companion ground-station endpoint, e.g. udpout:127.0.0.1:14555")
+@click.option("--plan", "plan_path", required=True, type=click.Path(exists=True, dir_okay=False, path_type=Path))
+@click.option("--wall-timeout", default=900.0, show_default=True, help="give up after this many wall seconds")
+def main(vehicle: str, plan_path: Path, wall_timeout: float) -> None:
+    """Fly an offboard velocity plan through the companion (pymavlink, MAVSDK-style setpoints)."""
+    from quadlink.mavlink.connection import open_mavlink
+
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname).1s %(name)s: %(message)s")
+    plan = load_plan(plan_path)
+    conn = open_mavlink(vehicle, source_system=255, source_component=190)
+    try:
+        code = OffboardClient(conn, plan).run(wall_timeout)
+    except KeyboardInterrupt:  # the orchestrator stops its parts with SIGINT
+        code = 0
+    finally:
+        conn.close()
+    sys.exit(code)
+
+
+if __name__ == "__main__":
+    main()

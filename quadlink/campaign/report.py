@@ -1,0 +1,162 @@
+"""The campaign report (issue 15): ``campaign.json``, ``campaign.png`` and a printed summary (pure but for
+the files it writes).
+
+Per flight: its seeds, its arena and operator kind, the demo's metrics (``report.json``) and the safety
+envelope (:mod:`quadlink.campaign.safety`: the minimum true distance to walls, obstacles and the ceiling).
+Over the campaign: the CDF of that minimum with the 0.40 m target and the 0.45 m safe distance marked,
+histograms of the velocity-estimate and tracking RMSE (worst axis per flight), the share of flights with
+setpoint gaps over 100 ms, the five worst flights with the command that replays each.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from quadlink.campaign.runner import CampaignOptions, FlightResult
+
+TARGET_M = 0.40
+SAFE_DISTANCE_M = 0.45
+WORST_N = 5
+
+
+def _worst_axis(d: dict[str, float] | None) -> float:
+    vals = [v for v in (d or {}).values() if isinstance(v, (int, float)) and math.isfinite(v)]
+    return max(vals) if vals else math.nan
+
+
+def flight_row(r: FlightResult) -> dict[str, Any]:
+    rep, env, draws = r.report, r.envelope, r.draws
+    return {
+        "index": r.index, "status": r.status, "attempts": r.attempts, "retried": r.attempts > 1,
+        "folder": r.folder, "failure": r.failure, "wall_s": r.wall_s, "port_offset": r.port_offset,
+        "seed": {"campaign": draws.get("campaign_seed"), "spawn_key": draws.get("seed_sequence", {}).get("spawn_key"),
+                 "sitl": draws.get("sitl_seed")},
+        "layout": draws.get("arena", {}).get("layout"), "operator": draws.get("operator", {}).get("kind"),
+        "min_nonfloor_distance_m": env.get("min_nonfloor_m", math.nan),
+        "min_obstacle_distance_m": env.get("min_obstacle_m", math.nan),
+        "min_ceiling_distance_m": env.get("min_ceiling_m", math.nan),
+        "closest_surface": env.get("surface"), "t_closest_s": env.get("t_min_s", math.nan),
+        "velocity_rmse_m_s": _worst_axis(rep.get("velocity_rmse_m_s")),
+        "tracking_rmse_m_s": _worst_axis(rep.get("tracking_rmse_m_s")),
+        "setpoint_gaps_over_100ms": rep.get("setpoint_gaps_over_100ms"),
+        "max_setpoint_gap_s": rep.get("max_setpoint_gap_s", math.nan),
+        "fraction_estimate_le_truth": rep.get("fraction_estimate_le_truth", math.nan),
+        "sim_duration_s": rep.get("sim_duration_s", math.nan),
+        "flying_time_s": rep.get("flying_time_s", math.nan),
+        "max_height_m": env.get("max_height_m", math.nan),
+        "replay": f"quadlink demo --replay {r.folder}",
+    }
+
+
+def _finite(rows: list[dict[str, Any]], key: str) -> np.ndarray:
+    return np.asarray([row[key] for row in rows if isinstance(row.get(key), (int, float))
+                       and math.isfinite(row[key])], dtype=float)
+
+
+def summarize(results: list[FlightResult], options: CampaignOptions, wall_s: float) -> dict[str, Any]:
+    rows = [flight_row(r) for r in results]
+    flown = [row for row in rows if math.isfinite(row["min_nonfloor_distance_m"])]
+    d = _finite(flown, "min_nonfloor_distance_m")
+    gaps = [row for row in flown if row["setpoint_gaps_over_100ms"] is not None]
+    sim_s = float(np.sum(_finite(flown, "sim_duration_s")))
+    worst = sorted(flown, key=lambda row: row["min_nonfloor_distance_m"])[:WORST_N]
+    return {
+        "options": {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(options).items()},
+        "flights": rows,
+        "summary": {
+            "flights": len(rows), "ok": sum(r["status"] == "ok" for r in rows),
+            "failed": [r["index"] for r in rows if r["status"] not in ("ok",)],
+            "retried": [r["index"] for r in rows if r["retried"]],
+            # a flight that never left the ground says nothing about the envelope: listed, not hidden
+            "did_not_take_off": [r["index"] for r in rows if not (r.get("max_height_m", 0.0) > 0.5)],
+            "min_nonfloor_distance_m": float(d.min()) if d.size else math.nan,
+            "share_below_target": float(np.mean(d < TARGET_M)) if d.size else math.nan,
+            "share_below_safe_distance": float(np.mean(d < SAFE_DISTANCE_M)) if d.size else math.nan,
+            "velocity_rmse_m_s_median": float(np.median(_finite(flown, "velocity_rmse_m_s")))
+            if _finite(flown, "velocity_rmse_m_s").size else math.nan,
+            "tracking_rmse_m_s_median": float(np.median(_finite(flown, "tracking_rmse_m_s")))
+            if _finite(flown, "tracking_rmse_m_s").size else math.nan,
+            "share_with_setpoint_gaps": float(np.mean([(r["setpoint_gaps_over_100ms"] or 0) > 0 for r in gaps]))
+            if gaps else math.nan,
+            "wall_time_s": wall_s, "simulated_s": sim_s,
+            "flights_per_hour": len(rows) / wall_s * 3600 if wall_s > 0 else math.nan,
+            "worst": [{"index": w["index"], "min_nonfloor_distance_m": w["min_nonfloor_distance_m"],
+                       "surface": w["closest_surface"], "layout": w["layout"], "operator": w["operator"],
+                       "replay": w["replay"]} for w in worst],
+        },
+    }
+
+
+def make_plot(campaign: dict[str, Any], path: Path) -> Path:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    rows = campaign["flights"]
+    d = np.sort(_finite(rows, "min_nonfloor_distance_m"))
+    fig, axes = plt.subplots(1, 3, figsize=(15, 4.2))
+    ax = axes[0]
+    if d.size:
+        ax.step(d, np.arange(1, d.size + 1) / d.size, where="post", color="tab:blue")
+    ax.axvline(TARGET_M, color="r", ls="--", label=f"target {TARGET_M:.2f} m")
+    ax.axvline(SAFE_DISTANCE_M, color="k", ls=":", label=f"safe distance {SAFE_DISTANCE_M:.2f} m")
+    ax.set_xlabel("min true distance to walls, obstacles, ceiling [m]")
+    ax.set_ylabel("share of flights")
+    ax.set_title(f"Safety envelope ({d.size} flights)")
+    ax.grid(alpha=0.3)
+    ax.legend(loc="lower right")
+    for ax, key, title in ((axes[1], "velocity_rmse_m_s", "velocity-estimate RMSE (worst axis)"),
+                           (axes[2], "tracking_rmse_m_s", "tracking RMSE (worst axis)")):
+        v = _finite(rows, key)
+        if v.size:
+            ax.hist(v, bins=max(5, min(30, v.size)), color="tab:green")
+        ax.set_xlabel(f"{key} [m/s]")
+        ax.set_ylabel("flights")
+        ax.set_title(title)
+        ax.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def write_campaign(results: list[FlightResult], options: CampaignOptions, wall_s: float) -> dict[str, Any]:
+    campaign = summarize(results, options, wall_s)
+    campaign["plot"] = str(make_plot(campaign, options.out_dir / "campaign.png"))
+    (options.out_dir / "campaign.json").write_text(json.dumps(campaign, indent=2, default=float) + "\n")
+    return campaign
+
+
+def summary_text(campaign: dict[str, Any]) -> str:
+    s = campaign["summary"]
+    lines = [f"{'flight':>6} {'status':<9} {'layout':<18} {'operator':<8} {'min d':>6} {'surface':<8} "
+             f"{'v RMSE':>7} {'track':>7} {'gaps':>4} {'flying':>6} {'sitl seed':>10}"]
+    for r in campaign["flights"]:
+        lines.append(f"{r['index']:>6} {r['status'] + ('*' if r['retried'] else ''):<9} {str(r['layout']):<18} "
+                     f"{str(r['operator']):<8} {r['min_nonfloor_distance_m']:6.2f} {str(r['closest_surface']):<8} "
+                     f"{r['velocity_rmse_m_s']:7.3f} {r['tracking_rmse_m_s']:7.3f} "
+                     f"{str(r['setpoint_gaps_over_100ms']):>4} {r['flying_time_s']:5.1f}s {str(r['seed']['sitl']):>10}")
+    lines += [
+        "",
+        f"flights {s['flights']} (ok {s['ok']}; failed {s['failed'] or 'none'}; retried (*) {s['retried'] or 'none'}; "
+        f"did not take off {s['did_not_take_off'] or 'none'})",
+        f"min true distance to walls/obstacles/ceiling: {s['min_nonfloor_distance_m']:.3f} m; "
+        f"below {TARGET_M} m in {100 * s['share_below_target']:.0f} % of flights, below {SAFE_DISTANCE_M} m in "
+        f"{100 * s['share_below_safe_distance']:.0f} %",
+        f"velocity-estimate RMSE median {s['velocity_rmse_m_s_median']:.3f} m/s; tracking RMSE median "
+        f"{s['tracking_rmse_m_s_median']:.3f} m/s; flights with setpoint gaps > 100 ms: "
+        f"{100 * s['share_with_setpoint_gaps']:.0f} %",
+        f"throughput: {s['flights_per_hour']:.1f} flights/h ({s['simulated_s']:.0f} s simulated in "
+        f"{s['wall_time_s']:.0f} s wall)",
+        "worst flights:",
+    ]
+    for w in s["worst"]:
+        lines.append(f"  flight {w['index']:>4}: {w['min_nonfloor_distance_m']:.3f} m ({w['surface']}, {w['layout']}, "
+                     f"{w['operator']})  {w['replay']}")
+    return "\n".join(lines)

@@ -1,0 +1,291 @@
+"""Run a campaign's flights on Ray (issue 15): one Ray task per flight, results streamed as they finish.
+
+A flight (:func:`fly`) is the demo's orchestration (:func:`quadlink.demo.cli.run_demo`): the SITL in
+lock-step, the bridge, the companion and the operator as separate processes over their real links, on the
+ports of one per-flight block (:func:`flight_ports`). The task reserves ``cpus_per_flight`` CPUs
+(``num_cpus``); at most ``parallel`` flights are in the air at once, each on its own port slot.
+
+How the code reaches the workers:
+
+* embedded local Ray (the default, ``ray.init(num_cpus=<this machine's cores>)``): the workers are this
+  machine's processes, started with this interpreter and this environment (``PYTHONPATH`` gets the
+  repository root), so they import the same checkout;
+* a cluster (``--address ray://HOST:10001`` or ``HOST:6379``): the repository is shipped as the job's
+  ``runtime_env`` ``working_dir`` (code and ``configs/``, without tlogs and virtualenvs), and each node
+  needs the dependencies (``pip install -e .`` of the same version, or the same container image). Flight
+  folders are written on the node that flies them: give ``--out`` a shared filesystem to keep the tlogs;
+  the reports and draws come back to the driver in any case.
+
+A flight whose worker dies (``WorkerCrashedError``, a lost node) is retried once on the same port slot,
+after its leftover processes are killed (``logs/pids``), and reported as retried. A part of the stack that
+dies is a failed flight, not retried: it is a finding.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import os
+import sys
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+from quadlink import REPO_ROOT
+from quadlink.campaign.draws import draw_flight, write_flight_files
+from quadlink.campaign.safety import Envelope, envelope, read_truth, truth_of_flight
+from quadlink.config import load_config
+from quadlink.demo.orchestrator import kill_leftovers
+from sim_sitl.config import ScenarioConfig
+
+log = logging.getLogger("quadlink.campaign")
+
+PORT_SLOT_STRIDE = 25  # offsets between slots: every demo port group spans < 25 ports
+RAY_START_ATTEMPTS = 3
+#: simulated time a flight may take beyond its session: the SITL's clock runs in real time until its lock-step
+#: clients connect, so the operator joins some seconds of simulated time after t = 0 (more on a loaded machine);
+#: a flight ends when its operator's session ends, this is only the bound
+STARTUP_ALLOWANCE_S = 45.0
+
+
+class CampaignCancelled(KeyboardInterrupt):
+    """Ctrl-C during a campaign: carries the flights that finished before it."""
+
+    def __init__(self, results: list[FlightResult]) -> None:
+        super().__init__(f"campaign cancelled after {len(results)} flights")
+        self.results = results
+
+
+def load_results(out_dir: Path) -> list[FlightResult]:
+    """The finished flights of a campaign folder (each ``flight-NNNN/result.json``)."""
+    out = []
+    for path in sorted(out_dir.glob("flight-*/result.json")):
+        data = json.loads(path.read_text())
+        out.append(FlightResult(**{k: v for k, v in data.items() if k in FlightResult.__dataclass_fields__}))
+    return out
+
+
+@dataclass(frozen=True)
+class CampaignOptions:
+    flights: int
+    seed: int
+    out_dir: Path
+    duration_s: float = 60.0
+    parallel: int = 1
+    address: str | None = None
+    cpus_per_flight: float = 1.0
+    port_offset: int = 3000  # slot k flies on the demo's ports shifted by port_offset + 25 k
+    offboard_share: float = 0.0  # share of flights flown by the offboard client instead of MANUAL_CONTROL
+    fixed_share: float = 0.2  # share of flights in paper-arena or office
+    first_index: int = 0
+    view: bool = False  # the operator image view in each flight (costs CPU, changes nothing in the flight)
+
+
+@dataclass
+class FlightResult:
+    index: int
+    status: str  # "ok" | "failed" | "lost" (worker died twice) | "cancelled"
+    attempts: int
+    folder: str
+    report: dict[str, Any] = field(default_factory=dict)
+    envelope: dict[str, Any] = field(default_factory=dict)
+    draws: dict[str, Any] = field(default_factory=dict)
+    failure: str | None = None
+    wall_s: float = math.nan
+    port_offset: int = 0
+    node: str = ""
+    t_start_unix_s: float = math.nan
+    t_end_unix_s: float = math.nan
+
+
+def flight_ports(port_offset: int, slot: int) -> int:
+    """The demo's port offset for a port slot."""
+    return port_offset + PORT_SLOT_STRIDE * slot
+
+
+def flight_folder(out_dir: Path, index: int) -> Path:
+    return out_dir / f"flight-{index:04d}"
+
+
+def fly(options: CampaignOptions, index: int, slot: int, attempt: int,
+        should_stop: Callable[[], bool] | None = None) -> FlightResult:
+    """Draw, write and fly flight ``index`` on port slot ``slot`` (what a Ray task runs)."""
+    from quadlink.demo.cli import run_demo
+    from quadlink.demo.orchestrator import ProcessDied
+
+    folder = flight_folder(options.out_dir, index)
+    if attempt > 1:
+        kill_leftovers(folder / "logs")
+        (folder / "logs" / "pids").unlink(missing_ok=True)
+    draws = draw_flight(options.seed, index, options.duration_s, options.offboard_share, options.fixed_share)
+    files = write_flight_files(draws, folder)
+    offset = flight_ports(options.port_offset, slot)
+    t0 = time.monotonic()
+    result = FlightResult(index, "ok", attempt, str(folder), draws=draws.record, port_offset=offset,
+                          node=os.uname().nodename, t_start_unix_s=time.time())
+    scenario = load_config(files.scenario, ScenarioConfig)
+    envelopes: list[Envelope] = []
+    try:
+        report = run_demo(str(files.scenario), options.duration_s + STARTUP_ALLOWANCE_S, folder, files.operator,
+                          lockstep=True,
+                          port_offset=offset, progress_every_s=30.0, sitl_config=str(files.sitl),
+                          operator=draws.session.kind, should_stop=should_stop, view=options.view,
+                          plots=False, on_flight=lambda f: envelopes.append(envelope(truth_of_flight(f), scenario)))
+        result.report = report
+        if report.get("interrupted"):
+            result.status = "cancelled"
+    except ProcessDied as exc:
+        result.status, result.failure = "failed", str(exc)
+        report_path = folder / "report.json"
+        if report_path.is_file():
+            result.report = json.loads(report_path.read_text())
+    result.wall_s = time.monotonic() - t0
+    result.t_end_unix_s = time.time()
+    truth = folder / "truth.tlog"
+    if envelopes:
+        result.envelope = asdict(envelopes[0])
+    elif truth.is_file():  # a part died: the demo wrote no report, the truth log is still there
+        result.envelope = asdict(envelope(read_truth(truth), scenario))
+    (folder / "result.json").write_text(json.dumps(asdict(result), indent=2, default=float) + "\n")
+    return result
+
+
+def _ray_task(options: CampaignOptions, index: int, slot: int, attempt: int) -> FlightResult:
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname).1s %(name)s: %(message)s")
+    return fly(options, index, slot, attempt)
+
+
+def _init_ray(options: CampaignOptions) -> Any:
+    import ray
+
+    if options.address:
+        runtime_env = {"working_dir": str(REPO_ROOT),
+                       "excludes": [".git", ".venv", "*.tlog", "*.qlcf", "*.png", "flight-report*", "campaign-*",
+                                    "__pycache__", str(options.out_dir)]}
+        ray.init(address=options.address, runtime_env=runtime_env, log_to_driver=False)
+    else:
+        # workers inherit this environment: make sure they import this checkout
+        paths = [str(REPO_ROOT)] + [p for p in os.environ.get("PYTHONPATH", "").split(os.pathsep) if p]
+        os.environ["PYTHONPATH"] = os.pathsep.join(dict.fromkeys(paths))
+        for attempt in range(1, RAY_START_ATTEMPTS + 1):
+            try:
+                ray.init(num_cpus=os.cpu_count() or 1, include_dashboard=False, log_to_driver=False,
+                         object_store_memory=200 * 1024 * 1024, configure_logging=False)
+                break
+            except Exception as exc:  # noqa: BLE001 - Ray raises a bare Exception when its node starts too slowly
+                if "timed out during startup" not in str(exc) or attempt == RAY_START_ATTEMPTS:
+                    raise
+                # Ray waits a fixed 30 s for its raylet; on a loaded machine that is not always enough
+                log.warning("local Ray did not start in time (attempt %d of %d); retrying", attempt,
+                            RAY_START_ATTEMPTS)
+                ray.shutdown()
+    return ray
+
+
+def _fmt_s(s: float) -> str:
+    if not math.isfinite(s):
+        return "--:--"
+    s = int(s)
+    return f"{s // 3600:d}:{s // 60 % 60:02d}:{s % 60:02d}" if s >= 3600 else f"{s // 60:02d}:{s % 60:02d}"
+
+
+def progress_line(done: int, total: int, running: int, retried: int, failed: int, elapsed_s: float,
+                  last: FlightResult | None = None, width: int = 24) -> str:
+    """``[#######.....] 7/20 running 2 retried 0 failed 1 elapsed 05:10 ETA 09:36 | last ...`` (pure)."""
+    filled = int(width * done / total) if total else width
+    eta = elapsed_s / done * (total - done) if done else math.nan
+    text = (f"[{'#' * filled}{'.' * (width - filled)}] {done}/{total} running {running} retried {retried} "
+            f"failed {failed} elapsed {_fmt_s(elapsed_s)} ETA {_fmt_s(eta)}")
+    if last is not None:
+        d = last.envelope.get("min_nonfloor_m", math.nan)
+        text += f" | flight {last.index} {last.status} min d {d:.2f} m ({last.wall_s:.0f} s)"
+    return text
+
+
+def run_campaign(options: CampaignOptions, on_result: Callable[[FlightResult], None] | None = None,
+                 echo: Callable[[str], None] = print) -> list[FlightResult]:
+    """Fly the campaign on Ray; ``on_result`` sees each flight as it finishes. Ctrl-C cancels cleanly."""
+    ray = _init_ray(options)
+    from ray.exceptions import NodeDiedError, TaskCancelledError, WorkerCrashedError
+
+    try:
+        from ray.exceptions import LocalRayletDiedError
+        lost_errors: tuple[type[BaseException], ...] = (WorkerCrashedError, NodeDiedError, LocalRayletDiedError)
+    except ImportError:  # older Ray
+        lost_errors = (WorkerCrashedError, NodeDiedError)
+    task = ray.remote(num_cpus=options.cpus_per_flight, max_retries=0)(_ray_task)
+    options.out_dir.mkdir(parents=True, exist_ok=True)
+    queue = list(range(options.first_index, options.first_index + options.flights))
+    free_slots = list(range(max(1, options.parallel)))
+    pending: dict[Any, tuple[int, int, int]] = {}  # ref -> (index, slot, attempt)
+    results: list[FlightResult] = []
+    retried = failed = 0
+    t0 = time.monotonic()
+    last: FlightResult | None = None
+    tty = sys.stdout.isatty()
+
+    def submit(index: int, slot: int, attempt: int) -> None:
+        pending[task.remote(options, index, slot, attempt)] = (index, slot, attempt)
+
+    try:
+        while queue or pending:
+            while queue and free_slots:
+                submit(queue.pop(0), free_slots.pop(0), 1)
+            ready, _ = ray.wait(list(pending), num_returns=1, timeout=2.0)
+            for ref in ready:
+                index, slot, attempt = pending.pop(ref)
+                try:
+                    result = ray.get(ref)
+                except lost_errors as exc:
+                    if attempt == 1:
+                        retried += 1
+                        log.warning("flight %d: worker lost (%s); retrying once", index, type(exc).__name__)
+                        submit(index, slot, 2)
+                        continue
+                    result = FlightResult(index, "lost", attempt, str(flight_folder(options.out_dir, index)),
+                                          failure=f"worker lost twice: {exc}")
+                    kill_leftovers(flight_folder(options.out_dir, index) / "logs")
+                except ray.exceptions.RayTaskError as exc:  # a bug in the flight code: report, go on
+                    result = FlightResult(index, "failed", attempt, str(flight_folder(options.out_dir, index)),
+                                          failure=str(exc).splitlines()[-1])
+                free_slots.append(slot)
+                if result.status != "ok":
+                    failed += 1
+                results.append(result)
+                last = result
+                if on_result is not None:
+                    on_result(result)
+            line = progress_line(len(results), options.flights, len(pending), retried, failed,
+                                 time.monotonic() - t0, last)
+            if tty:
+                echo("\r" + line + "\x1b[K")
+            elif ready:
+                echo(line)
+    except KeyboardInterrupt:
+        echo(f"\ncancelling {len(pending)} flights in the air ...")
+        _cancel(ray, pending, options, TaskCancelledError)
+        raise CampaignCancelled(sorted(results, key=lambda r: r.index)) from None
+    finally:
+        ray.shutdown()
+    if tty:
+        echo("\n")
+    return sorted(results, key=lambda r: r.index)
+
+
+def _cancel(ray: Any, pending: dict[Any, tuple[int, int, int]], options: CampaignOptions,
+            cancelled: type[BaseException]) -> None:
+    """Interrupt the running flights (their stacks stop their parts), then kill whatever is left by pid."""
+    for ref in pending:
+        ray.cancel(ref, force=False)  # KeyboardInterrupt in the task: run_demo stops its parts in order
+    deadline = time.monotonic() + 20.0
+    refs = list(pending)
+    while refs and time.monotonic() < deadline:
+        ready, refs = ray.wait(refs, num_returns=len(refs), timeout=1.0)
+    for index, _, _ in pending.values():
+        killed = kill_leftovers(flight_folder(options.out_dir, index) / "logs")
+        if killed:
+            log.warning("flight %d: killed leftover parts %s", index, killed)
+
