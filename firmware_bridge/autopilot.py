@@ -40,6 +40,7 @@ from collections.abc import Callable
 from typing import Any
 
 from firmware_bridge.flight_control import FlightControlService
+from firmware_bridge.geometric_tracker import GeometricTracker
 from firmware_bridge.modes import FlightMode, TakeoffPhase
 from firmware_bridge.params import ParamTable
 from firmware_bridge.state import BoardCommand, NonFiniteCommand, Outbound
@@ -66,7 +67,11 @@ class Autopilot(FlightControlService):
         self.param_service = ParamService(params, self.mav, sysid, compid)
 
     def apply_params(self) -> None:
+        self.pid_tracker.set_gains(self.params.tracker_gains())
         self.tracker.set_gains(self.params.tracker_gains())
+        if isinstance(self.tracker, GeometricTracker):
+            self.tracker.set_geometric_gains(self.params.geometric_gains())
+        self._apply_tracker_selection()
         self.filter.set_tau(self.params["BRG_ATT_TAU"])
         self.vertical.max_climb_m_s = self.params["MPC_Z_VEL_MAX_UP"]
         self.vertical.max_descent_m_s = self.params["MPC_Z_VEL_MAX_DN"]

@@ -94,7 +94,7 @@ class CommanderService(OffboardService):
         self.blind = False
         self.takeoff_phase = None
         self._blind_descent = None
-        self.tracker.reset()
+        self._reset_trackers()
 
     def _check_links(self, now_s: float) -> None:
         p = self.params

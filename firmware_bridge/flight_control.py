@@ -13,6 +13,7 @@ from typing import Any
 import numpy as np
 
 from firmware_bridge.commander import CommanderService
+from firmware_bridge.geometric_tracker import GeometricTracker
 from firmware_bridge.modes import FlightMode
 from firmware_bridge.state import AttitudeSetpoint, BoardCommand
 from firmware_bridge.velocity_tracker import AttitudeCommand
@@ -46,12 +47,14 @@ class FlightControlService(CommanderService):
             self.blind = False
             self.takeoff_phase = None
             self._blind_descent = None
-            self.tracker.reset()
+            self._reset_trackers()
+            self._apply_tracker_selection()
             self._on_ground_armed_since_s = None
             return self._board(BoardCommand(0.0, 0.0, 0.0, 0.0, False))
         if not self.in_air:
             # armed on the ground: motors at idle, level, nothing integrates (PX4's "landed" state)
-            self.tracker.reset()
+            self._reset_trackers()
+            self._apply_tracker_selection()
             self._dv_h_imu[:] = 0.0
             if self._on_ground_armed_since_s is None:
                 self._on_ground_armed_since_s = now_s
@@ -73,7 +76,7 @@ class FlightControlService(CommanderService):
         if not self.odom_ok and not (self.mode == FlightMode.OFFBOARD and self._att_sp is not None):
             v_ref = np.array([0.0, 0.0, self.params["MPC_LAND_SPEED"]])
             v_est = np.array([0.0, 0.0, self._vz_dead_reckoned])
-            cmd = self.tracker.update(dt, v_ref, 0.0, v_est, est.roll_rad, est.pitch_rad)
+            cmd = self.pid_tracker.update(dt, v_ref, 0.0, v_est, est.roll_rad, est.pitch_rad)
             cmd = AttitudeCommand(0.0, 0.0, 0.0, cmd.thrust_fraction, cmd.a_des_h_m_s2, cmd.saturated)
             self._detect_touchdown(now_s, cmd, abs(self._vz_dead_reckoned))
             return self._finish(cmd)
@@ -83,8 +86,11 @@ class FlightControlService(CommanderService):
 
         v_ref = np.zeros(3)
         yaw_rate = 0.0
+        a_ref: np.ndarray | None = None
         if self.mode == FlightMode.OFFBOARD and self._vel_sp is not None:
             v_ref, yaw_rate = self._velocity_reference(self._vel_sp, est.yaw_rad)
+            dv, a_ref = self._trajectory_terms(self._vel_sp, est.yaw_rad, now_s)
+            v_ref = v_ref + dv
         elif self.mode == FlightMode.TAKEOFF:
             remaining = self.takeoff_target_m - self.height_m
             v_ref[2] = -min(self.params["MPC_TKO_SPEED"], max(1.0 * remaining, 0.1))
@@ -105,7 +111,10 @@ class FlightControlService(CommanderService):
         else:
             yaw_rate = self._heading_hold(dt, yaw_rate, est.yaw_rad)
         v_est = self.v_est_h(now_s)
-        cmd = self.tracker.update(dt, v_ref, yaw_rate, v_est, est.roll_rad, est.pitch_rad)
+        if isinstance(self.tracker, GeometricTracker):  # eq. (4)'s a_d feed-forward (the PID tracker has none)
+            cmd = self.tracker.update(dt, v_ref, yaw_rate, v_est, est.roll_rad, est.pitch_rad, a_ref_h=a_ref)
+        else:
+            cmd = self.tracker.update(dt, v_ref, yaw_rate, v_est, est.roll_rad, est.pitch_rad)
         if self.mode == FlightMode.LAND:
             self._detect_touchdown(now_s, cmd, abs(v_est[2]))
         return self._finish(cmd)
@@ -121,7 +130,7 @@ class FlightControlService(CommanderService):
         air the vehicle then accelerates downwards, on the ground the accelerometer shows nothing, which is
         the touchdown test that does not depend on the drifting velocity."""
         p = self.params
-        hover_prior = self.tracker.hover_thrust_fraction
+        hover_prior = self.pid_tracker.hover_thrust_fraction
         margin = p["BRG_TKO_THR_MRG"]
         vz_est = self.vertical.vz_m_s
         elapsed = 0.0
@@ -157,9 +166,9 @@ class FlightControlService(CommanderService):
             if probing:
                 ceiling *= p["BRG_FS_DESC_THR"]
         if self.vertical.estimate.pinned:
-            self.tracker.reset()  # the ground carries the vehicle while the thrust ramps: nothing to integrate
+            self.pid_tracker.reset()  # the ground carries the vehicle while the thrust ramps: nothing to integrate
         yaw_rate = self._heading_hold(dt, 0.0, est.yaw_rad)
-        cmd = self.tracker.update(dt, np.array([0.0, 0.0, vz_ref]), yaw_rate, np.array([0.0, 0.0, vz_est]),
+        cmd = self.pid_tracker.update(dt, np.array([0.0, 0.0, vz_ref]), yaw_rate, np.array([0.0, 0.0, vz_est]),
                                   est.roll_rad, est.pitch_rad)
         thrust = min(cmd.thrust_fraction, ceiling)
         cmd = AttitudeCommand(0.0, 0.0, cmd.yaw_rate_rad_s, thrust, cmd.a_des_h_m_s2,
@@ -197,7 +206,7 @@ class FlightControlService(CommanderService):
             # last finite thrust rather than send a NaN or nothing (the board would cut or failsafe)
             self.counters["nonfinite_commands"] = self.counters.get("nonfinite_commands", 0) + 1
             self._event(mavlink.MAV_SEVERITY_CRITICAL, "Non-finite control output: level hold")
-            self.tracker.reset()
+            self._reset_trackers()
             return self._board(BoardCommand(0.0, 0.0, 0.0, self.last_board_command.thrust, self.armed_cmd))
         return self._board(BoardCommand(cmd.roll_rad, cmd.pitch_rad, cmd.yaw_rate_rad_s, cmd.thrust_fraction,
                                         self.armed_cmd))

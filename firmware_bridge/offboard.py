@@ -17,6 +17,7 @@ from typing import Any
 
 import numpy as np
 
+from firmware_bridge.geometric_tracker import SetpointRejected, decode_trajectory_setpoint
 from firmware_bridge.modes import FlightMode, TakeoffPhase
 from firmware_bridge.state import AttitudeSetpoint, Outbound, VelocitySetpoint
 from firmware_bridge.telemetry import TelemetryService
@@ -46,6 +47,7 @@ ATM_THRUST = mavlink.ATTITUDE_TARGET_TYPEMASK_THROTTLE_IGNORE
 ATM_ATTITUDE = mavlink.ATTITUDE_TARGET_TYPEMASK_ATTITUDE_IGNORE
 
 IMU_PREDICTION_HORIZON_S = 0.3
+POSITION_CORRECTION_MAX_M_S = 1.0  # a trajectory setpoint's position term, per axis (a far x_d is not a sprint)
 ODOM_LOST_VZ_LEAK_TAU_S = 3.0
 IMU_DT_MAX_S = 0.1  # a longer gap (or a step back) restarts the integration at the nominal sample period
 QUAT_NORM_TOLERANCE = 0.1
@@ -96,26 +98,53 @@ class OffboardService(TelemetryService):
             yaw_rate = 0.0
         return v_ref, yaw_rate
 
+    def _trajectory_terms(self, sp: VelocitySetpoint, yaw_rad: float,
+                          now_s: float) -> tuple[np.ndarray, np.ndarray | None]:
+        """A trajectory setpoint's extra terms in H: the velocity correction of its position x_d and its a_d.
+
+        With a position (LOCAL_NED, the odometry's frame) and fresh odometry, v_ref gains -(k_x / k_v) e_x,
+        e_x = p_odom - x_d, clamped to ``POSITION_CORRECTION_MAX_M_S`` per axis: through the velocity-only eq. (4)
+        (-k_v (v - v_ref)) that is paper 003's -k_x e_x - k_v e_v exactly (BRG_GEO_KX, BRG_GEO_KV).
+        """
+        dv = np.zeros(3)
+        if sp.p_ned is not None and self._odom_p_ned_m is not None and self.odom_ok \
+                and self._fresh(self.odom_time_s, now_s, self.params["BRG_ODOM_LOSS_T"]):
+            k_v = self.params["BRG_GEO_KV"]
+            k_p = self.params["BRG_GEO_KX"] / k_v if k_v > 0 else 0.0
+            e_x = self._odom_p_ned_m - np.array(sp.p_ned)
+            dv = Rz(-yaw_rad) @ np.clip(-k_p * e_x, -POSITION_CORRECTION_MAX_M_S, POSITION_CORRECTION_MAX_M_S)
+        if sp.a_h is not None:
+            return dv, np.array(sp.a_h)
+        if sp.a_ned is not None:
+            return dv, Rz(-yaw_rad) @ np.array(sp.a_ned)
+        return dv, None
+
     def _on_set_position_target_local_ned(self, now_s: float, msg: Any, link: int) -> list[Outbound]:
         if not self._for_us(msg):
             return []
-        tm = msg.type_mask
-        velocity = (msg.vx, msg.vy, msg.vz)
+        tm = int(msg.type_mask)
         frame = msg.coordinate_frame
-        usable = (tm & TM_POSITION) == TM_POSITION and (tm & TM_ACCEL) == TM_ACCEL and not tm & TM_FORCE \
-            and not tm & TM_VELOCITY
-        if not usable or frame not in BODY_FRAMES + LOCAL_FRAMES:
-            self._reject_setpoint(f"Setpoint rejected: mask {tm} frame {frame} (velocity only)")
-            return []
         yaw_rate = None if tm & TM_YAW_RATE else float(msg.yaw_rate)
         yaw = None if tm & TM_YAW or yaw_rate is not None else float(msg.yaw)
-        used = [float(v) for v in velocity] + [x for x in (yaw_rate, yaw) if x is not None]
-        if not all(math.isfinite(x) for x in used):
+        if not all(math.isfinite(x) for x in (yaw_rate, yaw) if x is not None):
             self._reject_setpoint("Setpoint rejected: non-finite field")  # issue 16: never a NaN to the board
             return []
-        v = (float(velocity[0]), float(velocity[1]), float(velocity[2]))
-        self._vel_sp = VelocitySetpoint(v if frame in BODY_FRAMES else None,
-                                         v if frame in LOCAL_FRAMES else None, yaw_rate, yaw)
+        try:
+            # PX4's masks: velocity (+ acceleration a_d, + position x_d in LOCAL_NED); body frames stay in H
+            # (decoded at yaw 0, i.e. unrotated; the control step rotates local NED into H with the current yaw)
+            target = decode_trajectory_setpoint(msg, yaw_rad=0.0)
+        except SetpointRejected as exc:
+            self._reject_setpoint(f"Setpoint rejected: {exc}"[:50])
+            return []
+        v = (float(target.v_ned_m_s[0]), float(target.v_ned_m_s[1]), float(target.v_ned_m_s[2]))
+        has_accel = (tm & TM_ACCEL) == 0
+        a = (float(target.a_ned_m_s2[0]), float(target.a_ned_m_s2[1]), float(target.a_ned_m_s2[2])) \
+            if has_accel else None
+        p = None if target.p_ned_m is None else \
+            (float(target.p_ned_m[0]), float(target.p_ned_m[1]), float(target.p_ned_m[2]))
+        body = frame in BODY_FRAMES
+        self._vel_sp = VelocitySetpoint(v if body else None, None if body else v, yaw_rate, yaw,
+                                        a_h=a if body else None, a_ned=None if body else a, p_ned=p)
         self._att_sp = None
         self.setpoint_time_s = now_s
         if self.mode == FlightMode.OFFBOARD and self.armed_cmd and not self.in_air and v[2] < -0.1:
@@ -185,6 +214,8 @@ class OffboardService(TelemetryService):
             # the odometry's frame began (or was reset) in the air: anchor it so the height stays continuous
             self._z_ground_m = z + self.height_m
         self._odom_z_m = z
+        p_ned = np.array([msg.x, msg.y, msg.z], dtype=float)
+        self._odom_p_ned_m = p_ned if np.all(np.isfinite(p_ned)) else None
         self.odom_time_s = now_s
         if not self.odom_ok:
             self.odom_ok = True

@@ -17,6 +17,7 @@ from pathlib import Path
 
 import yaml
 
+from firmware_bridge.geometric_tracker import GEOMETRIC_PARAM_SPECS, GeometricGains, geometric_gains_from_params
 from firmware_bridge.velocity_tracker import TrackerGains
 from quadlink.errors import ConfigError
 from quadlink.mavlink import param_service as quadlink_params
@@ -62,7 +63,7 @@ PARAM_SPECS: tuple[ParamSpec, ...] = (
     ParamSpec("BRG_TKO_THR_MRG", 0.25, 0.05, 0.6, "fraction", "take-off phase 1: thrust ceiling above hover, fraction"),
     ParamSpec("BRG_TKO_RAMP_T", 1.0, 0.0, 5.0, "s", "take-off phase 1: thrust ramp from idle"),
     ParamSpec("BRG_OL_LAND_SPD", 0.3, 0.1, 1.0, "m/s", "landing with no odometry yet: descent rate"),
-)
+) + GEOMETRIC_PARAM_SPECS  # BRG_TRACKER (0 PID, 1 geometric) and the geometric tracker's gains (issue 19)
 
 SPECS_BY_NAME: dict[str, ParamSpec] = {p.name: p for p in PARAM_SPECS}
 
@@ -82,6 +83,9 @@ class ParamTable(quadlink_params.ParamTable):
             max_tilt_rad=math.radians(v["MPC_TILTMAX_AIR"]), max_speed_xy_m_s=v["MPC_XY_VEL_MAX"],
             max_climb_m_s=v["MPC_Z_VEL_MAX_UP"], max_descent_m_s=v["MPC_Z_VEL_MAX_DN"],
             max_yaw_rate_rad_s=math.radians(v["MPC_YAWRAUTO_MAX"]))
+
+    def geometric_gains(self) -> GeometricGains:
+        return geometric_gains_from_params(self.values)
 
 
 def load_param_file(path: Path) -> dict[str, float]:

@@ -20,6 +20,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from firmware_bridge.attitude_filter import BridgeAttitude
+from firmware_bridge.geometric_tracker import GeometricTracker, TrackerKind, make_tracker
 from firmware_bridge.modes import FlightMode, TakeoffPhase
 from firmware_bridge.params import ParamTable
 from firmware_bridge.streams import StreamScheduler
@@ -90,6 +91,11 @@ class VelocitySetpoint:
     v_ned: tuple[float, float, float] | None
     yaw_rate_rad_s: float | None
     yaw_rad: float | None
+    # PX4-style trajectory setpoints (issue 19): acceleration feed-forward a_d in the velocity's frame (H or
+    # local NED; None = not given) and an optional position x_d (local NED, the odometry's frame)
+    a_h: tuple[float, float, float] | None = None
+    a_ned: tuple[float, float, float] | None = None
+    p_ned: tuple[float, float, float] | None = None
 
 
 @dataclass(frozen=True)
@@ -113,7 +119,14 @@ class BridgeState:
         self.sysid, self.compid = sysid, compid
         self._unix_clock = unix_clock  # injected (time.time in the daemon); SYSTEM_TIME only
         self.mav = mavlink.MAVLink(None, sysid, compid)  # encoder only, no file
-        self.tracker = VelocityTracker(vehicle.mass_kg, vehicle.max_total_thrust_n, params.tracker_gains())
+        # the PID velocity tracker always exists: take-off phase 1, the blind landing and the odometry-lost
+        # descent fly on it whatever BRG_TRACKER says; ``tracker`` is the one BRG_TRACKER selects for the closed
+        # loop (the same object when BRG_TRACKER = 0). A PARAM_SET of BRG_TRACKER takes effect on the ground only.
+        self.pid_tracker = VelocityTracker(vehicle.mass_kg, vehicle.max_total_thrust_n, params.tracker_gains())
+        self.tracker_kind = TrackerKind.PID_VELOCITY
+        self._tracker_switch_noted = False
+        self.tracker: VelocityTracker | GeometricTracker = self.pid_tracker
+        self._select_tracker(int(params["BRG_TRACKER"]))
         self.filter = BridgeAttitude(tau_s=params["BRG_ATT_TAU"])
         self.mode = FlightMode.POSCTL
         self.armed_cmd = False
@@ -142,6 +155,7 @@ class BridgeState:
         self.odom_ok = False
         self._vz_dead_reckoned = 0.0
         self._odom_reset_counter: int | None = None
+        self._odom_p_ned_m: np.ndarray | None = None  # the odometry's position (its local frame), if finite
         # flight without odometry (take-off phase 1 and the landing after it): accelerometer-only vertical
         self.vertical = VerticalEstimator(vehicle.hover_thrust_fraction, params["MPC_Z_VEL_MAX_UP"],
                                           params["MPC_Z_VEL_MAX_DN"])
@@ -173,6 +187,37 @@ class BridgeState:
                                          "unsupported_commands": 0, "commands_refused": 0,
                                          "handler_errors": 0, "param_refused": 0}
         self._last_counter_report_s = -math.inf
+
+    def _select_tracker(self, kind: int) -> None:
+        """Build the tracker ``BRG_TRACKER`` selects (``make_tracker``); the PID tracker is reused for 0."""
+        k = TrackerKind(int(kind))
+        if k == TrackerKind.PID_VELOCITY:
+            self.tracker = self.pid_tracker
+        else:
+            self.tracker = make_tracker(k, self.vehicle.mass_kg, self.vehicle.max_total_thrust_n,
+                                        self.params.tracker_gains(), self.params.geometric_gains())
+        self.tracker_kind = k
+
+    def _reset_trackers(self) -> None:
+        self.pid_tracker.reset()
+        if self.tracker is not self.pid_tracker:
+            self.tracker.reset()
+
+    def _apply_tracker_selection(self) -> None:
+        """Switch to the tracker ``BRG_TRACKER`` names, on the ground only (no handover in the air: the two
+        trackers' integrals mean different things, so a switch waits for the landing; STATUSTEXT says so)."""
+        wanted = TrackerKind(int(self.params["BRG_TRACKER"]))
+        if wanted == self.tracker_kind:
+            self._tracker_switch_noted = False
+            return
+        if self.in_air:
+            if not self._tracker_switch_noted:
+                self._tracker_switch_noted = True
+                self._event(mavlink.MAV_SEVERITY_NOTICE, f"BRG_TRACKER {int(wanted)}: applied once landed")
+            return
+        self._select_tracker(int(wanted))
+        self._tracker_switch_noted = False
+        self._event(mavlink.MAV_SEVERITY_INFO, f"Tracker: {wanted.name.lower()}")
 
     def _event(self, severity: int, text: str) -> None:
         log.log(logging.WARNING if severity <= mavlink.MAV_SEVERITY_WARNING else logging.INFO, "%s", text)

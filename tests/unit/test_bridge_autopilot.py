@@ -434,3 +434,91 @@ def test_heading_hold_against_yaw_drift():
     # a commanded rate still turns (the setpoint moves with it)
     sim.step(2.0, setpoint=velocity_body(0, 0, 0, yaw_rate=math.radians(30)))
     assert sim.yaw - yaw0 == pytest.approx(math.radians(60), abs=math.radians(8))
+
+
+# ---------------------------------------------------------------- issue 19: the geometric tracker in the bridge
+def trajectory_sp(v, a, p=None, frame=mavlink.MAV_FRAME_LOCAL_NED):
+    """PX4-style velocity + acceleration (+ position) setpoint, yaw rate 0 (the trajectory streamer's masks)."""
+    from firmware_bridge.geometric_tracker import TM_PVA_YAW, TM_VA_YAW
+    if p is None:
+        mask, p = TM_VA_YAW | mavlink.POSITION_TARGET_TYPEMASK_YAW_IGNORE, (0.0, 0.0, 0.0)
+    else:
+        mask = TM_PVA_YAW | mavlink.POSITION_TARGET_TYPEMASK_YAW_IGNORE
+    return GCS.set_position_target_local_ned_encode(0, 1, 1, frame, mask, *p, *v, *a, 0.0, 0.0)
+
+
+def test_velocity_acceleration_position_masks_are_accepted_like_px4():
+    ap = Autopilot(VehicleConfig(), ParamTable())
+    ap._on_set_position_target_local_ned(0.0, msg(trajectory_sp((0.5, 0.0, 0.0), (0.2, -0.1, 0.0))), 0)
+    assert ap.counters["setpoint_rejected"] == 0
+    assert ap._vel_sp.v_ned == pytest.approx((0.5, 0.0, 0.0)) and ap._vel_sp.a_ned == pytest.approx((0.2, -0.1, 0.0))
+    ap._on_set_position_target_local_ned(0.0, msg(trajectory_sp((0.5, 0, 0), (0.2, 0, 0), p=(1.0, 2.0, -1.2))), 0)
+    assert ap.counters["setpoint_rejected"] == 0 and ap._vel_sp.p_ned == pytest.approx((1.0, 2.0, -1.2))
+    # body frames: velocity and acceleration in H, unrotated
+    ap._on_set_position_target_local_ned(0.0, msg(trajectory_sp((0.3, 0, 0), (0, 0.4, 0),
+                                                                frame=mavlink.MAV_FRAME_BODY_NED)), 0)
+    assert ap._vel_sp.v_h == pytest.approx((0.3, 0, 0)) and ap._vel_sp.a_h == pytest.approx((0, 0.4, 0))
+    # a position in a body frame, a partial acceleration group and a force setpoint are refused and counted
+    ap._on_set_position_target_local_ned(0.0, msg(trajectory_sp((0, 0, 0), (0, 0, 0), p=(1, 0, 0),
+                                                                frame=mavlink.MAV_FRAME_BODY_NED)), 0)
+    partial = GCS.set_position_target_local_ned_encode(0, 1, 1, mavlink.MAV_FRAME_LOCAL_NED, 3527 & ~0b1000000,
+                                                       0, 0, 0, 0, 0, 0, 1, 0, 0, 0, 0)
+    ap._on_set_position_target_local_ned(0.0, msg(partial), 0)
+    assert ap.counters["setpoint_rejected"] == 2
+
+
+def test_brg_tracker_selects_the_tracker_and_switches_on_the_ground_only():
+    from firmware_bridge.geometric_tracker import GeometricTracker
+    from firmware_bridge.velocity_tracker import VelocityTracker
+    assert type(Autopilot(VehicleConfig(), ParamTable()).tracker) is VelocityTracker
+    sim = Sim(ParamTable({"BRG_TRACKER": 1.0, "BRG_GEO_KV": 2.5}))
+    assert isinstance(sim.ap.tracker, GeometricTracker) and sim.ap.tracker.geometric.k_v_1_s == 2.5
+    fly_to_hover(sim)  # phase-2 take-off on the geometric tracker
+    assert -sim.p[2] == pytest.approx(1.0, abs=0.15)
+    set_ = GCS.param_set_encode(1, 1, b"BRG_TRACKER", 0.0, mavlink.MAV_PARAM_TYPE_REAL32)
+    sim.send(set_)
+    sim.step(0.5)
+    assert isinstance(sim.ap.tracker, GeometricTracker)  # not in the air
+    assert any("applied once landed" in t for t in sim.statustext)
+    assert sim.command(mavlink.MAV_CMD_NAV_LAND)[0] == mavlink.MAV_RESULT_ACCEPTED
+    sim.step(10.0)  # the geometric tracker's integral input is clipped (0.3 m/s): touchdown takes longer than PID's
+    assert not sim.ap.in_air
+    assert type(sim.ap.tracker) is VelocityTracker and sim.ap.tracker is sim.ap.pid_tracker
+
+
+def test_blind_takeoff_flies_the_pid_tracker_whatever_brg_tracker_says():
+    sim = Sim(ParamTable({"BRG_TRACKER": 1.0}), odom=False)
+    sim.step(0.3)
+    sim.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1)
+    sim.step(0.2)
+    sim.command(mavlink.MAV_CMD_NAV_TAKEOFF, *([math.nan] * 7))
+    sim.step(1.5)
+    assert sim.ap.blind and sim.ap.in_air
+    assert sim.ap.tracker.last is None  # the geometric tracker never ran: phase 1 is the PID tracker's
+    assert sim.ap.last_command is not None and sim.ap.last_command.roll_rad == 0.0
+
+
+def test_acceleration_feed_forward_reaches_the_geometric_tracker():
+    """Two identical hovering bridges, one given a_d: the tracker's desired acceleration differs by a_d (rotated
+    into H by the heading), and a position x_d adds -(k_x / k_v) e_x to the velocity reference."""
+    a_d = np.array([0.6, -0.4, 0.0])
+    outs = []
+    for accel in (np.zeros(3), a_d):
+        sim = Sim(ParamTable({"BRG_TRACKER": 1.0}))
+        fly_to_hover(sim)
+        sim.step(0.5, setpoint=trajectory_sp((0, 0, 0), (0, 0, 0)))
+        assert sim.command(mavlink.MAV_CMD_DO_SET_MODE, 1, 6, 0)[0] == mavlink.MAV_RESULT_ACCEPTED
+        sim.step(0.1, setpoint=trajectory_sp((0, 0, 0), (0, 0, 0)))
+        sim.send(trajectory_sp((0, 0, 0), tuple(accel)))
+        sim.ap.control_step(sim.t + 0.01)
+        outs.append((np.array(sim.ap.tracker.last.attitude.a_des_h_m_s2), sim.ap.filter.estimate.yaw_rad))
+    (a0, _), (a1, yaw) = outs
+    from quadlink.frames import Rz
+    np.testing.assert_allclose(a1 - a0, Rz(-yaw) @ a_d, atol=0.02)
+    # position term: x_d 0.5 m north of the odometry's position -> +0.5 * k_x / k_v m/s of v_ref north
+    ap = sim.ap
+    p_now = ap._odom_p_ned_m.copy()
+    ahead = trajectory_sp((0, 0, 0), (0, 0, 0), p=tuple(p_now + [0.5, 0, 0]))
+    ap._on_set_position_target_local_ned(sim.t, msg(ahead), 0)
+    dv, _ = ap._trajectory_terms(ap._vel_sp, 0.0, sim.t)
+    np.testing.assert_allclose(dv, [0.5 * 4.0 / 3.2, 0.0, 0.0], atol=1e-9)

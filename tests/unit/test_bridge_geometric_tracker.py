@@ -288,7 +288,8 @@ def test_selected_by_parameter() -> None:
     assert g.k_x_1_s2 == 2.5 and g.k_v_1_s == GeometricGains().k_v_1_s
     from firmware_bridge.params import PARAM_SPECS
 
-    assert not names & {p.name for p in PARAM_SPECS}  # no clash with the existing table
+    bridge = [p.name for p in PARAM_SPECS]
+    assert names <= set(bridge) and len(bridge) == len(set(bridge))  # wired into the bridge's table, no clash
 
 
 # ---------------------------------------------------------------------- setpoint decoding
