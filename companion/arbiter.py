@@ -48,18 +48,16 @@ from numpy.typing import NDArray
 from companion.reference import OperatorInput, operator_from_manual_control
 from quadlink.frames import wrap_pi
 from quadlink.mavlink import mavlink
+from quadlink.mavlink.setpoint_masks import (
+    BODY_FRAMES,
+    TM_ACCEL,
+    TM_FORCE,
+    TM_POSITION,
+    TM_VELOCITY,
+    TM_YAW,
+    TM_YAW_RATE,
+)
 
-# POSITION_TARGET_TYPEMASK bits
-TM_X, TM_Y, TM_Z = 1, 2, 4
-TM_VX, TM_VY, TM_VZ = 8, 16, 32
-TM_AX, TM_AY, TM_AZ = 64, 128, 256
-TM_FORCE = 512
-TM_YAW, TM_YAW_RATE = 1024, 2048
-TM_POSITION = TM_X | TM_Y | TM_Z
-TM_VELOCITY = TM_VX | TM_VY | TM_VZ
-TM_ACCEL = TM_AX | TM_AY | TM_AZ
-
-BODY_FRAMES = (mavlink.MAV_FRAME_BODY_NED, mavlink.MAV_FRAME_BODY_OFFSET_NED, mavlink.MAV_FRAME_BODY_FRD)
 LOCAL_FRAMES = (mavlink.MAV_FRAME_LOCAL_NED, mavlink.MAV_FRAME_LOCAL_OFFSET_NED)
 OFFSET_FRAMES = (mavlink.MAV_FRAME_LOCAL_OFFSET_NED, mavlink.MAV_FRAME_BODY_OFFSET_NED, mavlink.MAV_FRAME_BODY_FRD)
 

@@ -25,8 +25,9 @@ from numpy.typing import ArrayLike, NDArray
 
 from quadlink.frames import R_from_euler, R_hq, Rz, quat_wxyz_from_R
 from quadlink.mavlink import mavlink
+from quadlink.mavlink.setpoint_masks import TM_VELOCITY_YAW_RATE
 
-TYPE_MASK_VELOCITY_YAW_RATE = 1479  # ignore position (1|2|4), acceleration (64|128|256), yaw (1024)
+TYPE_MASK_VELOCITY_YAW_RATE = TM_VELOCITY_YAW_RATE  # 1479: position, acceleration and yaw ignored
 UINT16_UNKNOWN = 65535
 N_SECTORS = 72
 SECTOR_DEG = 5.0

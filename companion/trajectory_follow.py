@@ -27,15 +27,14 @@ from numpy.typing import ArrayLike, NDArray
 
 from quadlink.frames import Rz
 from quadlink.mavlink import mavlink
+from quadlink.mavlink.setpoint_masks import TM_VELOCITY_ACCEL_YAW_RATE
 from quadlink.trajectory import MinSnapTrajectory, TrajectorySample
 
 Vec3 = NDArray[np.float64]
 
 #: velocity + acceleration + yaw rate (position and yaw ignored): 1479 (the companion's velocity setpoint) with the
 #: acceleration bits cleared
-TYPE_MASK_VELOCITY_ACCEL_YAW_RATE = (
-    mavlink.POSITION_TARGET_TYPEMASK_X_IGNORE | mavlink.POSITION_TARGET_TYPEMASK_Y_IGNORE
-    | mavlink.POSITION_TARGET_TYPEMASK_Z_IGNORE | mavlink.POSITION_TARGET_TYPEMASK_YAW_IGNORE)
+TYPE_MASK_VELOCITY_ACCEL_YAW_RATE = TM_VELOCITY_ACCEL_YAW_RATE
 
 
 @dataclass(frozen=True)

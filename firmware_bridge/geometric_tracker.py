@@ -81,6 +81,16 @@ from quadlink.frames import GRAVITY_M_S2, R_hq, Rz, wrap_pi
 from quadlink.lie import so3_log
 from quadlink.mavlink import mavlink
 from quadlink.mavlink.param_service import ParamSpec
+from quadlink.mavlink.setpoint_masks import (
+    BODY_FRAMES,
+    LOCAL_FRAMES,
+    TM_ACCEL,
+    TM_FORCE,
+    TM_POSITION,
+    TM_VELOCITY,
+    TM_YAW,
+    TM_YAW_RATE,
+)
 
 E3 = np.array([0.0, 0.0, 1.0])
 Vec3 = NDArray[np.float64]
@@ -393,20 +403,9 @@ def make_tracker(kind: int | TrackerKind, mass_kg: float, max_total_thrust_n: fl
 
 # ---------------------------------------------------------------------- SET_POSITION_TARGET_LOCAL_NED
 # type_mask bits (MAVLink POSITION_TARGET_TYPEMASK, from the dialect): a set bit means "ignore this field"
-TM_POSITION = (mavlink.POSITION_TARGET_TYPEMASK_X_IGNORE | mavlink.POSITION_TARGET_TYPEMASK_Y_IGNORE
-               | mavlink.POSITION_TARGET_TYPEMASK_Z_IGNORE)
-TM_VELOCITY = (mavlink.POSITION_TARGET_TYPEMASK_VX_IGNORE | mavlink.POSITION_TARGET_TYPEMASK_VY_IGNORE
-               | mavlink.POSITION_TARGET_TYPEMASK_VZ_IGNORE)
-TM_ACCEL = (mavlink.POSITION_TARGET_TYPEMASK_AX_IGNORE | mavlink.POSITION_TARGET_TYPEMASK_AY_IGNORE
-            | mavlink.POSITION_TARGET_TYPEMASK_AZ_IGNORE)
-TM_FORCE = mavlink.POSITION_TARGET_TYPEMASK_FORCE_SET
-TM_YAW = mavlink.POSITION_TARGET_TYPEMASK_YAW_IGNORE
-TM_YAW_RATE = mavlink.POSITION_TARGET_TYPEMASK_YAW_RATE_IGNORE
 #: the masks a trajectory streamer sends (position + velocity + acceleration, with yaw or with yaw rate)
 TM_PVA_YAW = TM_YAW_RATE
 TM_VA_YAW = TM_POSITION | TM_YAW_RATE
-BODY_FRAMES = (mavlink.MAV_FRAME_BODY_NED, mavlink.MAV_FRAME_BODY_OFFSET_NED, mavlink.MAV_FRAME_BODY_FRD)
-LOCAL_FRAMES = (mavlink.MAV_FRAME_LOCAL_NED, mavlink.MAV_FRAME_LOCAL_OFFSET_NED, mavlink.MAV_FRAME_LOCAL_FRD)
 
 
 class SetpointRejected(ProtocolError):

@@ -23,28 +23,23 @@ from firmware_bridge.state import AttitudeSetpoint, Outbound, VelocitySetpoint
 from firmware_bridge.telemetry import TelemetryService
 from quadlink.frames import GRAVITY_M_S2, R_from_quat_wxyz, R_hq, Rz, euler_from_R, wrap_pi
 from quadlink.mavlink import mavlink
+from quadlink.mavlink.setpoint_masks import (
+    ATM_ATTITUDE,
+    ATM_THRUST,
+    ATM_YAW_RATE,
+    BODY_FRAMES,
+    TM_ACCEL,
+    TM_YAW,
+    TM_YAW_RATE,
+)
 
 log = logging.getLogger("firmware_bridge.autopilot")
 
 # SET_POSITION_TARGET_LOCAL_NED type_mask bits (POSITION_TARGET_TYPEMASK)
-TM_POSITION = (mavlink.POSITION_TARGET_TYPEMASK_X_IGNORE | mavlink.POSITION_TARGET_TYPEMASK_Y_IGNORE
-               | mavlink.POSITION_TARGET_TYPEMASK_Z_IGNORE)
-TM_VELOCITY = (mavlink.POSITION_TARGET_TYPEMASK_VX_IGNORE | mavlink.POSITION_TARGET_TYPEMASK_VY_IGNORE
-               | mavlink.POSITION_TARGET_TYPEMASK_VZ_IGNORE)
-TM_ACCEL = (mavlink.POSITION_TARGET_TYPEMASK_AX_IGNORE | mavlink.POSITION_TARGET_TYPEMASK_AY_IGNORE
-            | mavlink.POSITION_TARGET_TYPEMASK_AZ_IGNORE)
-TM_FORCE = mavlink.POSITION_TARGET_TYPEMASK_FORCE_SET
-TM_YAW = mavlink.POSITION_TARGET_TYPEMASK_YAW_IGNORE
-TM_YAW_RATE = mavlink.POSITION_TARGET_TYPEMASK_YAW_RATE_IGNORE
-BODY_FRAMES = (mavlink.MAV_FRAME_BODY_NED, mavlink.MAV_FRAME_BODY_OFFSET_NED, mavlink.MAV_FRAME_BODY_FRD)
-LOCAL_FRAMES = (mavlink.MAV_FRAME_LOCAL_NED, mavlink.MAV_FRAME_LOCAL_OFFSET_NED, mavlink.MAV_FRAME_LOCAL_FRD)
 ODOM_WORLD_FRAMES = (mavlink.MAV_FRAME_LOCAL_NED, mavlink.MAV_FRAME_LOCAL_FRD)
 ODOM_BODY_FRAMES = (mavlink.MAV_FRAME_BODY_FRD, mavlink.MAV_FRAME_BODY_NED)
 
 # SET_ATTITUDE_TARGET type_mask bits (ATTITUDE_TARGET_TYPEMASK)
-ATM_YAW_RATE = mavlink.ATTITUDE_TARGET_TYPEMASK_BODY_YAW_RATE_IGNORE
-ATM_THRUST = mavlink.ATTITUDE_TARGET_TYPEMASK_THROTTLE_IGNORE
-ATM_ATTITUDE = mavlink.ATTITUDE_TARGET_TYPEMASK_ATTITUDE_IGNORE
 
 IMU_PREDICTION_HORIZON_S = 0.3
 POSITION_CORRECTION_MAX_M_S = 1.0  # a trajectory setpoint's position term, per axis (a far x_d is not a sprint)
