@@ -518,7 +518,8 @@ class Companion:
             self._send_command_age()
         if camera_silent and self.deadlines.due("fallback", now, 1.0 / t.fallback_setpoint_rate_hz):
             # keeps the autopilot's stream alive without a camera (frame_step.fallback_step)
-            ref = fallback_step(self.last_output, self._operator(), self._R_qc, self.ref_params, self.modes.operator_enabled)
+            ref = fallback_step(self.last_output, self._operator(), self._R_qc, self.ref_params,
+                                self.modes.operator_enabled)
             self.last_ref = ref
             self._send_setpoint(self._fallback_stamp(now), ref)
         imu_silent = self._imu_wall_s is None or now - self._imu_wall_s > IMU_SILENT_S
