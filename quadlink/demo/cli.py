@@ -12,6 +12,7 @@ from pathlib import Path
 import click
 
 from quadlink import CONFIG_DIR
+from quadlink.demo.link import LinkImpairment, LinkProxies, teleop_config_with_passivity, write_link_stats
 from quadlink.demo.orchestrator import ProcessDied, ProcessSpec, Stack
 from quadlink.demo.recorder import Recorder
 from quadlink.demo.report import summary_table, write_report
@@ -30,14 +31,18 @@ class Ports:
 
     def __getattr__(self, name: str) -> int:
         base = {"mk1": 5760, "mk2": 5761, "camera": 5762, "image": 5770, "autopilot": 14540, "gcs_bridge": 14551,
-                "vehicle": 14555, "truth": 14560, "http": 8080}
+                "vehicle": 14555, "truth": 14560, "http": 8080,
+                "vehicle_netem": 14557, "image_netem": 5771}   # the impaired link's ends (quadlink.demo.link)
         if name not in base:
             raise AttributeError(name)
         return base[name] + self.offset
 
 
 def build_specs(scenario: str, script: Path, out_dir: Path, ports: Ports, lockstep: bool, speed: float,
-                duration_s: float, record_frames: bool = False) -> list[ProcessSpec]:
+                duration_s: float, record_frames: bool = False, via_netem: bool = False,
+                teleop_config: Path | None = None) -> list[ProcessSpec]:
+    """``via_netem``: the ground station talks to the netem proxies' ports (quadlink.demo.link)."""
+    vehicle_port, image_port = (ports.vehicle_netem, ports.image_netem) if via_netem else (ports.vehicle, ports.image)
     sitl = ["sitl", "--scenario", scenario, "--port1", str(ports.mk1), "--port2", str(ports.mk2),
             "--camera-port", str(ports.camera), "--truth", f"udpout:127.0.0.1:{ports.truth}",
             "--duration", f"{duration_s + 30:.0f}"]
@@ -61,8 +66,9 @@ def build_specs(scenario: str, script: Path, out_dir: Path, ports: Ports, lockst
                                   *(("--record-frames", str(out_dir / "frames.qlcf")) if record_frames else ())),
                     ready_after_s=3.0),
         ProcessSpec("teleop", ("teleop", "--device", "virtual", "--script", str(script),
-                               "--vehicle", f"udpout:127.0.0.1:{ports.vehicle}",
-                               "--image-stream", f"tcp://127.0.0.1:{ports.image}",
+                               "--vehicle", f"udpout:127.0.0.1:{vehicle_port}",
+                               "--image-stream", f"tcp://127.0.0.1:{image_port}",
+                               *(("--config", str(teleop_config)) if teleop_config else ()),
                                "--http-port", str(ports.http), "--log-csv", str(out_dir / "teleop.csv"),
                                "--exit-at-script-end", "--script-clock", "vehicle" if lockstep else "wall"),
                     ready_after_s=0.5),
@@ -71,8 +77,12 @@ def build_specs(scenario: str, script: Path, out_dir: Path, ports: Ports, lockst
 
 def run_demo(scenario: str, duration_s: float, out_dir: Path, script: Path, lockstep: bool = True,
              speed: float = 1.0, port_offset: int = 0, progress_every_s: float = 3.0,
-             record_frames: bool = False) -> dict[str, object]:
-    """Fly the demo; returns the report. Raises :class:`ProcessDied` if a part dies."""
+             record_frames: bool = False, link: LinkImpairment | None = None,
+             passivity: bool | None = None) -> dict[str, object]:
+    """Fly the demo; returns the report. Raises :class:`ProcessDied` if a part dies.
+
+    ``link``: the ground link goes through the netem proxies with this impairment (issue 18);
+    ``passivity``: the force loop's passivity controller (default: on when ``link`` is given)."""
     if not script.is_file():
         raise ConfigError(f"{script}: operator script not found")
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -83,6 +93,9 @@ def run_demo(scenario: str, duration_s: float, out_dir: Path, script: Path, lock
     recorder.record("bridge", f"udpin:127.0.0.1:{ports.gcs_bridge}", out_dir / "bridge.tlog")
     interrupted = False
     failure: ProcessDied | None = None
+    proxies: LinkProxies | None = None
+    passivity_on = (link is not None) if passivity is None else passivity
+    teleop_config = teleop_config_with_passivity(out_dir, passivity_on) if passivity_on or link else None
 
     def on_sigint(signum: int, frame: object) -> None:
         nonlocal interrupted
@@ -91,9 +104,14 @@ def run_demo(scenario: str, duration_s: float, out_dir: Path, script: Path, lock
     previous = signal.signal(signal.SIGINT, on_sigint)
     t_wall0 = time.monotonic()
     try:
-        for spec in build_specs(scenario, script, out_dir, ports, lockstep, speed, duration_s, record_frames):
+        for spec in build_specs(scenario, script, out_dir, ports, lockstep, speed, duration_s, record_frames,
+                                via_netem=link is not None, teleop_config=teleop_config):
             if interrupted:
                 break
+            if spec.name == "teleop" and link is not None:
+                proxies = LinkProxies(link, ports.vehicle_netem, ports.vehicle, ports.image_netem, ports.image)
+                log.info("ground link through netem: %.0f ms one way, %.0f ms jitter, %.1f %% loss", link.delay_ms,
+                         link.jitter_ms, 100 * link.loss)
             stack.start(spec)
         log.info("all parts running; operator view at http://127.0.0.1:%d ; logs in %s", ports.http, stack.log_dir)
         next_progress = 0.0
@@ -121,6 +139,9 @@ def run_demo(scenario: str, duration_s: float, out_dir: Path, script: Path, lock
         cpu = stack.cpu_seconds()
         codes = stack.stop()
         recorder.stop()
+        if proxies is not None:
+            write_link_stats(out_dir, proxies)
+            proxies.close()
         log.info("stopped (exit statuses: %s)", ", ".join(f"{k}={v}" for k, v in codes.items()))
     report = write_report(out_dir, cpu, scenario)
     report["interrupted"] = interrupted
@@ -143,12 +164,25 @@ def run_demo(scenario: str, duration_s: float, out_dir: Path, script: Path, lock
 @click.option("--port-offset", default=0, show_default=True, help="Shift every port (run beside another stack).")
 @click.option("--record-frames", is_flag=True,
               help="Also record the companion's camera frames to OUT/frames.qlcf (~11 MB per second of flight).")
+@click.option("--link-delay-ms", type=float, default=None,
+              help="Ground link through netem: one-way delay (ms, each direction) [issue 18].")
+@click.option("--link-jitter-ms", type=float, default=None, help="Ground link jitter (ms, std dev).")
+@click.option("--link-loss", type=float, default=None, help="Ground link packet loss (0-1, MAVLink; TCP images: none).")
+@click.option("--link-seed", type=int, default=0, show_default=True, help="Seed of the link's impairment.")
+@click.option("--passivity/--no-passivity", default=None,
+              help="Force loop passivity controller [default: on with --link-*, else the teleop config's].")
 def command(scenario: str, duration_s: float, out_dir: Path, script: Path, lockstep: bool, speed: float,
-            port_offset: int, record_frames: bool) -> None:
+            port_offset: int, record_frames: bool, link_delay_ms: float | None, link_jitter_ms: float | None,
+            link_loss: float | None, link_seed: int, passivity: bool | None) -> None:
     """Fly the paper's experiment in the SITL (take off, drive, rotate, approach and push the obstacle, land)."""
     try:
+        impaired = any(v is not None for v in (link_delay_ms, link_jitter_ms, link_loss))
+        link = LinkImpairment(link_delay_ms or 0.0, link_jitter_ms or 0.0, link_loss or 0.0, link_seed) \
+            if impaired else None
+        if link is not None:
+            link.impairment()   # validates (ConfigError names the bad value)
         report = run_demo(scenario, duration_s, out_dir, script, lockstep, speed, port_offset,
-                          record_frames=record_frames)
+                          record_frames=record_frames, link=link, passivity=passivity)
     except ProcessDied as exc:
         click.echo(f"quadlink demo: {exc}", err=True)
         raise SystemExit(1) from exc
