@@ -5,6 +5,7 @@ everything does."""
 
 from __future__ import annotations
 
+import threading
 import time
 from pathlib import Path
 from typing import Any
@@ -26,34 +27,47 @@ FORWARD = (600, 0, 500)
 
 
 class StampingOperator:
-    """What teleop.link does, in a few lines: stamp every MANUAL_CONTROL and answer the companion's TIMESYNC."""
+    """What teleop.link does, in a few lines: stamp every MANUAL_CONTROL and answer the companion's TIMESYNC
+    at once (a thread owns the ground station's socket, so a loaded machine does not inflate the round trip)."""
 
     def __init__(self, rig: Rig) -> None:
         self.rig, self.mav = rig, rig.gcs.link.mav
         self.answered = 0
+        rig.gcs.poll = lambda: None          # type: ignore[method-assign]  # the thread reads the socket now
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            m = self.rig.gcs.link.recv_msg()
+            if m is None:
+                time.sleep(0.001)
+                continue
+            if m.get_type() == "TIMESYNC" and m.get_srcComponent() == 191 and is_request(m.tc1):
+                self.mav.timesync_send(*answer_fields(m.ts1, int(time.monotonic() * NS)))
+                self.answered += 1
+            elif m.get_type() != "BAD_DATA":
+                self.rig.gcs.received.append(m)
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(2.0)
 
     def send(self, manual: tuple[int, int, int]) -> None:
         self.mav.command_stamp_send(int(time.monotonic() * 1e6), mavlink.MAVLINK_MSG_ID_MANUAL_CONTROL, 1, 191)
         self.mav.manual_control_send(1, manual[0], manual[1], manual[2], 0, 0)
 
-    def answer(self) -> None:
-        pending = [m for m in self.rig.gcs.received if m.get_type() == "TIMESYNC" and m.get_srcComponent() == 191
-                   and is_request(m.tc1)]
-        for m in pending:
-            self.mav.timesync_send(*answer_fields(m.ts1, int(time.monotonic() * NS)))
-            self.answered += 1
-        self.rig.gcs.received = [m for m in self.rig.gcs.received if m not in pending]
-
     def frames(self, n: int, manual: tuple[int, int, int] = FORWARD) -> None:
         for _ in range(n):
             self.send(manual)
             self.rig.frame()
-            self.answer()
 
 
 def fly_through(tmp_path: Path, delay_ms: float) -> tuple[Rig, list[Any]]:
     cfg = CompanionConfig(links=LinksConfig(max_command_age_s=MAX_AGE_S, gcs_timesync_period_s=0.25),
-                          timing=TimingConfig(camera_timeout_s=1.0), pan_scan=PanScanConfig(enabled=False),
+                          timing=TimingConfig(camera_timeout_s=5.0),   # a loaded machine: frames ~1 s apart
+                          pan_scan=PanScanConfig(enabled=False),
                           modes=ModeParams(gcs_timeout_s=0.5, gcs_land_timeout_s=1.5, takeoff_min_s=0.3))
     proxies: list[UdpProxy] = []
 
@@ -73,12 +87,11 @@ def test_commands_older_than_the_age_are_dropped_at_300ms(tmp_path: Path) -> Non
         d = rig.daemon
         sync = next(iter(d.gcs_sync.values()))
         assert op.answered >= 3 and sync.offset_ns is not None
-        # both ways through the proxy, plus this test thread's answer latency (it answers between frames)
-        assert 0.6 <= sync.rtt_percentile_s(50) <= 1.2
+        assert 0.6 <= sync.rtt_percentile_s(50) <= 0.75           # both ways through the proxy
+
         c = d.command_age.counts
         assert c.stale >= 20 and c.stamped == 0, c  # the first ones were taken by arrival time (no offset yet)
-        # 300 ms, up to half the answer latency off (the offset assumes a symmetric exchange)
-        assert 0.25 <= d.command_age.age_percentile_s(50) <= 0.6
+        assert d.command_age.age_percentile_s(50) == pytest.approx(0.3, abs=0.06)
         # the vehicle: takeoff through the same link, then it never gets a fresh command: HOLD, then LAND
         rig.gcs.link.mav.command_long_send(1, 191, mavlink.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, 0, 0, 0, 1.0)
         seen: list[Mode] = []
@@ -94,6 +107,7 @@ def test_commands_older_than_the_age_are_dropped_at_300ms(tmp_path: Path) -> Non
         named = {m.name: m.value for m in rig.gcs.of_type("NAMED_VALUE_INT")}
         assert named.get("CMD_STALE", 0) >= 20
     finally:
+        op.close()
         rig.close()
         for p in proxies:
             p.close()
@@ -119,6 +133,7 @@ def test_the_same_commands_fly_at_10ms(tmp_path: Path) -> None:
         vx = np.array([m.vx for m in rig.ap.of_type("SET_POSITION_TARGET_LOCAL_NED")[n_before:]])
         assert vx.size > 10 and np.median(vx) > 0.1                       # the forward command flies
     finally:
+        op.close()
         rig.close()
         for p in proxies:
             p.close()
