@@ -110,3 +110,42 @@ def test_renderer_draws_the_ghost_where_the_prediction_is() -> None:
     ys, xs = np.nonzero(diff)
     # inset centre (55, 185), 0.3 m forward of a 0.5 m rim of 45 px: 27 px up
     assert ys.size > 0 and ys.min() <= 185 - 27 + 6 and xs.min() >= 55 - 8 and xs.max() <= 55 + 8
+
+
+def test_csv_row_carries_the_round_trip_and_the_passivity_account() -> None:
+    """The station's CSV: the controller's own report after a few ticks of a delayed cue, and the estimator's
+    round trip, land in their columns (the demo report reads them back by name)."""
+    import csv
+    import io
+
+    from teleop.config import PassivityConfig
+    from teleop.devices.base import DeviceState
+    from teleop.force_loop import ForceSnapshot
+    from teleop.mapping import ManualControl
+    from teleop.passivity import PassivityController
+    from teleop.recording import CSV_FIELDS, csv_row
+    from teleop.telemetry import Telemetry
+
+    pc = PassivityController(PassivityConfig(enabled=True))
+    q = 0.0
+    for k in range(200):   # the hand pulled along by a force that leads the motion: energy out of the port
+        q = 0.01 * math.sin(0.05 * k)
+        pc.observe(k * 1e-3, [q, 0.0, 0.0])
+        tau = pc.control([0.5 * math.cos(0.05 * k), 0.0, 0.0], [2.0 * math.cos(0.05 * k), 0.0, 0.0], 1e-3)
+        pc.applied(tau, [2.0 * math.cos(0.05 * k), 0.0, 0.0])
+    report = pc.report()
+    snap = ForceSnapshot(DeviceState(0.2, np.array([q, 0, 0]), np.zeros(3)), np.zeros(3), None, 1.0,
+                         passivity=report)
+    delay = LinkDelay(0.612, 0.600, 0.700, 0.004, 9)
+    row = csv_row(1.0, snap, ManualControl(0, 0, 500, 0), Telemetry(), None, delay)
+    assert len(row) == len(CSV_FIELDS)
+    text = io.StringIO()
+    csv.writer(text).writerows([CSV_FIELDS, row])
+    back = next(csv.DictReader(io.StringIO(text.getvalue())))
+    assert float(back["rtt_ms"]) == pytest.approx(612.0) and float(back["rtt_p99_ms"]) == pytest.approx(700.0)
+    assert float(back["pass_output_j"]) == pytest.approx(report.output_j, abs=1e-6)
+    assert float(back["pass_min_observed_j"]) == pytest.approx(report.min_observed_j, abs=1e-6)
+    assert float(back["pass_dissipated_j"]) == pytest.approx(report.dissipated_j, abs=1e-6)
+    empty = next(csv.DictReader(io.StringIO(",".join(CSV_FIELDS) + "\n" + ",".join(
+        map(str, csv_row(1.0, None, ManualControl(0, 0, 500, 0), Telemetry(), None))) + "\n")))
+    assert empty["rtt_ms"] == "" and empty["pass_observed_j"] == ""
