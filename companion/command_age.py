@@ -20,10 +20,10 @@ own clock at the send. In our clock the command was sent at ``time_usec - offset
   compared in the sender's clock): dropped, a newer command is already in force.
 
 Only accepted commands reach the motion source (the mode machine's link liveness and the operator input,
-or the motion arbiter): the liveness counts from the command's *send* time, so over a sustained delay
-above the age, or a sustained loss, no command is fresh, the vehicle holds after the mode machine's
-``gcs_timeout_s`` and lands after ``gcs_land_timeout_s``; :meth:`CommandAgeFilter.fresh` tells whether
-the command in force is still younger than the age (the daemon zeroes the operator input when not).
+or the motion arbiter): over a sustained delay above the age, or a sustained loss, no command is accepted,
+the vehicle holds after the mode machine's ``gcs_timeout_s`` (from the last accepted arrival) and lands
+after ``gcs_land_timeout_s``; :meth:`CommandAgeFilter.fresh` tells whether the command in force is still
+younger than the age (the daemon zeroes the operator input when not: within the age of its send time).
 """
 
 from __future__ import annotations

@@ -337,7 +337,12 @@ class Companion:
             self.stats.routed_to_autopilot += 1
 
     def _on_manual_control(self, msg: Any) -> None:
-        """Only a fresh command moves the vehicle (companion.command_age); its liveness counts from its send time."""
+        """Only a fresh command moves the vehicle (companion.command_age) or keeps the link alive.
+
+        The link's liveness counts from the *arrival* of the newest accepted command (counting from its send
+        time would leave ``gcs_timeout_s`` minus the one-way delay of slack: at 300 ms one way the vehicle
+        flapped between TELEOP and HOLD on every loss burst); the operator input itself is zeroed once that
+        command is older than the age (:meth:`_operator`)."""
         now = self.clock()
         sender = (msg.get_srcSystem(), msg.get_srcComponent())
         sync = self.gcs_sync.get(sender)
@@ -347,7 +352,7 @@ class Companion:
         if not age.accepted:
             return
         self.op = operator_from_manual_control(msg.x, msg.y, msg.z, self.ref_params.deadband)
-        self.modes.on_manual_control(min(age.sent_s, now))
+        self.modes.on_manual_control(now)
 
     def _operator(self) -> OperatorInput:
         """The operator input in force: zero once the newest accepted command is older than the age."""

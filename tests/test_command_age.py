@@ -50,7 +50,7 @@ class Link:
 
 
 def fly(duration_s: float, delay_s: float, max_age_s: float, params: ModeParams, up=lambda t: True,  # noqa: ANN001
-        dt_s: float = 0.01) -> tuple[list[tuple[float, Mode, bool]], CommandAgeFilter, list[float]]:
+        dt_s: float = 0.01) -> tuple[list[tuple[float, Mode, bool]], CommandAgeFilter, list[float], list[float]]:
     """Station at 50 Hz (COMMAND_STAMP + MANUAL_CONTROL, TIMESYNC every 0.5 s) -> companion, stepped by dt_s."""
     age = CommandAgeFilter(CommandAgeParams(max_command_age_s=max_age_s))
     sync = TimesyncEstimator(TimesyncConfig())
@@ -58,6 +58,7 @@ def fly(duration_s: float, delay_s: float, max_age_s: float, params: ModeParams,
     uplink, downlink = Link(delay_s, up), Link(delay_s, up)
     trace: list[tuple[float, Mode, bool]] = []
     accepted_sent: list[float] = []
+    accepted_arrival: list[float] = []
     seq = 0
     n = int(round(duration_s / dt_s))
     for k in range(1, n + 1):
@@ -79,12 +80,13 @@ def fly(duration_s: float, delay_s: float, max_age_s: float, params: ModeParams,
                 verdict = age.on_command(STATION, p[1], MC, t, offset)
                 if verdict.accepted:
                     accepted_sent.append(verdict.sent_s)
-                    modes.on_manual_control(min(verdict.sent_s, t))
+                    modes.on_manual_control(t)          # liveness from the accepted arrival (the daemon's)
+                    accepted_arrival.append(t)
             elif p[0] == "ts_ans":
                 sync.on_response(p[1], p[2], int(t * NS))
         modes.update(t, IN_AIR, True)
         trace.append((t, modes.mode, age.fresh(t)))
-    return trace, age, accepted_sent
+    return trace, age, accepted_sent, accepted_arrival
 
 
 def first(trace: list[tuple[float, Mode, bool]], pred, after_s: float = 0.0) -> float:  # noqa: ANN001
@@ -95,14 +97,15 @@ def test_a_2s_outage_holds_within_the_age_and_resumes_cleanly() -> None:
     max_age = 0.3
     params = ModeParams(gcs_timeout_s=max_age, gcs_land_timeout_s=5.0, odometry_recover_s=0.5, takeoff_min_s=0.3)
     outage = (6.0, 8.0)
-    trace, age, sent = fly(12.0, 0.05, max_age, params, up=lambda t: not outage[0] <= t < outage[1])
+    trace, age, sent, arrivals = fly(12.0, 0.05, max_age, params, up=lambda t: not outage[0] <= t < outage[1])
     last_sent = max(s for s in sent if s < outage[0] + 0.5)
     # the last command before the outage was sent just before it began (station clock converted back)
     assert last_sent == pytest.approx(outage[0] - 0.02, abs=0.015)
     t_stale = first(trace, lambda m, f: not f, after_s=outage[0] - 0.1)
     t_hold = first(trace, lambda m, f: m == Mode.HOLD)
+    last_arrival = max(a for a in arrivals if a < outage[0] + 0.5)
     assert t_stale - last_sent <= max_age + 0.011          # operator input zeroed within the age ...
-    assert t_hold - last_sent <= max_age + 0.011           # ... and HOLD within it
+    assert t_hold - last_arrival <= params.gcs_timeout_s + 0.011   # ... HOLD gcs_timeout after the last arrival
     assert t_hold > outage[0]
     # no LAND (the outage is shorter than the land timeout); TELEOP again once fresh commands arrive
     modes_after = [m for t, m, _ in trace if t > t_hold]
@@ -117,7 +120,7 @@ def test_a_2s_outage_holds_within_the_age_and_resumes_cleanly() -> None:
 
 def test_a_sustained_delay_above_the_age_drops_everything_then_holds_then_lands() -> None:
     params = ModeParams(gcs_timeout_s=0.2, gcs_land_timeout_s=2.0, takeoff_min_s=0.3)
-    trace, age, sent = fly(4.0, 0.3, 0.2, params)
+    trace, age, sent, _ = fly(4.0, 0.3, 0.2, params)
     # the first commands arrive unsynced (arrival time) until the first TIMESYNC round trip, then all are stale
     assert age.counts.unsynced > 0 and age.counts.stale > 0.9 * (age.counts.stale + age.counts.stamped)
     assert age.counts.stamped == 0
