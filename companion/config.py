@@ -24,6 +24,11 @@ class LinksConfig:
     image_host: str = "127.0.0.1"  # operator image stream (camera record format, JPEG colour)
     image_port: int = 5770
     gcs_client_timeout_s: float = 10.0  # a GCS client silent this long stops receiving telemetry
+    # commands have an age (issue 18, companion/command_age.py): stamped commands older than this are dropped;
+    # the HOLD and LAND timeouts on no fresh command are modes.gcs_timeout_s and modes.gcs_land_timeout_s
+    max_command_age_s: float = 0.5
+    gcs_timesync_period_s: float = 0.5  # TIMESYNC requests to each ground station (the commands' clock offset)
+    gcs_timesync_max_rtt_s: float = 2.0  # round trips above this are not used for the offset
 
 
 @dataclass(frozen=True)

@@ -37,6 +37,7 @@ from numpy.typing import NDArray
 from companion import messages as msgs
 from companion.arbiter import Arbiter, MotionCommand, Pose, Setpoint, Source
 from companion.cameras import CameraInput
+from companion.command_age import CommandAgeFilter, CommandAgeParams, Sender
 from companion.commands import CommandQueue
 from companion.config import CompanionConfig
 from companion.frame_step import (
@@ -62,6 +63,7 @@ from companion.vehicle_state import VehicleState
 from quadlink.camera import RgbdFrame
 from quadlink.errors import QuadlinkError
 from quadlink.mavlink import mavlink
+from quadlink.mavlink.timesync import NS, TimesyncConfig, TimesyncEstimator, answer_fields, is_request
 from quadlink.operator_image import OperatorImageMeta
 from quadlink.px4_modes import AUTO_LOITER, OFFBOARD, POSCTL, Px4MainMode, decode_custom_mode
 
@@ -70,6 +72,7 @@ log = logging.getLogger(__name__)
 __all__ = ["PARAM_NAMES", "Companion", "ImageSink", "MavLink", "Pipeline", "Stats", "default_pipeline_factory"]
 
 MAX_ROUTED_PER_STEP = 2000
+MAX_GCS_SENDERS = 16        # TIMESYNC estimators kept for ground-station senders (every port is hostile)
 PROGRESS_EVERY_S = 5.0
 IMU_SILENT_S = 0.1          # no HIGHRES_IMU for this long: feedback paced on wall time instead
 IMU_LAG_LIMIT = 30          # consecutive IMU-wait timeouts after which the daemon stops waiting
@@ -102,6 +105,10 @@ class Companion:
         self.modes = ModeMachine(cfg.modes)
         self.commands = CommandQueue()
         self.timesync = TimeSync()
+        # the ground stations' command clock (issue 18): TIMESYNC with each sender, the commands' age
+        self.gcs_sync: dict[Sender, TimesyncEstimator] = {}
+        self._gcs_sync_cfg = TimesyncConfig(max_rtt_s=cfg.links.gcs_timesync_max_rtt_s)
+        self.command_age = CommandAgeFilter(CommandAgeParams(max_command_age_s=cfg.links.max_command_age_s))
         self.vehicle = VehicleState()
         self.stats = Stats()
         self.op = OperatorInput()
@@ -358,6 +365,11 @@ class Companion:
                 if not self._on_gcs_set_mode(msg, msg.base_mode, mode.main, mode.sub, ack=False) and \
                         self._forward(self.autopilot, msg):
                     self.stats.routed_to_autopilot += 1   # not ours to answer: the autopilot's mode
+            elif kind == "TIMESYNC":
+                self._on_gcs_timesync(msg)
+            elif kind == "COMMAND_STAMP":
+                self.command_age.on_stamp((msg.get_srcSystem(), msg.get_srcComponent()), msg.get_seq(),
+                                          msg.time_usec, msg.command_msgid, self.clock())
             elif kind == "COMMAND_LONG":
                 self._on_gcs_command(msg)
             else:
@@ -371,10 +383,42 @@ class Companion:
             self.stats.routed_to_autopilot += 1
 
     def _on_manual_control(self, msg: Any) -> None:
-        self.op = operator_from_manual_control(msg.x, msg.y, msg.z, self.ref_params.deadband)
-        self.arbiter.on_manual_control(self.clock(), msg.x, msg.y, msg.z)
-        self.modes.on_manual_control(self.clock())
+        """Only a fresh command moves the vehicle (companion.command_age) or keeps the link alive.
+
+        The link's liveness counts from the *arrival* of the newest accepted command (counting from its send
+        time would leave ``gcs_timeout_s`` minus the one-way delay of slack: at 300 ms one way the vehicle
+        flapped between TELEOP and HOLD on every loss burst); the operator input itself is zeroed once that
+        command is older than the age (:meth:`_operator`)."""
+        now = self.clock()
+        sender = (msg.get_srcSystem(), msg.get_srcComponent())
+        sync = self.gcs_sync.get(sender)
+        offset_s = None if sync is None or sync.offset_ns is None else sync.offset_ns / NS
+        age = self.command_age.on_command(sender, msg.get_seq(), msg.get_msgId(), now, offset_s)
         self.stats.manual_controls += 1
+        if not age.accepted:
+            return
+        self.op = operator_from_manual_control(msg.x, msg.y, msg.z, self.ref_params.deadband)
+        self.arbiter.on_manual_control(now, msg.x, msg.y, msg.z)
+        self.modes.on_manual_control(now)
+
+    def _operator_of(self, cmd: MotionCommand) -> OperatorInput:
+        """The operator's input when the arbiter gives the operator control and its command is fresh."""
+        if cmd.source != Source.OPERATOR or cmd.operator is None or not self.command_age.fresh(self.clock()):
+            return OperatorInput()
+        return cmd.operator
+
+    def _on_gcs_timesync(self, msg: Any) -> None:
+        now_ns = int(self.clock() * NS)
+        if is_request(msg.tc1):   # a ground station measuring its round trip to us: our clock
+            self.send_gcs(mavlink.MAVLink_timesync_message(*answer_fields(msg.ts1, now_ns)))
+            return
+        sender = (msg.get_srcSystem(), msg.get_srcComponent())
+        sync = self.gcs_sync.get(sender)
+        if sync is None:
+            if len(self.gcs_sync) >= MAX_GCS_SENDERS:
+                return
+            sync = self.gcs_sync[sender] = TimesyncEstimator(self._gcs_sync_cfg)
+        sync.on_response(msg.tc1, msg.ts1, now_ns)
 
     def _pose(self) -> Pose:
         """What the arbiter needs of the state: the odometry's position and yaw, the pan-scan's offset."""
@@ -504,7 +548,7 @@ class Companion:
             self.last_output = out
             self.stats.perception_s.append(float(out.processing_time_s))
         cmd = self._command()
-        op = cmd.operator if cmd.source == Source.OPERATOR and cmd.operator is not None else OperatorInput()
+        op = self._operator_of(cmd)
         step: FrameStep = frame_step(out, op, self._R_qc, self._scan_state(stamp), self.ref_params,
                                      self.modes.operator_enabled, self.cfg.obstacles.allow_unknown_when_fresh,
                                      v_command_h_m_s=cmd.v_h_m_s if cmd.source == Source.SCRIPT else None,
@@ -600,10 +644,14 @@ class Companion:
             self.send_gcs(hb)
         if self.deadlines.due("timesync", now, t.timesync_period_s):
             self.send_autopilot(mavlink.MAVLink_timesync_message(0, int(now * 1e9)))
+        if self.deadlines.due("gcs_timesync", now, self.cfg.links.gcs_timesync_period_s):
+            self.send_gcs(mavlink.MAVLink_timesync_message(0, int(now * NS)))
+        if self.deadlines.due("command_age", now, 1.0):
+            self._send_command_age()
         if camera_silent and self.deadlines.due("fallback", now, 1.0 / t.fallback_setpoint_rate_hz):
             # keeps the autopilot's stream alive without a camera (frame_step.fallback_step)
             cmd = self._command()
-            op = cmd.operator if cmd.source == Source.OPERATOR and cmd.operator is not None else OperatorInput()
+            op = self._operator_of(cmd)
             ref = fallback_step(self.last_output, op, self._R_qc, self.ref_params, self.modes.operator_enabled)
             self.last_ref = ref
             self._send_setpoint(self._fallback_stamp(now), ref)
@@ -613,11 +661,26 @@ class Companion:
         if self.deadlines.due("progress", now, PROGRESS_EVERY_S):
             self._log_progress()
 
+    def _send_command_age(self) -> None:
+        """The commands' age figures as NAMED_VALUE_* to the ground station (and the tlog: the demo report)."""
+        c = self.command_age.counts
+        ms = int(self._fallback_stamp(self.clock()) * 1e3) & 0xFFFFFFFF
+        for name, value in (("CMD_OK", c.accepted), ("CMD_DROP", c.dropped), ("CMD_STALE", c.stale),
+                            ("CMD_UNPAIR", c.unpaired)):
+            self.send_gcs(mavlink.MAVLink_named_value_int_message(ms, name.encode(), value))
+        for name, q in (("CMD_AGE50", 50.0), ("CMD_AGE99", 99.0)):
+            age = self.command_age.age_percentile_s(q)
+            if math.isfinite(age):
+                self.send_gcs(mavlink.MAVLink_named_value_float_message(ms, name.encode(), age))
+
     def _log_progress(self) -> None:
         fps = (self.stats.frames - self._progress_frames) / PROGRESS_EVERY_S
         self._progress_frames = self.stats.frames
-        log.info("mode %s  camera %.1f fps  %s", self.modes.mode.name, fps,
-                 self.stats.summary(self.odometry_ok, self.modes.gcs_ok))
+        c = self.command_age.counts
+        log.info("mode %s  camera %.1f fps  %s  commands %d ok / %d dropped (stale %d, unpaired %d), age p50 %.0f "
+                 "p99 %.0f ms", self.modes.mode.name, fps, self.stats.summary(self.odometry_ok, self.modes.gcs_ok),
+                 c.accepted, c.dropped, c.stale, c.unpaired, self.command_age.age_percentile_s(50) * 1e3,
+                 self.command_age.age_percentile_s(99) * 1e3)
         self.stats.trim()
 
     def _fallback_stamp(self, now: float) -> float:

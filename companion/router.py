@@ -6,7 +6,9 @@ companion computer.
 * From a ground station: a message for the autopilot's system (or broadcast) goes to the autopilot,
   except MANUAL_CONTROL (the operator's command to the companion, consumed here) and what is addressed to
   this component (COMMAND_LONG, PARAM_* for compid 191) and motion commands (setpoints, SET_MODE: the
-  companion arbitrates all motion, issue 14). Broadcast parameter requests are answered by both.
+  companion arbitrates all motion, issue 14). Broadcast parameter requests are answered by both. TIMESYNC
+  and COMMAND_STAMP end at the companion: it is the clock the ground station's commands are aged against
+  (companion.command_age).
 """
 
 from __future__ import annotations
@@ -20,6 +22,8 @@ BROADCAST_PARAM_KINDS = frozenset({"PARAM_REQUEST_LIST", "PARAM_REQUEST_READ", "
 # them for the autopilot while it is in control: see Companion._on_gcs_set_mode).
 MOTION_KINDS = frozenset({"SET_POSITION_TARGET_LOCAL_NED", "SET_POSITION_TARGET_GLOBAL_INT", "SET_ATTITUDE_TARGET",
                           "SET_MODE"})
+# the command clock with a ground station is the companion's (issue 18): its TIMESYNC and command stamps end here
+GCS_CONSUMED = frozenset({"TIMESYNC", "COMMAND_STAMP"})
 
 
 @dataclass(frozen=True)
@@ -42,6 +46,9 @@ def route_from_gcs(kind: str, target_system: int | None, target_component: int |
     """A message from a ground station (MANUAL_CONTROL's ``target`` is passed as ``target_system``)."""
     if kind == "MANUAL_CONTROL":
         return RouteDecision(consume=target_system in (0, sysid), forward=False)
+    if kind in GCS_CONSUMED:
+        return RouteDecision(consume=target_system in (None, 0, sysid) and target_component in (None, 0, compid),
+                             forward=False)
     if target_system not in (None, 0, sysid):
         return RouteDecision(consume=False, forward=False)  # another system: nothing behind us has it
     if target_component == compid or kind in MOTION_KINDS:

@@ -15,7 +15,9 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from quadlink.mavlink import mavlink
+from quadlink.mavlink.timesync import NS, TimesyncConfig, TimesyncEstimator, answer_fields, is_request, request_fields
 from teleop.commands import OutgoingCommand
+from teleop.delay import link_delay
 from teleop.force import VehicleMotion
 from teleop.force_loop import MotionInput
 from teleop.mapping import map_device_to_command
@@ -29,6 +31,8 @@ if TYPE_CHECKING:
 log = logging.getLogger(__name__)
 
 MAX_MESSAGES_PER_TICK = 1000
+TIMESYNC_PERIOD_S = 0.5      # TIMESYNC requests to the companion (the round trip on the page)
+TIMESYNC_MAX_RTT_S = 2.0     # a ground link through the internet: round trips above this are stalled samples
 
 
 def send_command(conn: Any, out: OutgoingCommand) -> None:
@@ -48,6 +52,7 @@ class VehicleLink:
         self.station = station
         self.cfg = station.cfg
         self.estimator = make_estimator(station.cfg)
+        self.sync = TimesyncEstimator(TimesyncConfig(max_rtt_s=TIMESYNC_MAX_RTT_S))
 
     def run(self) -> None:
         st, cfg = self.station, self.cfg
@@ -57,6 +62,7 @@ class VehicleLink:
         t0 = st.clock()
         next_t = t0
         next_heartbeat = t0
+        next_timesync = t0
         try:
             while not st.stop_event.is_set():
                 t = st.clock()
@@ -66,15 +72,22 @@ class VehicleLink:
                 force = st.force
                 q = force.device.q_m if force else np.zeros(3)
                 cmd = map_device_to_command(q, cfg.mapping, cfg.device)
+                # its send time first (COMMAND_STAMP, issue 18: the very next packet is the command it stamps)
+                conn.mav.command_stamp_send(int(st.clock() * 1e6), mavlink.MAVLINK_MSG_ID_MANUAL_CONTROL,
+                                            cfg.mapping.target_system, cfg.commands.companion_component)
                 conn.mav.manual_control_send(cfg.mapping.target_system, cmd.x, cmd.y, cmd.z, cmd.r, cmd.buttons)
                 st.manual_control_sent += 1
                 if t >= next_heartbeat:
                     next_heartbeat = t + 1.0
                     conn.mav.heartbeat_send(mavlink.MAV_TYPE_GCS, mavlink.MAV_AUTOPILOT_INVALID, 0, 0,
                                             mavlink.MAV_STATE_ACTIVE)
-                st._set_link_state(tel, cmd, t)
+                if t >= next_timesync:
+                    next_timesync = t + TIMESYNC_PERIOD_S
+                    conn.mav.timesync_send(*request_fields(int(st.clock() * NS)))
+                delay = link_delay(self.sync)
+                st._set_link_state(tel, cmd, t, delay)
                 if csv_log is not None:
-                    csv_log.write(csv_row(t - t0, force, cmd, tel, st._motion))
+                    csv_log.write(csv_row(t - t0, force, cmd, tel, st._motion, delay))
                 next_t += period
                 if st.clock() - next_t > 10 * period:
                     next_t = st.clock()
@@ -97,6 +110,9 @@ class VehicleLink:
             mtype = msg.get_type()
             if mtype == "BAD_DATA":
                 continue
+            if mtype == "TIMESYNC":
+                self._on_timesync(conn, msg)
+                continue
             tel = apply_message(tel, msg, t, ap, cfg.commands.companion_component)
             if mtype == "TELEOP_FEEDBACK" and tel.feedback is not None:
                 self._on_feedback(tel.feedback, t)
@@ -108,6 +124,16 @@ class VehicleLink:
             elif mtype == "STATUSTEXT" and msg.severity <= mavlink.MAV_SEVERITY_WARNING:
                 log.warning("vehicle says: %s", tel.last_statustext)
         return tel
+
+    def _on_timesync(self, conn: Any, msg: Any) -> None:
+        """TIMESYNC with the companion only (the autopilot's, routed through it, are not our peer's clock)."""
+        if msg.get_srcComponent() != self.cfg.commands.companion_component:
+            return
+        now_ns = int(self.station.clock() * NS)
+        if is_request(msg.tc1):   # the companion ages our commands with its estimate of our clock
+            conn.mav.timesync_send(*answer_fields(msg.ts1, now_ns))
+        else:
+            self.sync.on_response(msg.tc1, msg.ts1, now_ns)
 
     def _on_feedback(self, fb: Feedback, t: float) -> None:
         st, cfg = self.station, self.cfg

@@ -12,6 +12,7 @@ from typing import Any, TextIO
 import cv2
 
 from quadlink.errors import LinkError
+from teleop.delay import LinkDelay
 from teleop.force_loop import ForceSnapshot, MotionInput
 from teleop.mapping import ManualControl
 from teleop.telemetry import Telemetry
@@ -21,11 +22,15 @@ log = logging.getLogger(__name__)
 CSV_FIELDS = ["t_s", "qx_m", "qy_m", "qz_m", "qdx_m_s", "qdy_m_s", "qdz_m_s", "fop_x_n", "fop_y_n", "fop_z_n",
               "tau_x_n", "tau_y_n", "tau_z_n", "qtx_m", "qty_m", "qtz_m", "link_gain", "cmd_x", "cmd_z", "cmd_r",
               "vx_h", "vy_h", "vz_h", "vx_cmd", "vy_cmd", "vz_cmd", "vx_rep", "vy_rep", "vz_rep", "alpha_rad",
-              "yaw_rate", "pan_scan_rate_used", "obstacle_m", "mode", "flags", "armed"]
+              "yaw_rate", "pan_scan_rate_used", "obstacle_m", "mode", "flags", "armed",
+              # issue 18: the measured round trip to the companion (TIMESYNC) and the port's energy account
+              "rtt_ms", "rtt_p50_ms", "rtt_p99_ms", "clock_offset_ms",
+              "pass_observed_j", "pass_min_observed_j", "pass_input_j", "pass_output_j", "pass_dissipated_j",
+              "pass_damping_n_s_m"]
 
 
 def csv_row(t_s: float, force: ForceSnapshot | None, cmd: ManualControl, tel: Telemetry,
-            motion: MotionInput | None) -> list[Any]:
+            motion: MotionInput | None, delay: LinkDelay | None = None) -> list[Any]:
     """One row of :data:`CSV_FIELDS` (pure)."""
     z3 = (0.0, 0.0, 0.0)
     dev = force.device if force else None
@@ -46,7 +51,16 @@ def csv_row(t_s: float, force: ForceSnapshot | None, cmd: ManualControl, tel: Te
     else:
         row += [""] * 15
     row.append(int(tel.armed))
+    d = delay if delay is not None else LinkDelay()
+    row += [_num(d.rtt_s * 1e3, 2), _num(d.rtt_p50_s * 1e3, 2), _num(d.rtt_p99_s * 1e3, 2), _num(d.offset_s * 1e3, 3)]
+    p = force.passivity if force is not None else None
+    row += ([f"{v:.6f}" for v in (p.observed_j, p.min_observed_j, p.input_j, p.output_j, p.dissipated_j)]
+            + [f"{p.damping_n_s_m:.3f}"] if p is not None else [""] * 6)
     return row
+
+
+def _num(v: float, decimals: int) -> str:
+    return f"{v:.{decimals}f}" if math.isfinite(v) else ""
 
 
 class CsvLog:

@@ -36,6 +36,7 @@ from quadlink.errors import ProtocolError, QuadlinkError
 from quadlink.mavlink.connection import open_mavlink
 from teleop.commands import CommandResult, CommandTracker
 from teleop.config import TeleopConfig
+from teleop.delay import LinkDelay
 from teleop.devices.base import HapticDevice
 from teleop.force import link_ok
 from teleop.force_loop import DeviceSpec, ForceProcess, ForceSnapshot, MotionInput, PeriodRecorder, run_force_loop
@@ -95,6 +96,7 @@ class Station:
         self._acks: deque[str] = deque(maxlen=6)
         self._warnings: list[str] = []
         self._pan_scan_hz = 0.0
+        self._delay = LinkDelay()   # TIMESYNC round trip to the companion (the link thread's snapshot)
         self.force_periods = PeriodRecorder()
         self.commands = CommandTracker(cfg.commands)
         self.hub = ViewHub()
@@ -217,6 +219,7 @@ class Station:
         force = self.force
         with self._lock:
             tel, cmd, warnings, acks = self._telemetry, self._command, list(self._warnings), list(self._acks)
+            delay = self._delay
         fb = tel.feedback
         ok = link_ok(fb.t_recv_s if fb else None, t, self.cfg.force.link_timeout_s)
         return {
@@ -235,6 +238,8 @@ class Station:
             "warnings": warnings,
             "acks": acks,
             "view_frames": self.view_frames,
+            **delay.status(),
+            "passivity": _passivity_status(force),
         }
 
     def status_line(self) -> str:
@@ -242,7 +247,9 @@ class Station:
         bat = f"{s['battery_v']:.1f} V" if s["battery_v"] is not None else "- V"
         obst = f"{s['min_obstacle_m']:.2f} m" if s["min_obstacle_m"] is not None else "none"
         f = s["force_n"]
-        return (f"link {s['link']} | mode {s['mode']} | {'armed' if s['armed'] else 'disarmed'} | bat {bat} | "
+        rtt = "-" if s["rtt_ms"] is None else f"{s['rtt_ms']:.0f} ms"
+        return (f"link {s['link']} rtt {rtt} | mode {s['mode']} | {'armed' if s['armed'] else 'disarmed'} | "
+                f"bat {bat} | "
                 f"obstacle {obst} | {s['command']} | q [{s['q_m'][0]:+.3f} {s['q_m'][1]:+.3f} {s['q_m'][2]:+.3f}] m"
                 f" | force [{f[0]:+.2f} {f[1]:+.2f} {f[2]:+.2f}] N")
 
@@ -255,12 +262,14 @@ class Station:
     def _network_loop(self) -> None:
         VehicleLink(self).run()
 
-    def _set_link_state(self, tel: Telemetry, cmd: ManualControl, t: float) -> None:
+    def _set_link_state(self, tel: Telemetry, cmd: ManualControl, t: float, delay: LinkDelay | None = None) -> None:
         """The link loop's results of one tick, published atomically to the other threads and the page."""
         ok = link_ok(tel.feedback.t_recv_s if tel.feedback else None, t, self.cfg.force.link_timeout_s)
         warnings = warnings_for(tel, ok, t, self.cfg)
         with self._lock:
             self._telemetry, self._command, self._warnings = tel, cmd, warnings
+            if delay is not None:
+                self._delay = delay
         self.hub.set_status(self.status())
 
     def _ack(self, result: CommandResult | None) -> None:
@@ -326,6 +335,16 @@ class Station:
         ok, buf = cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, self.cfg.view.jpeg_quality])
         if ok:
             self.hub.publish(buf.tobytes())
+
+
+def _passivity_status(force: ForceSnapshot | None) -> dict[str, float] | None:
+    """The force port's energy account for ``status.json`` (teleop.passivity), None before the first tick."""
+    p = force.passivity if force is not None else None
+    if p is None:
+        return None
+    return {"observed_j": round(p.observed_j, 5), "min_observed_j": round(p.min_observed_j, 5),
+            "output_j": round(p.output_j, 5), "dissipated_j": round(p.dissipated_j, 5),
+            "damping_n_s_m": round(p.damping_n_s_m, 3)}
 
 
 def _warning_kind(text: str) -> str:

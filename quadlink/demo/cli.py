@@ -17,6 +17,7 @@ from typing import Any
 import click
 
 from quadlink import CONFIG_DIR
+from quadlink.demo.link import LinkImpairment, LinkProxies, teleop_config_with_passivity, write_link_stats
 from quadlink.demo.orchestrator import ProcessDied, ProcessSpec, Stack
 from quadlink.demo.recorder import Recorder
 from quadlink.demo.report import FlightLog, compute_report, load_flight, summary_table, write_report
@@ -27,9 +28,11 @@ log = logging.getLogger("quadlink.demo")
 DEFAULT_SCRIPT = CONFIG_DIR / "teleop_scripts" / "paper_experiment.yaml"
 
 
-PORT_NAMES = ("mk1", "mk2", "camera", "image", "autopilot", "gcs_bridge", "vehicle", "truth", "http")
+PORT_NAMES = ("mk1", "mk2", "camera", "image", "autopilot", "gcs_bridge", "vehicle", "truth", "http",
+              "vehicle_netem", "image_netem")
+#: ``vehicle_netem`` / ``image_netem``: the impaired ground link's ends (quadlink.demo.link)
 DEFAULT_PORTS = {"mk1": 5760, "mk2": 5761, "camera": 5762, "image": 5770, "autopilot": 14540, "gcs_bridge": 14551,
-                 "vehicle": 14555, "truth": 14560, "http": 8080}
+                 "vehicle": 14555, "truth": 14560, "http": 8080, "vehicle_netem": 14557, "image_netem": 5771}
 PORT_BLOCK_SIZE = len(PORT_NAMES)  # ports per flight with ``base``
 
 
@@ -86,10 +89,13 @@ class FlightSpec:
 
 def build_specs(scenario: str, script: Path, out_dir: Path, ports: Ports, lockstep: bool, speed: float,
                 duration_s: float, record_frames: bool = False, sitl_config: str | None = None,
-                operator: str = "haptic", view: bool = True) -> list[ProcessSpec]:
+                operator: str = "haptic", view: bool = True, via_netem: bool = False,
+                teleop_config: Path | None = None) -> list[ProcessSpec]:
     """The parts of a flight in start order. ``view=False`` runs headless: no operator image stream from the
     companion, no view or web page in the ground station (neither feeds back into the flight: the haptic
-    cue's pan-scan estimate comes from TELEOP_FEEDBACK, not from the images), which saves their CPU."""
+    cue's pan-scan estimate comes from TELEOP_FEEDBACK, not from the images), which saves their CPU.
+    ``via_netem``: the ground station talks to the netem proxies' ports (quadlink.demo.link)."""
+    vehicle_port, image_port = (ports.vehicle_netem, ports.image_netem) if via_netem else (ports.vehicle, ports.image)
     sitl = ["sitl", "--scenario", scenario, "--port1", str(ports.mk1), "--port2", str(ports.mk2),
             "--camera-port", str(ports.camera), "--truth", f"udpout:127.0.0.1:{ports.truth}",
             "--duration", f"{duration_s + 30:.0f}"]
@@ -106,8 +112,9 @@ def build_specs(scenario: str, script: Path, out_dir: Path, ports: Ports, lockst
     elif operator == "haptic":
         operator_spec = ProcessSpec(
             "teleop", ("teleop", "--device", "virtual", "--script", str(script),
-                       "--vehicle", f"udpout:127.0.0.1:{ports.vehicle}",
-                       "--image-stream", f"tcp://127.0.0.1:{ports.image}" if view else "none",
+                       "--vehicle", f"udpout:127.0.0.1:{vehicle_port}",
+                       "--image-stream", f"tcp://127.0.0.1:{image_port}" if view else "none",
+                       *(("--config", str(teleop_config)) if teleop_config else ()),
                        "--http-port", str(ports.http) if view else "-1", "--log-csv", str(out_dir / "teleop.csv"),
                        "--exit-at-script-end", "--script-clock", "vehicle" if lockstep else "wall"),
             ready_after_s=0.5)
@@ -137,13 +144,16 @@ def run_demo(scenario: str, duration_s: float, out_dir: Path, script: Path, lock
              record_frames: bool = False, port_base: int | None = None, sitl_config: str | None = None,
              operator: str = "haptic", should_stop: Callable[[], bool] | None = None,
              view: bool = True, plots: bool = True,
-             on_flight: Callable[[FlightLog], None] | None = None) -> dict[str, object]:
+             on_flight: Callable[[FlightLog], None] | None = None, link: LinkImpairment | None = None,
+             passivity: bool | None = None) -> dict[str, object]:
     """Fly the demo; returns the report. Raises :class:`ProcessDied` if a part dies.
 
     Writes ``out_dir/flight.json`` (the :class:`FlightSpec`, what ``--replay`` re-flies) and
     ``out_dir/logs/pids`` (the parts' process ids, so a supervisor can kill them if this process dies).
     ``should_stop`` is polled five times a second: True ends the flight early as Ctrl-C does. With
     ``plots=False`` only ``report.json`` is written, and ``on_flight`` gets the logs' time series (parsed once).
+    ``link``: the ground link goes through the netem proxies with this impairment (issue 18);
+    ``passivity``: the force loop's passivity controller (default: on when ``link`` is given).
     """
     if not Path(script).is_file():
         raise ConfigError(f"{script}: operator script not found")
@@ -157,6 +167,9 @@ def run_demo(scenario: str, duration_s: float, out_dir: Path, script: Path, lock
     recorder.record("bridge", f"udpin:127.0.0.1:{ports.gcs_bridge}", out_dir / "bridge.tlog")
     interrupted = False
     failure: ProcessDied | None = None
+    proxies: LinkProxies | None = None
+    passivity_on = (link is not None) if passivity is None else passivity
+    teleop_config = teleop_config_with_passivity(out_dir, passivity_on) if passivity_on or link else None
 
     def on_sigint(signum: int, frame: object) -> None:
         nonlocal interrupted
@@ -167,13 +180,17 @@ def run_demo(scenario: str, duration_s: float, out_dir: Path, script: Path, lock
     previous = signal.signal(signal.SIGINT, on_sigint) if main_thread else None
     t_wall0 = time.monotonic()
     specs = build_specs(scenario, Path(script), out_dir, ports, lockstep, speed, duration_s, record_frames,
-                        sitl_config, operator, view)
+                        sitl_config, operator, view, via_netem=link is not None, teleop_config=teleop_config)
     operator_name = specs[-1].name
     try:
         for part in specs:
             if interrupted or (should_stop is not None and should_stop()):
                 interrupted = True
                 break
+            if part.name == "teleop" and link is not None:
+                proxies = LinkProxies(link, ports.vehicle_netem, ports.vehicle, ports.image_netem, ports.image)
+                log.info("ground link through netem: %.0f ms one way, %.0f ms jitter, %.1f %% loss", link.delay_ms,
+                         link.jitter_ms, 100 * link.loss)
             stack.start(part)
         log.info("all parts running; operator view at http://127.0.0.1:%d ; logs in %s", ports.http, stack.log_dir)
         next_progress = 0.0
@@ -205,6 +222,9 @@ def run_demo(scenario: str, duration_s: float, out_dir: Path, script: Path, lock
         cpu = stack.cpu_seconds()
         codes = stack.stop()
         recorder.stop()
+        if proxies is not None:
+            write_link_stats(out_dir, proxies)
+            proxies.close()
         log.info("stopped (exit statuses: %s)", ", ".join(f"{k}={v}" for k, v in codes.items()))
     if plots:
         report = write_report(out_dir, cpu, str(scenario))
@@ -280,16 +300,31 @@ def compare_reports(original: dict[str, Any], replay: dict[str, Any]) -> list[tu
               help="The operator's image view (companion image stream, ground-station page); --no-view saves CPU.")
 @click.option("--record-frames", is_flag=True,
               help="Also record the companion's camera frames to OUT/frames.qlcf (~11 MB per second of flight).")
+@click.option("--link-delay-ms", type=float, default=None,
+              help="Ground link through netem: one-way delay (ms, each direction) [issue 18].")
+@click.option("--link-jitter-ms", type=float, default=None, help="Ground link jitter (ms, std dev).")
+@click.option("--link-loss", type=float, default=None, help="Ground link packet loss (0-1, MAVLink; TCP images: none).")
+@click.option("--link-seed", type=int, default=0, show_default=True, help="Seed of the link's impairment.")
+@click.option("--passivity/--no-passivity", default=None,
+              help="Force loop passivity controller [default: on with --link-*, else the teleop config's].")
 def command(scenario: str, duration_s: float, out_dir: Path | None, script: Path, lockstep: bool, speed: float,
-            port_offset: int, port_base: int | None, replay_dir: Path | None, view: bool, record_frames: bool) -> None:
+            port_offset: int, port_base: int | None, replay_dir: Path | None, view: bool, record_frames: bool,
+            link_delay_ms: float | None, link_jitter_ms: float | None, link_loss: float | None, link_seed: int,
+            passivity: bool | None) -> None:
     """Fly the paper's experiment in the SITL (take off, drive, rotate, approach and push the obstacle, land)."""
     try:
+        impaired = any(v is not None for v in (link_delay_ms, link_jitter_ms, link_loss))
+        link = LinkImpairment(link_delay_ms or 0.0, link_jitter_ms or 0.0, link_loss or 0.0, link_seed) \
+            if impaired else None
+        if link is not None:
+            link.impairment()   # validates (ConfigError names the bad value)
         if replay_dir is not None:
             report, out_dir = replay_flight(replay_dir, out_dir, port_offset, port_base)
         else:
             out_dir = out_dir or Path("flight-report")
             report = run_demo(scenario, duration_s, out_dir, script, lockstep, speed, port_offset,
-                              record_frames=record_frames, port_base=port_base, view=view)
+                              record_frames=record_frames, port_base=port_base, view=view, link=link,
+                              passivity=passivity)
     except ProcessDied as exc:
         click.echo(f"quadlink demo: {exc}", err=True)
         raise SystemExit(1) from exc

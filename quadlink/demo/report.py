@@ -1,8 +1,10 @@
 """Turn a demo flight's logs into ``report.json``, the paper-style plots and a summary table.
 
 Inputs (all in the demo's output folder): ``truth.tlog`` (SITL ground truth), ``companion.tlog``
-(everything the companion sent and received: TELEOP_FEEDBACK, setpoints, IMU), ``bridge.tlog`` (the
-autopilot's ground-station stream) and ``teleop.csv`` (the haptic client's force log). Times are
+(everything the companion sent and received: TELEOP_FEEDBACK, setpoints, IMU, its command-age counters
+as NAMED_VALUE_*), ``bridge.tlog`` (the autopilot's ground-station stream), ``teleop.csv`` (the haptic
+client's force log, with the measured round trip and the passivity account) and, for a flight over an
+impaired link, ``link.json`` (the netem proxies' counters). Times are
 simulated seconds throughout (see :mod:`quadlink.demo.metrics`).
 """
 
@@ -29,6 +31,7 @@ TARGETS = {
     "min_true_obstacle_distance_m": 0.40,  # at least
     "fraction_estimate_le_truth": 0.95,  # at least
     "setpoint_gaps_over_100ms": 0,  # at most
+    "passivity_epsilon_j": 1e-3,  # observed energy of the force port at least -epsilon (over an impaired link)
 }
 
 
@@ -60,6 +63,8 @@ class FlightLog:
     mode: np.ndarray = field(default_factory=lambda: np.zeros(0))
     t_setpoint: np.ndarray = field(default_factory=lambda: np.zeros(0))
     force: dict[str, np.ndarray] = field(default_factory=dict)
+    command_age: dict[str, float] = field(default_factory=dict)    # the companion's last CMD_* values
+    link: dict[str, Any] = field(default_factory=dict)             # link.json
 
 
 def load_flight(out_dir: Path) -> FlightLog:
@@ -94,6 +99,8 @@ def load_flight(out_dir: Path) -> FlightLog:
                            m.obstacle_distance, m.mode])
             elif kind == "SET_POSITION_TARGET_LOCAL_NED":
                 sp.append(m.time_boot_ms / 1e3)
+            elif kind in ("NAMED_VALUE_INT", "NAMED_VALUE_FLOAT") and str(m.name).startswith("CMD_"):
+                flight.command_age[str(m.name)] = float(m.value)
         F = _arr(fb, 15)
         order = np.argsort(F[:, 0], kind="stable")
         F = F[order]
@@ -102,6 +109,9 @@ def load_flight(out_dir: Path) -> FlightLog:
         flight.pan_scan_rate, flight.yaw_rate_cmd, flight.gyro_yaw_rate = F[:, 10], F[:, 11], F[:, 12]
         flight.obstacle_est_m, flight.mode = F[:, 13], F[:, 14]
         flight.t_setpoint = np.asarray(sorted(set(sp)), dtype=float)
+    link_json = out_dir / "link.json"
+    if link_json.is_file():
+        flight.link = json.loads(link_json.read_text())
     force_csv = out_dir / "teleop.csv"
     if force_csv.is_file():
         with open(force_csv, newline="") as f:
@@ -180,10 +190,49 @@ def compute_report(flight: FlightLog, cpu_s: dict[str, float] | None = None, sce
     report["setpoint_count"] = int(flight.t_setpoint.size)
     report["setpoint_gaps_over_100ms"] = gaps.count_over
     report["max_setpoint_gap_s"] = gaps.max_gap_s
+    link = link_figures(flight)
+    if link:
+        report["link"] = link
     if cpu_s:
         report["cpu_core_s_per_sim_s"] = {k: (v / duration if duration > 0 else math.nan) for k, v in cpu_s.items()}
     report["targets"] = check_targets(report)
     return report
+
+
+def _column(flight: FlightLog, key: str) -> np.ndarray:
+    v = flight.force.get(key)
+    return v[np.isfinite(v)] if v is not None else np.zeros(0)
+
+
+def link_figures(flight: FlightLog) -> dict[str, Any]:
+    """The ground link (issue 18): round trip measured by the station's TIMESYNC (its CSV), loss counted by
+    the netem proxy, commands aged and dropped by the companion, the force port's energy account."""
+    out: dict[str, Any] = {}
+    rtt = _column(flight, "rtt_ms")
+    if rtt.size:   # each row holds the estimator's running figures: the flight's are its own percentiles
+        p50 = _column(flight, "rtt_p50_ms")
+        out["rtt_ms"] = {"p50": float(np.percentile(rtt, 50)), "p99": float(np.percentile(rtt, 99)),
+                         "max": float(np.max(rtt)), "last_p50": float(p50[-1]) if p50.size else math.nan,
+                         "last_p99": float(_column(flight, "rtt_p99_ms")[-1]) if p50.size else math.nan}
+    if flight.link:
+        up, down = flight.link.get("uplink", {}), flight.link.get("downlink", {})
+        out["impairment"] = flight.link.get("impairment", {})
+        out["loss"] = {"uplink": up.get("loss_fraction"), "downlink": down.get("loss_fraction"),
+                       "uplink_packets": up.get("packets_in"), "downlink_packets": down.get("packets_in")}
+    if flight.command_age:
+        c = flight.command_age
+        out["commands"] = {"accepted": int(c.get("CMD_OK", 0)), "dropped": int(c.get("CMD_DROP", 0)),
+                           "stale": int(c.get("CMD_STALE", 0)), "unpaired": int(c.get("CMD_UNPAIR", 0)),
+                           "age_p50_ms": c.get("CMD_AGE50", math.nan) * 1e3,
+                           "age_p99_ms": c.get("CMD_AGE99", math.nan) * 1e3}
+    obs = _column(flight, "pass_min_observed_j")
+    if obs.size:
+        out["passivity"] = {"min_observed_j": float(np.min(obs)),
+                            "injected_j": float(_column(flight, "pass_output_j")[-1]),
+                            "input_j": float(_column(flight, "pass_input_j")[-1]),
+                            "dissipated_j": float(_column(flight, "pass_dissipated_j")[-1]),
+                            "max_damping_n_s_m": float(np.max(_column(flight, "pass_damping_n_s_m")))}
+    return out
 
 
 def check_targets(report: dict[str, Any]) -> dict[str, Any]:
@@ -200,6 +249,11 @@ def check_targets(report: dict[str, Any]) -> dict[str, Any]:
     if "fraction_estimate_le_truth" in report:
         v = report["fraction_estimate_le_truth"]
         out["fraction_estimate_le_truth"] = {"value": v, "target": ">= 0.95", "pass": bool(v >= 0.95)}
+    passivity = report.get("link", {}).get("passivity")
+    if passivity is not None and "impairment" in report.get("link", {}):
+        v = passivity["min_observed_j"]
+        out["passivity_min_observed_energy_j"] = {"value": v, "target": f">= -{TARGETS['passivity_epsilon_j']}",
+                                                  "pass": bool(v >= -TARGETS["passivity_epsilon_j"])}
     v = report.get("setpoint_gaps_over_100ms")
     if v is not None:
         out["setpoint_gaps_over_100ms"] = {"value": v, "target": "== 0",
@@ -228,6 +282,22 @@ def summary_table(report: dict[str, Any]) -> str:
         elif i:
             lines.append(f"{'yaw loop identified: A-prime / phi':<36} {i['gain']:.3f} / {i['phase_rad']:+.3f} rad "
                          f"(tau {i['time_constant_s']:.3f} s, delay {i['delay_s']:.3f} s, gain {i['static_gain']:.3f})")
+    link = report.get("link", {})
+    if "rtt_ms" in link:
+        r = link["rtt_ms"]
+        lines.append(f"{'link round trip p50 / p99 (ms)':<36} {r['p50']:.0f} / {r['p99']:.0f}")
+    if "loss" in link:
+        ls = link["loss"]
+        up, down = 100 * (ls["uplink"] or 0), 100 * (ls["downlink"] or 0)
+        lines.append(f"{'link loss up / down':<36} {up:.1f} % / {down:.1f} %")
+    if "commands" in link:
+        c = link["commands"]
+        lines.append(f"{'commands accepted / dropped (stale)':<36} {c['accepted']} / {c['dropped']} ({c['stale']}), "
+                     f"age p50 {c['age_p50_ms']:.0f} ms p99 {c['age_p99_ms']:.0f} ms")
+    if "passivity" in link:
+        pz = link["passivity"]
+        lines.append(f"{'passivity: min E / injected / dissip.':<36} {pz['min_observed_j']:+.5f} / "
+                     f"{pz['injected_j']:.4f} / {pz['dissipated_j']:.4f} J")
     for name, value in report.get("cpu_core_s_per_sim_s", {}).items():
         lines.append(f"{'cpu ' + name + ' (core-s per sim-s)':<36} {value:12.3f}")
     return "\n".join(lines)
@@ -299,7 +369,39 @@ def make_plots(flight: FlightLog, out_dir: Path, safe_distance_m: float = SAFE_D
             ax.legend(loc="lower left", ncol=3, fontsize=8)
             ax.set_title("Operator force and haptic feedback")
             paths.append(_save(fig, out_dir / "force.png"))
+            if "rtt_ms" in flight.force and np.any(np.isfinite(flight.force["rtt_ms"])):
+                paths.append(_plot_handle_under_delay(flight, t_key, out_dir))
     return paths
+
+
+def _plot_handle_under_delay(flight: FlightLog, t_key: str, out_dir: Path) -> Path:
+    """Handle position, feedback force and the port's energy against the measured round trip (issue 18)."""
+    import matplotlib.pyplot as plt
+
+    f, t = flight.force, flight.force[t_key]
+    fig, axes = plt.subplots(4, 1, figsize=(10, 8), sharex=True)
+    for axis, colour in (("x", "tab:blue"), ("y", "tab:orange"), ("z", "tab:green")):
+        axes[0].plot(t, 1e3 * f[f"q{axis}_m"], lw=1, color=colour, label=f"q {axis}")
+        axes[1].plot(t, f[f"tau_{axis}_n"], lw=1, color=colour, label=f"feedback {axis}")
+    axes[0].set_ylabel("handle [mm]")
+    axes[1].set_ylabel("force [N]")
+    if "pass_observed_j" in f:
+        axes[2].plot(t, 1e3 * f["pass_observed_j"], "k", lw=1, label="observed energy E")
+        axes[2].plot(t, 1e3 * f["pass_output_j"], "r", lw=1, label="injected into the hand")
+        axes[2].plot(t, 1e3 * f["pass_dissipated_j"], "g", lw=1, label="dissipated by the controller")
+    axes[2].set_ylabel("energy [mJ]")
+    axes[3].plot(t, f["rtt_ms"], "m", lw=1, label="round trip (filtered)")
+    if "rtt_p99_ms" in f:
+        axes[3].plot(t, f["rtt_p99_ms"], "m", lw=0.8, ls=":", label="p99")
+    axes[3].set_ylabel("RTT [ms]")
+    axes[3].set_xlabel("ground-station time [s]")
+    for ax in axes:
+        ax.grid(alpha=0.3)
+        ax.legend(loc="upper right", fontsize=8, ncol=3)
+    imp = flight.link.get("impairment", {})
+    fig.suptitle(f"Handle and force under delay ({imp.get('delay_ms', 0):.0f} ms one way, "
+                 f"{imp.get('jitter_ms', 0):.0f} ms jitter, {100 * imp.get('loss', 0):.0f} % loss)")
+    return _save(fig, out_dir / "handle_delay.png")
 
 
 def _save(fig: Any, path: Path) -> Path:

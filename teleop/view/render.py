@@ -15,6 +15,7 @@ from numpy.typing import NDArray
 from quadlink.camera import CameraIntrinsics
 from teleop.view.compensation import R_vc, homography, project, screen_intrinsics
 
+PREDICTION_RIM_M = 0.5   # the velocity inset's rim for the predicted displacement
 RED, GREEN, CYAN, YELLOW, WHITE, ORANGE = (0, 0, 255), (0, 220, 0), (255, 220, 0), (0, 230, 255), (255, 255, 255), \
     (0, 140, 255)  # BGR
 
@@ -31,6 +32,10 @@ class Overlay:
     obstacle_warning_m: float = 1.0          # nearer points are red, the others orange
     status_lines: tuple[str, ...] = ()
     warnings: tuple[str, ...] = field(default_factory=tuple)
+    # where the vehicle is now (teleop.delay): its displacement in H since the image and the obstacle points
+    # as seen from there, drawn hollow; None / () without a measured delay
+    prediction_h_m: tuple[float, float, float] | None = None
+    predicted_points_c_m: tuple[tuple[float, float, float], ...] = ()
 
 
 class OperatorViewRenderer:
@@ -68,6 +73,8 @@ class OperatorViewRenderer:
         if screen is not None:
             img = self._draw_current_border(img, camera, screen, R)  # type: ignore[arg-type]
             self._draw_obstacles(img, overlay.obstacle_points_c_m, R, screen, overlay.obstacle_warning_m)
+            self._draw_obstacles(img, overlay.predicted_points_c_m, R, screen, overlay.obstacle_warning_m,
+                                 hollow=True)
         self._draw_centre(img)
         self._draw_velocity_inset(img, overlay)
         self._draw_force_inset(img, overlay)
@@ -84,7 +91,8 @@ class OperatorViewRenderer:
         return img
 
     def _draw_obstacles(self, img: NDArray[np.uint8], points: tuple[tuple[float, float, float], ...],
-                        R: NDArray[np.float64], screen: CameraIntrinsics, warning_m: float = 1.0) -> None:
+                        R: NDArray[np.float64], screen: CameraIntrinsics, warning_m: float = 1.0,
+                        hollow: bool = False) -> None:
         if not points:
             return
         p = np.asarray(points, dtype=float).reshape(-1, 3)
@@ -95,6 +103,9 @@ class OperatorViewRenderer:
                 continue
             radius = int(np.clip(6.0 / max(d, 0.3), 2, 8))      # nearer points are bigger
             colour = RED if d < warning_m else ORANGE
+            if hollow:   # predicted: where the point is now relative to the vehicle
+                cv2.circle(img, (int(round(u)), int(round(v))), radius + 2, WHITE, 1, cv2.LINE_AA)
+                continue
             cv2.circle(img, (int(round(u)), int(round(v))), radius + 1, (0, 0, 0), -1, cv2.LINE_AA)
             cv2.circle(img, (int(round(u)), int(round(v))), radius, colour, -1, cv2.LINE_AA)
 
@@ -113,6 +124,11 @@ class OperatorViewRenderer:
         for v, colour in ((ov.v_cmd_h_m_s, GREEN), (ov.v_est_h_m_s, CYAN)):
             end = (int(round(cx + scale * np.clip(v[1], -1.5, 1.5))), int(round(cy - scale * np.clip(v[0], -1.5, 1.5))))
             cv2.arrowedLine(img, (cx, cy), end, colour, 2, cv2.LINE_AA, tipLength=0.25)
+        if ov.prediction_h_m is not None:   # ghost: the vehicle now, 0.5 m at the rim
+            d = np.clip(np.asarray(ov.prediction_h_m[:2], dtype=float) / PREDICTION_RIM_M, -1.0, 1.0) * r
+            ghost = (int(round(cx + d[1])), int(round(cy - d[0])))
+            cv2.circle(img, ghost, 5, WHITE, 1, cv2.LINE_AA)
+            cv2.line(img, (cx, cy), ghost, WHITE, 1, cv2.LINE_AA)
         cv2.putText(img, "v cmd", (cx - r, cy - r - 14), cv2.FONT_HERSHEY_SIMPLEX, 0.35, GREEN, 1, cv2.LINE_AA)
         cv2.putText(img, "v est", (cx - r, cy - r - 3), cv2.FONT_HERSHEY_SIMPLEX, 0.35, CYAN, 1, cv2.LINE_AA)
 

@@ -3,7 +3,8 @@
     GET /             the page: the latest view image refreshed periodically, status from /status.json
     GET /frame.jpg    the latest rendered view (JPEG)
     GET /stream.mjpg  the same as an MJPEG stream (multipart/x-mixed-replace), for video players
-    GET /status.json  link state, mode, battery, min obstacle distance, warnings, command acks
+    GET /status.json  link state, mode, battery, min obstacle distance, warnings, command acks, the measured
+                      round trip to the companion (rtt_ms, rtt_p50_ms, rtt_p99_ms) and the force port's energy
 
 One thread serves (ThreadingHTTPServer, daemon request threads); the view thread publishes into a
 :class:`ViewHub` (lock + condition, every wait with a timeout).
@@ -38,6 +39,7 @@ PAGE = """<!doctype html>
 <tr><td>link</td><td id="link">-</td><td>mode</td><td id="mode">-</td><td>armed</td><td id="armed">-</td></tr>
 <tr><td>battery</td><td id="battery">-</td><td>min obstacle</td><td id="obstacle">-</td>
     <td>pan-scan</td><td id="panscan">-</td></tr>
+<tr><td>round trip</td><td id="rtt" colspan="3">-</td><td>energy out</td><td id="energy">-</td></tr>
 <tr><td>command</td><td id="command" colspan="5">-</td></tr>
 </table>
 <div id="warnings" class="warn"></div>
@@ -61,6 +63,9 @@ async function refreshStatus() {
     set('obstacle', s.min_obstacle_m == null ? 'none' : s.min_obstacle_m.toFixed(2) + ' m');
     set('panscan', s.pan_scan_on ? 'on (' + s.pan_scan_hz.toFixed(2) + ' Hz)' : 'off');
     set('command', s.command);
+    set('rtt', s.rtt_ms == null ? '-' : s.rtt_ms.toFixed(0) + ' ms (p50 ' + s.rtt_p50_ms.toFixed(0) + ', p99 ' +
+        s.rtt_p99_ms.toFixed(0) + ')');
+    set('energy', s.passivity == null ? '-' : (1e3 * s.passivity.output_j).toFixed(1) + ' mJ');
     document.getElementById('warnings').textContent = s.warnings.join(' | ');
     document.getElementById('acks').textContent = s.acks.join(' | ');
   } catch (e) { set('link', 'ground station not responding', 'bad'); }

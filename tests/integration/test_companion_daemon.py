@@ -16,7 +16,7 @@ import pytest
 
 from companion.arbiter import ArbiterParams
 from companion.cameras import StreamCamera
-from companion.config import CompanionConfig, LinksConfig, ModeParams, PanScanConfig, TimingConfig
+from companion.config import CompanionConfig, ModeParams, PanScanConfig, TimingConfig
 from companion.daemon import Companion
 from companion.image_publisher import OperatorImagePublisher
 from companion.messages import TYPE_MASK_VELOCITY_YAW_RATE, UINT16_UNKNOWN
@@ -138,14 +138,18 @@ class FakeGcs:
 class Rig:
     """Daemon in a thread + fakes driven from the test thread in lock-step with the frames."""
 
-    def __init__(self, tmp_path: Path, images: OperatorImagePublisher | None = None) -> None:
-        cfg = CompanionConfig(
-            links=LinksConfig(autopilot="udpin:127.0.0.1:0", gcs="udpin:127.0.0.1:0"),
+    def __init__(self, tmp_path: Path, images: OperatorImagePublisher | None = None,
+                 cfg: CompanionConfig | None = None, gcs_via: Any = None) -> None:
+        """``cfg`` replaces the default test config (its link URLs are kept ephemeral); ``gcs_via(port)``
+        returns the port the fake ground station sends to instead of the daemon's (e.g. a netem proxy's)."""
+        cfg = dataclasses.replace(cfg or CompanionConfig(
             timing=TimingConfig(camera_timeout_s=1.0),
             pan_scan=PanScanConfig(enabled=False),
             modes=ModeParams(gcs_timeout_s=0.5, gcs_land_timeout_s=1.5, takeoff_min_s=0.3),
             arbiter=ArbiterParams(link_timeout_s=0.5),
-        )
+        ))
+        cfg = dataclasses.replace(cfg, links=dataclasses.replace(cfg.links, autopilot="udpin:127.0.0.1:0",
+                                                                 gcs="udpin:127.0.0.1:0"))
         self.server = CameraStreamServer("127.0.0.1", 0)
         ap_link = open_mavlink(cfg.links.autopilot, 1, 191)
         gcs_link = open_mavlink(cfg.links.gcs, 1, 191)
@@ -155,7 +159,8 @@ class Rig:
                                 lambda frame: self.pipeline, tlog=TlogWriter(self.tlog_path),
                                 frame_recorder=FrameRecordWriter(tmp_path / "frames.qlcf"), image_server=images)
         self.ap = FakeAutopilot(ap_link.port.getsockname()[1])
-        self.gcs = FakeGcs(gcs_link.port.getsockname()[1])
+        gcs_port = gcs_link.port.getsockname()[1]
+        self.gcs = FakeGcs(gcs_via(gcs_port) if gcs_via is not None else gcs_port)
         self.stop = threading.Event()
         self.thread = threading.Thread(target=self.daemon.run, args=(self.stop,), daemon=True)
         self.thread.start()

@@ -18,7 +18,7 @@ CUSTOM_IDS = {mid for mid in mavlink.mavlink_map if 53000 <= mid < 53010}
 def test_custom_ids_do_not_collide_with_all_xml() -> None:
     from pymavlink.dialects.v20 import all as all_dialect
 
-    assert CUSTOM_IDS == {mavlink.MAVLINK_MSG_ID_TELEOP_FEEDBACK}
+    assert CUSTOM_IDS == {mavlink.MAVLINK_MSG_ID_TELEOP_FEEDBACK, mavlink.MAVLINK_MSG_ID_COMMAND_STAMP}
     assert not CUSTOM_IDS & set(all_dialect.mavlink_map)
 
 

@@ -6347,6 +6347,7 @@ enums["MAV_COMPONENT"][251] = EnumEntry("MAV_COMPONENT_ENUM_END", """""")
 MAVLINK_MSG_ID_BAD_DATA = -1
 MAVLINK_MSG_ID_UNKNOWN = -2
 MAVLINK_MSG_ID_TELEOP_FEEDBACK = 53000
+MAVLINK_MSG_ID_COMMAND_STAMP = 53001
 MAVLINK_MSG_ID_PROTOCOL_VERSION = 300
 MAVLINK_MSG_ID_SYS_STATUS = 1
 MAVLINK_MSG_ID_SYSTEM_TIME = 2
@@ -6619,6 +6620,61 @@ class MAVLink_teleop_feedback_message(MAVLink_message):
 # Define name on the class for backwards compatibility (it is now msgname).
 # Done with setattr to hide the class variable from mypy.
 setattr(MAVLink_teleop_feedback_message, "name", mavlink_msg_deprecated_name_property())
+
+
+class MAVLink_command_stamp_message(MAVLink_message):
+    """
+    The send time of the command that immediately follows it from the
+    same sender (the next MAVLink packet of that system and component:
+    sequence number + 1 modulo 256), so the vehicle can give the
+    command an age and drop stale ones (issue 18). Chosen over a
+    MAVLink 2 extension field so that MANUAL_CONTROL and
+    SET_POSITION_TARGET_LOCAL_NED stay the standard messages every
+    ground station and autopilot understands: a sender that does not
+    know COMMAND_STAMP simply sends none and its commands are aged by
+    their arrival time. The time is in the sender's own clock; the
+    receiver converts it with its own TIMESYNC estimate of that sender
+    (it sends the TIMESYNC requests, the sender answers them), so the
+    vehicle's judgement of age never depends on the ground station's
+    clock estimate. A stamped command whose stamp was lost (sequence
+    gap) is of unknown age and is dropped by a receiver that has seen
+    stamps from that sender.
+    """
+
+    id = MAVLINK_MSG_ID_COMMAND_STAMP
+    msgname = "COMMAND_STAMP"
+    fieldnames = ["time_usec", "command_msgid", "target_system", "target_component"]
+    ordered_fieldnames = ["time_usec", "command_msgid", "target_system", "target_component"]
+    fieldtypes = ["uint64_t", "uint32_t", "uint8_t", "uint8_t"]
+    fielddisplays_by_name: Dict[str, str] = {}
+    fieldenums_by_name: Dict[str, str] = {}
+    fieldunits_by_name: Dict[str, str] = {"time_usec": "us"}
+    native_format = bytearray(b"<QIBB")
+    orders = [0, 1, 2, 3]
+    lengths = [1, 1, 1, 1]
+    array_lengths = [0, 0, 0, 0]
+    crc_extra = 172
+    unpacker = struct.Struct("<QIBB")
+    instance_field = None
+    instance_offset = -1
+
+    def __init__(self, time_usec: int, command_msgid: int, target_system: int, target_component: int):
+        MAVLink_message.__init__(self, MAVLink_command_stamp_message.id, MAVLink_command_stamp_message.msgname)
+        self._fieldnames = MAVLink_command_stamp_message.fieldnames
+        self._instance_field = MAVLink_command_stamp_message.instance_field
+        self._instance_offset = MAVLink_command_stamp_message.instance_offset
+        self.time_usec = time_usec
+        self.command_msgid = command_msgid
+        self.target_system = target_system
+        self.target_component = target_component
+
+    def pack(self, mav: "MAVLink", force_mavlink1: bool = False) -> bytes:
+        return self._pack(mav, self.crc_extra, self.unpacker.pack(self.time_usec, self.command_msgid, self.target_system, self.target_component), force_mavlink1=force_mavlink1)
+
+
+# Define name on the class for backwards compatibility (it is now msgname).
+# Done with setattr to hide the class variable from mypy.
+setattr(MAVLink_command_stamp_message, "name", mavlink_msg_deprecated_name_property())
 
 
 class MAVLink_protocol_version_message(MAVLink_message):
@@ -16742,6 +16798,7 @@ setattr(MAVLink_heartbeat_message, "name", mavlink_msg_deprecated_name_property(
 
 mavlink_map: Dict[int, Type[MAVLink_message]] = {
     MAVLINK_MSG_ID_TELEOP_FEEDBACK: MAVLink_teleop_feedback_message,
+    MAVLINK_MSG_ID_COMMAND_STAMP: MAVLink_command_stamp_message,
     MAVLINK_MSG_ID_PROTOCOL_VERSION: MAVLink_protocol_version_message,
     MAVLINK_MSG_ID_SYS_STATUS: MAVLink_sys_status_message,
     MAVLINK_MSG_ID_SYSTEM_TIME: MAVLink_system_time_message,
@@ -17412,6 +17469,58 @@ class MAVLink(object):
 
         """
         self.send(self.teleop_feedback_encode(time_usec, vx_h, vy_h, vz_h, vx_cmd, vy_cmd, vz_cmd, vx_rep, vy_rep, vz_rep, alpha, pan_scan_yaw_rate, yaw_rate_cmd, gyro_yaw_rate, obstacle_x, obstacle_y, obstacle_z, obstacle_distance, mode, flags), force_mavlink1=force_mavlink1)
+
+    def command_stamp_encode(self, time_usec: int, command_msgid: int, target_system: int, target_component: int) -> MAVLink_command_stamp_message:
+        """
+        The send time of the command that immediately follows it from the same
+        sender (the next MAVLink packet of that system and component:
+        sequence number + 1 modulo 256), so the vehicle can give the
+        command an age and drop stale ones (issue 18). Chosen over a
+        MAVLink 2 extension field so that MANUAL_CONTROL and
+        SET_POSITION_TARGET_LOCAL_NED stay the standard messages every
+        ground station and autopilot understands: a sender that does
+        not know COMMAND_STAMP simply sends none and its commands are
+        aged by their arrival time. The time is in the sender's own
+        clock; the receiver converts it with its own TIMESYNC estimate
+        of that sender (it sends the TIMESYNC requests, the sender
+        answers them), so the vehicle's judgement of age never depends
+        on the ground station's clock estimate. A stamped command
+        whose stamp was lost (sequence gap) is of unknown age and is
+        dropped by a receiver that has seen stamps from that sender.
+
+        time_usec                 : Sender's clock (the one it answers TIMESYNC with) when the command was sent. [us] (type:uint64_t)
+        command_msgid             : Message id of the stamped command (69 MANUAL_CONTROL, 84 SET_POSITION_TARGET_LOCAL_NED). (type:uint32_t)
+        target_system             : System id of the receiver. (type:uint8_t)
+        target_component          : Component id of the receiver (191: the companion). (type:uint8_t)
+
+        """
+        return MAVLink_command_stamp_message(time_usec, command_msgid, target_system, target_component)
+
+    def command_stamp_send(self, time_usec: int, command_msgid: int, target_system: int, target_component: int, force_mavlink1: bool = False) -> None:
+        """
+        The send time of the command that immediately follows it from the same
+        sender (the next MAVLink packet of that system and component:
+        sequence number + 1 modulo 256), so the vehicle can give the
+        command an age and drop stale ones (issue 18). Chosen over a
+        MAVLink 2 extension field so that MANUAL_CONTROL and
+        SET_POSITION_TARGET_LOCAL_NED stay the standard messages every
+        ground station and autopilot understands: a sender that does
+        not know COMMAND_STAMP simply sends none and its commands are
+        aged by their arrival time. The time is in the sender's own
+        clock; the receiver converts it with its own TIMESYNC estimate
+        of that sender (it sends the TIMESYNC requests, the sender
+        answers them), so the vehicle's judgement of age never depends
+        on the ground station's clock estimate. A stamped command
+        whose stamp was lost (sequence gap) is of unknown age and is
+        dropped by a receiver that has seen stamps from that sender.
+
+        time_usec                 : Sender's clock (the one it answers TIMESYNC with) when the command was sent. [us] (type:uint64_t)
+        command_msgid             : Message id of the stamped command (69 MANUAL_CONTROL, 84 SET_POSITION_TARGET_LOCAL_NED). (type:uint32_t)
+        target_system             : System id of the receiver. (type:uint8_t)
+        target_component          : Component id of the receiver (191: the companion). (type:uint8_t)
+
+        """
+        self.send(self.command_stamp_encode(time_usec, command_msgid, target_system, target_component), force_mavlink1=force_mavlink1)
 
     def protocol_version_encode(self, version: int, min_version: int, max_version: int, spec_version_hash: Sequence[int], library_version_hash: Sequence[int]) -> MAVLink_protocol_version_message:
         """
