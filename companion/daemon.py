@@ -100,6 +100,7 @@ class Companion:
         self.gcs, self.camera = gcs, camera
         self._pipeline_factory = pipeline_factory
         self._pipeline: Pipeline | None = None
+        self._pipeline_intrinsics: Any = None
         self.image_server = image_server
         self.tlog = tlog
         self.frame_recorder = frame_recorder   # quadlink.camera.FrameRecordWriter: every frame received
@@ -567,7 +568,14 @@ class Companion:
     def _perceive(self, frame: RgbdFrame) -> Any | None:
         if self._pipeline is None:
             self._pipeline = self._pipeline_factory(frame)
+            self._pipeline_intrinsics = frame.intrinsics
             log.info("perception started on %dx%d frames", frame.intrinsics.width, frame.intrinsics.height)
+        elif frame.intrinsics != self._pipeline_intrinsics:   # the camera does not change mid-flight: hostile
+            self.stats.pipeline_errors += 1
+            self.errors.record("camera frame", ValueError(
+                f"frame {frame.seq} is {frame.intrinsics.width}x{frame.intrinsics.height} with other intrinsics "
+                "than the stream's first: not processed"))
+            return None
         try:
             return self._pipeline.on_frame(frame)
         except (ValueError, ArithmeticError, np.linalg.LinAlgError, QuadlinkError) as exc:

@@ -26,6 +26,7 @@ from perception.synthetic import pose, qvga_intrinsics, render
 from quadlink.camera import CameraStreamServer, FrameRecordWriter, RgbdFrame, read_frame_recording
 from quadlink.mavlink import mavlink
 from quadlink.mavlink.connection import open_mavlink
+from quadlink.mavlink.security import SecurityConfig
 from quadlink.mavlink.tlog import TlogWriter, read_tlog
 from quadlink.vehicle import CameraConfig
 
@@ -138,13 +139,15 @@ class FakeGcs:
 class Rig:
     """Daemon in a thread + fakes driven from the test thread in lock-step with the frames."""
 
-    def __init__(self, tmp_path: Path, images: OperatorImagePublisher | None = None) -> None:
+    def __init__(self, tmp_path: Path, images: OperatorImagePublisher | None = None,
+                 security: SecurityConfig | None = None) -> None:
         cfg = CompanionConfig(
             links=LinksConfig(autopilot="udpin:127.0.0.1:0", gcs="udpin:127.0.0.1:0"),
             timing=TimingConfig(camera_timeout_s=1.0),
             pan_scan=PanScanConfig(enabled=False),
             modes=ModeParams(gcs_timeout_s=0.5, gcs_land_timeout_s=1.5, takeoff_min_s=0.3),
             arbiter=ArbiterParams(link_timeout_s=0.5),
+            security=security or SecurityConfig(),
         )
         self.server = CameraStreamServer("127.0.0.1", 0)
         ap_link = open_mavlink(cfg.links.autopilot, 1, 191)
