@@ -222,6 +222,9 @@ class Companion:
             self._gcs_codec.srcComponent = own
 
     def _forward(self, link: MavLink, msg: Any) -> bool:
+        if link is self.autopilot and non_finite_fields(msg, any_command=True):
+            self._refuse_forward(msg)   # a ground station's NaN/inf never reaches the autopilot either
+            return False
         try:
             link.write(msg.get_msgbuf())
             return True
@@ -524,6 +527,19 @@ class Companion:
         if self._refusal_limit.allow((src, kind)):
             self._status_text(StatusText(mavlink.MAV_SEVERITY_WARNING,
                                          f"companion: {kind} from sysid {src} refused (not allowed)"))
+
+    def _refuse_forward(self, msg: Any) -> None:
+        """A ground-station message for the autopilot with a non-finite value: dropped, counted; a command is
+        answered DENIED (as the component it targeted) and the sender told once in a while."""
+        self.stats.forward_refused += 1
+        kind, src = msg.get_type(), msg.get_srcSystem()
+        if kind in ("COMMAND_LONG", "COMMAND_INT"):
+            self.send_gcs(mavlink.MAVLink_command_ack_message(msg.command, mavlink.MAV_RESULT_DENIED, 0, 0, src,
+                                                              msg.get_srcComponent()),
+                          src_component=msg.target_component or self.ap_compid)
+        if self._refusal_limit.allow((src, kind, "non-finite")):
+            self._status_text(StatusText(mavlink.MAV_SEVERITY_WARNING,
+                                         f"companion: {kind} not forwarded: non-finite value"))
 
     def _on_gcs_command(self, msg: Any) -> None:
         cmd = msg.command

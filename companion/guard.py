@@ -17,7 +17,7 @@ import math
 from collections.abc import Callable
 from typing import Any
 
-from quadlink.mavlink.command_params import nan_means_unused
+from quadlink.mavlink.command_params import COMMAND_PARAMS, nan_means_unused
 
 log = logging.getLogger("companion.daemon")
 
@@ -71,15 +71,26 @@ def _bad_float(value: float) -> bool:
     return not math.isfinite(value)
 
 
-def non_finite_fields(msg: Any) -> list[str]:
-    """Names of ``msg``'s float fields holding a non-finite value that MAVLink gives no meaning to."""
+def _unused_nan(msg: Any, name: str, value: float, any_command: bool) -> bool:
+    """A NaN command param MAVLink reads as "unused": per the command table, or for any command the table does
+    not know when ``any_command`` (forwarded traffic: the autopilot's own table decides)."""
+    if not (name.startswith("param") and math.isnan(value)):
+        return False
+    if any_command and int(msg.command) not in COMMAND_PARAMS:
+        return True
+    return nan_means_unused(msg.command, int(name[5:]) - 1)
+
+
+def non_finite_fields(msg: Any, any_command: bool = False) -> list[str]:
+    """Names of ``msg``'s float fields holding a non-finite value that MAVLink gives no meaning to.
+    ``any_command``: a NaN param of a command not in quadlink's table counts as unused (forwarded commands)."""
     kind = msg.get_type()
     bad: list[str] = []
     for name in msg.get_fieldnames():
         value = getattr(msg, name)
         if isinstance(value, float):
-            if _bad_float(value) and not (kind == "COMMAND_LONG" and name.startswith("param") and math.isnan(value)
-                                          and nan_means_unused(msg.command, int(name[5:]) - 1)):
+            if _bad_float(value) and not (kind in ("COMMAND_LONG", "COMMAND_INT")
+                                          and _unused_nan(msg, name, value, any_command)):
                 bad.append(name)
         elif isinstance(value, (list, tuple)) and value and isinstance(value[0], float):
             start = 1 if kind == "ODOMETRY" and name in _COVARIANCE_FIELDS and math.isnan(value[0]) else 0
