@@ -85,6 +85,7 @@ MAX_ROUTED_PER_STEP = 2000
 PROGRESS_EVERY_S = 5.0
 IMU_SILENT_S = 0.1          # no HIGHRES_IMU for this long: feedback paced on wall time instead
 IMU_LAG_LIMIT = 30          # consecutive IMU-wait timeouts after which the daemon stops waiting
+MAX_STAMP_US = 2**53        # an autopilot boot time beyond this (285 years, and float64's exact integers) is garbage
 
 
 class Companion:
@@ -378,8 +379,8 @@ class Companion:
     def _on_imu(self, msg: Any) -> None:
         stamp = msg.time_usec * 1e-6
         values = (msg.xgyro, msg.ygyro, msg.zgyro, msg.xacc, msg.yacc, msg.zacc)
-        if not all(map(math.isfinite, values)):   # scalar checks: numpy reductions cost more at 500 Hz
-            return
+        if not all(map(math.isfinite, values)) or msg.time_usec > MAX_STAMP_US:   # scalar checks: cheaper at 500 Hz
+            return   # (fuzzing found: a uint64 stamp near 2**64 made the feedback's time_usec overflow when packed)
         gyro = np.array(values[:3])
         accel = np.array(values[3:])
         self._imu_stamp_s, self._imu_wall_s, self._gyro_q = stamp, self.clock(), gyro

@@ -285,3 +285,15 @@ def test_fuzz_rig_reaches_the_setpoint_path() -> None:
     daemon.step()
     sp = [m for m in _decoded(ap.sent) if m.get_type() == "SET_POSITION_TARGET_LOCAL_NED"]
     assert sp and math.hypot(sp[-1].vx, sp[-1].vy) == pytest.approx(daemon.ref_params.k_v_m_s, abs=1e-4)
+
+
+def test_imu_stamp_near_uint64_max_is_dropped_not_packed() -> None:
+    """Found by the 5000-example soak: HIGHRES_IMU.time_usec = 2**64 - 1 became a TELEOP_FEEDBACK time_usec that
+    no longer fit uint64 (a pack error, caught by the guard, one feedback lost); now the sample is refused."""
+    daemon, ap, gcs, cam = _flying_companion(False)
+    n_fb = daemon.stats.feedback
+    ap.inbox.append(_wire(mavlink.MAVLink_highres_imu_message(2**64 - 1, 0, 0, -9.81, 0, 0, 0.1, 0, 0, 0, 0, 0, 0, 20,
+                                                              0x3F), SYSID, AP_COMPID))
+    daemon.step()
+    assert daemon.errors.by_where == {} and daemon.stats.handler_errors == 0
+    assert daemon.stats.feedback == n_fb or daemon._imu_stamp_s != (2**64 - 1) * 1e-6
