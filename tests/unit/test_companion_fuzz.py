@@ -26,7 +26,7 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from test_companion_daemon import FakePipeline
+from integration.test_companion_daemon import FakePipeline  # the daemon rig's stand-in perception
 
 from companion.config import CompanionConfig, PanScanConfig
 from companion.daemon import Companion
