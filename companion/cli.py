@@ -37,6 +37,13 @@ def _math_threads() -> int:
 @click.option("--camera", default=None,
               help="Camera: tcp://HOST:PORT (SITL stream) or a TUM folder [config links.camera: tcp://127.0.0.1:5762].")
 @click.option("--image-port", type=int, default=None, help="Operator image stream TCP port [config: 5770]; 0 = off.")
+@click.option("--image-host", default=None,
+              help="Address the operator image stream listens on [config links.image_host: 127.0.0.1, local only].")
+@click.option("--signing-key", "signing_key", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              help="MAVLink 2 signing key for the ground-station endpoint (quadlink keygen FILE) "
+                   "[config security.signing_key_file].")
+@click.option("--require-signing/--allow-unsigned", "require_signing", default=None,
+              help="Refuse unsigned ground-station packets [config security.require_signing: false].")
 @click.option("--tlog", "tlog_path", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="Record every MAVLink packet of both links to this .tlog.")
 @click.option("--record-frames", "frames_path", type=click.Path(dir_okay=False, path_type=Path), default=None,
@@ -44,6 +51,7 @@ def _math_threads() -> int:
                    "frame; replay with quadlink.camera.read_frame_recording).")
 @click.option("--duration", type=float, default=None, help="Stop after this many seconds (wall).")
 def command(config_path: str, autopilot: str | None, gcs: str | None, camera: str | None, image_port: int | None,
+            image_host: str | None, signing_key: Path | None, require_signing: bool | None,
             tlog_path: Path | None, frames_path: Path | None, duration: float | None) -> None:
     """Start the companion daemon: perception, reference velocity, MAVLink to autopilot and ground station."""
     threads = _math_threads()
@@ -62,8 +70,13 @@ def command(config_path: str, autopilot: str | None, gcs: str | None, camera: st
     cfg = load_companion_config(config_path)
     links = dataclasses.replace(cfg.links, autopilot=autopilot or cfg.links.autopilot, gcs=gcs or cfg.links.gcs,
                                 camera=camera or cfg.links.camera,
-                                image_port=cfg.links.image_port if image_port is None else image_port)
-    cfg = dataclasses.replace(cfg, links=links)
+                                image_port=cfg.links.image_port if image_port is None else image_port,
+                                image_host=image_host or cfg.links.image_host)
+    sec = cfg.security
+    sec = dataclasses.replace(sec, signing_key_file=str(signing_key) if signing_key else sec.signing_key_file,
+                              require_signing=sec.require_signing if require_signing is None else require_signing)
+    sec.key()   # a missing or bad key file: one clear error before any link opens
+    cfg = dataclasses.replace(cfg, links=links, security=sec)
     vehicle = load_vehicle(cfg.vehicle)
     factory = default_pipeline_factory(cfg, cfg.seed)
     ident = cfg.identity
@@ -92,9 +105,12 @@ def command(config_path: str, autopilot: str | None, gcs: str | None, camera: st
         for link in opened:
             link.close()
         raise
-    log.info("autopilot %s, ground station %s, camera %s, operator images %s, tlog %s, math threads %d",
-             links.autopilot, links.gcs, links.camera,
-             f"tcp://{links.image_host}:{links.image_port}" if images else "off", tlog_path or "off", threads)
+    log.info("autopilot %s, ground station %s (signing %s, state changes from sysids %s), camera %s, "
+             "operator images %s, tlog %s, math threads %d", links.autopilot, links.gcs,
+             "required" if sec.require_signing else ("optional" if sec.signing_key_file else "off"),
+             "any" if sec.allowed_sender_sysids is None else f"{list(sec.allowed_sender_sysids)} + own",
+             links.camera, f"tcp://{links.image_host}:{links.image_port}" if images else "off", tlog_path or "off",
+             threads)
     if frames is not None:
         log.info("recording camera frames to %s", frames_path)
     daemon = Companion(cfg, ap, ground, cam, factory, image_server=images, tlog=tlog, frame_recorder=frames)

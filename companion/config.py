@@ -12,6 +12,7 @@ from companion.modes import ModeParams
 from companion.pan_scan import PanScanParams
 from companion.reference import ReferenceParams
 from quadlink.config import find_config, load_config
+from quadlink.mavlink.security import SecurityConfig
 
 
 @dataclass(frozen=True)
@@ -95,6 +96,8 @@ class CompanionConfig:
     modes: ModeParams = field(default_factory=ModeParams)
     obstacles: ObstacleConfig = field(default_factory=ObstacleConfig)
     arbiter: ArbiterParams = field(default_factory=ArbiterParams)   # sources of motion (companion.arbiter)
+    # signing and the sender allowlist on the ground-station endpoint (the autopilot link is internal)
+    security: SecurityConfig = field(default_factory=SecurityConfig)
     vehicle: str = "vehicle"  # vehicle config (camera mount R_qc, p_qc) by name or path
     perception_config: str | None = None  # YAML for perception.pipeline.PerceptionConfig; None = defaults
     seed: int = 0

@@ -15,7 +15,15 @@ The parts it wires (each pure, each tested on its own):
 * :mod:`companion.frame_step` — perception output + operator input + mode -> setpoint and feedback;
 * :mod:`companion.scheduler` — the periodic deadlines;
 * :mod:`companion.params` — the PARAM_* service for compid 191;
-* :mod:`companion.modes`, :mod:`companion.commands` — the mode machine and the acked autopilot commands.
+* :mod:`companion.modes`, :mod:`companion.commands` — the mode machine and the acked autopilot commands;
+* :mod:`companion.guard` — one bad message never ends the loop: unexpected exceptions in its handling are
+  caught, counted and logged once in a while; nothing non-finite goes to the autopilot.
+
+The ground-station endpoint is hostile (issue 16): MAVLink 2 signing when configured (``security`` in the
+config; pymavlink checks signatures and refuses replays on the endpoint's codec), state-changing messages
+only from the allowlisted system ids (refused with COMMAND_ACK DENIED / a STATUSTEXT), command params read
+through :mod:`quadlink.mavlink.command_params` (NaN = unused). The autopilot link is internal (the bridge
+on the same board, or PX4 over its serial port): no signing there.
 
 Clocks: the camera stamps (SITL: simulated time, = the autopilot's board time) stamp everything that
 describes the vehicle (setpoints, odometry, feedback); the injected ``clock`` (monotonic wall time)
@@ -26,6 +34,7 @@ from __future__ import annotations
 
 import logging
 import math
+import struct
 import threading
 import time
 from collections.abc import Callable
@@ -49,6 +58,7 @@ from companion.frame_step import (
     operator_image_meta,
     setpoint_velocity,
 )
+from companion.guard import ErrorCounter, RateLimit, non_finite_fields
 from companion.interfaces import ImageSink, MavLink, Pipeline, PipelineFactory, default_pipeline_factory
 from companion.link_reader import CodecReader
 from companion.modes import AutopilotRequest, Mode, ModeMachine, StatusText
@@ -63,6 +73,8 @@ from companion.vehicle_state import VehicleState
 from quadlink.camera import RgbdFrame
 from quadlink.errors import QuadlinkError
 from quadlink.mavlink import mavlink
+from quadlink.mavlink.command_params import COMMAND_PARAMS, CommandParamError, read_params
+from quadlink.mavlink.security import enable_signing
 from quadlink.mavlink.timesync import NS, TimesyncConfig, TimesyncEstimator, answer_fields, is_request
 from quadlink.operator_image import OperatorImageMeta
 from quadlink.px4_modes import AUTO_LOITER, OFFBOARD, POSCTL, Px4MainMode, decode_custom_mode
@@ -76,6 +88,7 @@ MAX_GCS_SENDERS = 16        # TIMESYNC estimators kept for ground-station sender
 PROGRESS_EVERY_S = 5.0
 IMU_SILENT_S = 0.1          # no HIGHRES_IMU for this long: feedback paced on wall time instead
 IMU_LAG_LIMIT = 30          # consecutive IMU-wait timeouts after which the daemon stops waiting
+MAX_STAMP_US = 2**53        # an autopilot boot time beyond this (285 years, and float64's exact integers) is garbage
 
 
 class Companion:
@@ -91,6 +104,7 @@ class Companion:
         self.gcs, self.camera = gcs, camera
         self._pipeline_factory = pipeline_factory
         self._pipeline: Pipeline | None = None
+        self._pipeline_intrinsics: Any = None
         self.image_server = image_server
         self.tlog = tlog
         self.frame_recorder = frame_recorder   # quadlink.camera.FrameRecordWriter: every frame received
@@ -101,6 +115,10 @@ class Companion:
         self.ap_compid = ident.autopilot_component_id
         self._codec = mavlink.MAVLink(None, self.sysid, self.compid)
         self._codec.robust_parsing = True
+        self._gcs_codec = mavlink.MAVLink(None, self.sysid, self.compid)   # packs (and signs) for ground stations
+        self._setup_gcs_security()
+        self.errors = ErrorCounter(clock)
+        self._refusal_limit = RateLimit(clock)
         self.params = CompanionParams(cfg.pan_scan, cfg.reference)
         self.modes = ModeMachine(cfg.modes)
         self.commands = CommandQueue()
@@ -136,6 +154,22 @@ class Companion:
         self._start_wall_s = clock()
         self._R_qc = np.eye(3)
 
+    def _setup_gcs_security(self) -> None:
+        """Signing on the ground-station endpoint (what we send, and pymavlink's check of what it receives on
+        the link's own codec) and the allowlist of senders."""
+        sec = self.cfg.security
+        self.allowlist = sec.allowlist(self.sysid)
+        key = sec.key()
+        self.signing = key is not None
+        if key is None:
+            return
+        rx = getattr(self.gcs, "mav", None)
+        if rx is None or not hasattr(rx, "signing"):
+            raise QuadlinkError("signing configured but the ground-station link has no MAVLink codec to check it")
+        enable_signing(self._gcs_codec, key, sec.require_signing, link_id=0, unix_time_s=self.wall())
+        enable_signing(rx, key, sec.require_signing, link_id=0, unix_time_s=self.wall())
+        log.info("ground-station endpoint: MAVLink 2 signing %s", "required" if sec.require_signing else "optional")
+
     # ------------------------------------------------------------------ parameters (companion.params)
     @property
     def scan_params(self) -> PanScanParams:
@@ -163,8 +197,12 @@ class Companion:
         if self.tlog is not None:
             self.tlog.write(buf, self.wall())
 
-    def _send(self, link: MavLink, msg: Any) -> None:
-        buf = bytes(msg.pack(self._codec))
+    def _send(self, link: MavLink, msg: Any, codec: Any | None = None) -> None:
+        try:
+            buf = bytes(msg.pack(self._codec if codec is None else codec))
+        except (struct.error, OverflowError, ValueError, TypeError) as exc:  # one bad value drops one message
+            self.errors.record(f"packing {msg.get_type()}", exc)
+            return
         try:
             link.write(buf)
         except OSError as exc:  # a link hiccup must never stop the loop
@@ -172,12 +210,29 @@ class Companion:
         self._log_packet(buf)
 
     def send_autopilot(self, msg: Any) -> None:
+        bad = non_finite_fields(msg)
+        if bad:   # never reaches the autopilot (the setpoint path holds before this: frame_step.setpoint_velocity)
+            self.stats.non_finite_dropped += 1
+            self.errors.record(f"non-finite {msg.get_type()}", ValueError(", ".join(bad)))
+            return
         self._send(self.autopilot, msg)
 
-    def send_gcs(self, msg: Any) -> None:
-        self._send(self.gcs, msg)
+    def send_gcs(self, msg: Any, src_component: int | None = None) -> None:
+        """Pack (signed when configured) and send to the ground stations; ``src_component`` answers for another
+        component of this system (the autopilot's acks)."""
+        if src_component is None:
+            self._send(self.gcs, msg, self._gcs_codec)
+            return
+        own, self._gcs_codec.srcComponent = self._gcs_codec.srcComponent, src_component
+        try:
+            self._send(self.gcs, msg, self._gcs_codec)
+        finally:
+            self._gcs_codec.srcComponent = own
 
     def _forward(self, link: MavLink, msg: Any) -> bool:
+        if link is self.autopilot and non_finite_fields(msg, any_command=True):
+            self._refuse_forward(msg)   # a ground station's NaN/inf never reaches the autopilot either
+            return False
         try:
             link.write(msg.get_msgbuf())
             return True
@@ -213,8 +268,18 @@ class Companion:
         frame = self.camera.read(self.cfg.timing.poll_s)
         if frame is not None:
             self._wait_for_imu(frame.stamp_s)
-            self._process_frame(frame)
-        self._periodic()
+            self._guarded("frame", self._process_frame, frame)
+        self._guarded("periodic tasks", self._periodic)
+
+    def _guarded(self, where: str, handler: Callable[[Any], None] | Callable[[], None], *args: Any) -> None:
+        """Run one message's (or one task's) handling; an unexpected exception is counted and logged, and the
+        loop goes on (issue 16). The one place the daemon catches everything: a flight loop must not end on
+        a bug reached by one message."""
+        try:
+            handler(*args)
+        except Exception as exc:  # noqa: BLE001 - see the docstring: counted and logged (ErrorCounter)
+            self.stats.handler_errors += 1
+            self.errors.record(where, exc)
 
     def _drain_autopilot(self) -> None:
         for _ in range(MAX_ROUTED_PER_STEP):
@@ -222,15 +287,17 @@ class Companion:
             if msg is None:
                 return
             if msg.get_type() != "BAD_DATA":
-                self._on_autopilot(msg)
+                self._guarded(f"autopilot {msg.get_type()}", self._on_autopilot, msg)
 
     def _drain_gcs(self) -> None:
         for _ in range(MAX_ROUTED_PER_STEP):
             msg = self.gcs.recv_msg()
             if msg is None:
                 return
-            if msg.get_type() != "BAD_DATA":
-                self._on_gcs(msg)
+            if msg.get_type() == "BAD_DATA":
+                self.stats.gcs_bad_data += 1   # includes what signing refused (unsigned, wrong key, replayed)
+            else:
+                self._guarded(f"ground station {msg.get_type()}", self._on_gcs, msg)
 
     def _wait_for_imu(self, stamp_s: float) -> None:
         """Let the IMU stream catch up with the frame (bounded), if it is flowing at all.
@@ -306,7 +373,8 @@ class Companion:
         if src != self.sysid:
             log.info("autopilot is system %d: using it as our system id", src)
             self.sysid = src
-            self._codec.srcSystem = src
+            self._codec.srcSystem = self._gcs_codec.srcSystem = src
+            self.allowlist = self.cfg.security.allowlist(src)
         self.ap_compid = msg.get_srcComponent()
         armed = bool(msg.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED)
         if armed != self.vehicle.armed:
@@ -318,8 +386,8 @@ class Companion:
     def _on_imu(self, msg: Any) -> None:
         stamp = msg.time_usec * 1e-6
         values = (msg.xgyro, msg.ygyro, msg.zgyro, msg.xacc, msg.yacc, msg.zacc)
-        if not all(map(math.isfinite, values)):   # scalar checks: numpy reductions cost more at 500 Hz
-            return
+        if not all(map(math.isfinite, values)) or msg.time_usec > MAX_STAMP_US:   # scalar checks: cheaper at 500 Hz
+            return   # (fuzzing found: a uint64 stamp near 2**64 made the feedback's time_usec overflow when packed)
         gyro = np.array(values[:3])
         accel = np.array(values[3:])
         self._imu_stamp_s, self._imu_wall_s, self._gyro_q = stamp, self.clock(), gyro
@@ -344,6 +412,9 @@ class Companion:
     def _on_gcs(self, msg: Any) -> None:
         self._log_packet(msg.get_msgbuf())
         kind = msg.get_type()
+        if not self.allowlist.permits(msg):
+            self._refuse_sender(msg)
+            return
         target_system = msg.target if kind == "MANUAL_CONTROL" else getattr(msg, "target_system", None)
         if kind == "HEARTBEAT":
             self.arbiter.on_heartbeat(self.clock())
@@ -488,12 +559,47 @@ class Companion:
         return self.last_frame_wall_s is not None and \
             self.clock() - self.last_frame_wall_s <= self.cfg.timing.camera_timeout_s
 
+    def _refuse_sender(self, msg: Any) -> None:
+        """A state-changing message from a system id not on the allowlist: COMMAND_ACK DENIED for a command,
+        a STATUSTEXT (at most one per sender and kind every 2 s), nothing executed or forwarded."""
+        self.stats.refused_senders += 1
+        kind, src = msg.get_type(), msg.get_srcSystem()
+        if kind in ("COMMAND_LONG", "COMMAND_INT"):
+            target = msg.target_component
+            self.send_gcs(mavlink.MAVLink_command_ack_message(msg.command, mavlink.MAV_RESULT_DENIED, 0, 0, src,
+                                                              msg.get_srcComponent()),
+                          src_component=None if target in (0, self.compid) else target)
+        if self._refusal_limit.allow((src, kind)):
+            self._status_text(StatusText(mavlink.MAV_SEVERITY_WARNING,
+                                         f"companion: {kind} from sysid {src} refused (not allowed)"))
+
+    def _refuse_forward(self, msg: Any) -> None:
+        """A ground-station message for the autopilot with a non-finite value: dropped, counted; a command is
+        answered DENIED (as the component it targeted) and the sender told once in a while."""
+        self.stats.forward_refused += 1
+        kind, src = msg.get_type(), msg.get_srcSystem()
+        if kind in ("COMMAND_LONG", "COMMAND_INT"):
+            self.send_gcs(mavlink.MAVLink_command_ack_message(msg.command, mavlink.MAV_RESULT_DENIED, 0, 0, src,
+                                                              msg.get_srcComponent()),
+                          src_component=msg.target_component or self.ap_compid)
+        if self._refusal_limit.allow((src, kind, "non-finite")):
+            self._status_text(StatusText(mavlink.MAV_SEVERITY_WARNING,
+                                         f"companion: {kind} not forwarded: non-finite value"))
+
     def _on_gcs_command(self, msg: Any) -> None:
         cmd = msg.command
         result = mavlink.MAV_RESULT_UNSUPPORTED
+        try:   # MAVLink's NaN = "unused" per command; a required param NaN/inf/out of range: DENIED
+            p = read_params(cmd, (msg.param1, msg.param2, msg.param3, msg.param4, msg.param5, msg.param6,
+                                  msg.param7)) if cmd in COMMAND_PARAMS else (math.nan,) * 7
+        except CommandParamError as exc:
+            self._status_text(StatusText(mavlink.MAV_SEVERITY_WARNING, f"companion: {exc}"))
+            self.send_gcs(mavlink.MAVLink_command_ack_message(cmd, mavlink.MAV_RESULT_DENIED, 0, 0,
+                                                              msg.get_srcSystem(), msg.get_srcComponent()))
+            return
         name = {mavlink.MAV_CMD_NAV_TAKEOFF: "takeoff", mavlink.MAV_CMD_NAV_LAND: "land"}.get(cmd)
         if cmd == mavlink.MAV_CMD_COMPONENT_ARM_DISARM:
-            name = "arm" if msg.param1 >= 0.5 else "disarm"
+            name = "arm" if p[0] == 1.0 else "disarm"
         if name == "takeoff" and not self._camera_fresh():
             self._status_text(StatusText(mavlink.MAV_SEVERITY_WARNING,
                                          "companion: takeoff refused: no camera frames (perception not running)"))
@@ -503,12 +609,13 @@ class Companion:
             self._actions(actions)
             result = mavlink.MAV_RESULT_ACCEPTED if ok else mavlink.MAV_RESULT_TEMPORARILY_REJECTED
         elif cmd == mavlink.MAV_CMD_DO_SET_PARAMETER:
-            index = int(round(msg.param1))
+            index = int(p[0])   # read_params: a finite whole number
             old = self.params.values().get(PARAM_NAMES[index]) if 0 <= index < len(PARAM_NAMES) else None
-            changed = set_by_index(self.params, index, msg.param2)
+            changed = set_by_index(self.params, index, p[1])
             result = mavlink.MAV_RESULT_ACCEPTED if changed else mavlink.MAV_RESULT_DENIED
             if changed:
                 self._param_changed(changed, old)
+            if old is not None:   # the value now, changed or not (as a refused PARAM_SET is answered)
                 self.send_gcs(param_value_message(self.params, index))
         self.send_gcs(mavlink.MAVLink_command_ack_message(cmd, result, 0, 0, msg.get_srcSystem(),
                                                           msg.get_srcComponent()))
@@ -522,7 +629,14 @@ class Companion:
     def _perceive(self, frame: RgbdFrame) -> Any | None:
         if self._pipeline is None:
             self._pipeline = self._pipeline_factory(frame)
+            self._pipeline_intrinsics = frame.intrinsics
             log.info("perception started on %dx%d frames", frame.intrinsics.width, frame.intrinsics.height)
+        elif frame.intrinsics != self._pipeline_intrinsics:   # the camera does not change mid-flight: hostile
+            self.stats.pipeline_errors += 1
+            self.errors.record("camera frame", ValueError(
+                f"frame {frame.seq} is {frame.intrinsics.width}x{frame.intrinsics.height} with other intrinsics "
+                "than the stream's first: not processed"))
+            return None
         try:
             return self._pipeline.on_frame(frame)
         except (ValueError, ArithmeticError, np.linalg.LinAlgError, QuadlinkError) as exc:

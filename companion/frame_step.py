@@ -78,9 +78,13 @@ def fallback_step(last_out: Any | None, op: OperatorInput, R_qc: NDArray[np.floa
 
 def setpoint_velocity(ref: ReferenceOutput, in_control: bool) -> tuple[NDArray[np.float64], float]:
     """(v in H, yaw rate) to send. Outside TELEOP/HOLD the autopilot flies its own mode: the (zero) stream
-    only keeps offboard ready."""
+    only keeps offboard ready. A non-finite reference (a bug upstream) is sent as a hold, never as NaN
+    (issue 16: a NaN setpoint makes an autopilot refuse the stream and fail safe)."""
     if in_control:
-        return ref.v_ref_h_m_s, ref.yaw_rate_ref_rad_s
+        v = np.asarray(ref.v_ref_h_m_s, dtype=float)
+        yaw_rate = float(ref.yaw_rate_ref_rad_s)
+        if math.isfinite(yaw_rate) and v.shape == (3,) and bool(np.all(np.isfinite(v))):
+            return v, yaw_rate
     return np.zeros(3), 0.0
 
 

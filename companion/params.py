@@ -3,39 +3,83 @@
 Two parts, so the protocol half can be replaced by a shared MAVLink parameter service without touching
 the values:
 
-* :class:`CompanionParams` — the values and their validation (pure): the pan-scan generator and the
-  reference gains the daemon uses, read and changed by name.
+* :data:`PARAM_SPECS` — the one table of the companion's parameters: name, unit, inclusive bounds (issue 16:
+  an unbounded PANSCAN_AMP of 3e38 reached the setpoints; PANSCAN_OMEGA = 1e-40 made the pan-scan's yaw
+  offset A/omega overflow float32 when TELEOP_FEEDBACK was packed).
+* :class:`CompanionParams` — the values (pure): the pan-scan generator and the reference gains the daemon
+  uses, read and changed by name, every change checked against the table.
 * :func:`handle_param_message` — the PARAM_* protocol over a :class:`ParamStore` (pure: a message in,
-  the replies out, as dialect message objects for the caller to send).
+  the replies out, as dialect message objects for the caller to send). A refused PARAM_SET is answered,
+  as PX4 does, with PARAM_VALUE holding the unchanged value (the sender's retries end and it shows the
+  truth) and a STATUSTEXT saying why.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import math
+from dataclasses import dataclass
 from typing import Any, Protocol
 
 from companion.config import PanScanConfig, pan_scan_params
 from companion.pan_scan import PanScanParams
 from companion.reference import ReferenceParams
+from quadlink.errors import ConfigError
 from quadlink.mavlink import mavlink
 
+
+@dataclass(frozen=True)
+class ParamSpec:
+    """One parameter: wire name (<= 16 characters), unit, inclusive bounds; ``flag``: only 0 or 1."""
+
+    name: str
+    unit: str
+    min: float
+    max: float
+    description: str
+    flag: bool = False
+
+    def refusal(self, value: float) -> str | None:
+        """Why ``value`` cannot be stored, or None."""
+        if not math.isfinite(value):
+            return "not finite"
+        if self.flag and value not in (0.0, 1.0):
+            return "must be 0 or 1"
+        if not self.min <= value <= self.max:
+            return f"outside {self.min:g}..{self.max:g} {self.unit}".rstrip()
+        return None
+
+
 # index order is the wire's param_index (also MAV_CMD_DO_SET_PARAMETER param1)
-PARAM_NAMES = ("PANSCAN_EN", "PANSCAN_AMP", "PANSCAN_OMEGA", "CMP_K_V", "CMP_K_PSI", "CMP_SAFE_DIST")
+PARAM_SPECS: tuple[ParamSpec, ...] = (
+    ParamSpec("PANSCAN_EN", "", 0.0, 1.0, "pan-scan on (1) / off (0)", flag=True),
+    # eq. (4): yaw-rate amplitude A; its yaw offset A/omega stays below 1.5/0.1 = 15 rad
+    ParamSpec("PANSCAN_AMP", "rad/s", 0.0, 1.5, "pan-scan yaw-rate amplitude A (eq. 4)"),
+    ParamSpec("PANSCAN_OMEGA", "rad/s", 0.1, 10.0, "pan-scan angular frequency omega (eq. 4)"),
+    ParamSpec("CMP_K_V", "m/s", 0.0, 3.0, "horizontal speed at full handle deflection (eq. 2)"),
+    ParamSpec("CMP_K_PSI", "rad/s", 0.0, 3.0, "yaw rate at full handle deflection (eq. 3)"),
+    ParamSpec("CMP_SAFE_DIST", "m", 0.1, 3.0, "safe distance to obstacles (paper Fig. 8)"),
+)
+PARAM_NAMES = tuple(s.name for s in PARAM_SPECS)
+SPECS_BY_NAME = {s.name: s for s in PARAM_SPECS}
 
 
 class ParamStore(Protocol):
-    """What the parameter protocol needs: names in index order, values, and a validated set."""
+    """What the parameter protocol needs: names in index order, values, the reason a value is refused and
+    a validated set."""
 
     names: tuple[str, ...]
 
     def values(self) -> dict[str, float]: ...
 
+    def refusal(self, name: str, value: float) -> str | None: ...
+
     def set(self, name: str, value: float) -> bool: ...
 
 
 class CompanionParams:
-    """The companion's tunable values. ``set`` validates; a rejected value leaves everything unchanged."""
+    """The companion's tunable values. ``set`` validates; a rejected value leaves everything unchanged.
+    The configured starting values must lie inside the table's bounds too (ConfigError otherwise)."""
 
     names: tuple[str, ...] = PARAM_NAMES
 
@@ -43,6 +87,10 @@ class CompanionParams:
         self._pan_scan_cfg = pan_scan
         self.scan: PanScanParams = pan_scan_params(pan_scan)
         self.reference: ReferenceParams = reference
+        for name, value in self.values().items():
+            why = self.refusal(name, value)
+            if why is not None:
+                raise ConfigError(f"companion config: {name} = {value!r} (from the pan_scan/reference keys): {why}")
 
     def values(self) -> dict[str, float]:
         s, r = self.scan, self.reference
@@ -50,29 +98,28 @@ class CompanionParams:
                 "PANSCAN_OMEGA": s.omega_rad_s,
                 "CMP_K_V": r.k_v_m_s, "CMP_K_PSI": r.k_psi_rad_s, "CMP_SAFE_DIST": r.safe_distance_m}
 
+    def refusal(self, name: str, value: float) -> str | None:
+        spec = SPECS_BY_NAME.get(name)
+        return "unknown parameter" if spec is None else spec.refusal(float(value))
+
     def set(self, name: str, value: float) -> bool:
-        if name not in PARAM_NAMES or not math.isfinite(value):
+        if self.refusal(name, value) is not None:
             return False
+        v = float(value)
         if name == "PANSCAN_EN":
-            self.scan = dataclasses.replace(self.scan, enabled=value >= 0.5)
+            self.scan = dataclasses.replace(self.scan, enabled=v == 1.0)
         elif name in ("PANSCAN_AMP", "PANSCAN_OMEGA"):
-            if value < 0 or (name == "PANSCAN_OMEGA" and value == 0):
-                return False
-            amp = value if name == "PANSCAN_AMP" else self.scan.amplitude_rad_s
-            omega = value if name == "PANSCAN_OMEGA" else self.scan.omega_rad_s
+            amp = v if name == "PANSCAN_AMP" else self.scan.amplitude_rad_s
+            omega = v if name == "PANSCAN_OMEGA" else self.scan.omega_rad_s
             cfg = dataclasses.replace(self._pan_scan_cfg, enabled=self.scan.enabled, amplitude_rad_s=amp,
                                       omega_rad_s=omega)
             self.scan = pan_scan_params(cfg)  # the response (eq. 5) depends on omega
+        elif name == "CMP_K_V":
+            self.reference = dataclasses.replace(self.reference, k_v_m_s=v)
+        elif name == "CMP_K_PSI":
+            self.reference = dataclasses.replace(self.reference, k_psi_rad_s=v)
         else:
-            if value < 0:
-                return False
-            r, v = self.reference, float(value)
-            if name == "CMP_K_V":
-                self.reference = dataclasses.replace(r, k_v_m_s=v)
-            elif name == "CMP_K_PSI":
-                self.reference = dataclasses.replace(r, k_psi_rad_s=v)
-            else:
-                self.reference = dataclasses.replace(r, safe_distance_m=v)
+            self.reference = dataclasses.replace(self.reference, safe_distance_m=v)
         return True
 
 
@@ -83,13 +130,23 @@ def param_value_message(store: ParamStore, index: int) -> Any:
 
 
 def _param_id(msg: Any) -> str:
-    return msg.param_id.rstrip("\x00") if isinstance(msg.param_id, str) else ""
+    raw = msg.param_id
+    if isinstance(raw, bytes):
+        raw = raw.decode("ascii", "replace")
+    return raw.split("\x00", 1)[0] if isinstance(raw, str) else ""
+
+
+def refusal_text(name: str, why: str) -> Any:
+    """The STATUSTEXT (warning) that goes with a refused parameter change."""
+    return mavlink.MAVLink_statustext_message(mavlink.MAV_SEVERITY_WARNING,
+                                              f"companion: {name} refused: {why}".encode()[:50])
 
 
 def handle_param_message(store: ParamStore, msg: Any) -> tuple[list[Any], str | None]:
-    """A PARAM_REQUEST_LIST / PARAM_REQUEST_READ / PARAM_SET for this component: (the PARAM_VALUE replies,
-    the name of the parameter it changed or None). Unknown names and rejected values get no reply (the
-    ground station's retry times out, as with PX4)."""
+    """A PARAM_REQUEST_LIST / PARAM_REQUEST_READ / PARAM_SET for this component: (the replies, the name of
+    the parameter it changed or None). A PARAM_SET with a bad value or ``param_type`` (not REAL32) is
+    answered with the unchanged PARAM_VALUE and a STATUSTEXT; unknown names get no reply (a broadcast
+    PARAM_SET of an autopilot parameter also reaches this component)."""
     kind = msg.get_type()
     if kind == "PARAM_REQUEST_LIST":
         return [param_value_message(store, i) for i in range(len(store.names))], None
@@ -99,8 +156,14 @@ def handle_param_message(store: ParamStore, msg: Any) -> tuple[list[Any], str | 
         return ([param_value_message(store, index)] if 0 <= index < len(store.names) else []), None
     if kind == "PARAM_SET":
         name = _param_id(msg)
-        if name in store.names and store.set(name, msg.param_value):
-            return [param_value_message(store, store.names.index(name))], name
+        if name not in store.names:
+            return [], None
+        index = store.names.index(name)
+        why = f"param_type {msg.param_type}, expected REAL32" if msg.param_type != mavlink.MAV_PARAM_TYPE_REAL32 \
+            else store.refusal(name, msg.param_value)
+        if why is None and store.set(name, msg.param_value):
+            return [param_value_message(store, index)], name
+        return [param_value_message(store, index), refusal_text(name, why or "refused")], None
     return [], None
 
 

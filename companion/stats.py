@@ -20,6 +20,11 @@ class Stats:
     routed_to_autopilot: int = 0
     manual_controls: int = 0
     pipeline_errors: int = 0
+    handler_errors: int = 0         # unexpected exceptions caught in one message's handling (companion.guard)
+    non_finite_dropped: int = 0     # messages for the autopilot refused for a non-finite field
+    forward_refused: int = 0        # ground-station messages for the autopilot refused for a non-finite value
+    gcs_bad_data: int = 0           # undecodable or refused by signing (unsigned, wrong key, replayed)
+    refused_senders: int = 0        # state-changing messages from system ids not on the allowlist
     latencies_s: list[float] = field(default_factory=list)
     perception_s: list[float] = field(default_factory=list)
 

@@ -35,8 +35,17 @@ SWITCH_INTERVAL_S = 0.0005
               help="SCHED_FIFO priority 1-99 for the IMU path (needs CAP_SYS_NICE), 0 = normal "
               "[config realtime_priority: 0]")
 @click.option("--duration", type=float, default=None, help="stop after this many seconds (tests, benchmarks)")
+@click.option("--signing-key", "signing_key", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              help="MAVLink 2 signing key for the ground-station links (quadlink keygen FILE) "
+              "[config security.signing_key_file]")
+@click.option("--require-signing/--allow-unsigned", "require_signing", default=None,
+              help="refuse unsigned packets on the ground-station links [config security.require_signing: false]")
+@click.option("--gcs-link", "gcs_links", type=int, multiple=True,
+              help="index of a --mavlink endpoint that faces ground stations (signed); repeatable "
+              "[config ground_station_links: 1; link 0 is the companion's, internal]")
 def command(mk_cmd: str | None, mk_imu: str | None, mavlink_urls: tuple[str, ...], sysid: int | None,
-            config_name: str, params_path: Path | None, rt_priority: int | None, duration: float | None) -> None:
+            config_name: str, params_path: Path | None, rt_priority: int | None, duration: float | None,
+            signing_key: Path | None, require_signing: bool | None, gcs_links: tuple[int, ...]) -> None:
     from firmware_bridge.daemon import BridgeConfig, BridgeDaemon
 
     try:
@@ -56,7 +65,14 @@ def command(mk_cmd: str | None, mk_imu: str | None, mavlink_urls: tuple[str, ...
         overrides["sysid"] = sysid
     if rt_priority is not None:
         overrides["realtime_priority"] = rt_priority
+    if gcs_links:
+        overrides["ground_station_links"] = tuple(gcs_links)
+    sec = config.security
+    overrides["security"] = dataclasses.replace(
+        sec, signing_key_file=str(signing_key) if signing_key else sec.signing_key_file,
+        require_signing=sec.require_signing if require_signing is None else require_signing)
     config = dataclasses.replace(config, **overrides)  # type: ignore[arg-type]
+    config.security.key()   # a missing or bad key file: one clear error before any link opens
     vehicle = load_vehicle(config.vehicle)
     # The readers hand bytes to the main thread; with CPython's default 5 ms GIL switch interval a reader
     # that wakes while the main thread computes waits up to 5 ms, which is the whole IMU latency budget.

@@ -21,7 +21,7 @@ import queue
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -30,9 +30,11 @@ import numpy as np
 from firmware_bridge.autopilot import Autopilot, BoardCommand, Outbound
 from firmware_bridge.params import DEFAULT_PARAMS_PATH, ParamTable, load_param_file, save_param_file
 from firmware_bridge.telemetry import encode_sw_version
-from quadlink.errors import LinkError, ProtocolError
+from quadlink.errors import ConfigError, LinkError, ProtocolError
 from quadlink.links import ByteStream, open_stream
+from quadlink.mavlink import mavlink
 from quadlink.mavlink.connection import open_mavlink
+from quadlink.mavlink.security import SecurityConfig, enable_signing
 from quadlink.mk import messages as mk
 from quadlink.mk.protocol import ADDR_FC, FrameDecoder, encode_frame
 from quadlink.realtime import MAX_PRIORITY
@@ -62,6 +64,10 @@ class BridgeConfig:
     version_request_attempts: int = 5
     realtime_priority: int = 0  # >0: SCHED_FIFO at this priority (1-99) for the IMU path's latency tail on a
                                 # busy board (needs CAP_SYS_NICE; refused -> a warning, normal priority)
+    # signing on the ground-station links (indices into mavlink_urls; link 0, the companion's, is internal);
+    # the sender allowlist applies on every link (the companion forwards ground stations' commands)
+    security: SecurityConfig = field(default_factory=SecurityConfig)
+    ground_station_links: tuple[int, ...] = (1,)
 
     def __post_init__(self) -> None:
         if not 1 <= self.sysid <= 255 or not 1 <= self.compid <= 255:
@@ -116,6 +122,7 @@ class BridgeStats:
     mavlink_out: int = 0
     send_errors: int = 0
     wall_clock_steps: int = 0
+    refused_senders: int = 0  # state-changing messages from system ids not on the allowlist
 
 
 class BridgeDaemon:
@@ -157,6 +164,8 @@ class BridgeDaemon:
         self._last_version_request = -1e9
         self._last_status_log = clock()
         self._last_param_save = -1e9
+        self.allowlist = config.security.allowlist(config.sysid)
+        self._refusal_next_s: dict[tuple[int, str], float] = {}
 
     # ------------------------------------------------------------------ lifecycle
     def open(self) -> None:
@@ -173,7 +182,8 @@ class BridgeDaemon:
         try:
             for url in c.mavlink_urls:
                 self.mavlinks.append(self._mavlink_opener(url, c.sysid, c.compid))
-        except LinkError:
+            self.enable_signing()
+        except (LinkError, ConfigError):
             self.close()
             raise
         log.info("MAVLink endpoints: %s (sysid %d compid %d)", ", ".join(c.mavlink_urls), c.sysid, c.compid)
@@ -187,6 +197,19 @@ class BridgeDaemon:
                                                   name=f"mavlink-{i}"))
         for t in self._threads:
             t.start()
+
+    def enable_signing(self) -> None:
+        """MAVLink 2 signing (pymavlink's, on each link's own codec: what it sends is signed, what it receives
+        checked, replays refused) on the ground-station links, when a key is configured."""
+        c = self.config
+        key = c.security.key()
+        if key is None:
+            return
+        signed = [i for i in c.ground_station_links if 0 <= i < len(self.mavlinks)]
+        for i in signed:
+            enable_signing(self.mavlinks[i].mav, key, c.security.require_signing, link_id=i)
+        log.info("MAVLink 2 signing (%s) on %s", "required" if c.security.require_signing else "optional",
+                 ", ".join(c.mavlink_urls[i] for i in signed) or "no link")
 
     def stop(self) -> None:
         """Ask the daemon to end; safe from a signal handler (no lock taken once a stop is pending)."""
@@ -284,6 +307,9 @@ class BridgeDaemon:
                 msgs = []
             for msg in msgs:
                 self.stats.mavlink_in += 1
+                if msg.get_type() != "BAD_DATA" and not self.allowlist.permits(msg):
+                    self._send(self._refuse_sender(msg, item[1]))
+                    continue
                 self._send(self.autopilot.handle_mavlink(self.now_s(), msg, item[1]))
         elif kind == "mavbad":
             self.autopilot.note_malformed("mavlink_bad", self.now_s(), item[2])
@@ -291,6 +317,23 @@ class BridgeDaemon:
             log.warning("MK %s link: %s", item[1], item[2])
             if "reconnected" in item[2] and item[1] == "cmd":
                 self._version_requests = 0
+
+    def _refuse_sender(self, msg: Any, link: int) -> list[Outbound]:
+        """A state-changing message from a system id not on the allowlist (issue 16: a forced disarm from sysid
+        77 was accepted): not executed; a command gets COMMAND_ACK DENIED, the sender a STATUSTEXT every 2 s."""
+        self.stats.refused_senders += 1
+        mav, src, kind = self.autopilot.mav, msg.get_srcSystem(), msg.get_type()
+        out: list[Outbound] = []
+        if kind in ("COMMAND_LONG", "COMMAND_INT"):
+            out.append(Outbound(mav.command_ack_encode(msg.command, mavlink.MAV_RESULT_DENIED, 0, 0, src,
+                                                       msg.get_srcComponent()), link))
+        now = self.clock()
+        if now >= self._refusal_next_s.get((src, kind), -1.0):
+            self._refusal_next_s[(src, kind)] = now + 2.0
+            log.warning("%s from sysid %d refused (not on the allowlist)", kind, src)
+            out.append(Outbound(mav.statustext_encode(mavlink.MAV_SEVERITY_WARNING,
+                                                      f"{kind} from sysid {src} refused".encode()[:50]), link))
+        return out
 
     def _count_mk_drops(self) -> None:
         dropped = self._cmd_decoder.stats.frames_dropped + self._imu_decoder.stats.frames_dropped

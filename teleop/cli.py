@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import signal
 from types import FrameType
@@ -9,6 +10,7 @@ from types import FrameType
 import click
 
 from quadlink.errors import ConfigError
+from quadlink.mavlink.security import read_key
 from teleop.config import load_teleop_config
 from teleop.devices import DEVICE_NAMES, HapticDevice, open_device
 from teleop.devices.script import load_script
@@ -32,6 +34,9 @@ log = logging.getLogger(__name__)
 @click.option("--config", "config_name", default="teleop", show_default=True, help="Config name or path.")
 @click.option("--log-csv", type=click.Path(dir_okay=False), default=None, help="Force/q/command log (50 Hz CSV).")
 @click.option("--duration", type=float, default=None, help="Stop after this many seconds.")
+@click.option("--signing-key", type=click.Path(dir_okay=False, exists=True), default=None,
+              help="Sign the vehicle link with this MAVLink 2 key (quadlink keygen FILE) "
+                   "[config network.signing_key_file].")
 @click.option("--exit-at-script-end/--keep-running", default=True, show_default=True,
               help="With --script: stop when the script has played.")
 @click.option("--script-clock", type=click.Choice(["wall", "vehicle"]), default="wall", show_default=True,
@@ -39,9 +44,13 @@ log = logging.getLogger(__name__)
                    "SITL slower than real time; the script waits for the first feedback).")
 def command(device_name: str, script: str | None, vehicle: str | None, image_stream: str | None,
             http_port: int | None, record: str | None, config_name: str, log_csv: str | None,
-            duration: float | None, exit_at_script_end: bool, script_clock: str) -> None:
+            duration: float | None, exit_at_script_end: bool, script_clock: str, signing_key: str | None) -> None:
     """Start the ground station: haptic device, force feedback, commands, operator view (issue 7)."""
     cfg = load_teleop_config(config_name)
+    if signing_key is not None:
+        cfg = dataclasses.replace(cfg, network=dataclasses.replace(cfg.network, signing_key_file=signing_key))
+    if cfg.network.signing_key_file is not None:
+        read_key(cfg.network.signing_key_file)   # a bad key file: one clear error before anything starts
     if script is not None and device_name != "virtual":
         raise ConfigError(f"--script drives the virtual device only (got --device {device_name})")
     vehicle_url = vehicle or cfg.network.vehicle_url

@@ -150,6 +150,8 @@ class NetworkConfig:
     source_system: int = 255
     source_component: int = 190
     heartbeat_timeout_s: float = 2.0
+    signing_key_file: str | None = None   # MAVLink 2 signing key shared with the vehicle (quadlink keygen FILE)
+    signing_link_id: int = 0              # signing stream id: distinct per ground station sharing a system id
 
 
 @dataclass(frozen=True)

@@ -34,6 +34,7 @@ from numpy.typing import NDArray
 from quadlink.camera import CameraStreamClient
 from quadlink.errors import ProtocolError, QuadlinkError
 from quadlink.mavlink.connection import open_mavlink
+from quadlink.mavlink.security import enable_signing, read_key
 from teleop.commands import CommandResult, CommandTracker
 from teleop.config import TeleopConfig
 from teleop.delay import LinkDelay
@@ -114,6 +115,10 @@ class Station:
         if isinstance(self.device, DeviceSpec):   # before any thread: the force loop in its own process
             self._force_proc = ForceProcess(self.device, self.cfg)
         self._conn = open_mavlink(self.vehicle_url, self.cfg.network.source_system, self.cfg.network.source_component)
+        net = self.cfg.network
+        if net.signing_key_file is not None:   # everything this station sends is signed; what it gets may not be
+            enable_signing(self._conn.mav, read_key(net.signing_key_file), require=False, link_id=net.signing_link_id)
+            log.info("vehicle link signed (key %s, link id %d)", net.signing_key_file, net.signing_link_id)
         log.info("vehicle link %s (MANUAL_CONTROL at %.0f Hz to sysid %d)", self.vehicle_url, self.cfg.mapping.rate_hz,
                  self.cfg.mapping.target_system)
         if self.http_port is not None:

@@ -87,11 +87,40 @@ class SenderAllowlist:
             raise ConfigError(f"allowed sender system ids must be 1..255, got {bad}")
         return cls(ids)
 
+    def including(self, sysid: int) -> SenderAllowlist:
+        """This list plus ``sysid`` (the vehicle's own system id, learned from the autopilot's heartbeat)."""
+        return self if self.sysids is None else SenderAllowlist(self.sysids | {int(sysid)})
+
     def permits(self, msg: Any) -> bool:
         """True if ``msg`` may be executed: it only reads, or its sender is listed."""
         if self.sysids is None or not is_state_changing(msg):
             return True
         return int(msg.get_srcSystem()) in self.sysids
+
+
+@dataclass(frozen=True)
+class SecurityConfig:
+    """Who may talk to a ground-station-facing endpoint (the ``security:`` key of the companion's and the
+    bridge's configs). ``signing_key_file``: sign that endpoint's traffic with this key and check what it
+    receives (None: no signing); ``require_signing``: refuse unsigned packets (else accepted, so ground
+    stations can move to signing one by one); ``allowed_sender_sysids``: who may change the vehicle's state
+    besides the vehicle's own system id (null: everyone)."""
+
+    signing_key_file: str | None = None
+    require_signing: bool = False
+    allowed_sender_sysids: tuple[int, ...] | None = (245, 255)
+
+    def allowlist(self, own_sysid: int) -> SenderAllowlist:
+        allow = SenderAllowlist.of(self.allowed_sender_sysids)
+        return allow.including(own_sysid)
+
+    def key(self) -> bytes | None:
+        """The signing key (read now), or None; ConfigError if signing is required without a key."""
+        if self.signing_key_file is None:
+            if self.require_signing:
+                raise ConfigError("require_signing needs a signing key file (quadlink keygen FILE)")
+            return None
+        return read_key(self.signing_key_file)
 
 
 def read_key(path: str | Path) -> bytes:

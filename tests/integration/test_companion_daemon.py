@@ -26,6 +26,7 @@ from perception.synthetic import pose, qvga_intrinsics, render
 from quadlink.camera import CameraStreamServer, FrameRecordWriter, RgbdFrame, read_frame_recording
 from quadlink.mavlink import mavlink
 from quadlink.mavlink.connection import open_mavlink
+from quadlink.mavlink.security import SecurityConfig
 from quadlink.mavlink.tlog import TlogWriter, read_tlog
 from quadlink.vehicle import CameraConfig
 
@@ -139,7 +140,8 @@ class Rig:
     """Daemon in a thread + fakes driven from the test thread in lock-step with the frames."""
 
     def __init__(self, tmp_path: Path, images: OperatorImagePublisher | None = None,
-                 cfg: CompanionConfig | None = None, gcs_via: Any = None) -> None:
+                 cfg: CompanionConfig | None = None, gcs_via: Any = None,
+                 security: SecurityConfig | None = None) -> None:
         """``cfg`` replaces the default test config (its link URLs are kept ephemeral); ``gcs_via(port)``
         returns the port the fake ground station sends to instead of the daemon's (e.g. a netem proxy's)."""
         cfg = dataclasses.replace(cfg or CompanionConfig(
@@ -147,6 +149,7 @@ class Rig:
             pan_scan=PanScanConfig(enabled=False),
             modes=ModeParams(gcs_timeout_s=0.5, gcs_land_timeout_s=1.5, takeoff_min_s=0.3),
             arbiter=ArbiterParams(link_timeout_s=0.5),
+            security=security or SecurityConfig(),
         ))
         cfg = dataclasses.replace(cfg, links=dataclasses.replace(cfg.links, autopilot="udpin:127.0.0.1:0",
                                                                  gcs="udpin:127.0.0.1:0"))

@@ -91,4 +91,7 @@ def test_params_validate_and_the_protocol_answers() -> None:
     assert changed == "CMP_K_PSI" and replies[0].param_value == pytest.approx(0.5)
     replies, changed = handle_param_message(
         p, mavlink.MAVLink_param_set_message(1, ME, b"CMP_K_PSI", -2.0, mavlink.MAV_PARAM_TYPE_REAL32))
-    assert changed is None and replies == [] and p.reference.k_psi_rad_s == pytest.approx(0.5)
+    # refused: the unchanged value goes back (the sender's retries end) with a STATUSTEXT saying why
+    assert changed is None and p.reference.k_psi_rad_s == pytest.approx(0.5)
+    assert [r.get_type() for r in replies] == ["PARAM_VALUE", "STATUSTEXT"]
+    assert replies[0].param_id == "CMP_K_PSI" and replies[0].param_value == pytest.approx(0.5)
