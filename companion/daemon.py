@@ -146,6 +146,7 @@ class Companion:
         self._imu_wall_s: float | None = None
         self._gyro_q = np.zeros(3)
         self._nearest: tuple[NDArray[np.float64], float] | None = None   # nearest obstacle (vector in H, m)
+        self._avoid_points_h_m: NDArray[np.float64] | None = None   # the avoidance's points at the last frame
         self._imu_wait_misses = 0
         self._feedback_ticker = StampTicker(1.0 / cfg.timing.feedback_rate_hz)
         self.deadlines = Deadlines()
@@ -668,6 +669,7 @@ class Companion:
                                      v_command_h_m_s=cmd.v_h_m_s if cmd.source == Source.SCRIPT else None,
                                      command_yaw_rate_rad_s=cmd.yaw_rate_rad_s)
         self._nearest = step.nearest   # for TELEOP_FEEDBACK at 50 Hz
+        self._avoid_points_h_m = step.obstacle_points_h_m   # the operator image's obstacle dots
         self.last_ref = step.ref
         self._send_setpoint(stamp, step.ref)
         self.stats.latencies_s.append(self.clock() - t_in)
@@ -726,7 +728,7 @@ class Companion:
     def image_meta(self, frame: RgbdFrame, out: Any, ref: ReferenceOutput) -> OperatorImageMeta:
         """The operator image's metadata for ``frame`` from the daemon's state now."""
         return operator_image_meta(frame.stamp_s, out, ref, self._scan_state(frame.stamp_s), self.scan_params,
-                                   self._gyro_q, self.modes.mode)
+                                   self._gyro_q, self.modes.mode, self._avoid_points_h_m, frame.R_qc, frame.p_qc_m)
 
     def _publish_image(self, frame: RgbdFrame, out: Any, ref: ReferenceOutput) -> None:
         if self.image_server is None or self.image_server.client_count == 0:

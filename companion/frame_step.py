@@ -22,11 +22,12 @@ from companion.reference import (
     OperatorInput,
     ReferenceOutput,
     ReferenceParams,
+    avoidance_points,
     camera_yaw_rad,
     nearest_obstacle,
     reference_velocity,
 )
-from quadlink.frames import euler_yaw_rate_rad_s
+from quadlink.frames import R_hq, euler_yaw_rate_rad_s
 from quadlink.operator_image import MAX_OBSTACLE_POINTS, OperatorImageMeta, PanScanMeta
 
 NO_SCAN = PanScanState(0.0, 0.0, False)
@@ -34,11 +35,13 @@ NO_SCAN = PanScanState(0.0, 0.0, False)
 
 @dataclass(frozen=True)
 class FrameStep:
-    """One frame's decision: ``ref`` (sent as the setpoint when in control) and the nearest obstacle
-    (vector in H, distance m) that TELEOP_FEEDBACK reports between frames."""
+    """One frame's decision: ``ref`` (sent as the setpoint when in control), the nearest obstacle
+    (vector in H, distance m) that TELEOP_FEEDBACK reports between frames, and the map points the
+    avoidance acts on (H, m; the operator image shows these)."""
 
     ref: ReferenceOutput
     nearest: tuple[NDArray[np.float64], float] | None
+    obstacle_points_h_m: NDArray[np.float64]
 
 
 def height_m(out: Any) -> float | None:
@@ -63,7 +66,10 @@ def frame_step(out: Any | None, op: OperatorInput, R_qc: NDArray[np.float64], sc
                              height_m=height_m(out),
                              v_est_h_m_s=None if out is None or not out.odometry_ok else out.v_h_m_s,
                              v_command_h_m_s=v_command_h_m_s, command_yaw_rate_rad_s=command_yaw_rate_rad_s)
-    return FrameStep(ref, nearest_obstacle(points, params))
+    # the warning and the dots use the avoidance's points: the floor (within the floor margin once the height
+    # is known, or below the band without out_of_band_3d) is not an obstacle to it, nor to the operator
+    avoid = avoidance_points(points, params, height_m(out))
+    return FrameStep(ref, nearest_obstacle(avoid, params), avoid)
 
 
 def fallback_step(last_out: Any | None, op: OperatorInput, R_qc: NDArray[np.float64], params: ReferenceParams,
@@ -113,12 +119,26 @@ def _vec3(v: Any) -> tuple[float, float, float]:
     return (float(a[0]), float(a[1]), float(a[2]))
 
 
+def obstacle_points_c_m(points_h_m: NDArray[np.float64] | None, roll_rad: float, pitch_rad: float,
+                        R_qc: NDArray[np.float64], p_qc_m: NDArray[np.float64]) -> NDArray[np.float64]:
+    """The avoidance's points (H) in the camera frame C for the operator image, nearest first, at most
+    MAX_OBSTACLE_POINTS: p_q = R_hq^T p_h, p_c = R_qc^T (p_q - p_qc) (row vectors below)."""
+    if points_h_m is None:
+        return np.zeros((0, 3))
+    p_h = np.asarray(points_h_m, dtype=float).reshape(-1, 3)
+    p_h = p_h[np.all(np.isfinite(p_h), axis=1)]
+    p_h = p_h[np.argsort(np.einsum("ij,ij->i", p_h, p_h), kind="stable")[:MAX_OBSTACLE_POINTS]]
+    p_q = p_h @ R_hq(roll_rad, pitch_rad)  # rows: (R_hq^T p)^T = p^T R_hq
+    return (p_q - np.asarray(p_qc_m, dtype=float).reshape(3)) @ np.asarray(R_qc, dtype=float)
+
+
 def operator_image_meta(stamp_s: float, out: Any, ref: ReferenceOutput, scan: PanScanState,
-                        scan_params: PanScanParams, gyro_q_rad_s: NDArray[np.float64], mode: Mode) -> OperatorImageMeta:
-    """The operator image's metadata for a frame perception processed (``out`` not None)."""
-    pts = np.asarray(out.obstacle_points_c_m if out.obstacle_points_c_m is not None else np.zeros((0, 3)),
-                     dtype=float).reshape(-1, 3)[:MAX_OBSTACLE_POINTS]
-    pts = pts[np.all(np.isfinite(pts), axis=1)]
+                        scan_params: PanScanParams, gyro_q_rad_s: NDArray[np.float64], mode: Mode,
+                        avoidance_points_h_m: NDArray[np.float64] | None, R_qc: NDArray[np.float64],
+                        p_qc_m: NDArray[np.float64]) -> OperatorImageMeta:
+    """The operator image's metadata for a frame perception processed (``out`` not None); its obstacle
+    points are the avoidance's (``FrameStep.obstacle_points_h_m``), in the frame's camera frame."""
+    pts = obstacle_points_c_m(avoidance_points_h_m, out.roll_rad, out.pitch_rad, R_qc, p_qc_m)
     return OperatorImageMeta(
         stamp_s=float(stamp_s), roll_rad=float(out.roll_rad), pitch_rad=float(out.pitch_rad),
         yaw_rad=float(out.yaw_rad),

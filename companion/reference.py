@@ -173,16 +173,9 @@ def _finite_rows(points_h_m: ArrayLike) -> NDArray[np.float64]:
     return p if np.isfinite(p).all() else p[np.isfinite(p).all(axis=1)]
 
 
-def _points(points_h_m: ArrayLike | None, params: ReferenceParams | None = None,
-            height_m: float | None = None, reach_m: float = math.inf) -> NDArray[np.float64]:
-    """Finite points, minus the floor (if ``height_m`` above it is known); with ``params.horizontal_only``
-    those within the height band, projected to z = 0; only those closer than ``reach_m``.
-
-    One boolean mask over the (typically ~2000) map particles, one copy of the few that pass: this runs
-    at camera rate on the whole map."""
-    if points_h_m is None:
-        return np.zeros((0, 3))
-    p = _finite_rows(points_h_m)
+def _avoidance_mask(p: NDArray[np.float64], params: ReferenceParams | None, height_m: float | None,
+                    reach_m: float) -> NDArray[np.bool_] | None:
+    """Which of the finite points ``p`` the avoidance acts on (None: all of them); see :func:`_points`."""
     x, y, z = p[:, 0], p[:, 1], p[:, 2]
     horizontal = params is not None and params.horizontal_only
     keep = None
@@ -198,8 +191,22 @@ def _points(points_h_m: ArrayLike | None, params: ReferenceParams | None = None,
         assert params is not None
         band = np.abs(z) <= params.vertical_band_m
         keep = band if keep is None else keep & band
+    return keep
+
+
+def _points(points_h_m: ArrayLike | None, params: ReferenceParams | None = None,
+            height_m: float | None = None, reach_m: float = math.inf) -> NDArray[np.float64]:
+    """Finite points, minus the floor (if ``height_m`` above it is known); with ``params.horizontal_only``
+    those within the height band, projected to z = 0; only those closer than ``reach_m``.
+
+    One boolean mask over the (typically ~2000) map particles, one copy of the few that pass: this runs
+    at camera rate on the whole map."""
+    if points_h_m is None:
+        return np.zeros((0, 3))
+    p = _finite_rows(points_h_m)
+    keep = _avoidance_mask(p, params, height_m, reach_m)
     p = p[keep] if keep is not None else p.copy()
-    if horizontal:
+    if params is not None and params.horizontal_only:
         p[:, 2] = 0.0
     return p
 
@@ -258,6 +265,24 @@ def surface_points(points_h_m: NDArray[np.float64], max_gap_m: float, reach_m: f
     t = -np.einsum("ij,ij->i", a, ab) / np.maximum(length2, 1e-12)
     inner = (length2 < max_gap_m * max_gap_m) & (length2 > 1e-12) & (t > 1e-6) & (t < 1.0 - 1e-6)
     return a[inner] + t[inner, None] * ab[inner]
+
+
+def avoidance_points(points_h_m: ArrayLike | None, params: ReferenceParams,
+                     height_m: float | None = None) -> NDArray[np.float64]:
+    """The map points the safety constraints act on, where they are (not projected): finite, not the floor
+    (when ``height_m`` is known) and, with ``horizontal_only``, within the height band — plus, with
+    ``out_of_band_3d``, the other non-floor points (as :func:`_constraint_points` takes them). What the operator
+    is shown as obstacles and warned about, so the view never flags what the avoidance ignores (the floor)."""
+    if points_h_m is None:
+        return np.zeros((0, 3))
+    p = _finite_rows(points_h_m)
+    if params.horizontal_only and params.out_of_band_3d:
+        keep = _avoidance_mask(p, None, None, math.inf)   # all finite points ...
+        if height_m is not None and math.isfinite(height_m):
+            keep = (height_m - p[:, 2]) > params.floor_margin_m   # ... but the floor
+    else:
+        keep = _avoidance_mask(p, params, height_m, math.inf)
+    return p[keep] if keep is not None else p.copy()
 
 
 def repulsion_velocity(points_h_m: ArrayLike | None, params: ReferenceParams,

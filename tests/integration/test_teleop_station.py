@@ -112,14 +112,16 @@ class ImageStreamFromCompanion:
 
     def _run(self) -> None:
         seq = 0
-        out = SimpleNamespace(roll_rad=0.0, pitch_rad=0.0, yaw_rad=0.0, v_h_m_s=np.array([0.1, 0.05, 0.0]),
-                              obstacle_points_c_m=np.array([[0.0, 0.0, 1.2], [0.25, -0.1, 1.5], [-0.2, 0.15, 0.6]]))
+        out = SimpleNamespace(roll_rad=0.0, pitch_rad=0.0, yaw_rad=0.0, v_h_m_s=np.array([0.1, 0.05, 0.0]))
+        # the avoidance's points (H) of three obstacles ahead of the camera (level vehicle, mount at the origin)
+        points_h = np.array([[0.0, 0.0, 1.2], [0.25, -0.1, 1.5], [-0.2, 0.15, 0.6]]) @ self.R_qc.T
         while not self.stop.is_set():
             t = seq / 30.0
             scan = pan_scan(self.scan_params, t)
             ref = reference_velocity(OperatorInput(0.7, 0.0, 0.0), self.R_qc, scan, None, ReferenceParams())
             gyro_q = np.array([0.0, 0.0, scan.yaw_rate_rad_s])
-            meta = operator_image_meta(t, out, ref, scan, self.scan_params, gyro_q, Mode.TELEOP)
+            meta = operator_image_meta(t, out, ref, scan, self.scan_params, gyro_q, Mode.TELEOP, points_h, self.R_qc,
+                                       np.zeros(3))
             self.server.publish(RgbdFrame(seq, t, self.rgb, None, self.intrinsics, self.R_qc, np.zeros(3)), meta)
             seq += 1
             self.stop.wait(1 / 30.0)

@@ -24,7 +24,9 @@ class Out:
 
     roll_rad, pitch_rad, yaw_rad = 0.05, -0.02, 0.3
     v_h_m_s = np.array([0.2, -0.1, 0.0])
-    obstacle_points_c_m = np.array([[0.1, 0.0, 1.2], [np.nan, 0.0, 1.0], [-0.3, 0.1, 2.0]])
+
+
+AVOIDANCE_POINTS_H_M = np.array([[1.2, 0.1, 0.0], [np.nan, 0.0, 1.0], [2.0, -0.3, 0.1]])
 
 
 def _producer_meta(enabled: bool) -> OperatorImageMeta:
@@ -32,7 +34,8 @@ def _producer_meta(enabled: bool) -> OperatorImageMeta:
     scan = pan_scan(params, 0.7)
     R_qc = np.eye(3)
     ref = reference_velocity(OperatorInput(1.0, 0.0, 0.0), R_qc, scan, None, ReferenceParams())
-    return operator_image_meta(12.5, Out(), ref, scan, params, np.array([0.0, 0.0, 0.4]), Mode.TELEOP)
+    return operator_image_meta(12.5, Out(), ref, scan, params, np.array([0.0, 0.0, 0.4]), Mode.TELEOP,
+                               AVOIDANCE_POINTS_H_M, R_qc, np.zeros(3))
 
 
 def _wire(meta: OperatorImageMeta) -> dict[str, Any]:
@@ -79,3 +82,67 @@ def test_decode_rejects_a_non_dict() -> None:
         OperatorImageMeta.from_wire([])
     with pytest.raises(ProtocolError):
         OperatorImageMeta.from_wire({})
+
+
+def _landing_output(points_h_m: np.ndarray, height_m: float) -> Any:
+    """The fields of PerceptionOutput that frame_step and the producer read, for a vehicle height_m up."""
+    from types import SimpleNamespace
+
+    return SimpleNamespace(roll_rad=0.0, pitch_rad=0.0, yaw_rad=0.0, v_h_m_s=np.zeros(3), odometry_ok=True,
+                           position_m=np.array([0.0, 0.0, -height_m]), obstacle_points_h_m=points_h_m, sectors=None)
+
+
+def _floor_h_m(height_m: float) -> np.ndarray:
+    """A 2 m x 2 m floor grid (5 cm) height_m below the vehicle, in H (z down)."""
+    xs = np.arange(-1.0, 1.0, 0.05)
+    gx, gy = np.meshgrid(xs, xs)
+    return np.column_stack([gx.ravel(), gy.ravel(), np.full(gx.size, height_m)])
+
+
+@pytest.mark.parametrize("height_m", [0.5, 0.2, 0.1])
+def test_the_floor_is_neither_a_dot_nor_an_obstacle_warning_while_landing(height_m: float) -> None:
+    """Landing over a bare floor: the avoidance ignores it (below the band, or within the floor margin), so the
+    feedback's nearest obstacle is none and the image carries no obstacle dots (was: the floor's points as
+    orange dots and 'OBSTACLE 0.50 m')."""
+    from companion.frame_step import frame_step
+    from companion.reference import repulsion_velocity
+
+    params = ReferenceParams()
+    floor = _floor_h_m(height_m)
+    assert np.allclose(repulsion_velocity(floor, params, height_m), 0.0)   # what the avoidance does with it
+    out = _landing_output(floor, height_m)
+    R_qc = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])   # optical axis ahead
+    scan = pan_scan(PanScanParams(False, 0.6, 1.5), 0.0)
+    step = frame_step(out, OperatorInput(), R_qc, scan, params, True, True)
+    assert step.nearest is None
+    meta = operator_image_meta(1.0, out, step.ref, scan, PanScanParams(False, 0.6, 1.5), np.zeros(3), Mode.LAND,
+                               step.obstacle_points_h_m, R_qc, np.zeros(3))
+    assert meta.obstacle_points_c_m == ()
+
+
+def test_a_column_over_the_floor_is_the_one_obstacle_shown_where_it_is() -> None:
+    """A column 0.7 m ahead over the floor, vehicle 0.5 m up: the feedback's nearest obstacle is the column at
+    0.7 m (its band points count horizontally; the floor 0.5 m below would have been 0.5 m), and the image's
+    dots are the column's points, each mapped back to H (tilted camera, offset mount, a rolled body) where the
+    avoidance has it."""
+    from companion.frame_step import frame_step
+    from quadlink.frames import R_hq, Rx
+
+    params = ReferenceParams()
+    height = 0.5
+    zs = np.linspace(-0.25, 0.25, 6)   # within the band about the vehicle's height
+    column = np.column_stack([np.full(6, 0.7), np.full(6, 0.1), zs])
+    out = _landing_output(np.vstack([_floor_h_m(height), column]), height)
+    out.roll_rad, out.pitch_rad = 0.1, -0.05
+    R_qc = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]]) @ Rx(-0.3)   # tilted down
+    p_qc = np.array([0.08, 0.0, 0.03])
+    scan = pan_scan(PanScanParams(False, 0.6, 1.5), 0.0)
+    step = frame_step(out, OperatorInput(), R_qc, scan, params, True, True)
+    assert step.nearest is not None
+    assert step.nearest[1] == pytest.approx(math.hypot(0.7, 0.1))
+    meta = operator_image_meta(1.0, out, step.ref, scan, PanScanParams(False, 0.6, 1.5), np.zeros(3),
+                               Mode.TELEOP, step.obstacle_points_h_m, R_qc, p_qc)
+    p_c = np.asarray(meta.obstacle_points_c_m)
+    assert p_c.shape == (6, 3)
+    back_h = (p_c @ R_qc.T + p_qc) @ R_hq(out.roll_rad, out.pitch_rad).T   # p_h = R_hq (R_qc p_c + p_qc)
+    assert sorted(map(tuple, np.round(back_h, 2))) == sorted(map(tuple, np.round(column, 2)))
