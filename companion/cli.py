@@ -35,7 +35,8 @@ def _math_threads() -> int:
 @click.option("--autopilot", default=None, help="Autopilot MAVLink URL [config links.autopilot: udpin:0.0.0.0:14540].")
 @click.option("--gcs", default=None, help="Ground-station MAVLink URL [config links.gcs: udpin:0.0.0.0:14555].")
 @click.option("--camera", default=None,
-              help="Camera: tcp://HOST:PORT (SITL stream) or a TUM folder [config links.camera: tcp://127.0.0.1:5762].")
+              help="Camera: tcp://HOST:PORT (SITL stream), a TUM folder, realsense[:SERIAL], openni[:URI] or "
+                   "realsense://software?source=URL (companion/cameras) [config links.camera: tcp://127.0.0.1:5762].")
 @click.option("--image-port", type=int, default=None, help="Operator image stream TCP port [config: 5770]; 0 = off.")
 @click.option("--image-host", default=None,
               help="Address the operator image stream listens on [config links.image_host: 127.0.0.1, local only].")
@@ -57,7 +58,7 @@ def command(config_path: str, autopilot: str | None, gcs: str | None, camera: st
     threads = _math_threads()
     import dataclasses
 
-    from companion.cameras import open_camera
+    from companion.cameras import camera_url, is_device_url, open_camera
     from companion.config import load_companion_config
     from companion.daemon import Companion, default_pipeline_factory
     from companion.image_publisher import OperatorImagePublisher
@@ -69,7 +70,7 @@ def command(config_path: str, autopilot: str | None, gcs: str | None, camera: st
 
     cfg = load_companion_config(config_path)
     links = dataclasses.replace(cfg.links, autopilot=autopilot or cfg.links.autopilot, gcs=gcs or cfg.links.gcs,
-                                camera=camera or cfg.links.camera,
+                                camera=camera_url(camera or cfg.links.camera),
                                 image_port=cfg.links.image_port if image_port is None else image_port,
                                 image_host=image_host or cfg.links.image_host)
     sec = cfg.security
@@ -77,6 +78,11 @@ def command(config_path: str, autopilot: str | None, gcs: str | None, camera: st
                               require_signing=sec.require_signing if require_signing is None else require_signing)
     sec.key()   # a missing or bad key file: one clear error before any link opens
     cfg = dataclasses.replace(cfg, links=links, security=sec)
+    if is_device_url(links.camera) and cfg.timing.camera_stamps != "local":
+        # a live sensor's stamps are its own clock, never the autopilot's: map them to ours (TIMESYNC does the rest)
+        log.warning("camera %s: timing.camera_stamps 'local' (the config says %r)", links.camera,
+                    cfg.timing.camera_stamps)
+        cfg = dataclasses.replace(cfg, timing=dataclasses.replace(cfg.timing, camera_stamps="local"))
     vehicle = load_vehicle(cfg.vehicle)
     factory = default_pipeline_factory(cfg, cfg.seed)
     ident = cfg.identity
@@ -88,7 +94,8 @@ def command(config_path: str, autopilot: str | None, gcs: str | None, camera: st
                               udp_timeout=links.gcs_client_timeout_s) if links.gcs.startswith("udpin:") else \
             open_mavlink(links.gcs, ident.system_id, ident.component_id)
         opened.append(ground)
-        cam = open_camera(links.camera, R_qc=vehicle.camera.R_qc_matrix, p_qc_m=vehicle.camera.p_qc)
+        cam = open_camera(links.camera, R_qc=vehicle.camera.R_qc_matrix, p_qc_m=vehicle.camera.p_qc,
+                          stamps="local" if cfg.timing.camera_stamps == "local" else "device")
         opened.append(cam)
         try:
             images = OperatorImagePublisher(links.image_host, links.image_port) if links.image_port else None

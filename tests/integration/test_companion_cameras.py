@@ -133,7 +133,7 @@ def test_open_camera_dispatches_by_url(tmp_path: Path) -> None:
         (tmp_path / "empty").mkdir()
         open_camera(str(tmp_path / "empty"))
     with pytest.raises(CameraUnavailable, match="WIDTHxHEIGHT"):
-        open_camera("realsense://big")
+        open_camera("realsense://?size=big")
 
 
 def test_realsense_absent_is_a_one_line_error() -> None:
