@@ -24,10 +24,11 @@ Where things live:
 :mod:`firmware_bridge.offboard`   setpoints, odometry and IMU -> velocity in H
 :mod:`firmware_bridge.commander`  arming, commands, mode requests, failsafes
 :mod:`firmware_bridge.flight_control`  the 100 Hz step, blind take-off, heading hold, touchdown
+:mod:`firmware_bridge.connect`  protocol version, REQUEST_MESSAGE, mission and FTP answers (ground stations)
 :mod:`quadlink.mavlink.param_service`  PARAM_* (shared with the companion), bounds in :mod:`firmware_bridge.params`
 ==============================  ===================================================================
 
-The services are mixins layered in dependency order (telemetry < offboard < commander < flight control),
+The services are mixins layered in dependency order (telemetry < offboard < commander < flight control < connect),
 all over the one :class:`~firmware_bridge.state.BridgeState`; this class adds the MAVLink dispatch and
 the parameter service. One unexpected exception in one message's handler is caught, counted
 (``handler_errors``) and logged at most every few seconds: it never ends the daemon's loop.
@@ -39,7 +40,7 @@ import logging
 from collections.abc import Callable
 from typing import Any
 
-from firmware_bridge.flight_control import FlightControlService
+from firmware_bridge.connect import MISSION_MESSAGES, ConnectService
 from firmware_bridge.geometric_tracker import GeometricTracker
 from firmware_bridge.modes import FlightMode, TakeoffPhase
 from firmware_bridge.params import ParamTable
@@ -58,7 +59,7 @@ _Handler = Callable[["Autopilot", float, Any, int], list[Outbound]]
 _MALFORMED = (ValueError, TypeError, OverflowError, KeyError, AttributeError, IndexError)
 
 
-class Autopilot(FlightControlService):
+class Autopilot(ConnectService):
     """The bridge's MAVLink autopilot (see the module docstring)."""
 
     def __init__(self, vehicle: VehicleConfig, params: ParamTable, sysid: int = 1, compid: int = 1,
@@ -111,15 +112,17 @@ class Autopilot(FlightControlService):
         return [Outbound(m, link) for m in reply.to_sender] + [Outbound(m) for m in reply.to_all]
 
     _handlers: dict[str, _Handler] = {
-        "HEARTBEAT": FlightControlService._on_heartbeat,
+        "HEARTBEAT": ConnectService._on_heartbeat,
         "PARAM_REQUEST_LIST": _on_param,
         "PARAM_REQUEST_READ": _on_param,
         "PARAM_SET": _on_param,
-        "TIMESYNC": FlightControlService._on_timesync,
-        "SET_MODE": FlightControlService._on_set_mode,
-        "COMMAND_LONG": FlightControlService._on_command_long,
-        "COMMAND_INT": FlightControlService._on_command_int,
-        "SET_POSITION_TARGET_LOCAL_NED": FlightControlService._on_set_position_target_local_ned,
-        "SET_ATTITUDE_TARGET": FlightControlService._on_set_attitude_target,
-        "ODOMETRY": FlightControlService._on_odometry,
+        "TIMESYNC": ConnectService._on_timesync,
+        "SET_MODE": ConnectService._on_set_mode,
+        "COMMAND_LONG": ConnectService._on_command_long,
+        "COMMAND_INT": ConnectService._on_command_int,
+        "SET_POSITION_TARGET_LOCAL_NED": ConnectService._on_set_position_target_local_ned,
+        "SET_ATTITUDE_TARGET": ConnectService._on_set_attitude_target,
+        "ODOMETRY": ConnectService._on_odometry,
+        "FILE_TRANSFER_PROTOCOL": ConnectService._on_ftp,
+        **{name: ConnectService._on_mission for name in MISSION_MESSAGES},
     }

@@ -1,7 +1,8 @@
 """The bridge's flight modes in PX4's custom-mode numbering (:mod:`quadlink.px4_modes`, defined once there).
 
-HEARTBEAT reports ``MAV_AUTOPILOT_GENERIC`` with PX4's ``custom_mode``, so MAVSDK (which falls back to
-PX4's encoding for generic autopilots) can switch to and confirm OFFBOARD. DO_SET_MODE also accepts
+HEARTBEAT reports ``MAV_AUTOPILOT_PX4`` with PX4's ``custom_mode``, so QGroundControl's PX4 plugin, MAVProxy
+(pymavlink's px4_map) and MAVSDK name these modes and set them by name (firmware_bridge/README.md
+"Identity"). DO_SET_MODE also accepts
 ArduCopter's mode numbers (what pymavlink/MAVProxy send for a generic quadrotor: ``mode LAND`` = 9,
 ``LOITER`` = 5, ``POSHOLD`` = 16, ``GUIDED`` = 4 -> OFFBOARD) wherever they do not collide with PX4's main
 modes (PX4 wins).

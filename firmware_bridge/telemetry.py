@@ -2,9 +2,14 @@
 AUTOPILOT_VERSION and the per-IMU-sample streams, scheduled by :class:`firmware_bridge.streams.StreamScheduler`
 (pure; time as argument).
 
-HEARTBEAT reports ``MAV_AUTOPILOT_GENERIC`` with PX4's custom mode (:mod:`firmware_bridge.modes`). SYS_STATUS
-health bits are honest (gyro/accel only with a fresh, unsaturated IMU; vision/position control only with fresh
-odometry; rate/attitude control and motors only with a board link and no setpoint timeout or failsafe).
+HEARTBEAT reports ``MAV_AUTOPILOT_PX4`` with PX4's custom mode (:mod:`firmware_bridge.modes`; why PX4 and what
+that promises: firmware_bridge/README.md "Identity"). SYS_STATUS claims only what the vehicle has — gyro,
+accelerometer, the attitude filter (AHRS), vision odometry (the companion), rate/attitude/altitude/position
+control, motor outputs, battery and the pre-arm check; no GPS, magnetometer or barometer (the FlightCtrl's
+pressure sensor serves its own failsafe descent and never reaches the bridge). Present = enabled, and health is
+honest: gyro/accel/AHRS only with a fresh, unsaturated IMU; vision/position control only with fresh odometry;
+rate/attitude control and motors only with a board link and no setpoint timeout or failsafe; the pre-arm check
+when arming would be accepted.
 """
 
 from __future__ import annotations
@@ -23,7 +28,8 @@ SENSORS_PRESENT = (mavlink.MAV_SYS_STATUS_SENSOR_3D_GYRO | mavlink.MAV_SYS_STATU
                    | mavlink.MAV_SYS_STATUS_SENSOR_ATTITUDE_STABILIZATION
                    | mavlink.MAV_SYS_STATUS_SENSOR_Z_ALTITUDE_CONTROL
                    | mavlink.MAV_SYS_STATUS_SENSOR_XY_POSITION_CONTROL
-                   | mavlink.MAV_SYS_STATUS_SENSOR_MOTOR_OUTPUTS | mavlink.MAV_SYS_STATUS_SENSOR_BATTERY)
+                   | mavlink.MAV_SYS_STATUS_SENSOR_MOTOR_OUTPUTS | mavlink.MAV_SYS_STATUS_SENSOR_BATTERY
+                   | mavlink.MAV_SYS_STATUS_AHRS | mavlink.MAV_SYS_STATUS_PREARM_CHECK)
 
 # PARAM_ENCODE_BYTEWISE: integer parameters travel as their bytes (quadlink.mavlink.param_service); the bridge's
 # are all REAL32, for which bytewise and C-cast encodings coincide
@@ -31,6 +37,10 @@ CAPABILITIES = (mavlink.MAV_PROTOCOL_CAPABILITY_MAVLINK2 | mavlink.MAV_PROTOCOL_
                 | mavlink.MAV_PROTOCOL_CAPABILITY_SET_POSITION_TARGET_LOCAL_NED
                 | mavlink.MAV_PROTOCOL_CAPABILITY_SET_ATTITUDE_TARGET
                 | mavlink.MAV_PROTOCOL_CAPABILITY_PARAM_ENCODE_BYTEWISE)
+# No mission, fence, rally or FTP bits: the vehicle flies none of them and serves no files. The mission protocol
+# and FTP are still answered at once for the clients that ask anyway (firmware_bridge.connect).
+#: the heartbeat's autopilot: PX4's custom modes, named by QGroundControl's PX4 plugin, MAVProxy and MAVSDK
+AUTOPILOT_IDENTITY = mavlink.MAV_AUTOPILOT_PX4
 BATTERY_HEALTHY_FRACTION = 0.05  # SYS_STATUS battery health bit above this remaining fraction
 VERSION_UID_PREFIX = 0x514C  # "QL" in AUTOPILOT_VERSION.uid
 
@@ -98,7 +108,7 @@ class TelemetryService(BridgeState):
             status = mavlink.MAV_STATE_ACTIVE
         else:
             status = mavlink.MAV_STATE_STANDBY
-        return self.mav.heartbeat_encode(mavlink.MAV_TYPE_QUADROTOR, mavlink.MAV_AUTOPILOT_GENERIC, base,
+        return self.mav.heartbeat_encode(mavlink.MAV_TYPE_QUADROTOR, AUTOPILOT_IDENTITY, base,
                                          self.mode.custom_mode, status)
 
     def battery_fraction(self) -> float | None:
@@ -118,7 +128,10 @@ class TelemetryService(BridgeState):
         # reports it: left clear, MAVProxy's fence module announces a "fence breach" at connect.
         health = mavlink.MAV_SYS_STATUS_GEOFENCE
         if imu_ok:
-            health |= mavlink.MAV_SYS_STATUS_SENSOR_3D_GYRO | mavlink.MAV_SYS_STATUS_SENSOR_3D_ACCEL
+            health |= mavlink.MAV_SYS_STATUS_SENSOR_3D_GYRO | mavlink.MAV_SYS_STATUS_SENSOR_3D_ACCEL | \
+                mavlink.MAV_SYS_STATUS_AHRS
+        if self.board_link_ok and not (self.board_status is not None and self.board_status.failsafe):
+            health |= mavlink.MAV_SYS_STATUS_PREARM_CHECK   # the conditions the arm command checks
         if self.odom_ok:
             health |= mavlink.MAV_SYS_STATUS_SENSOR_VISION_POSITION | \
                 mavlink.MAV_SYS_STATUS_SENSOR_XY_POSITION_CONTROL | mavlink.MAV_SYS_STATUS_SENSOR_Z_ALTITUDE_CONTROL

@@ -134,7 +134,7 @@ def fly_to_hover(sim: Sim) -> None:
 def test_heartbeat_identity_and_px4_custom_modes():
     ap = Autopilot(VehicleConfig(), ParamTable())
     hb = ap.heartbeat()
-    assert hb.type == mavlink.MAV_TYPE_QUADROTOR and hb.autopilot == mavlink.MAV_AUTOPILOT_GENERIC
+    assert hb.type == mavlink.MAV_TYPE_QUADROTOR and hb.autopilot == mavlink.MAV_AUTOPILOT_PX4
     assert hb.base_mode & mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
     assert not hb.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED
     assert hb.custom_mode == 3 << 16  # POSCTL
@@ -522,3 +522,67 @@ def test_acceleration_feed_forward_reaches_the_geometric_tracker():
     ap._on_set_position_target_local_ned(sim.t, msg(ahead), 0)
     dv, _ = ap._trajectory_terms(ap._vel_sp, 0.0, sim.t)
     np.testing.assert_allclose(dv, [0.5 * 4.0 / 3.2, 0.0, 0.0], atol=1e-9)
+
+def test_connect_services_protocol_version_request_message_mission_and_ftp():
+    """What ground stations ask on connect (firmware_bridge/README.md "Ground stations"), answered by the bridge."""
+    from firmware_bridge.connect import REQUESTABLE
+    from quadlink.mavlink.gcs_services import FtpHeader, FtpOpcode, ftp_reply_payload
+
+    sim = Sim()
+    result, out = sim.command(mavlink.MAV_CMD_REQUEST_PROTOCOL_VERSION, 1)
+    assert result == mavlink.MAV_RESULT_ACCEPTED
+    pv = [o.msg for o in out if o.msg.get_type() == "PROTOCOL_VERSION"]
+    assert len(pv) == 1 and pv[0].version == pv[0].min_version == pv[0].max_version == 200
+    # every message the bridge produces can be requested, and comes back as itself
+    for msg_id, name in REQUESTABLE.items():
+        result, out = sim.command(mavlink.MAV_CMD_REQUEST_MESSAGE, msg_id, 0)
+        assert result == mavlink.MAV_RESULT_ACCEPTED, name
+        assert [o.msg.get_type() for o in out] == ["COMMAND_ACK", name]
+    # ... and the messages it does not produce are refused at once
+    for msg_id in (395, 397,   # COMPONENT_INFORMATION, COMPONENT_METADATA (not in common.xml any more)
+                   mavlink.MAVLINK_MSG_ID_HOME_POSITION, mavlink.MAVLINK_MSG_ID_GPS_RAW_INT, 435):
+        result, out = sim.command(mavlink.MAV_CMD_REQUEST_MESSAGE, msg_id)
+        assert result == mavlink.MAV_RESULT_UNSUPPORTED and len(out) == 1
+    result, out = sim.command(mavlink.MAV_CMD_REQUEST_MESSAGE, mavlink.MAVLINK_MSG_ID_PARAM_VALUE, 2)
+    assert out[1].msg.param_index == 2 and out[1].msg.param_id == PARAM_SPECS[2].name
+    assert sim.command(mavlink.MAV_CMD_REQUEST_MESSAGE, mavlink.MAVLINK_MSG_ID_PARAM_VALUE, 999)[0] == \
+        mavlink.MAV_RESULT_UNSUPPORTED
+    # mission, fence, rally: empty, the type echoed, to the requester
+    for mission_type in (0, 1, 2):
+        out = sim.send(GCS.mission_request_list_encode(1, 1, mission_type))
+        assert len(out) == 1 and out[0].msg.get_type() == "MISSION_COUNT"
+        assert out[0].msg.count == 0 and out[0].msg.mission_type == mission_type
+        assert out[0].msg.target_system == 255 and out[0].msg.target_component == 190
+    out = sim.send(GCS.mission_count_encode(1, 1, 3, 0))
+    assert out[0].msg.type == mavlink.MAV_MISSION_UNSUPPORTED
+    assert sim.send(GCS.mission_request_list_encode(7, 1, 0)) == []   # another system's
+    # FTP: a NAK at once (file not found for an open), so MAVProxy falls back to PARAM_REQUEST_LIST
+    request = FtpHeader(5, 0, FtpOpcode.OPEN_FILE_RO, 0, 0, 0)
+    payload = ftp_reply_payload(request, FtpOpcode.OPEN_FILE_RO, b"@PARAM/param.pck")
+    payload[3] = FtpOpcode.OPEN_FILE_RO   # opcode byte: a request, not a reply
+    out = sim.send(GCS.file_transfer_protocol_encode(0, 1, 1, payload))
+    assert len(out) == 1
+    reply = FtpHeader.unpack(bytes(out[0].msg.payload))
+    assert reply.opcode == FtpOpcode.NAK and reply.req_opcode == FtpOpcode.OPEN_FILE_RO
+    # the identity: PX4, so clients name the modes
+    hb = sim.ap.heartbeat()
+    assert hb.autopilot == mavlink.MAV_AUTOPILOT_PX4
+
+
+def test_sys_status_claims_only_the_vehicles_sensors_and_is_consistent():
+    sim = Sim()
+    sim.step(2.0)
+    s = sim.ap.sys_status(sim.t)
+    present, enabled, health = (s.onboard_control_sensors_present, s.onboard_control_sensors_enabled,
+                                s.onboard_control_sensors_health)
+    assert present == enabled
+    for absent in (mavlink.MAV_SYS_STATUS_SENSOR_GPS, mavlink.MAV_SYS_STATUS_SENSOR_3D_MAG,
+                   mavlink.MAV_SYS_STATUS_SENSOR_ABSOLUTE_PRESSURE, mavlink.MAV_SYS_STATUS_SENSOR_DIFFERENTIAL_PRESSURE,
+                   mavlink.MAV_SYS_STATUS_SENSOR_RC_RECEIVER, mavlink.MAV_SYS_STATUS_SENSOR_OPTICAL_FLOW):
+        assert not present & absent
+    # a flying, healthy vehicle: every present sensor healthy (no phantom failure in a ground station)
+    assert health & present == present
+    # the IMU stops: gyro, accel and AHRS unhealthy (a real failure, shown as one)
+    s = sim.ap.sys_status(sim.t + 5.0)
+    imu = mavlink.MAV_SYS_STATUS_SENSOR_3D_GYRO | mavlink.MAV_SYS_STATUS_SENSOR_3D_ACCEL | mavlink.MAV_SYS_STATUS_AHRS
+    assert not s.onboard_control_sensors_health & imu
