@@ -64,7 +64,7 @@ class ConnectService(FlightControlService):
         if msg_id == mavlink.MAVLINK_MSG_ID_PARAM_VALUE:   # param2: the parameter's index
             names = self.params.names()
             index = int_param(p[1], -1)
-            return self.param_value(names[index]) if 0 <= index < len(names) else None
+            return self.param_service.param_value(names[index]) if 0 <= index < len(names) else None
         if msg_id == mavlink.MAVLINK_MSG_ID_HIGHRES_IMU:
             a, w = self._last_accel_q, self._last_gyro_q
             return self.mav.highres_imu_encode(int(self.last_imu_time_usec), float(a[0]), float(a[1]), float(a[2]),
