@@ -22,6 +22,7 @@ from firmware_bridge.modes import int_param
 from firmware_bridge.state import Outbound
 from quadlink.frames import quat_wxyz_from_euler
 from quadlink.mavlink import gcs_services, mavlink
+from quadlink.mavlink.param_service import ParamService
 
 #: what MAV_CMD_REQUEST_MESSAGE answers (message id -> name); everything the bridge sends but command acks,
 #: STATUSTEXT and TIMESYNC (replies of their own protocols)
@@ -45,6 +46,8 @@ MISSION_MESSAGES = ("MISSION_REQUEST_LIST", "MISSION_COUNT", "MISSION_CLEAR_ALL"
 
 class ConnectService(FlightControlService):
     """Protocol version, REQUEST_MESSAGE, mission and FTP answers over the shared state."""
+
+    param_service: ParamService   # built by the facade (firmware_bridge.autopilot)
 
     def execute_command(self, now_s: float, command: int, p: tuple[float, ...]) -> tuple[int, list[Any]]:
         if command == mavlink.MAV_CMD_REQUEST_PROTOCOL_VERSION:
