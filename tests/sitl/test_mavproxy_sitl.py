@@ -94,7 +94,10 @@ def session(stack: Stack, master: str, tmp: Path, hold: bool = True) -> list[str
     mp = MavProxy(master, tmp)
     try:
         t0 = time.monotonic()
-        mp.expect("Received 34 parameters", 120.0)   # after FTP's prompt NAK, by PARAM_REQUEST_LIST
+        from firmware_bridge.params import ParamTable
+
+        line = mp.expect("Received ", 120.0)   # after FTP's prompt NAK, by PARAM_REQUEST_LIST
+        assert line.endswith(f"Received {len(ParamTable().names())} parameters"), line   # all of the bridge's
         fetch_s = time.monotonic() - t0
         assert not any("timeout" in line.lower() and "ftp" in line.lower() for line in mp.log), mp.log
         mp.cmd("param set MPC_LAND_SPEED 0.6")
