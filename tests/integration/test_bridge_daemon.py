@@ -18,6 +18,7 @@ import pytest
 from firmware_bridge.daemon import BridgeConfig, BridgeDaemon, _align
 from quadlink.errors import LinkError
 from quadlink.frames import GRAVITY_M_S2
+from quadlink.mavlink import mavlink
 from quadlink.mavlink.connection import open_mavlink
 from quadlink.mk import messages as mk
 from quadlink.mk.protocol import ADDR_FC, FrameDecoder, encode_frame
@@ -137,7 +138,7 @@ def test_daemon_lockstep_telemetry_params_and_version(gcs_port, tmp_path):
     daemon, thread, gcs = start(board, gcs_port, tmp_path)
     try:
         hb = gcs.recv_match(type="HEARTBEAT", blocking=True, timeout=5.0)
-        assert hb is not None and hb.get_srcSystem() == 1 and hb.autopilot == 0
+        assert hb is not None and hb.get_srcSystem() == 1 and hb.autopilot == mavlink.MAV_AUTOPILOT_PX4
         imu_stamps = []
         deadline = time.monotonic() + 10.0
         while len(imu_stamps) < 200 and time.monotonic() < deadline:
