@@ -1,0 +1,60 @@
+"""companion.frame_step: the unknown-sector rule for a scripted command versus the operator's (issue 14)."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+
+from companion.frame_step import NO_SCAN, frame_step
+from companion.reference import OperatorInput, ReferenceParams
+
+# the camera looks along +x of H (optical z = body x): eq. (2) moves the operator along it
+R_QC_FORWARD = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+
+
+@dataclass
+class _Out:
+    """The fields of perception's output that frame_step reads."""
+
+    sectors: NDArray[np.float64]
+    obstacle_points_h_m: NDArray[np.float64] | None = None
+    odometry_ok: bool = True
+    position_m: NDArray[np.float64] = field(default_factory=lambda: np.array([0.0, 0.0, -1.0]))
+    v_h_m_s: NDArray[np.float64] = field(default_factory=lambda: np.zeros(3))
+
+
+def _front_seen_only() -> _Out:
+    """72 sectors: the front half (|azimuth| < 90 deg) seen and free, the back never seen."""
+    az = np.arange(72) * 5.0
+    az = (az + 180.0) % 360.0 - 180.0
+    return _Out(np.where(np.abs(az) < 90.0, np.inf, np.nan))
+
+
+def test_a_script_never_flies_toward_where_the_map_has_not_looked() -> None:
+    params = ReferenceParams()
+    out = _front_seen_only()
+    back = frame_step(out, OperatorInput(), R_QC_FORWARD, NO_SCAN, params, True, True,
+                      v_command_h_m_s=np.array([-0.4, 0.0, 0.0]))
+    assert np.allclose(back.ref.v_ref_h_m_s[:2], 0.0) and back.ref.constrained
+    ahead = frame_step(out, OperatorInput(), R_QC_FORWARD, NO_SCAN, params, True, True,
+                       v_command_h_m_s=np.array([0.4, 0.1, 0.0]))
+    np.testing.assert_allclose(ahead.ref.v_ref_h_m_s, [0.4, 0.1, 0.0])
+    # a climb is not horizontal motion: allowed toward nothing horizontal
+    up = frame_step(out, OperatorInput(), R_QC_FORWARD, NO_SCAN, params, True, True,
+                    v_command_h_m_s=np.array([0.0, 0.0, -0.2]))
+    assert up.ref.v_ref_h_m_s[2] < 0.0
+
+
+def test_the_operator_keeps_cp_go_no_data_while_the_data_are_fresh() -> None:
+    """The operator moves along the camera's axis (eq. 2): with fresh data and allow_unknown_when_fresh its push is
+    not zeroed by sectors it has not seen; without allow_unknown_when_fresh it is."""
+    params = ReferenceParams()
+    out = _Out(np.full(72, np.nan))   # nothing seen yet
+    push = OperatorInput(qx=1.0)
+    free = frame_step(out, push, R_QC_FORWARD, NO_SCAN, params, True, True)
+    assert free.ref.v_ref_h_m_s[0] == math.copysign(params.k_v_m_s, 1.0)
+    blocked = frame_step(out, push, R_QC_FORWARD, NO_SCAN, params, True, False)
+    assert np.allclose(blocked.ref.v_ref_h_m_s[:2], 0.0)
