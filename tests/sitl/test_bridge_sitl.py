@@ -134,6 +134,7 @@ class Gcs:
         self.inbox: queue.Queue = queue.Queue()
         self.texts: list[str] = []  # every STATUSTEXT that recv() went past
         self._stop = threading.Event()
+        self._closed = False  # under self.lock: a sender thread still running after close() drops its message
         self._reader = threading.Thread(target=self._read, daemon=True)
         self._reader.start()
 
@@ -145,10 +146,12 @@ class Gcs:
 
     def send(self, msg) -> None:
         with self.lock:
+            if self._closed:
+                return
             buf = msg.pack(self.encoder)
             self.encoder.seq = (self.encoder.seq + 1) % 256
-        for address in list(self.conn.clients):  # the bridge's udpout socket, learnt by the reader
-            self.conn.port.sendto(buf, address)
+            for address in list(self.conn.clients):  # the bridge's udpout socket, learnt by the reader
+                self.conn.port.sendto(buf, address)
 
     def recv(self, type_, timeout_s: float, cond=lambda m: True):
         deadline = time.monotonic() + timeout_s
@@ -173,7 +176,9 @@ class Gcs:
     def close(self) -> None:
         self._stop.set()
         self._reader.join(timeout=2.0)
-        self.conn.close()
+        with self.lock:
+            self._closed = True
+            self.conn.close()
 
 
 @pytest.mark.xfail(strict=False,  # noqa: E501

@@ -18,7 +18,7 @@ from quadlink.campaign.runner import CampaignOptions, FlightResult, flight_ports
 from quadlink.campaign.safety import envelope, read_truth
 from quadlink.campaign.sessions import MOTION_OFFSET_RAD, generate_session
 from quadlink.config import load_config
-from quadlink.demo.cli import FlightSpec, Ports, compare_reports
+from quadlink.demo.cli import PORT_BLOCK_SIZE, PORT_NAMES, FlightSpec, Ports, compare_reports
 from quadlink.mavlink import mavlink
 from quadlink.mavlink.tlog import TlogWriter
 from quadlink.vehicle import load_vehicle
@@ -199,14 +199,12 @@ def test_envelope_adds_the_ceiling_to_the_truth_distance(tmp_path: Path) -> None
     assert env.surface == "obstacle" and env.min_nonfloor_m == pytest.approx(0.35, abs=0.006)
 
 
-@pytest.mark.xfail(strict=False,  # noqa: E501
-                   reason='issue 15 x 18 merge: the demo gained two netem ports; the slot spacing check needs updating')  # noqa: E501
 def test_port_slots_and_blocks_never_share_a_port() -> None:
     sets = [set(Ports(flight_ports(3000, k)).as_dict().values()) for k in range(40)]
-    assert all(len(s) == 9 for s in sets)
+    assert all(len(s) == len(PORT_NAMES) for s in sets)
     for a, b in itertools.combinations(sets, 2):
         assert not a & b
-    blocks = [set(Ports(base=20000 + 9 * k).as_dict().values()) for k in range(10)]
+    blocks = [set(Ports(base=20000 + PORT_BLOCK_SIZE * k).as_dict().values()) for k in range(10)]
     for a, b in itertools.combinations(blocks, 2):
         assert not a & b
     assert Ports(base=20000).mk1 == 20000 and Ports(base=20000).http == 20008 and Ports(7).truth == 14567

@@ -63,16 +63,17 @@ def test_link_delay_reports_the_estimators_round_trip() -> None:
 
 
 def _meta() -> OperatorImageMeta:
-    """The companion's own producer of the image metadata: moving forward at 1 m/s, one obstacle ahead."""
+    """The companion's own producer of the image metadata: moving forward at 1 m/s, two avoidance points
+    ahead (in H; the producer maps them to the camera frame)."""
     class Out:
         roll_rad, pitch_rad, yaw_rad = 0.05, -0.1, 0.3
         v_h_m_s = np.array([1.0, 0.0, 0.0])
-        obstacle_points_c_m = np.array([[0.0, 0.0, 1.5], [0.3, -0.1, 2.0]])
 
     ref = ReferenceOutput(np.array([1.0, 0.0, 0.0]), 0.0, np.array([1.0, 0.0, 0.0]), np.zeros(3), 0.0, 0.0, 0.0,
                           False)
     return operator_image_meta(12.0, Out(), ref, PanScanState(0.0, 0.0, False), PanScanParams(enabled=False),
-                               np.zeros(3), Mode.TELEOP, None, np.eye(3), np.zeros(3))
+                               np.zeros(3), Mode.TELEOP, np.array([[1.5, 0.0, 0.0], [2.0, 0.3, -0.1]]),
+                               load_vehicle().camera.R_qc_matrix, np.zeros(3))
 
 
 def _status(rtt_ms: float | None) -> dict:
@@ -81,8 +82,6 @@ def _status(rtt_ms: float | None) -> dict:
             "rtt_p99_ms": None if rtt_ms is None else rtt_ms + 40.0}
 
 
-@pytest.mark.xfail(strict=False,  # noqa: E501
-                   reason='issue 18 x 17 merge: the meta now carries only the avoidance points; overlay expectation not updated yet')  # noqa: E501
 def test_overlay_shows_the_round_trip_and_the_vehicle_now() -> None:
     cfg = TeleopConfig()
     R_qc = load_vehicle().camera.R_qc_matrix
