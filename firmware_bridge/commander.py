@@ -41,6 +41,7 @@ class CommanderService(OffboardService):
 
     def _start_takeoff(self, now_s: float) -> None:
         was_in_air, self.in_air = self.in_air, True
+        self._takeoff_start_s = now_s   # BRG_TKO_OL_T counts from here (a loss in the climb re-enters phase 1)
         if self.odom_ok:
             self.takeoff_phase = TakeoffPhase.CLOSED_LOOP
             if self._z_ground_m is None:
@@ -50,7 +51,6 @@ class CommanderService(OffboardService):
         # phase 1: the camera cannot see yet; climb level on the accelerometer until odometry arrives
         self.takeoff_phase = TakeoffPhase.OPEN_LOOP
         self.blind = True
-        self._takeoff_start_s = now_s
         self._hover_thrust_learned = None
         self._blind_descent = None
         if not was_in_air:
@@ -107,7 +107,17 @@ class CommanderService(OffboardService):
         odom_fresh = self._fresh(self.odom_time_s, now_s, p["BRG_ODOM_LOSS_T"])
         if self.odom_ok and not odom_fresh:
             self.odom_ok = False
-            if self.in_air:
+            if self.in_air and self.mode == FlightMode.TAKEOFF and self.height_m < p["BRG_TKO_OL_ALT"]:
+                # low in the climb the camera may lose the floor (too near, too fast): as if it had never
+                # seen it, climb open loop until odometry returns, within BRG_TKO_OL_ALT / BRG_TKO_OL_T
+                self._event(mavlink.MAV_SEVERITY_WARNING,
+                            f"Odometry lost at {self.height_m:.2f} m in takeoff: open loop until odometry")
+                stale_s = now_s - self.odom_time_s if self.odom_time_s is not None else 0.0
+                self.height_m -= self._vz_dead_reckoned * max(stale_s, 0.0)  # the climb since the last odometry
+                self.vertical.align(self.height_m, self._vz_dead_reckoned)
+                self.takeoff_phase = TakeoffPhase.OPEN_LOOP
+                self.blind = True
+            elif self.in_air:
                 self._event(mavlink.MAV_SEVERITY_CRITICAL, "Odometry lost: level hold, descending")
                 self.failsafe_reason = "odometry lost"
                 self._vz_dead_reckoned = float(self.v_est_h(now_s)[2])

@@ -205,8 +205,9 @@ class OffboardService(TelemetryService):
         z = float(msg.z) if math.isfinite(msg.z) else None
         reset = self._odom_reset_counter is not None and msg.reset_counter != self._odom_reset_counter
         self._odom_reset_counter = int(msg.reset_counter)
-        if self.in_air and z is not None and (self.blind or reset or self._z_ground_m is None):
+        if self.in_air and z is not None and (reset or self._z_ground_m is None):
             # the odometry's frame began (or was reset) in the air: anchor it so the height stays continuous
+            # (a frame that merely paused, the same reset counter, keeps its anchor: it is the better height)
             self._z_ground_m = z + self.height_m
         self._odom_z_m = z
         p_ned = np.array([msg.x, msg.y, msg.z], dtype=float)

@@ -26,6 +26,7 @@ autopilot only flies on this for a bounded time and height (``BRG_TKO_OL_T``, ``
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 DEFAULT_BIAS_TAU_S = 1.0
@@ -64,6 +65,14 @@ class VerticalEstimator:
         self._vz = 0.0
         self._h = 0.0
         self._pinned = True
+
+    def align(self, height_m: float, vz_m_s: float) -> None:
+        """In the air, from a better source (the odometry's last height and vertical speed, NED): the
+        accelerometer-only estimate continues from there (the learnt bias is kept)."""
+        if math.isfinite(height_m) and math.isfinite(vz_m_s):
+            self._h = max(float(height_m), 0.0)
+            self._vz = min(max(float(vz_m_s), -self.max_climb_m_s), self.max_descent_m_s)
+            self._pinned = False
 
     def update(self, dt_s: float, a_h_z_m_s2: float, thrust_fraction: float, on_ground: bool = False) -> None:
         """One IMU sample: ``a_h_z_m_s2`` = (R_hq f_q)_z + g (NED), the commanded collective thrust (0..1)."""

@@ -110,6 +110,35 @@ def test_takeoff_climbs_open_loop_then_switches_to_closed_loop_when_odometry_arr
     assert any("Odometry lost" in t for t in sim.statustext)
 
 
+def test_odometry_lost_low_in_the_climb_climbs_open_loop_until_it_returns():
+    """The camera can lose the floor again just after the switch (too near, too fast): below BRG_TKO_OL_ALT the
+    take-off goes back to phase 1 (no LAND at 0.5 m), keeps climbing level, and closes the loop when odometry is
+    back; the take-off then completes."""
+    sim = blind_sim()
+    arm_and_sit(sim)
+    assert sim.command(mavlink.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, math.nan, math.nan, math.nan, 1.2)[0] == \
+        mavlink.MAV_RESULT_ACCEPTED
+    while height(sim) < 0.4:
+        sim.step(0.02)
+    sim.odom = True
+    sim.step(0.3)
+    assert sim.ap.takeoff_phase == TakeoffPhase.CLOSED_LOOP
+    sim.odom = False
+    h_lost = height(sim)
+    sim.step(1.0)
+    assert sim.ap.mode == FlightMode.TAKEOFF and sim.ap.failsafe_reason is None, sim.statustext
+    assert sim.ap.takeoff_phase == TakeoffPhase.OPEN_LOOP and sim.ap.blind
+    assert any("in takeoff: open loop" in t for t in sim.statustext), sim.statustext
+    assert height(sim) > h_lost + 0.1        # still climbing
+    assert sim.ap.vertical.height_m == pytest.approx(height(sim), abs=0.1)   # continued from the odometry's height
+    cmd = sim.ap.last_board_command
+    assert cmd.roll_rad == 0.0 and cmd.pitch_rad == 0.0
+    sim.odom = True
+    sim.step(5.0)
+    assert sim.ap.mode == FlightMode.LOITER and sim.ap.failsafe_reason is None
+    assert height(sim) == pytest.approx(1.2, abs=0.1)
+
+
 def test_takeoff_without_odometry_is_bounded_in_height_then_lands():
     sim = blind_sim()
     arm_and_sit(sim)
