@@ -12,6 +12,8 @@ the values:
   the replies out, as dialect message objects for the caller to send). A refused PARAM_SET is answered,
   as PX4 does, with PARAM_VALUE holding the unchanged value (the sender's retries end and it shows the
   truth) and a STATUSTEXT saying why.
+* :class:`ParamService` — the ground-station side of both (pure): PARAM_* and MAV_CMD_DO_SET_PARAMETER over
+  the values, each change announced by a STATUSTEXT; the replies returned as :mod:`companion.outbound` values.
 """
 
 from __future__ import annotations
@@ -22,6 +24,8 @@ from dataclasses import dataclass
 from typing import Any, Protocol
 
 from companion.config import PanScanConfig, pan_scan_params
+from companion.modes import SEVERITY_INFO, StatusText
+from companion.outbound import GcsReply
 from companion.pan_scan import PanScanParams
 from companion.reference import ReferenceParams
 from quadlink.errors import ConfigError
@@ -173,3 +177,40 @@ def set_by_index(store: ParamStore, index: int, value: float) -> str | None:
         return None
     name = store.names[index]
     return name if store.set(name, value) else None
+
+
+class ParamService:
+    """The companion's parameters as the ground stations see them: the protocol over ``store`` (the values
+    stay readable and replaceable there), and a STATUSTEXT (info) for every change, old and new value."""
+
+    def __init__(self, store: ParamStore) -> None:
+        self.store = store
+
+    def _changed(self, name: str, old: float | None) -> StatusText:
+        return StatusText(SEVERITY_INFO, f"companion: {name} {old:g} -> {self.store.values()[name]:g}")
+
+    def on_message(self, msg: Any) -> list[StatusText | GcsReply]:
+        """A PARAM_* message for this component (:func:`handle_param_message`): the change notice, then the
+        replies."""
+        before = self.store.values()
+        replies, changed = handle_param_message(self.store, msg)
+        out: list[StatusText | GcsReply] = [] if changed is None else [self._changed(changed, before[changed])]
+        return out + [GcsReply(r) for r in replies]
+
+    def set(self, name: str, value: float) -> tuple[bool, list[StatusText | GcsReply]]:
+        """Set ``name`` by name (not from a ground station): changed?, and the change notice."""
+        old = self.store.values().get(name)
+        if not self.store.set(name, value):
+            return False, []
+        return True, [self._changed(name, old)]
+
+    def set_by_index(self, index: int, value: float) -> tuple[bool, list[StatusText | GcsReply]]:
+        """MAV_CMD_DO_SET_PARAMETER: changed?, and the change notice and the value now (changed or not, as a
+        refused PARAM_SET is answered; nothing for an index out of range)."""
+        names = self.store.names
+        old = self.store.values().get(names[index]) if 0 <= index < len(names) else None
+        changed = set_by_index(self.store, index, value)
+        out: list[StatusText | GcsReply] = [] if changed is None else [self._changed(changed, old)]
+        if old is not None:
+            out.append(GcsReply(param_value_message(self.store, index)))
+        return changed is not None, out

@@ -1,0 +1,124 @@
+"""What leaves the companion: the replies its services return, and the one edge that packs and writes them.
+
+The ground-station services (:mod:`companion.gcs_commands`, :mod:`companion.params`' :class:`ParamService`,
+:mod:`companion.security`) are pure: they return what is to be sent, as these values, and the daemon hands
+them to :class:`Outbox` in order (with the mode machine's :class:`~companion.modes.StatusText` and
+:class:`~companion.modes.AutopilotRequest` actions):
+
+* :class:`GcsReply` — a message for the ground stations, packed (and signed, when configured) as this
+  system's companion, or as another of its components (the acks answered for the autopilot);
+* :class:`AutopilotAck` — a reply made as the autopilot itself would make it, packed with its identity
+  and unsigned, like the autopilot's own traffic the companion forwards.
+
+:class:`Outbox` is the I/O: one bad value drops one message (counted, logged once in a while), a link
+hiccup never stops the loop, nothing non-finite goes to the autopilot, and every packet goes to the tlog.
+"""
+
+from __future__ import annotations
+
+import logging
+import struct
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+from companion.guard import ErrorCounter, non_finite_fields
+from companion.interfaces import MavLink
+from companion.modes import AutopilotRequest, StatusText
+from companion.stats import Stats
+from quadlink.mavlink import mavlink
+
+log = logging.getLogger("companion.daemon")
+
+
+@dataclass(frozen=True)
+class GcsReply:
+    """``msg`` for the ground stations from ``src_component`` of this system (None: the companion itself)."""
+
+    msg: Any
+    src_component: int | None = None
+
+
+@dataclass(frozen=True)
+class AutopilotAck:
+    """``msg`` for the ground stations as the autopilot would send it (its system and component id, unsigned)."""
+
+    msg: Any
+
+
+Output = StatusText | AutopilotRequest | GcsReply | AutopilotAck
+
+
+class Outbox:
+    """Packs and writes for the daemon. Owns the three codecs: the companion's (to the autopilot), the
+    ground stations' (signed when :meth:`companion.security.GcsSecurity.enable_signing` set it up) and one
+    that speaks as the autopilot (its forwarded heartbeats with the companion's mode, its mode acks)."""
+
+    def __init__(self, autopilot: MavLink, gcs: MavLink, sysid: int, compid: int, ap_compid: int,
+                 errors: ErrorCounter, stats: Stats, tlog: Any | None, wall: Callable[[], float]) -> None:
+        self.autopilot, self.gcs = autopilot, gcs
+        self.errors, self.stats, self.tlog, self.wall = errors, stats, tlog, wall
+        self.codec = mavlink.MAVLink(None, sysid, compid)
+        self.codec.robust_parsing = True
+        self.gcs_codec = mavlink.MAVLink(None, sysid, compid)   # packs (and signs) for ground stations
+        self._ap_codec = mavlink.MAVLink(None, sysid, ap_compid)   # replies made for the autopilot
+
+    def set_system_id(self, sysid: int) -> None:
+        """The vehicle's system id, learned from the autopilot's heartbeat."""
+        self.codec.srcSystem = self.gcs_codec.srcSystem = sysid
+
+    def log_packet(self, buf: bytes) -> None:
+        if self.tlog is not None:
+            self.tlog.write(buf, self.wall())
+
+    def _send(self, link: MavLink, msg: Any, codec: Any) -> None:
+        try:
+            buf = bytes(msg.pack(codec))
+        except (struct.error, OverflowError, ValueError, TypeError) as exc:  # one bad value drops one message
+            self.errors.record(f"packing {msg.get_type()}", exc)
+            return
+        try:
+            link.write(buf)
+        except OSError as exc:  # a link hiccup must never stop the loop
+            log.debug("send %s failed: %s", msg.get_type(), exc)
+        self.log_packet(buf)
+
+    def to_autopilot(self, msg: Any) -> None:
+        bad = non_finite_fields(msg)
+        if bad:   # never reaches the autopilot (the setpoint path holds before this: frame_step.setpoint_velocity)
+            self.stats.non_finite_dropped += 1
+            self.errors.record(f"non-finite {msg.get_type()}", ValueError(", ".join(bad)))
+            return
+        self._send(self.autopilot, msg, self.codec)
+
+    def to_gcs(self, msg: Any, src_component: int | None = None) -> None:
+        """Pack (signed when configured) and send to the ground stations; ``src_component`` answers for another
+        component of this system (the autopilot's acks)."""
+        if src_component is None:
+            self._send(self.gcs, msg, self.gcs_codec)
+            return
+        own, self.gcs_codec.srcComponent = self.gcs_codec.srcComponent, src_component
+        try:
+            self._send(self.gcs, msg, self.gcs_codec)
+        finally:
+            self.gcs_codec.srcComponent = own
+
+    def to_gcs_as(self, msg: Any, src_system: int, src_component: int) -> bool:
+        """``msg`` to the ground stations packed as ``src_system``/``src_component`` (the autopilot), unsigned
+        and not in the tlog (as the autopilot's forwarded traffic). Written?"""
+        self._ap_codec.srcSystem, self._ap_codec.srcComponent = src_system, src_component
+        try:
+            self.gcs.write(bytes(msg.pack(self._ap_codec)))
+            return True
+        except OSError as exc:
+            log.debug("sending %s as %d/%d failed: %s", msg.get_type(), src_system, src_component, exc)
+            return False
+
+    def forward(self, link: MavLink, msg: Any) -> bool:
+        """A received message on to ``link`` as it came (its own bytes). Written?"""
+        try:
+            link.write(msg.get_msgbuf())
+            return True
+        except OSError as exc:
+            log.debug("routing %s failed: %s", msg.get_type(), exc)
+            return False

@@ -1,0 +1,306 @@
+"""The companion's ground-station services on their own (unit tier): the endpoint's gate
+(companion.security), the commands (companion.gcs_commands), the parameter service (companion.params), the
+command clock (companion.command_clock) and the sending edge (companion.outbound). Messages go through
+pymavlink's codec as on the wire; clocks are injected."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from companion.arbiter import Arbiter, ArbiterParams, Pose
+from companion.command_clock import GcsCommandClock
+from companion.config import PanScanConfig
+from companion.gcs_commands import GcsCommands
+from companion.guard import ErrorCounter
+from companion.modes import AutopilotRequest, Mode, ModeMachine, ModeParams, StatusText, VehicleStatus
+from companion.outbound import AutopilotAck, GcsReply, Outbox, Output
+from companion.params import PARAM_NAMES, CompanionParams, ParamService
+from companion.reference import ReferenceParams
+from companion.security import GcsSecurity
+from companion.stats import Stats
+from quadlink.errors import QuadlinkError
+from quadlink.mavlink import mavlink
+from quadlink.mavlink.security import SecurityConfig, write_key
+from quadlink.px4_modes import AUTO_LOITER, OFFBOARD, POSCTL, Px4MainMode
+
+pytestmark = pytest.mark.unit
+
+SYSID, COMPID, AP_COMPID = 1, 191, 1
+ARM = mavlink.MAV_CMD_COMPONENT_ARM_DISARM
+TAKEOFF = mavlink.MAV_CMD_NAV_TAKEOFF
+CUSTOM = float(mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED)
+
+
+class Clock:
+    """Settable monotonic time (s)."""
+
+    def __init__(self) -> None:
+        self.t = 100.0
+
+    def __call__(self) -> float:
+        return self.t
+
+
+def wire(msg: Any, src_system: int = 255, src_component: int = 190) -> Any:
+    """``msg`` as the companion gets it: packed by the sender's codec, parsed by a receiver's."""
+    rx = mavlink.MAVLink(None)
+    (out,) = rx.parse_buffer(bytes(msg.pack(mavlink.MAVLink(None, src_system, src_component))))
+    return out
+
+
+def command(cmd: int, *params: float, src_system: int = 255, target_component: int = COMPID) -> Any:
+    p = (list(params) + [0.0] * 7)[:7]
+    return wire(mavlink.MAVLink_command_long_message(SYSID, target_component, cmd, 0, *p), src_system)
+
+
+def acks(out: list[Output]) -> list[tuple[int, int, int | None]]:
+    """(command, result, packed-as component) of every COMMAND_ACK among ``out``."""
+    return [(o.msg.command, o.msg.result, o.src_component) for o in out
+            if isinstance(o, GcsReply) and o.msg.get_type() == "COMMAND_ACK"]
+
+
+def texts(out: list[Output]) -> list[str]:
+    return [o.text for o in out if isinstance(o, StatusText)]
+
+
+# ---- companion.security ---------------------------------------------------------------------------------
+def test_a_command_from_an_unlisted_sysid_is_denied_as_its_target_and_told_once_per_period() -> None:
+    clock = Clock()
+    gate = GcsSecurity(SecurityConfig(), SYSID, COMPID, clock)
+    disarm = command(ARM, 0.0, 21196.0, src_system=77, target_component=AP_COMPID)
+    assert not gate.permits(disarm)
+    first = gate.refuse_sender(disarm)
+    assert acks(first) == [(ARM, mavlink.MAV_RESULT_DENIED, AP_COMPID)]   # answered as the autopilot it targeted
+    assert first[0].msg.target_system == 77 and first[0].msg.target_component == 190
+    assert texts(first) == ["companion: COMMAND_LONG from sysid 77 refused (not allowed)"]
+    clock.t += 1.0
+    assert texts(gate.refuse_sender(disarm)) == []   # within 2 s: the ack only
+    clock.t += 1.5
+    assert texts(gate.refuse_sender(disarm)) != []
+    assert acks(gate.refuse_sender(command(ARM, 1.0, src_system=77))) == [(ARM, mavlink.MAV_RESULT_DENIED, None)]
+
+
+def test_listed_senders_and_read_only_messages_pass_and_the_own_sysid_follows_the_autopilot() -> None:
+    gate = GcsSecurity(SecurityConfig(), SYSID, COMPID, Clock())
+    assert gate.permits(command(ARM, 1.0, src_system=255)) and gate.permits(command(ARM, 1.0, src_system=SYSID))
+    assert gate.permits(wire(mavlink.MAVLink_param_request_list_message(SYSID, COMPID), 77))
+    assert not gate.permits(command(ARM, 1.0, src_system=42))
+    gate.on_system_id(42)   # the autopilot turned out to be system 42
+    assert gate.permits(command(ARM, 1.0, src_system=42)) and not gate.permits(command(ARM, 1.0, src_system=SYSID))
+
+
+def test_a_non_finite_command_for_the_autopilot_is_denied_as_the_autopilot() -> None:
+    gate = GcsSecurity(SecurityConfig(), SYSID, COMPID, Clock())
+    msg = command(mavlink.MAV_CMD_NAV_RETURN_TO_LAUNCH, math.inf, target_component=0)
+    out = gate.refuse_forward(msg, ap_compid=7)
+    assert acks(out) == [(mavlink.MAV_CMD_NAV_RETURN_TO_LAUNCH, mavlink.MAV_RESULT_DENIED, 7)]
+    assert texts(out) == ["companion: COMMAND_LONG not forwarded: non-finite value"]
+    assert texts(gate.refuse_forward(msg, ap_compid=7)) == []
+
+
+def test_signing_signs_what_is_sent_and_refuses_unsigned_packets(tmp_path: Path) -> None:
+    key = write_key(tmp_path / "k.key")
+    gate = GcsSecurity(SecurityConfig(str(tmp_path / "k.key"), require_signing=True), SYSID, COMPID, Clock())
+    tx, rx = mavlink.MAVLink(None, SYSID, COMPID), mavlink.MAVLink(None)
+    rx.robust_parsing = True
+    gate.enable_signing(tx, rx, lambda: 1_790_000_000.0)
+    assert gate.signing
+    hb = mavlink.MAVLink_heartbeat_message(mavlink.MAV_TYPE_GCS, mavlink.MAV_AUTOPILOT_INVALID, 0, 0, 0, 3)
+    peer = mavlink.MAVLink(None, 255, 190)
+    peer.signing.secret_key = key
+    (got,) = peer.parse_buffer(bytes(hb.pack(tx)))
+    assert got.get_type() == "HEARTBEAT" and peer.signing.goodsig_count == 1
+    assert [m.get_type() for m in rx.parse_buffer(bytes(hb.pack(mavlink.MAVLink(None, 255, 190))))] == ["BAD_DATA"]
+
+
+def test_signing_without_a_codec_to_check_it_is_an_error_and_no_key_is_no_signing(tmp_path: Path) -> None:
+    write_key(tmp_path / "k.key")
+    with pytest.raises(QuadlinkError, match="no MAVLink codec"):
+        GcsSecurity(SecurityConfig(str(tmp_path / "k.key")), SYSID, COMPID, Clock()).enable_signing(
+            mavlink.MAVLink(None), None, lambda: 0.0)
+    off = GcsSecurity(SecurityConfig(), SYSID, COMPID, Clock())
+    tx = mavlink.MAVLink(None)
+    off.enable_signing(tx, None, lambda: 0.0)
+    assert not off.signing and tx.signing.secret_key is None
+
+
+# ---- companion.params.ParamService -----------------------------------------------------------------------
+def params() -> ParamService:
+    return ParamService(CompanionParams(PanScanConfig(), ReferenceParams()))
+
+
+def param_set(name: str, value: float, param_type: int = mavlink.MAV_PARAM_TYPE_REAL32) -> Any:
+    return wire(mavlink.MAVLink_param_set_message(SYSID, COMPID, name.encode(), value, param_type))
+
+
+def test_a_parameter_change_is_announced_then_echoed() -> None:
+    svc = params()
+    out = svc.on_message(param_set("CMP_K_V", 0.9))
+    assert texts(out) == ["companion: CMP_K_V 0.6 -> 0.9"] and isinstance(out[0], StatusText)
+    (echo,) = [o.msg for o in out if isinstance(o, GcsReply)]
+    assert echo.get_type() == "PARAM_VALUE" and echo.param_value == pytest.approx(0.9)
+    assert svc.store.values()["CMP_K_V"] == pytest.approx(0.9)
+
+
+def test_a_refused_parameter_change_is_echoed_unchanged_without_a_change_notice() -> None:
+    svc = params()
+    out = svc.on_message(param_set("CMP_K_V", math.nan))
+    assert texts(out) == []
+    value, why = (o.msg for o in out if isinstance(o, GcsReply))
+    assert value.param_value == pytest.approx(0.6) and b"refused" in why.text.encode()
+    assert len(svc.on_message(wire(mavlink.MAVLink_param_request_list_message(SYSID, COMPID)))) == len(PARAM_NAMES)
+
+
+def test_set_by_index_answers_the_value_now_and_nothing_out_of_range() -> None:
+    svc = params()
+    i = PARAM_NAMES.index("PANSCAN_EN")
+    changed, out = svc.set_by_index(i, 0.0)
+    assert changed and texts(out) == ["companion: PANSCAN_EN 1 -> 0"] and not svc.store.values()["PANSCAN_EN"]
+    changed, out = svc.set_by_index(i, 0.5)   # a flag: only 0 or 1
+    assert not changed and [o.msg.param_value for o in out if isinstance(o, GcsReply)] == [0.0]
+    assert svc.set_by_index(len(PARAM_NAMES), 1.0) == (False, [])
+    assert svc.set("CMP_SAFE_DIST", 99.0) == (False, [])
+
+
+# ---- companion.gcs_commands ------------------------------------------------------------------------------
+class Rig:
+    def __init__(self) -> None:
+        self.clock = Clock()
+        self.modes = ModeMachine(ModeParams())
+        self.arbiter = Arbiter(ArbiterParams())
+        self.status = VehicleStatus()
+        self.camera = True
+        self.cmds = GcsCommands(self.modes, self.arbiter, params(), self.clock, lambda: self.status,
+                                lambda: self.camera)
+
+
+def test_arm_and_takeoff_go_to_the_mode_machine_and_are_acked_after() -> None:
+    rig = Rig()
+    out = rig.cmds.on_command_long(command(ARM, 1.0))
+    assert out[0] == AutopilotRequest("arm") and acks(out) == [(ARM, mavlink.MAV_RESULT_ACCEPTED, None)]
+    assert out[-1].msg.target_system == 255   # acked to its sender
+    out = rig.cmds.on_command_long(command(TAKEOFF, 0, 0, 0, math.nan, math.nan, math.nan, 1.0))
+    assert AutopilotRequest("takeoff", 1.0) in out and rig.modes.mode == Mode.TAKEOFF
+    assert acks(out) == [(TAKEOFF, mavlink.MAV_RESULT_ACCEPTED, None)]
+    assert acks(rig.cmds.on_command_long(command(ARM, 1.0))) == [(ARM, mavlink.MAV_RESULT_TEMPORARILY_REJECTED, None)]
+
+
+def test_takeoff_without_camera_frames_is_rejected_and_bad_params_denied() -> None:
+    rig = Rig()
+    rig.camera = False
+    out = rig.cmds.on_command_long(command(TAKEOFF))
+    assert texts(out) == ["companion: takeoff refused: no camera frames (perception not running)"]
+    assert acks(out) == [(TAKEOFF, mavlink.MAV_RESULT_TEMPORARILY_REJECTED, None)] and rig.modes.mode == Mode.IDLE
+    out = rig.cmds.on_command_long(command(ARM, math.nan))   # arm's param1 is required
+    assert acks(out) == [(ARM, mavlink.MAV_RESULT_DENIED, None)] and len(texts(out)) == 1
+    assert not any(isinstance(o, AutopilotRequest) for o in out)
+    assert acks(rig.cmds.on_command_long(command(mavlink.MAV_CMD_NAV_RETURN_TO_LAUNCH))) == \
+        [(mavlink.MAV_CMD_NAV_RETURN_TO_LAUNCH, mavlink.MAV_RESULT_UNSUPPORTED, None)]
+
+
+def test_do_set_parameter_changes_the_value_and_acks() -> None:
+    rig = Rig()
+    i = PARAM_NAMES.index("CMP_K_PSI")
+    out = rig.cmds.on_command_long(command(mavlink.MAV_CMD_DO_SET_PARAMETER, i, 1.2))
+    assert texts(out) == ["companion: CMP_K_PSI 0.8 -> 1.2"]
+    assert acks(out) == [(mavlink.MAV_CMD_DO_SET_PARAMETER, mavlink.MAV_RESULT_ACCEPTED, None)]
+    out = rig.cmds.on_command_long(command(mavlink.MAV_CMD_DO_SET_PARAMETER, i, 30.0))
+    assert acks(out) == [(mavlink.MAV_CMD_DO_SET_PARAMETER, mavlink.MAV_RESULT_DENIED, None)]
+    assert rig.cmds.params.store.values()["CMP_K_PSI"] == pytest.approx(1.2)
+
+
+def test_mode_changes_are_answered_as_the_autopilot_only_while_the_companion_flies() -> None:
+    rig = Rig()
+    set_mode = command(mavlink.MAV_CMD_DO_SET_MODE, CUSTOM, Px4MainMode.POSCTL, target_component=AP_COMPID)
+    handled, out = rig.cmds.on_set_mode(set_mode, CUSTOM, Px4MainMode.POSCTL, 0.0)
+    assert not handled and out == []   # IDLE: the autopilot answers its own modes
+    rig.modes.mode = Mode.TELEOP
+    handled, out = rig.cmds.on_set_mode(set_mode, CUSTOM, Px4MainMode.OFFBOARD, 0.0)
+    (ack,) = [o.msg for o in out if isinstance(o, AutopilotAck)]
+    assert handled and ack.result == mavlink.MAV_RESULT_DENIED   # OFFBOARD needs a fresh setpoint stream first
+    handled, out = rig.cmds.on_set_mode(set_mode, CUSTOM, Px4MainMode.POSCTL, 0.0, ack=False)
+    assert handled and not any(isinstance(o, AutopilotAck) for o in out)
+    assert rig.cmds.on_set_mode(set_mode, CUSTOM, Px4MainMode.AUTO, 6.0) == (False, [])   # RTL: the autopilot's
+    assert rig.cmds.on_set_mode(set_mode, 0.0, Px4MainMode.POSCTL, 0.0) == (False, [])
+    assert rig.cmds.on_set_mode(set_mode, CUSTOM, math.nan, 0.0) == (False, [])
+
+
+def test_setpoints_engage_offboard_and_the_reported_mode_follows() -> None:
+    rig = Rig()
+    hb = wire(mavlink.MAVLink_heartbeat_message(mavlink.MAV_TYPE_QUADROTOR, mavlink.MAV_AUTOPILOT_PX4, 0, 0, 4, 3),
+              SYSID, AP_COMPID)
+    assert rig.cmds.mode_heartbeat(hb).custom_mode == AUTO_LOITER.custom_mode
+    sp = wire(mavlink.MAVLink_set_position_target_local_ned_message(
+        0, SYSID, AP_COMPID, mavlink.MAV_FRAME_BODY_OFFSET_NED, 1479, 0, 0, 0, 0.5, 0, 0, 0, 0, 0, 0, 0))
+    assert rig.cmds.on_setpoint(sp, Pose(None, None, 0.0)) == []
+    assert rig.arbiter.offboard_engaged
+    beat = rig.cmds.mode_heartbeat(hb)
+    assert beat.custom_mode == OFFBOARD.custom_mode and beat.base_mode & mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
+    rig.arbiter.on_manual_control(rig.clock(), 0, 0, 500)
+    rig.arbiter.offboard_engaged = False
+    assert rig.cmds.mode_heartbeat(hb).custom_mode == POSCTL.custom_mode
+
+
+def test_a_motion_refusal_is_told_once_per_distinct_reason() -> None:
+    rig = Rig()
+    assert texts(rig.cmds.refuse_motion("SET_ATTITUDE_TARGET not supported")) == \
+        ["companion: SET_ATTITUDE_TARGET not supported"]
+    assert rig.cmds.refuse_motion("SET_ATTITUDE_TARGET not supported") == []
+    assert rig.cmds.refuse_motion("another reason") != []
+
+
+# ---- companion.command_clock -----------------------------------------------------------------------------
+def test_the_command_clock_answers_requests_and_keeps_a_bounded_set_of_senders() -> None:
+    clock = GcsCommandClock(max_command_age_s=0.5, timesync_max_rtt_s=2.0, max_senders=2)
+    (answer,) = [clock.on_timesync(wire(mavlink.MAVLink_timesync_message(0, 123)), 1.5)]
+    assert answer.tc1 == 1_500_000_000 and answer.ts1 == 123 and clock.sync == {}
+    for sysid in (250, 251, 252):
+        reply = wire(mavlink.MAVLink_timesync_message(2_000_000_000, 1_000_000_000), sysid)
+        assert clock.on_timesync(reply, 1.01) is None
+    assert sorted(clock.sync) == [(250, 190), (251, 190)]
+    mc = wire(mavlink.MAVLink_manual_control_message(SYSID, 0, 0, 500, 0, 0))
+    assert clock.on_command(mc, 2.0).accepted   # never stamped: taken at arrival, its age unknown
+    report = {m.name: m.value for m in clock.report(2000)}
+    assert report == {"CMD_OK": 1, "CMD_DROP": 0, "CMD_STALE": 0, "CMD_UNPAIR": 0}   # no age percentiles yet
+    assert clock.summary().startswith("commands 1 ok / 0 dropped")
+
+
+# ---- companion.outbound ------------------------------------------------------------------------------------
+class MemLink:
+    def __init__(self) -> None:
+        self.sent: list[bytes] = []
+
+    def recv_msg(self) -> Any:
+        return None
+
+    def write(self, buf: bytes) -> None:
+        self.sent.append(bytes(buf))
+
+    def close(self) -> None:
+        pass
+
+
+def parsed(buf: bytes) -> Any:
+    (msg,) = mavlink.MAVLink(None).parse_buffer(buf)
+    return msg
+
+
+def test_the_outbox_packs_as_the_right_component_and_never_sends_a_non_finite_value() -> None:
+    ap, gcs, stats, errors = MemLink(), MemLink(), Stats(), ErrorCounter(Clock())
+    out = Outbox(ap, gcs, SYSID, COMPID, AP_COMPID, errors, stats, None, lambda: 0.0)
+    ack = mavlink.MAVLink_command_ack_message(ARM, mavlink.MAV_RESULT_DENIED, 0, 0, 77, 190)
+    out.to_gcs(ack, src_component=AP_COMPID)
+    out.to_gcs(ack)
+    assert [(m.get_srcSystem(), m.get_srcComponent()) for m in map(parsed, gcs.sent)] == [(1, AP_COMPID), (1, COMPID)]
+    out.set_system_id(42)
+    assert out.to_gcs_as(ack, 42, AP_COMPID) and parsed(gcs.sent[-1]).get_srcSystem() == 42
+    out.to_autopilot(mavlink.MAVLink_command_long_message(SYSID, AP_COMPID, ARM, 0, math.nan, *[0.0] * 6))
+    assert ap.sent == [] and stats.non_finite_dropped == 1
+    out.to_gcs(mavlink.MAVLink_named_value_int_message(0, b"X", 2**40))   # does not pack: one message dropped
+    assert errors.by_where == {"non-finite COMMAND_LONG": 1, "packing NAMED_VALUE_INT": 1} and len(gcs.sent) == 3
+    out.to_autopilot(mavlink.MAVLink_timesync_message(0, 1))
+    assert parsed(ap.sent[0]).get_srcSystem() == 42
