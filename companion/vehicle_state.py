@@ -2,11 +2,14 @@
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
 
 from companion.modes import VehicleStatus
 from quadlink.mavlink import mavlink
 from quadlink.px4_modes import Px4AutoSubMode, Px4MainMode, decode_custom_mode
+
+log = logging.getLogger("companion.daemon")
 
 
 @dataclass
@@ -15,6 +18,15 @@ class VehicleState:
     landed_state: int | None = None
     custom_mode: int = 0
     heartbeat_wall_s: float | None = None
+
+    def on_heartbeat(self, base_mode: int, custom_mode: int, now_s: float) -> None:
+        """The autopilot's HEARTBEAT fields, received at ``now_s`` (monotonic)."""
+        armed = bool(base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED)
+        if armed != self.armed:
+            log.info("autopilot %s", "armed" if armed else "disarmed")
+        self.armed = armed
+        self.custom_mode = custom_mode
+        self.heartbeat_wall_s = now_s
 
     def status(self) -> VehicleStatus:
         px4 = decode_custom_mode(self.custom_mode)
