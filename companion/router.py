@@ -19,7 +19,7 @@ AUTOPILOT_CONSUMED = frozenset({"HIGHRES_IMU", "HEARTBEAT", "EXTENDED_SYS_STATE"
 BROADCAST_PARAM_KINDS = frozenset({"PARAM_REQUEST_LIST", "PARAM_REQUEST_READ", "PARAM_SET"})
 # Motion commands from a ground station: the companion is the one arbiter of motion (companion.arbiter),
 # so they are consumed here and never reach the autopilot raw; so are mode changes (the companion answers
-# them for the autopilot while it is in control: see Companion._on_gcs_set_mode).
+# them for the autopilot while it is in control: see companion.gcs_commands).
 MOTION_KINDS = frozenset({"SET_POSITION_TARGET_LOCAL_NED", "SET_POSITION_TARGET_GLOBAL_INT", "SET_ATTITUDE_TARGET",
                           "SET_MODE"})
 # the command clock with a ground station is the companion's (issue 18): its TIMESYNC and command stamps end here

@@ -296,4 +296,4 @@ def test_imu_stamp_near_uint64_max_is_dropped_not_packed() -> None:
                                                               0x3F), SYSID, AP_COMPID))
     daemon.step()
     assert daemon.errors.by_where == {} and daemon.stats.handler_errors == 0
-    assert daemon.stats.feedback == n_fb or daemon._imu_stamp_s != (2**64 - 1) * 1e-6
+    assert daemon.stats.feedback == n_fb or daemon.time.imu_stamp_s != (2**64 - 1) * 1e-6
