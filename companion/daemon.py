@@ -365,6 +365,8 @@ class Companion:
                 self.command_clock.on_stamp(msg, self.clock())
             elif kind == "COMMAND_LONG":
                 self._emit(self.gcs_commands.on_command_long(msg))
+            elif kind == "COMMAND_INT":
+                self._emit(self.gcs_commands.on_command_int(msg))
             else:
                 self._emit(self.param_service.on_message(msg))
         if route.forward and self._forward(self.autopilot, msg):

@@ -1,10 +1,10 @@
 """The ground stations' commands to the companion, and the mode changes it answers for the autopilot.
 
-* COMMAND_LONG for compid 191 (:meth:`GcsCommands.on_command_long`): ``arm``, ``disarm``, ``takeoff`` and
-  ``land`` go to the mode machine (a takeoff without camera frames is refused: perception is not running),
-  MAV_CMD_DO_SET_PARAMETER to the parameter service; everything else is UNSUPPORTED. Params are read
-  through :mod:`quadlink.mavlink.command_params` (NaN = unused; a required param NaN, infinite or out of
-  range: DENIED). Every command is acked.
+* COMMAND_LONG and COMMAND_INT for compid 191 (:meth:`GcsCommands.on_command_long`, ``on_command_int``):
+  ``arm``, ``disarm``, ``takeoff`` and ``land`` go to the mode machine (a takeoff without camera frames is
+  refused: perception is not running), MAV_CMD_DO_SET_PARAMETER to the parameter service; everything else
+  is UNSUPPORTED. Params are read through :mod:`quadlink.mavlink.command_params` (NaN = unused; a required
+  param NaN, infinite or out of range: DENIED). Every command is acked.
 * Setpoints (:meth:`GcsCommands.on_setpoint`): SET_POSITION_TARGET_LOCAL_NED to the motion arbiter, which
   refuses what it cannot fly; a refusal is told by a STATUSTEXT once per distinct reason (a script streams
   at 20 Hz), as are the motion commands the companion does not take (:meth:`GcsCommands.refuse_motion`).
@@ -59,11 +59,20 @@ class GcsCommands:
 
     def on_command_long(self, msg: Any) -> list[Output]:
         """A COMMAND_LONG addressed to the companion: what it does, then its ack."""
+        return self._command(msg, (msg.param1, msg.param2, msg.param3, msg.param4, msg.param5, msg.param6,
+                                   msg.param7))
+
+    def on_command_int(self, msg: Any) -> list[Output]:
+        """A COMMAND_INT addressed to the companion: the same commands (none of them is positional: x, y are
+        plain params 5 and 6 here), the same ack. MAVLink: every command gets a COMMAND_ACK."""
+        return self._command(msg, (msg.param1, msg.param2, msg.param3, msg.param4, float(msg.x), float(msg.y),
+                                   msg.z))
+
+    def _command(self, msg: Any, raw: tuple[float, ...]) -> list[Output]:
         cmd = msg.command
         result = mavlink.MAV_RESULT_UNSUPPORTED
         try:   # MAVLink's NaN = "unused" per command; a required param NaN/inf/out of range: DENIED
-            p = read_params(cmd, (msg.param1, msg.param2, msg.param3, msg.param4, msg.param5, msg.param6,
-                                  msg.param7)) if cmd in COMMAND_PARAMS else (math.nan,) * 7
+            p = read_params(cmd, raw) if cmd in COMMAND_PARAMS else (math.nan,) * 7
         except CommandParamError as exc:
             return [StatusText(mavlink.MAV_SEVERITY_WARNING, f"companion: {exc}"),
                     command_ack(msg, cmd, mavlink.MAV_RESULT_DENIED)]

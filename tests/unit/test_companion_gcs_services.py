@@ -202,6 +202,21 @@ def test_takeoff_without_camera_frames_is_rejected_and_bad_params_denied() -> No
         [(mavlink.MAV_CMD_NAV_RETURN_TO_LAUNCH, mavlink.MAV_RESULT_UNSUPPORTED, None)]
 
 
+def test_command_int_is_handled_and_acked_like_command_long() -> None:
+    """QGroundControl sends some commands as COMMAND_INT: the companion's are answered, the others UNSUPPORTED —
+    never silence (MAVLink: every command gets a COMMAND_ACK)."""
+    rig = Rig()
+    arm = wire(mavlink.MAVLink_command_int_message(SYSID, COMPID, mavlink.MAV_FRAME_GLOBAL, ARM, 0, 0,
+                                                   1.0, 0, 0, 0, 0, 0, 0), 255)
+    out = rig.cmds.on_command_int(arm)
+    assert out[0] == AutopilotRequest("arm") and acks(out) == [(ARM, mavlink.MAV_RESULT_ACCEPTED, None)]
+    rtl = wire(mavlink.MAVLink_command_int_message(SYSID, COMPID, mavlink.MAV_FRAME_GLOBAL,
+                                                   mavlink.MAV_CMD_NAV_RETURN_TO_LAUNCH, 0, 0, 0, 0, 0, 0, 0, 0, 0),
+               255)
+    assert acks(rig.cmds.on_command_int(rtl)) == [(mavlink.MAV_CMD_NAV_RETURN_TO_LAUNCH,
+                                                    mavlink.MAV_RESULT_UNSUPPORTED, None)]
+
+
 def test_do_set_parameter_changes_the_value_and_acks() -> None:
     rig = Rig()
     i = PARAM_NAMES.index("CMP_K_PSI")
