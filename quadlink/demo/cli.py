@@ -90,11 +90,14 @@ class FlightSpec:
 def build_specs(scenario: str, script: Path, out_dir: Path, ports: Ports, lockstep: bool, speed: float,
                 duration_s: float, record_frames: bool = False, sitl_config: str | None = None,
                 operator: str = "haptic", view: bool = True, via_netem: bool = False,
-                teleop_config: Path | None = None) -> list[ProcessSpec]:
+                teleop_config: Path | None = None, signing_key: Path | None = None) -> list[ProcessSpec]:
     """The parts of a flight in start order. ``view=False`` runs headless: no operator image stream from the
     companion, no view or web page in the ground station (neither feeds back into the flight: the haptic
     cue's pan-scan estimate comes from TELEOP_FEEDBACK, not from the images), which saves their CPU.
-    ``via_netem``: the ground station talks to the netem proxies' ports (quadlink.demo.link)."""
+    ``via_netem``: the ground station talks to the netem proxies' ports (quadlink.demo.link). ``signing_key``:
+    the ground link is MAVLink 2 signed with this key (quadlink keygen), and the companion refuses unsigned
+    ground-station packets (issue 16)."""
+    signed = ("--signing-key", str(signing_key)) if signing_key is not None else ()
     vehicle_port, image_port = (ports.vehicle_netem, ports.image_netem) if via_netem else (ports.vehicle, ports.image)
     sitl = ["sitl", "--scenario", scenario, "--port1", str(ports.mk1), "--port2", str(ports.mk2),
             "--camera-port", str(ports.camera), "--truth", f"udpout:127.0.0.1:{ports.truth}",
@@ -116,7 +119,7 @@ def build_specs(scenario: str, script: Path, out_dir: Path, ports: Ports, lockst
                        "--image-stream", f"tcp://127.0.0.1:{image_port}" if view else "none",
                        *(("--config", str(teleop_config)) if teleop_config else ()),
                        "--http-port", str(ports.http) if view else "-1", "--log-csv", str(out_dir / "teleop.csv"),
-                       "--exit-at-script-end", "--script-clock", "vehicle" if lockstep else "wall"),
+                       "--exit-at-script-end", "--script-clock", "vehicle" if lockstep else "wall", *signed),
             ready_after_s=0.5)
     else:
         raise ConfigError(f"unknown operator {operator!r} (haptic or offboard)")
@@ -133,6 +136,7 @@ def build_specs(scenario: str, script: Path, out_dir: Path, ports: Ports, lockst
                                   "--camera", f"tcp://127.0.0.1:{ports.camera}",
                                   "--image-port", str(ports.image) if view else "0",
                                   "--tlog", str(out_dir / "companion.tlog"),
+                                  *((*signed, "--require-signing") if signed else ()),
                                   *(("--record-frames", str(out_dir / "frames.qlcf")) if record_frames else ())),
                     ready_after_s=3.0),
         operator_spec,
@@ -145,7 +149,7 @@ def run_demo(scenario: str, duration_s: float, out_dir: Path, script: Path, lock
              operator: str = "haptic", should_stop: Callable[[], bool] | None = None,
              view: bool = True, plots: bool = True,
              on_flight: Callable[[FlightLog], None] | None = None, link: LinkImpairment | None = None,
-             passivity: bool | None = None) -> dict[str, object]:
+             passivity: bool | None = None, signing_key: Path | None = None) -> dict[str, object]:
     """Fly the demo; returns the report. Raises :class:`ProcessDied` if a part dies.
 
     Writes ``out_dir/flight.json`` (the :class:`FlightSpec`, what ``--replay`` re-flies) and
@@ -153,8 +157,11 @@ def run_demo(scenario: str, duration_s: float, out_dir: Path, script: Path, lock
     ``should_stop`` is polled five times a second: True ends the flight early as Ctrl-C does. With
     ``plots=False`` only ``report.json`` is written, and ``on_flight`` gets the logs' time series (parsed once).
     ``link``: the ground link goes through the netem proxies with this impairment (issue 18);
-    ``passivity``: the force loop's passivity controller (default: on when ``link`` is given).
+    ``passivity``: the force loop's passivity controller (default: on when ``link`` is given);
+    ``signing_key``: sign the ground link with this key file and refuse unsigned packets at the companion.
     """
+    if signing_key is not None and not Path(signing_key).is_file():
+        raise ConfigError(f"{signing_key}: signing key not found (create one with: quadlink keygen FILE)")
     if not Path(script).is_file():
         raise ConfigError(f"{script}: operator script not found")
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -180,7 +187,8 @@ def run_demo(scenario: str, duration_s: float, out_dir: Path, script: Path, lock
     previous = signal.signal(signal.SIGINT, on_sigint) if main_thread else None
     t_wall0 = time.monotonic()
     specs = build_specs(scenario, Path(script), out_dir, ports, lockstep, speed, duration_s, record_frames,
-                        sitl_config, operator, view, via_netem=link is not None, teleop_config=teleop_config)
+                        sitl_config, operator, view, via_netem=link is not None, teleop_config=teleop_config,
+                        signing_key=signing_key)
     operator_name = specs[-1].name
     try:
         for part in specs:
@@ -307,10 +315,13 @@ def compare_reports(original: dict[str, Any], replay: dict[str, Any]) -> list[tu
 @click.option("--link-seed", type=int, default=0, show_default=True, help="Seed of the link's impairment.")
 @click.option("--passivity/--no-passivity", default=None,
               help="Force loop passivity controller [default: on with --link-*, else the teleop config's].")
+@click.option("--signing-key", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              help="Sign the ground link with this MAVLink 2 key (quadlink keygen FILE); the companion then "
+                   "refuses unsigned ground-station packets.")
 def command(scenario: str, duration_s: float, out_dir: Path | None, script: Path, lockstep: bool, speed: float,
             port_offset: int, port_base: int | None, replay_dir: Path | None, view: bool, record_frames: bool,
             link_delay_ms: float | None, link_jitter_ms: float | None, link_loss: float | None, link_seed: int,
-            passivity: bool | None) -> None:
+            passivity: bool | None, signing_key: Path | None) -> None:
     """Fly the paper's experiment in the SITL (take off, drive, rotate, approach and push the obstacle, land)."""
     try:
         impaired = any(v is not None for v in (link_delay_ms, link_jitter_ms, link_loss))
@@ -324,7 +335,7 @@ def command(scenario: str, duration_s: float, out_dir: Path | None, script: Path
             out_dir = out_dir or Path("flight-report")
             report = run_demo(scenario, duration_s, out_dir, script, lockstep, speed, port_offset,
                               record_frames=record_frames, port_base=port_base, view=view, link=link,
-                              passivity=passivity)
+                              passivity=passivity, signing_key=signing_key)
     except ProcessDied as exc:
         click.echo(f"quadlink demo: {exc}", err=True)
         raise SystemExit(1) from exc
