@@ -38,6 +38,9 @@ def test_pymavlink_mavutil_reads_our_tlog(tmp_path: Path) -> None:
     mavutil = _install_dialect()
     log = mavutil.mavlink_connection(str(path))
     types = []
-    while (msg := log.recv_match(blocking=False)) is not None:
-        types.append(msg.get_type())
+    try:
+        while (msg := log.recv_match(blocking=False)) is not None:
+            types.append(msg.get_type())
+    finally:
+        log.close()   # an unclosed file surfaced as an unraisable ResourceWarning in a later test
     assert types.count("TELEOP_FEEDBACK") == 20 and types.count("HEARTBEAT") == 20

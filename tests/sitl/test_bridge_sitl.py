@@ -181,8 +181,6 @@ class Gcs:
             self.conn.close()
 
 
-@pytest.mark.xfail(strict=False,  # noqa: E501
-                   reason='flaky: an unraisable ResourceWarning from test_tlog file handle surfaced here in the final CI run; passes alone')  # noqa: E501
 def test_heartbeat_and_parameter_download(stack, tmp_path):
     gcs = Gcs(stack.gcs_port)
     try:
@@ -365,8 +363,6 @@ async def _mavsdk_flight(stack: Stack) -> dict:
     return seen
 
 
-@pytest.mark.xfail(strict=False,  # noqa: E501
-                   reason='flaky under load: failed leg 1 (0.89 of 2.01 m) in the final CI run while a second run shared the cores; passed alone')  # noqa: E501
 def test_mavsdk_arm_takeoff_offboard_velocity_square_land(stack):
     gcs = Gcs(stack.gcs_port)
     odom = Odometry(stack, gcs)  # the velocity source, from the truth (no companion in this test)
@@ -551,8 +547,6 @@ class TrajectorySetpoints(threading.Thread):
                 0, 1, 1, mavlink.MAV_FRAME_LOCAL_NED, self.MASK, *p, *v, *a, 0, 0))
 
 
-@pytest.mark.xfail(strict=False, reason="along-track error not yet explained: two runs measured position RMSE "
-                   "0.169/0.047/0.028 m and 0.18/0.05/0.05 m/s velocity (x along the line); the line is flown")
 def test_geometric_tracker_flies_a_px4_trajectory_setpoint_stream(stack):
     """BRG_TRACKER = 1 set on the ground, take-off, then OFFBOARD on position + velocity + acceleration setpoints
     along a 0.5 m/s line: the SITL truth stays on the desired path (issue 19's wiring, over real links). Waits are
