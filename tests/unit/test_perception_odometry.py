@@ -13,7 +13,8 @@ from click.testing import CliRunner
 
 from perception import metrics
 from perception.cli import command as vo_eval
-from perception.odometry import OdometryConfig, RgbdOdometry, _reference, prepare_frame, rotate_depth, se3_exp
+from perception.odometry import OdometryConfig, RgbdOdometry, prepare_frame, rotate_depth, se3_exp
+from perception.odometry_frame import _reference
 from perception.synthetic import pose, qvga_intrinsics, render
 from quadlink.datasets.tum import (
     DatasetUnavailable,

@@ -1,0 +1,50 @@
+"""Parameters of the direct RGB-D odometry (:mod:`perception.odometry`): one frozen dataclass read by the frame
+preparation (:mod:`perception.odometry_frame`), the pair alignment (:mod:`perception.odometry_align`) and the
+keyframe tracker."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True)
+class OdometryConfig:
+    """Parameters of the direct RGB-D odometry (defaults tuned on TUM fr1 and the SITL, QVGA)."""
+
+    levels: int = 3                                  # pyramid levels (finest = input resolution)
+    iterations: tuple[int, ...] = (10, 6, 2)         # Gauss-Newton iterations per level, coarse -> fine (the
+                                                     # finest starts close: from the keyframe pose and the gyro)
+    max_points: tuple[int, ...] = (600, 1200, 4000)  # selected reference pixels per level, coarse -> fine
+    working_width_px: int = 320                      # frames wider than this are downscaled first (QVGA)
+    min_depth_m: float = 0.2
+    max_depth_m: float = 6.0
+    depth_weight: float = 1.0                        # lambda_Z: weight of the depth term, each term being
+                                                     # normalised by its robust scale (1: maximum likelihood)
+    t_dof: float = 5.0                               # nu of the t-distribution weights (DVO)
+    min_intensity_sigma: float = 0.004               # floors of the robust scales (about one grey level and
+    min_depth_sigma_m: float = 0.0002                # a structured-light sensor's noise at 1 m) so exact
+                                                     # data cannot make one term drown the other
+    gradient_fraction: float = 0.2                   # share of the points picked by intensity gradient; the
+                                                     # rest spread evenly: the depth term needs no texture and
+                                                     # pins the translation (TUM fr1: translational RPE falls
+                                                     # steadily from 0.75 to 0.1, rotational rises below ~0.2)
+    imu_prior_sigma_rad: float = 0.01                # std of the gyro rotation prior between frames
+    min_fitness: float = 0.3                         # inlier share below which the result is not ok
+    min_points: int = 100
+    max_translation_m: float = 0.5                   # per-frame sanity bounds
+    max_rotation_rad: float = 0.6
+    max_translation_jump_m: float = 0.03             # per-frame translation this far from the constant-velocity
+                                                     # prediction is a wrong alignment (0.9 m/s gained in 33 ms
+                                                     # at 30 Hz, ~3 g; SITL: a hovering vehicle "jumped" 9 cm)
+    convergence_eps: float = 2e-5                    # |delta| (m, rad) below which a level stops
+    coarse_convergence_px: float = 0.1               # update (in the level's pixels) below which a coarse level stops
+    affine_brightness: bool = False                  # estimate a brightness gain and bias per pair (exposure)
+    brightness_prior_sigma: float = 0.1              # std of the gain (about 1) and bias (about 0, intensity 0..1)
+    # keyframes: frames are aligned against the last keyframe, whose gradients, points and Jacobians are computed
+    # once; the current frame becomes the next keyframe after this many frames (1: frame-to-frame alignment),
+    # once it has moved this far from the keyframe, or when its fitness drops below keyframe_min_fitness
+    keyframe_max_frames: int = 8
+    keyframe_max_translation_m: float = 0.1
+    keyframe_max_rotation_rad: float = 0.087         # 5 degrees
+    keyframe_min_fitness: float = 0.7
+    register_depth_in_time: bool = True              # turn an unsynchronised depth image to the colour instant
