@@ -44,7 +44,7 @@ class ForceConfig:
     K_n_m: Vec3Cfg = (60.0, 40.0, 60.0)                # haptic cue on the velocity error
     link_timeout_s: float = 0.5                        # no TELEOP_FEEDBACK for this long = link lost
     fade_time_s: float = 1.0                           # force fades 1 -> 0 over this time (rate-limited)
-    pan_scan_source: Literal["estimated", "commanded"] = "estimated"  # the psi_s' removed in eq. (17)
+    pan_scan_source: Literal["estimated", "commanded"] = "commanded"  # the psi_s' removed in eq. (17)
     cue_modes: tuple[int, ...] = (mavlink.QUADLINK_TELEOP_MODE_TELEOP,   # companion modes with the cue
                                   mavlink.QUADLINK_TELEOP_MODE_HOLD)     # K (q - q~)
 
