@@ -28,7 +28,14 @@ from companion.reference import (
     reference_velocity,
 )
 from quadlink.frames import R_hq, euler_yaw_rate_rad_s
-from quadlink.operator_image import MAX_OBSTACLE_POINTS, OperatorImageMeta, PanScanMeta
+from quadlink.operator_image import (
+    MAX_OBSTACLE_POINTS,
+    NO_VERTICAL,
+    OperatorImageMeta,
+    PanScanMeta,
+    VerticalMeta,
+    finite_or_none,
+)
 
 NO_SCAN = PanScanState(0.0, 0.0, False)
 
@@ -153,4 +160,13 @@ def operator_image_meta(stamp_s: float, out: Any, ref: ReferenceOutput, scan: Pa
                              yaw_offset_rad=float(scan.yaw_offset_rad), alpha_rad=float(ref.alpha_rad),
                              amplitude_rad_s=float(scan_params.amplitude_rad_s),
                              omega_rad_s=float(scan_params.omega_rad_s)),
-        mode=mode.name.lower())
+        mode=mode.name.lower(), vertical=_vertical_meta(ref))
+
+
+def _vertical_meta(ref: ReferenceOutput) -> VerticalMeta:
+    """The vertical limits the reference applied (none: the height was unknown)."""
+    lim = ref.vertical_limits
+    if lim is None:
+        return NO_VERTICAL
+    return VerticalMeta(finite_or_none(lim.height_m), finite_or_none(lim.floor_height_m),
+                        finite_or_none(lim.ceiling_height_m))

@@ -19,7 +19,7 @@ from typing import Any
 
 from quadlink.errors import ProtocolError
 
-OPERATOR_IMAGE_META_VERSION = 1
+OPERATOR_IMAGE_META_VERSION = 2   # 2: the vertical limits
 MAX_OBSTACLE_POINTS = 400
 
 Vec3 = tuple[float, float, float]
@@ -38,6 +38,19 @@ class PanScanMeta:
 
 
 @dataclass(frozen=True)
+class VerticalMeta:
+    """The safety layer's vertical limits at the frame (companion.vertical_limits; heights above the take-off
+    floor, m). None: unknown (no height estimate) or no limit (no ceiling or fence configured)."""
+
+    height_m: float | None            # the height the limits were computed from
+    floor_height_m: float | None      # the lowest height the reference descends to
+    ceiling_height_m: float | None    # the highest it climbs to (room ceiling minus d_safe, or the fence)
+
+
+NO_VERTICAL = VerticalMeta(None, None, None)
+
+
+@dataclass(frozen=True)
 class OperatorImageMeta:
     """What the ground station's view needs besides the image."""
 
@@ -51,6 +64,7 @@ class OperatorImageMeta:
     v_est_h_m_s: Vec3             # the odometry's velocity
     pan_scan: PanScanMeta
     mode: str                     # companion mode name, lower case (idle, takeoff, teleop, hold, land)
+    vertical: VerticalMeta = NO_VERTICAL
     version: int = OPERATOR_IMAGE_META_VERSION
 
     def to_wire(self) -> dict[str, Any]:
@@ -65,6 +79,8 @@ class OperatorImageMeta:
                          "yaw_offset_rad": ps.yaw_offset_rad, "alpha_rad": ps.alpha_rad,
                          "amplitude_rad_s": ps.amplitude_rad_s, "omega_rad_s": ps.omega_rad_s},
             "mode": self.mode,
+            "vertical": {"height_m": self.vertical.height_m, "floor_height_m": self.vertical.floor_height_m,
+                         "ceiling_height_m": self.vertical.ceiling_height_m},
         }
 
     @classmethod
@@ -83,6 +99,7 @@ class OperatorImageMeta:
         mode = d["mode"]
         if not isinstance(mode, str):
             raise ProtocolError(f"operator image meta mode must be a string, got {mode!r}")
+        vd = _exact_keys(d["vertical"], _VERTICAL_KEYS, "operator image meta vertical")
         return cls(
             stamp_s=_real(d, "stamp_s"), roll_rad=_real(d, "roll_rad"), pitch_rad=_real(d, "pitch_rad"),
             yaw_rad=_real(d, "yaw_rad"), gyro_yaw_rate_rad_s=_real(d, "gyro_yaw_rate_rad_s"),
@@ -91,11 +108,14 @@ class OperatorImageMeta:
             pan_scan=PanScanMeta(enabled=ps["enabled"], yaw_rate_rad_s=_real(ps, "yaw_rate_rad_s"),
                                  yaw_offset_rad=_real(ps, "yaw_offset_rad"), alpha_rad=_real(ps, "alpha_rad"),
                                  amplitude_rad_s=_real(ps, "amplitude_rad_s"), omega_rad_s=_real(ps, "omega_rad_s")),
-            mode=mode, version=version)
+            mode=mode, vertical=VerticalMeta(*(_optional(vd, k) for k in ("height_m", "floor_height_m",
+                                                                           "ceiling_height_m"))),
+            version=version)
 
 
 _TOP_KEYS = frozenset({"version", "stamp_s", "roll_rad", "pitch_rad", "yaw_rad", "gyro_yaw_rate_rad_s",
-                       "obstacle_points_c_m", "v_cmd_h_m_s", "v_est_h_m_s", "pan_scan", "mode"})
+                       "obstacle_points_c_m", "v_cmd_h_m_s", "v_est_h_m_s", "pan_scan", "mode", "vertical"})
+_VERTICAL_KEYS = frozenset({"height_m", "floor_height_m", "ceiling_height_m"})
 _PAN_SCAN_KEYS = frozenset({"enabled", "yaw_rate_rad_s", "yaw_offset_rad", "alpha_rad", "amplitude_rad_s",
                             "omega_rad_s"})
 
@@ -118,6 +138,16 @@ def _number(value: Any, what: str) -> float:
 
 def _real(d: dict[str, Any], key: str) -> float:
     return _number(d[key], key)
+
+
+def _optional(d: dict[str, Any], key: str) -> float | None:
+    """A finite number or null (JSON has no inf or nan: unknown and unbounded are null)."""
+    return None if d[key] is None else _number(d[key], key)
+
+
+def finite_or_none(value: float) -> float | None:
+    """The producer's side of :func:`_optional`."""
+    return float(value) if math.isfinite(value) else None
 
 
 def _vec3(value: Any, what: str) -> Vec3:

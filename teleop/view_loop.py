@@ -55,7 +55,7 @@ def overlay(cfg: TeleopConfig, status: dict[str, Any], meta: OperatorImageMeta |
     if prediction is not None:
         delay += f"  vehicle now +{math.hypot(prediction[0], prediction[1]):.2f} m"
     lines = (f"link {status['link']}  mode {status['mode']}  {'ARMED' if status['armed'] else 'disarmed'}",
-             f"battery {bat}  obstacle {obst}  pan-scan {scan}", delay)
+             f"battery {bat}  obstacle {obst}  pan-scan {scan}", delay, _vertical_line(meta))
     f = status["force_n"]
     return Overlay(v_cmd_h_m_s=meta.v_cmd_h_m_s if meta else zero, v_est_h_m_s=meta.v_est_h_m_s if meta else zero,
                    force_d_n=(float(f[0]), float(f[1]), float(f[2])), force_limit_n=cfg.device.force_limit_n,
@@ -67,6 +67,18 @@ def overlay(cfg: TeleopConfig, status: dict[str, Any], meta: OperatorImageMeta |
 
 def _ms(v: float | None) -> str:
     return "-" if v is None else f"{v:.0f}"
+
+
+def _m(v: float | None) -> str:
+    return "-" if v is None else f"{v:.2f}"
+
+
+def _vertical_line(meta: OperatorImageMeta | None) -> str:
+    """The safety layer's vertical limits as the companion applied them (issue 14): height, floor, ceiling."""
+    if meta is None:
+        return "height - m  floor -  ceiling -"
+    v = meta.vertical
+    return f"height {_m(v.height_m)} m  floor {_m(v.floor_height_m)}  ceiling {_m(v.ceiling_height_m)}"
 
 
 @dataclass(frozen=True)

@@ -163,11 +163,12 @@ def test_publisher_drops_frames_whose_meta_would_not_decode() -> None:
         k = qvga_intrinsics()
         rgb = np.zeros((k.height, k.width, 3), np.uint8)
         good = OperatorImageMeta.from_wire({
-            "version": 1, "stamp_s": 1.0, "roll_rad": 0.0, "pitch_rad": 0.0, "yaw_rad": 0.0,
+            "version": 2, "stamp_s": 1.0, "roll_rad": 0.0, "pitch_rad": 0.0, "yaw_rad": 0.0,
             "gyro_yaw_rate_rad_s": 0.1, "obstacle_points_c_m": [[0.0, 0.0, 1.0]], "v_cmd_h_m_s": [0.1, 0, 0],
             "v_est_h_m_s": [0, 0, 0], "mode": "teleop",
             "pan_scan": {"enabled": True, "yaw_rate_rad_s": 0.1, "yaw_offset_rad": 0.0, "alpha_rad": 0.7,
-                         "amplitude_rad_s": 0.6, "omega_rad_s": 1.5}})
+                         "amplitude_rad_s": 0.6, "omega_rad_s": 1.5},
+            "vertical": {"height_m": 1.2, "floor_height_m": 0.3, "ceiling_height_m": None}})
         bad = OperatorImageMeta(**{**good.__dict__, "v_est_h_m_s": (math.nan, 0.0, 0.0)})
         deadline = time.monotonic() + 3.0
         while images.client_count == 0 and time.monotonic() < deadline:

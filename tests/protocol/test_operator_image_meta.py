@@ -66,8 +66,12 @@ def test_producer_output_round_trips_through_the_camera_record() -> None:
     lambda d: d.__setitem__("stamp_s", math.inf),                    # non-finite
     lambda d: d.__setitem__("v_est_h_m_s", [0.0, 0.0]),              # wrong length
     lambda d: d.__setitem__("obstacle_points_c_m", [[0.0, "x", 1.0]]),
-    lambda d: d.__setitem__("version", 2),                           # another version
+    lambda d: d.__setitem__("version", 1),                           # another version
     lambda d: d.__setitem__("mode", 2),
+    lambda d: d.pop("vertical"),                                     # version 2's vertical limits
+    lambda d: d["vertical"].__setitem__("ceiling_height_m", "2.5"),
+    lambda d: d["vertical"].__setitem__("ceiling_height_m", math.inf),   # unbounded is null, never inf
+    lambda d: d["vertical"].pop("floor_height_m"),
 ])
 def test_decode_rejects_anything_but_the_contract(mutate: Any) -> None:
     d = _wire(_producer_meta(True))
@@ -75,6 +79,29 @@ def test_decode_rejects_anything_but_the_contract(mutate: Any) -> None:
     mutate(d)
     with pytest.raises(ProtocolError):
         OperatorImageMeta.from_wire(d)
+
+
+def test_the_vertical_limits_reach_the_station_overlay() -> None:
+    """Issue 14: the ground station shows the safety layer's vertical limits as the companion applied them."""
+    from teleop.config import TeleopConfig
+    from teleop.view_loop import overlay
+
+    params = PanScanParams(False, 0.6, 1.5)
+    scan = pan_scan(params, 0.0)
+    ref = reference_velocity(OperatorInput(0.0, 0.0, 1.0), np.eye(3), scan, None,
+                             ReferenceParams(room_height_m=3.0, max_height_m=None), height_m=1.2)
+    meta = operator_image_meta(1.0, Out(), ref, scan, params, np.zeros(3), Mode.TELEOP, None, np.eye(3),
+                               np.zeros(3))
+    got = OperatorImageMeta.from_wire(_wire(meta))
+    assert got.vertical.ceiling_height_m == pytest.approx(3.0 - 0.45)     # the ceiling minus d_safe
+    assert got.vertical.floor_height_m == pytest.approx(0.3) and got.vertical.height_m == pytest.approx(1.2)
+    status = {"battery_v": None, "min_obstacle_m": None, "link": "ok", "mode": "TELEOP", "armed": True,
+              "force_n": [0.0, 0.0, 0.0], "warnings": []}
+    assert "height 1.20 m  floor 0.30  ceiling 2.55" in overlay(TeleopConfig(), status, got).status_lines
+    unknown = reference_velocity(OperatorInput(), np.eye(3), scan, None, ReferenceParams())   # no height known
+    none = OperatorImageMeta.from_wire(_wire(operator_image_meta(1.0, Out(), unknown, scan, params, np.zeros(3),
+                                                                 Mode.TELEOP, None, np.eye(3), np.zeros(3))))
+    assert none.vertical.ceiling_height_m is None and none.vertical.height_m is None
 
 
 def test_decode_rejects_a_non_dict() -> None:
