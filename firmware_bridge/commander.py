@@ -42,6 +42,8 @@ class CommanderService(OffboardService):
     def _start_takeoff(self, now_s: float) -> None:
         was_in_air, self.in_air = self.in_air, True
         self._takeoff_start_s = now_s   # BRG_TKO_OL_T counts from here (a loss in the climb re-enters phase 1)
+        self._tko_climbed_m = self.height_m if was_in_air else 0.0
+        self._tko_disagree_told = False
         if self.odom_ok:
             self.takeoff_phase = TakeoffPhase.CLOSED_LOOP
             if self._z_ground_m is None:

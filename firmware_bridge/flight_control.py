@@ -24,6 +24,7 @@ from quadlink.mk.flags import BoardFlightState
 MAX_HEADING_ERROR_RAD = 0.5
 HOVER_LEARN_TAU_S = 1.0  # low-pass of the thrust in the open-loop climb: the hover thrust actually needed
 GROUND_CONTACT_ACCEL_M_S2 = 0.3  # below hover thrust, less vertical acceleration than this = the ground carries it
+TKO_HEIGHT_DISAGREE_M = 0.3  # take-off: integrated climb above the odometry's height by this much is told
 BLIND_DESCENT_EXTRA_S = 3.0  # the blind descent probes for the ground after height / rate + this
 CONTROL_DT_S = 0.01  # nominal step (every 5th IMU sample); the measured dt is bounded to [1 ms, 100 ms]
 YAW_TRACK_GAIN_1_S = 2.0  # an absolute yaw target is tracked through the yaw-rate command
@@ -92,10 +93,19 @@ class FlightControlService(CommanderService):
             dv, a_ref = self._trajectory_terms(self._vel_sp, est.yaw_rad, now_s)
             v_ref = v_ref + dv
         elif self.mode == FlightMode.TAKEOFF:
-            remaining = self.takeoff_target_m - self.height_m
+            # the climb ends when the odometry's height or its integrated climb rate says it is high enough:
+            # a height stuck or drifting (a campaign flight's odometry position moved 0.3 m while its velocity,
+            # and the vehicle, climbed 3 m into the ceiling) cannot carry the vehicle past the target
+            self._tko_climbed_m -= float(self.v_est_h(now_s)[2]) * dt
+            height = max(self.height_m, self._tko_climbed_m)
+            if self._tko_climbed_m > self.height_m + TKO_HEIGHT_DISAGREE_M and not self._tko_disagree_told:
+                self._tko_disagree_told = True
+                self._event(mavlink.MAV_SEVERITY_WARNING,   # STATUSTEXT: 50 characters
+                            f"Takeoff: odometry height {self.height_m:.2f}, climbed {self._tko_climbed_m:.2f} m")
+            remaining = self.takeoff_target_m - height
             v_ref[2] = -min(self.params["MPC_TKO_SPEED"], max(1.0 * remaining, 0.1))
             if remaining <= 0.05:
-                self._event(mavlink.MAV_SEVERITY_INFO, f"Takeoff complete at {self.height_m:.2f} m")
+                self._event(mavlink.MAV_SEVERITY_INFO, f"Takeoff complete at {height:.2f} m")
                 self.takeoff_phase = None
                 self.set_mode(FlightMode.LOITER, now_s, "takeoff complete")
                 v_ref[2] = 0.0
@@ -147,6 +157,7 @@ class FlightControlService(CommanderService):
             self._event(mavlink.MAV_SEVERITY_CRITICAL, "No odometry: landing")
             self.set_mode(FlightMode.LAND, now_s, "no odometry")
         if self.mode == FlightMode.TAKEOFF:
+            self._tko_climbed_m = self.vertical.height_m   # the closed-loop phase integrates on from here
             remaining = self.takeoff_target_m - self.vertical.height_m
             vz_ref = -min(p["BRG_TKO_OL_SPD"], max(remaining, 0.0))  # slows into the target, then holds
             ceiling = hover_prior * (1.0 + margin)

@@ -162,6 +162,8 @@ class BridgeState:
         self.blind = False  # in the air and no odometry acquired yet in this flight
         self.takeoff_phase: TakeoffPhase | None = None
         self._takeoff_start_s: float | None = None
+        self._tko_climbed_m = 0.0           # the take-off's climb, integrated from the velocity estimate
+        self._tko_disagree_told = False
         self._hover_thrust_learned: float | None = None
         self._blind_descent: tuple[float, float] | None = None  # (start time, estimated height then)
         # setpoints
