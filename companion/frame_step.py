@@ -67,12 +67,13 @@ def frame_step(out: Any | None, op: OperatorInput, R_qc: NDArray[np.float64], sc
     the operator's handle ``op``; the measured velocity feeds the closing-speed law's stopping distance."""
     points = None if out is None else out.obstacle_points_h_m
     sectors, _, offset_deg = msgs.sector_arrays(None if out is None else out.sectors)
-    # the operator moves along the camera's axis (eq. 2), which is always in view; a script commands any
-    # direction, the camera's blind side included: it never goes where the map has not looked (PX4's
-    # CP_GO_NO_DATA = 0), fresh data or not
-    scripted = v_command_h_m_s is not None
+    # the operator pushing forward moves along the camera's axis (eq. 2), which is always in view; a script
+    # commands any direction, and an operator pulling the handle back reverses away from the camera: neither
+    # goes where the map has not looked (PX4's CP_GO_NO_DATA = 0), fresh data or not (campaign flight 25
+    # backed blind into a partition, 0.24 m)
+    blind_side = v_command_h_m_s is not None or (operator_enabled and op.qx < 0.0)
     ref = reference_velocity(op, R_qc, scan, points, params, sectors_m=sectors,
-                             block_unknown=out is None or not allow_unknown_when_fresh or scripted,
+                             block_unknown=out is None or not allow_unknown_when_fresh or blind_side,
                              operator_enabled=operator_enabled, sector_offset_rad=math.radians(offset_deg),
                              height_m=height_m(out),
                              v_est_h_m_s=None if out is None or not out.odometry_ok else out.v_h_m_s,

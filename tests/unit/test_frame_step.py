@@ -58,3 +58,17 @@ def test_the_operator_keeps_cp_go_no_data_while_the_data_are_fresh() -> None:
     assert free.ref.v_ref_h_m_s[0] == math.copysign(params.k_v_m_s, 1.0)
     blocked = frame_step(out, push, R_QC_FORWARD, NO_SCAN, params, True, False)
     assert np.allclose(blocked.ref.v_ref_h_m_s[:2], 0.0)
+
+
+def test_the_operator_backing_up_goes_only_where_the_map_has_looked() -> None:
+    """Campaign flight 25: a pulled-back handle reverses away from the camera (eq. 2 with q_x < 0), into sectors
+    never seen: refused; forward is not."""
+    params = ReferenceParams()
+    out = _front_seen_only()
+    back = frame_step(out, OperatorInput(qx=-0.8), R_QC_FORWARD, NO_SCAN, params, True, True)
+    assert np.allclose(back.ref.v_ref_h_m_s[:2], 0.0) and back.ref.constrained
+    ahead = frame_step(out, OperatorInput(qx=0.8), R_QC_FORWARD, NO_SCAN, params, True, True)
+    assert ahead.ref.v_ref_h_m_s[0] > 0.4
+    seen_behind = frame_step(_Out(np.full(72, np.inf)), OperatorInput(qx=-0.8), R_QC_FORWARD, NO_SCAN, params,
+                             True, True)
+    assert seen_behind.ref.v_ref_h_m_s[0] < -0.4     # where the map has looked (all free), it reverses
