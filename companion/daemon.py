@@ -58,11 +58,13 @@ from companion.frame_step import (
     fallback_step,
     feedback_message,
     frame_step,
+    height_m,
     operator_image_meta,
     setpoint_velocity,
 )
 from companion.gcs_commands import GcsCommands
 from companion.guard import ErrorCounter, non_finite_fields
+from companion.height import HeightEstimator, HeightParams
 from companion.interfaces import ImageSink, MavLink, Pipeline, PipelineFactory, default_pipeline_factory
 from companion.link_reader import CodecReader
 from companion.modes import AutopilotRequest, Mode, ModeMachine, StatusText
@@ -138,6 +140,8 @@ class Companion:
         self.last_output: Any | None = None
         self.last_ref: ReferenceOutput | None = None
         self.odometry_ok = False
+        self.height = HeightEstimator(HeightParams(cfg.reference.takeoff_height_m,
+                                                   cfg.reference.floor_height_time_constant_s))
         self._reset_counter = 0
         self._scan_t0_s: float | None = None
         self._gyro_q = np.zeros(3)
@@ -449,10 +453,11 @@ class Companion:
             self.stats.perception_s.append(float(out.processing_time_s))
         cmd = self._command()
         op = self._operator_of(cmd)
+        height = self.height.update(stamp, height_m(out), None if out is None else out.floor_height_m)
         step: FrameStep = frame_step(out, op, self._R_qc, self._scan_state(stamp), self.ref_params,
                                      self.modes.operator_enabled, self.cfg.obstacles.allow_unknown_when_fresh,
                                      v_command_h_m_s=cmd.v_h_m_s if cmd.source == Source.SCRIPT else None,
-                                     command_yaw_rate_rad_s=cmd.yaw_rate_rad_s)
+                                     command_yaw_rate_rad_s=cmd.yaw_rate_rad_s, height_above_takeoff_m=height)
         self._nearest = step.nearest   # for TELEOP_FEEDBACK at 50 Hz
         self._avoid_points_h_m = step.obstacle_points_h_m   # the operator image's obstacle dots
         self.last_ref = step.ref
@@ -548,7 +553,8 @@ class Companion:
             # keeps the autopilot's stream alive without a camera (frame_step.fallback_step)
             cmd = self._command()
             op = self._operator_of(cmd)
-            ref = fallback_step(self.last_output, op, self._R_qc, self.ref_params, self.modes.operator_enabled)
+            ref = fallback_step(self.last_output, op, self._R_qc, self.ref_params, self.modes.operator_enabled,
+                                height_above_takeoff_m=self.height.height_m)
             self.last_ref = ref
             self._send_setpoint(self.time.estimate_s(now), ref)
         imu_silent = self.time.imu_wall_s is None or now - self.time.imu_wall_s > IMU_SILENT_S
@@ -560,8 +566,10 @@ class Companion:
     def _log_progress(self) -> None:
         fps = (self.stats.frames - self._progress_frames) / PROGRESS_EVERY_S
         self._progress_frames = self.stats.frames
-        log.info("mode %s  camera %.1f fps  %s  %s", self.modes.mode.name, fps,
-                 self.stats.summary(self.odometry_ok, self.modes.gcs_ok), self.command_clock.summary())
+        h, off = self.height.height_m, self.height.offset_m
+        height = "height ?" if h is None else f"height {h:.2f} m (floor {'?' if off is None else f'{off:+.2f}'})"
+        log.info("mode %s  camera %.1f fps  %s  %s  %s", self.modes.mode.name, fps,
+                 self.stats.summary(self.odometry_ok, self.modes.gcs_ok), height, self.command_clock.summary())
         self.stats.trim()
 
     def close(self) -> None:

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from enum import Enum
 from typing import Any
 
 import numpy as np
@@ -51,8 +52,15 @@ class FrameStep:
     obstacle_points_h_m: NDArray[np.float64]
 
 
+class HeightFrom(Enum):
+    """``frame_step``'s default height source: the odometry's alone (no :mod:`companion.height` estimator)."""
+
+    ODOMETRY = "odometry"
+
+
 def height_m(out: Any) -> float | None:
-    """Height above the take-off floor from the odometry (its world starts on the ground, NED)."""
+    """Height above the take-off pose from the odometry alone (its world starts on the ground, NED); the
+    daemon holds it to the floor the camera sees (:class:`companion.height.HeightEstimator`)."""
     if out is None or not out.odometry_ok or out.position_m is None:
         return None
     z = float(np.asarray(out.position_m, dtype=float)[2])
@@ -61,10 +69,13 @@ def height_m(out: Any) -> float | None:
 
 def frame_step(out: Any | None, op: OperatorInput, R_qc: NDArray[np.float64], scan: PanScanState,
                params: ReferenceParams, operator_enabled: bool, allow_unknown_when_fresh: bool,
-               v_command_h_m_s: NDArray[np.float64] | None = None, command_yaw_rate_rad_s: float = 0.0) -> FrameStep:
+               v_command_h_m_s: NDArray[np.float64] | None = None, command_yaw_rate_rad_s: float = 0.0,
+               height_above_takeoff_m: float | None | HeightFrom = HeightFrom.ODOMETRY) -> FrameStep:
     """The reference for a frame; ``out`` is perception's output (None: perception failed on it).
     ``v_command_h_m_s`` / ``command_yaw_rate_rad_s``: a scripted command (companion.arbiter) instead of
-    the operator's handle ``op``; the measured velocity feeds the closing-speed law's stopping distance."""
+    the operator's handle ``op``; the measured velocity feeds the closing-speed law's stopping distance.
+    ``height_above_takeoff_m``: the vehicle's height (None = unknown; default: the odometry's)."""
+    h = height_m(out) if isinstance(height_above_takeoff_m, HeightFrom) else height_above_takeoff_m
     points = None if out is None else out.obstacle_points_h_m
     sectors, _, offset_deg = msgs.sector_arrays(None if out is None else out.sectors)
     # the operator pushing forward moves along the camera's axis (eq. 2), which is always in view; a script
@@ -75,23 +86,25 @@ def frame_step(out: Any | None, op: OperatorInput, R_qc: NDArray[np.float64], sc
     ref = reference_velocity(op, R_qc, scan, points, params, sectors_m=sectors,
                              block_unknown=out is None or not allow_unknown_when_fresh or blind_side,
                              operator_enabled=operator_enabled, sector_offset_rad=math.radians(offset_deg),
-                             height_m=height_m(out),
-                             v_est_h_m_s=None if out is None or not out.odometry_ok else out.v_h_m_s,
+                             height_m=h, v_est_h_m_s=None if out is None or not out.odometry_ok else out.v_h_m_s,
                              v_command_h_m_s=v_command_h_m_s, command_yaw_rate_rad_s=command_yaw_rate_rad_s)
     # the warning and the dots use the avoidance's points: the floor (within the floor margin once the height
     # is known, or below the band without out_of_band_3d) is not an obstacle to it, nor to the operator
-    avoid = avoidance_points(points, params, height_m(out))
+    avoid = avoidance_points(points, params, h)
     return FrameStep(ref, nearest_obstacle(avoid, params), avoid)
 
 
 def fallback_step(last_out: Any | None, op: OperatorInput, R_qc: NDArray[np.float64], params: ReferenceParams,
-                  operator_enabled: bool) -> ReferenceOutput:
+                  operator_enabled: bool,
+                  height_above_takeoff_m: float | None | HeightFrom = HeightFrom.ODOMETRY) -> ReferenceOutput:
     """No camera: obstacle data stale -> no motion toward unknown (= all) sectors, repulsion from the last
     map kept (conservative), no pan-scan; the operator is zeroed by HOLD (``operator_enabled``)."""
     points = None if last_out is None else last_out.obstacle_points_h_m
     # the last velocity estimate is stale: the stopping distance uses none (the hold is the vehicle's)
     return reference_velocity(op, R_qc, NO_SCAN, points, params, sectors_m=None, block_unknown=True,
-                              operator_enabled=operator_enabled, height_m=height_m(last_out))
+                              operator_enabled=operator_enabled,
+                              height_m=height_m(last_out) if isinstance(height_above_takeoff_m, HeightFrom)
+                              else height_above_takeoff_m)
 
 
 def setpoint_velocity(ref: ReferenceOutput, in_control: bool) -> tuple[NDArray[np.float64], float]:

@@ -86,7 +86,9 @@ class ReferenceParams:
     ``room_height_m`` (the ceiling, kept ``safe_distance_m`` away), ``floor_min_height_m`` (the lowest
     height the reference descends to; take-off and landing are the autopilot's). ``takeoff_height_m``:
     height of the vehicle's origin above the floor when it stands on it (its landing gear):
-    :func:`reference_velocity`'s ``height_m`` is the odometry's, counted from the take-off pose.
+    :func:`reference_velocity`'s ``height_m`` is the odometry's, counted from the take-off pose, held to
+    the floor the camera sees with ``floor_height_time_constant_s`` (:mod:`companion.height`; 0: the
+    odometry's alone).
     """
 
     k_v_m_s: float = 0.6
@@ -111,6 +113,7 @@ class ReferenceParams:
     room_height_m: float | None = None
     floor_min_height_m: float = 0.3
     takeoff_height_m: float = 0.0
+    floor_height_time_constant_s: float = 0.5
 
     def vertical(self) -> VerticalParams:
         """The vertical limits' parameters (:mod:`companion.vertical_limits`), sharing the safe distance and

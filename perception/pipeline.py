@@ -20,6 +20,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from perception.attitude import AttitudeConfig, AttitudeFilter, orthonormalise
+from perception.floor import FloorConfig, measure_floor
 from perception.obstacle_map import ObstacleMap, ObstacleMapConfig, ObstacleSectors
 from perception.obstacles import ObstacleConfig, extract_obstacles
 from perception.odometry import OdometryConfig, RgbdOdometry
@@ -47,6 +48,7 @@ class PerceptionConfig:
     ukf: UkfConfig = field(default_factory=UkfConfig)
     obstacles: ObstacleConfig = field(default_factory=ObstacleConfig)
     obstacle_map: ObstacleMapConfig = field(default_factory=ObstacleMapConfig)
+    floor: FloorConfig = field(default_factory=FloorConfig)   # the height above the floor seen in depth
 
 
 @dataclass(frozen=True)
@@ -68,6 +70,7 @@ class PerceptionOutput:
     processing_time_s: float
     yaw_rate_rad_s: float = 0.0             # Euler yaw rate from the filtered gyro and roll/pitch
     estimator: str = "filters"
+    floor_height_m: float | None = None     # body centre above the floor seen in this frame (perception.floor)
 
 
 class PerceptionPipeline:
@@ -175,8 +178,10 @@ class PerceptionPipeline:
             obs = extract_obstacles(frame.depth_m, K, self.R_qc, self.p_qc_m, roll, pitch, cfg.obstacles)
             self._map.measure(frame.stamp_s, obs, self._rng)
             points_c = obs.points_c_m
+            floor = measure_floor(frame.depth_m, K, self.R_qc, self.p_qc_m, roll, pitch, cfg.floor)
         else:
             points_c = np.zeros((0, 3))
+            floor = None
         sectors = self._map.sectors(frame.stamp_s)
         self.frames += 1
         return PerceptionOutput(
@@ -185,4 +190,5 @@ class PerceptionPipeline:
             odometry_ok=odometry_ok, odometry_fitness=float(fitness), obstacle_points_c_m=points_c,
             obstacle_points_h_m=self._map.points_h_m, sectors=sectors,   # a snapshot: the map never writes it
             nearest_obstacle_h_m=self._map.nearest_h(), processing_time_s=self._clock() - t_start,
-            yaw_rate_rad_s=yaw_rate, estimator=cfg.estimator)
+            yaw_rate_rad_s=yaw_rate, estimator=cfg.estimator,
+            floor_height_m=None if floor is None else floor.height_m)

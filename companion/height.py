@@ -1,0 +1,59 @@
+"""The vehicle's height for the safety layer: the odometry's, held to the floor the camera sees (pure).
+
+The reference counts the height from the take-off pose (:func:`companion.reference.reference_velocity`: 0 on
+the landing gear, ``takeoff_height_m`` below the body centre's height above the floor). The odometry gives
+that height as long as it started on the ground and does not drift; neither holds in general (campaign
+flight 28: the odometry started 0.2 m up, and the climb came 0.2 m closer to a 2.14 m ceiling than its limit;
+CI: a full climb in paper-arena came within 0.24 m of the ceiling the same way).
+
+:func:`perception.floor.measure_floor` measures the body centre's height above the floor in each depth
+image where the floor is in view. This estimator keeps the odometry's smooth, fast height and learns the
+offset between it and the floor's (a first-order filter, ``time_constant_s``); without a floor in view the
+offset is kept. With the odometry lost, the floor of the current frame alone gives the height (or nothing).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True)
+class HeightParams:
+    """``takeoff_height_m``: the body centre above the floor on the landing gear (where the odometry's height
+    is 0); ``time_constant_s``: how fast the floor's measurements pull the odometry's height; 0 disables
+    the floor (the odometry's height alone)."""
+
+    takeoff_height_m: float = 0.1
+    time_constant_s: float = 0.5
+
+
+class HeightEstimator:
+    """Height above the take-off pose (m, up), fused per camera frame; see the module's docstring."""
+
+    def __init__(self, params: HeightParams) -> None:
+        self.params = params
+        self.offset_m: float | None = None       # floor's height minus the odometry's, filtered
+        self._last_floor_s: float | None = None
+        self.height_m: float | None = None       # the last estimate
+
+    def update(self, stamp_s: float, odometry_height_m: float | None, floor_height_m: float | None) -> float | None:
+        """The height at ``stamp_s`` from the odometry's height (above its start; None = lost) and the body
+        centre's height above the floor seen in this frame (None = not in view)."""
+        p = self.params
+        use_floor = p.time_constant_s > 0.0 and floor_height_m is not None and math.isfinite(floor_height_m)
+        floor_m = floor_height_m - p.takeoff_height_m if use_floor else None   # type: ignore[operator]
+        odo_ok = odometry_height_m is not None and math.isfinite(odometry_height_m)
+        if odo_ok and floor_m is not None:
+            innovation = floor_m - odometry_height_m   # type: ignore[operator]
+            if self.offset_m is None or self._last_floor_s is None:
+                self.offset_m = innovation
+            else:
+                dt = max(stamp_s - self._last_floor_s, 0.0)
+                self.offset_m += (1.0 - math.exp(-dt / p.time_constant_s)) * (innovation - self.offset_m)
+            self._last_floor_s = stamp_s
+        if odo_ok:
+            self.height_m = odometry_height_m + (self.offset_m or 0.0)   # type: ignore[operator]
+        else:
+            self.height_m = floor_m
+        return self.height_m

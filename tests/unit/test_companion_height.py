@@ -1,0 +1,58 @@
+"""companion.height: the odometry's height held to the floor the camera sees (campaign flight 28, CI's climb)."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+
+from companion.height import HeightEstimator, HeightParams
+
+TAKEOFF_M = 0.1
+
+
+def _fly(est: HeightEstimator, true_heights_m: list[float], odo_error_m: float, floor_every: int = 1,
+         dt_s: float = 1 / 30) -> list[float | None]:
+    """Frames of a climb whose odometry reads ``odo_error_m`` low; the floor is seen every ``floor_every``-th."""
+    out = []
+    for k, h in enumerate(true_heights_m):
+        floor = h + TAKEOFF_M if k % floor_every == 0 else None
+        out.append(est.update(k * dt_s, h - odo_error_m, floor))
+    return out
+
+
+def test_an_odometry_that_started_in_the_air_is_corrected_by_the_floor() -> None:
+    est = HeightEstimator(HeightParams(TAKEOFF_M, 0.5))
+    climb = [0.2 + 0.02 * k for k in range(120)]            # 0.2 -> 2.6 m in 4 s
+    heights = _fly(est, climb, odo_error_m=0.2)
+    assert heights[0] == pytest.approx(climb[0])             # the first floor seen sets the offset
+    assert heights[-1] == pytest.approx(climb[-1], abs=1e-9)
+
+
+def test_drift_is_followed_with_the_time_constant() -> None:
+    est = HeightEstimator(HeightParams(TAKEOFF_M, 0.5))
+    est.update(0.0, 1.0, 1.0 + TAKEOFF_M)                    # agree
+    # the odometry jumps 0.3 m low (a restart): after one time constant ~63 % of it is taken back
+    h = None
+    for k in range(1, 16):
+        h = est.update(k / 30, 0.7, 1.0 + TAKEOFF_M)
+    assert h is not None and 1.0 - 0.3 * math.exp(-1.0) - 0.02 < h < 1.0 - 0.3 * math.exp(-1.0) + 0.02
+
+
+def test_without_the_floor_the_offset_is_kept_and_the_odometry_moves_the_height() -> None:
+    est = HeightEstimator(HeightParams(TAKEOFF_M, 0.5))
+    est.update(0.0, 0.8, 1.0 + TAKEOFF_M)                    # offset +0.2
+    assert est.update(0.1, 1.5, None) == pytest.approx(1.7)
+
+
+def test_odometry_lost_the_floor_alone_or_nothing() -> None:
+    est = HeightEstimator(HeightParams(TAKEOFF_M, 0.5))
+    assert est.update(0.0, None, None) is None
+    assert est.update(0.1, None, 1.3 + TAKEOFF_M) == pytest.approx(1.3)
+    assert est.update(0.2, float("nan"), float("inf")) is None
+
+
+def test_time_constant_zero_is_the_odometry_alone() -> None:
+    est = HeightEstimator(HeightParams(TAKEOFF_M, 0.0))
+    assert est.update(0.0, 0.5, 2.0) == pytest.approx(0.5)
+    assert est.update(0.1, None, 2.0) is None
