@@ -7,8 +7,11 @@ them to :class:`Outbox` in order (with the mode machine's :class:`~companion.mod
 
 * :class:`GcsReply` — a message for the ground stations, packed (and signed, when configured) as this
   system's companion, or as another of its components (the acks answered for the autopilot);
-* :class:`AutopilotAck` — a reply made as the autopilot itself would make it, packed with its identity
-  and unsigned, like the autopilot's own traffic the companion forwards.
+* :class:`AutopilotAck` — a reply made as the autopilot itself would make it, packed with its identity.
+
+With signing on the ground-station endpoint, everything the ground stations receive is signed with the
+link's key, the autopilot's traffic the companion forwards included (re-packed with its sender's ids and
+sequence number, as a signing router must: a station that requires signing drops unsigned packets).
 
 :class:`Outbox` is the I/O: one bad value drops one message (counted, logged once in a while), a link
 hiccup never stops the loop, nothing non-finite goes to the autopilot, and every packet goes to the tlog.
@@ -16,6 +19,7 @@ hiccup never stops the loop, nothing non-finite goes to the autopilot, and every
 
 from __future__ import annotations
 
+import copy
 import logging
 import struct
 from collections.abc import Callable
@@ -71,12 +75,17 @@ class Outbox:
         if self.tlog is not None:
             self.tlog.write(buf, self.wall())
 
+    @property
+    def signing_gcs(self) -> bool:
+        return bool(self.gcs_codec.signing.sign_outgoing)
+
     def _send(self, link: MavLink, msg: Any, codec: Any) -> None:
         try:
             buf = bytes(msg.pack(codec))
         except (struct.error, OverflowError, ValueError, TypeError) as exc:  # one bad value drops one message
             self.errors.record(f"packing {msg.get_type()}", exc)
             return
+        codec.seq = (codec.seq + 1) % 256
         try:
             link.write(buf)
         except OSError as exc:  # a link hiccup must never stop the loop
@@ -103,21 +112,44 @@ class Outbox:
         finally:
             self.gcs_codec.srcComponent = own
 
-    def to_gcs_as(self, msg: Any, src_system: int, src_component: int) -> bool:
-        """``msg`` to the ground stations packed as ``src_system``/``src_component`` (the autopilot), unsigned
-        and not in the tlog (as the autopilot's forwarded traffic). Written?"""
-        self._ap_codec.srcSystem, self._ap_codec.srcComponent = src_system, src_component
+    def _pack_as(self, msg: Any, src_system: int, src_component: int, seq: int | None) -> bytes:
+        """``msg`` packed as another sender (the autopilot) with the ground stations' signing, when on."""
+        codec = self.gcs_codec if self.signing_gcs else self._ap_codec
+        ids = codec.srcSystem, codec.srcComponent, codec.seq
+        codec.srcSystem, codec.srcComponent = src_system, src_component
+        if seq is not None:
+            codec.seq = seq
         try:
-            self.gcs.write(bytes(msg.pack(self._ap_codec)))
+            return bytes(msg.pack(codec))
+        finally:
+            codec.srcSystem, codec.srcComponent = ids[0], ids[1]
+            codec.seq = ids[2] if seq is not None or codec is self.gcs_codec else (ids[2] + 1) % 256
+
+    def to_gcs_as(self, msg: Any, src_system: int, src_component: int) -> bool:
+        """``msg`` to the ground stations packed as ``src_system``/``src_component`` (the autopilot) and not in
+        the tlog (as the autopilot's forwarded traffic). Written?"""
+        try:
+            self.gcs.write(self._pack_as(msg, src_system, src_component, None))
             return True
+        except (struct.error, OverflowError, ValueError, TypeError) as exc:
+            self.errors.record(f"packing {msg.get_type()}", exc)
+            return False
         except OSError as exc:
             log.debug("sending %s as %d/%d failed: %s", msg.get_type(), src_system, src_component, exc)
             return False
 
     def forward(self, link: MavLink, msg: Any) -> bool:
-        """A received message on to ``link`` as it came (its own bytes). Written?"""
+        """A received message on to ``link`` as it came: its own bytes, or to signed ground stations re-packed
+        and signed with its sender's ids and sequence number. Written?"""
+        buf = msg.get_msgbuf()
+        if link is self.gcs and self.signing_gcs and not msg.get_type().startswith("UNKNOWN"):
+            try:
+                # a copy: packing rewrites a message's buffer, and the received one may be logged or routed on
+                buf = self._pack_as(copy.copy(msg), msg.get_srcSystem(), msg.get_srcComponent(), msg.get_seq())
+            except (struct.error, OverflowError, ValueError, TypeError, AttributeError) as exc:
+                self.errors.record(f"re-signing {msg.get_type()}", exc)
         try:
-            link.write(msg.get_msgbuf())
+            link.write(buf)
             return True
         except OSError as exc:
             log.debug("routing %s failed: %s", msg.get_type(), exc)

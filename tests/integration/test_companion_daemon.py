@@ -53,6 +53,16 @@ class FakeOutput:
     sectors: ObstacleSectors | None = None
     nearest_obstacle_h_m: np.ndarray | None = None
     processing_time_s: float = 0.001
+    yaw_rate_rad_s: float = 0.0
+    estimator: str = "filters"
+    floor_height_m: float | None = None
+
+
+def test_the_fake_output_has_the_fields_of_perceptions_output() -> None:
+    """The daemon reads the producer's fields: a fake that lacks one hides a daemon that reads it."""
+    from perception.pipeline import PerceptionOutput
+
+    assert [f.name for f in dataclasses.fields(FakeOutput)] == [f.name for f in dataclasses.fields(PerceptionOutput)]
 
 
 class FakePipeline:

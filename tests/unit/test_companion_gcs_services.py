@@ -117,6 +117,47 @@ def test_signing_signs_what_is_sent_and_refuses_unsigned_packets(tmp_path: Path)
     assert [m.get_type() for m in rx.parse_buffer(bytes(hb.pack(mavlink.MAVLink(None, 255, 190))))] == ["BAD_DATA"]
 
 
+class _Wire:
+    """An in-memory link: what was written."""
+
+    def __init__(self) -> None:
+        self.sent: list[bytes] = []
+
+    def write(self, buf: bytes) -> None:
+        self.sent.append(bytes(buf))
+
+
+def test_with_signing_the_autopilots_forwarded_traffic_and_its_acks_reach_the_station_signed(tmp_path: Path) -> None:
+    """Issue 16: a station that requires signing dropped the autopilot's heartbeats and the mode acks the
+    companion answers for it, which went out unsigned. They keep the autopilot's ids and sequence number."""
+    key = write_key(tmp_path / "k.key")
+    gate = GcsSecurity(SecurityConfig(str(tmp_path / "k.key"), require_signing=True), SYSID, COMPID, Clock())
+    gcs, autopilot = _Wire(), _Wire()
+    out = Outbox(autopilot, gcs, SYSID, COMPID, 1, ErrorCounter(lambda: 0.0), Stats(), None, lambda: 0.0)
+    gate.enable_signing(out.gcs_codec, mavlink.MAVLink(None), lambda: 1_790_000_000.0)
+    bridge = mavlink.MAVLink(None, SYSID, 1)            # the autopilot: unsigned on its own link
+    bridge.seq = 41
+    hb = mavlink.MAVLink_heartbeat_message(mavlink.MAV_TYPE_QUADROTOR, mavlink.MAV_AUTOPILOT_PX4, 0, 0, 4, 3)
+    (arrived,) = mavlink.MAVLink(None).parse_buffer(bytes(hb.pack(bridge)))
+    received = bytes(arrived.get_msgbuf())
+    assert out.forward(gcs, arrived)
+    assert out.to_gcs_as(mavlink.MAVLink_command_ack_message(mavlink.MAV_CMD_DO_SET_MODE, 0, 0, 0, 255, 190),
+                         SYSID, 1)
+    station = mavlink.MAVLink(None, 255, 190)
+    station.signing.secret_key = key
+    station.signing.allow_unsigned_callback = lambda _mav, _msg_id: False   # requires signing
+    got = [m for buf in gcs.sent for m in station.parse_buffer(buf) or []]
+    assert [m.get_type() for m in got] == ["HEARTBEAT", "COMMAND_ACK"]
+    assert station.signing.goodsig_count == 2
+    assert [(m.get_srcSystem(), m.get_srcComponent()) for m in got] == [(SYSID, 1), (SYSID, 1)]
+    assert got[0].get_seq() == 41
+    # to the autopilot, a forwarded message keeps its own bytes (the autopilot link is not signed)
+    assert out.forward(autopilot, arrived) and autopilot.sent == [received]
+    # and without signing, the forwarded bytes are the received ones
+    plain = Outbox(autopilot, _Wire(), SYSID, COMPID, 1, ErrorCounter(lambda: 0.0), Stats(), None, lambda: 0.0)
+    assert plain.forward(plain.gcs, arrived) and plain.gcs.sent == [received]   # type: ignore[attr-defined]
+
+
 def test_signing_without_a_codec_to_check_it_is_an_error_and_no_key_is_no_signing(tmp_path: Path) -> None:
     write_key(tmp_path / "k.key")
     with pytest.raises(QuadlinkError, match="no MAVLink codec"):
