@@ -87,6 +87,30 @@ class FlightSpec:
                           self.operator, r(self.sitl_config), self.lockstep, self.speed, self.view)
 
 
+def write_companion_config(out_dir: Path, **sections: dict[str, object]) -> Path:
+    """configs/companion.yaml with some keys replaced (``reference={"room_height_m": 3.0}``), written to
+    ``out_dir/companion.yaml``."""
+    import yaml
+
+    data = yaml.safe_load((CONFIG_DIR / "companion.yaml").read_text())
+    for section, values in sections.items():
+        data[section] = {**data.get(section, {}), **values}
+    out_dir.mkdir(parents=True, exist_ok=True)
+    path = out_dir / "companion.yaml"
+    path.write_text(yaml.safe_dump(data, sort_keys=False))
+    return path
+
+
+def companion_config_for_room(out_dir: Path, scenario: str) -> Path:
+    """The companion's configuration for a flight in ``scenario``'s room: its height entered as the ceiling
+    (``reference.room_height_m``), as the operator of an indoor flight does (the camera never sees the
+    ceiling; PX4's GF_MAX_VER_DIST and ArduPilot's FENCE_ALT_MAX are set the same way)."""
+    from sim_sitl.config import load_scenario
+
+    room_height_m = float(load_scenario(scenario).room.height_m)
+    return write_companion_config(out_dir, reference={"room_height_m": round(room_height_m, 3)})
+
+
 def build_specs(scenario: str, script: Path, out_dir: Path, ports: Ports, lockstep: bool, speed: float,
                 duration_s: float, record_frames: bool = False, sitl_config: str | None = None,
                 operator: str = "haptic", view: bool = True, via_netem: bool = False,
@@ -96,8 +120,10 @@ def build_specs(scenario: str, script: Path, out_dir: Path, ports: Ports, lockst
     cue's pan-scan estimate comes from TELEOP_FEEDBACK, not from the images), which saves their CPU.
     ``via_netem``: the ground station talks to the netem proxies' ports (quadlink.demo.link). ``signing_key``:
     the ground link is MAVLink 2 signed with this key (quadlink keygen), and the companion refuses unsigned
-    ground-station packets (issue 16)."""
+    ground-station packets (issue 16). The companion is told the room's height
+    (:func:`companion_config_for_room`)."""
     signed = ("--signing-key", str(signing_key)) if signing_key is not None else ()
+    companion_config = companion_config_for_room(out_dir, scenario)
     vehicle_port, image_port = (ports.vehicle_netem, ports.image_netem) if via_netem else (ports.vehicle, ports.image)
     sitl = ["sitl", "--scenario", scenario, "--port1", str(ports.mk1), "--port2", str(ports.mk2),
             "--camera-port", str(ports.camera), "--truth", f"udpout:127.0.0.1:{ports.truth}",
@@ -130,7 +156,7 @@ def build_specs(scenario: str, script: Path, out_dir: Path, ports: Ports, lockst
                                "--mavlink", f"udpout:127.0.0.1:{ports.autopilot}",
                                "--mavlink", f"udpout:127.0.0.1:{ports.gcs_bridge}",
                                "--params", str(out_dir / "bridge_params.yaml")), ready_after_s=2.0),
-        ProcessSpec("companion", ("companion", "--config", str(CONFIG_DIR / "companion.yaml"),
+        ProcessSpec("companion", ("companion", "--config", str(companion_config),
                                   "--autopilot", f"udpin:127.0.0.1:{ports.autopilot}",
                                   "--gcs", f"udpin:127.0.0.1:{ports.vehicle}",
                                   "--camera", f"tcp://127.0.0.1:{ports.camera}",

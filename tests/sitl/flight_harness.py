@@ -310,19 +310,10 @@ def flight(out_dir: Path, scenario: str = "paper-arena", offset: int = 4000, loc
 
 
 def companion_config_with(out_dir: Path, **sections: dict[str, object]) -> Path:
-    """configs/companion.yaml with some keys replaced (``reference={"room_height_m": 3.0}``), written to
-    ``out_dir/companion.yaml``."""
-    import yaml
+    """configs/companion.yaml with some keys replaced, in ``out_dir`` (the demo's writer)."""
+    from quadlink.demo.cli import write_companion_config
 
-    from quadlink import CONFIG_DIR
-
-    data = yaml.safe_load((CONFIG_DIR / "companion.yaml").read_text())
-    for section, values in sections.items():
-        data[section] = {**data.get(section, {}), **values}
-    out_dir.mkdir(parents=True, exist_ok=True)
-    path = out_dir / "companion.yaml"
-    path.write_text(yaml.safe_dump(data))
-    return path
+    return write_companion_config(out_dir, **sections)
 
 
 # ---------------------------------------------------------------- command line
