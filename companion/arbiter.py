@@ -232,6 +232,7 @@ class Arbiter:
         self._link_s: float | None = None
         self.offboard_engaged = False
         self._mode_switched = False   # the script's tool switches modes (MAVSDK): re-engage only by mode
+        self._hold_asked = False      # the ground station switched to a hold mode: its silence is deliberate
         self.events: list[str] = []   # transitions since the last :meth:`take_events` (for STATUSTEXT)
 
     # --- inputs
@@ -239,6 +240,7 @@ class Arbiter:
         self._operator = operator_from_manual_control(x, y, z, self.params.deadband)
         self._operator_s = now_s
         self._link_s = now_s
+        self._hold_asked = False
 
     def on_heartbeat(self, now_s: float) -> None:
         self._link_s = now_s
@@ -249,6 +251,7 @@ class Arbiter:
         if isinstance(parsed, Refusal):
             return parsed
         self._script, self._script_s = parsed, now_s
+        self._hold_asked = False
         if not self.offboard_engaged and not self._mode_switched:
             self.offboard_engaged = True
             self.events.append("offboard engaged by the setpoint stream")
@@ -270,6 +273,7 @@ class Arbiter:
         if self.offboard_engaged:
             self.events.append("offboard stopped: hold")
         self.offboard_engaged = False
+        self._hold_asked = True
         return True
 
     def take_events(self) -> list[str]:
@@ -279,6 +283,15 @@ class Arbiter:
     # --- state
     def _script_fresh(self, now_s: float) -> bool:
         return self._script_s is not None and 0.0 <= now_s - self._script_s <= self.params.script_timeout_s
+
+    @property
+    def last_command_s(self) -> float | None:
+        """When the newest accepted motion command (operator or script setpoint) arrived; None: never, or the
+        ground station has since switched to a hold mode (MAVSDK's ``offboard.stop()``: its silence is meant)."""
+        if self._hold_asked:
+            return None
+        stamps = [t for t in (self._operator_s, self._script_s) if t is not None]
+        return max(stamps) if stamps else None
 
     def operator_alive(self, now_s: float) -> bool:
         return self._operator_s is not None and 0.0 <= now_s - self._operator_s <= self.params.operator_timeout_s

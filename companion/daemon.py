@@ -530,6 +530,7 @@ class Companion:
             # the ground station is there while it sends heartbeats, setpoints or MANUAL_CONTROL; a silent
             # motion source is the arbiter's business (it holds), not a lost link
             self.modes.on_manual_control(now)
+        self.modes.on_motion_command(self.arbiter.last_command_s)   # a live link alone keeps no vehicle flying
         self._emit(self.modes.update(now, self.vehicle.status(), self.odometry_ok))
         send, failed = self.commands.poll(now)
         for req, why in failed:

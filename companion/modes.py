@@ -16,6 +16,12 @@ Modes (the dialect's QUADLINK_TELEOP_MODE, TELEOP_FEEDBACK.mode): IDLE, TAKEOFF,
   single bad frames are bridged by the estimator); left to TELEOP when both are
   good again (odometry good for ``odometry_recover_s``); -> LAND when the link stays lost for
   ``gcs_land_timeout_s`` or the odometry stays bad for ``odometry_land_timeout_s``.
+* A live link is not a live operator: heartbeats keep the link, but when no fresh motion command (an
+  operator's MANUAL_CONTROL or a script's setpoint, :meth:`ModeMachine.on_motion_command`) has arrived for
+  ``gcs_land_timeout_s`` — a link so delayed that every command is dropped as stale, or a script that
+  stopped — TELEOP and HOLD -> LAND, as PX4's RC-loss failsafe lands with a ground station still
+  connected. Before the first command after take-off, or after the ground station switched to a hold
+  mode (MAVSDK's ``offboard.stop()``), the vehicle holds as PX4 does.
 * LAND: land command to the autopilot; -> IDLE when the autopilot reports landed or disarmed. The
   autopilot reporting that it lands (commanded by someone else, or its own failsafe) -> LAND.
 
@@ -99,6 +105,8 @@ class ModeMachine:
         self.reason = "start"
         self._entered_s = 0.0
         self._last_manual_s: float | None = None
+        self._last_command_s: float | None = None
+        self._takeoff_s = -float("inf")
         self._odometry_ok_since_s: float | None = None
         self._odometry_bad_since_s: float | None = None
         self.gcs_ok = False
@@ -108,6 +116,11 @@ class ModeMachine:
     # --- inputs -----------------------------------------------------------------------------
     def on_manual_control(self, now_s: float) -> None:
         self._last_manual_s = now_s
+
+    def on_motion_command(self, stamp_s: float | None) -> None:
+        """The newest fresh motion command (operator or script) arrived at ``stamp_s``; None: none is
+        expected (none yet, or the ground station asked for a hold)."""
+        self._last_command_s = stamp_s
 
     @property
     def operator_enabled(self) -> bool:
@@ -125,6 +138,8 @@ class ModeMachine:
         old = self.mode
         self._armed_in_takeoff = False
         self.mode, self.reason, self._entered_s = mode, reason, now_s
+        if mode == Mode.TAKEOFF:
+            self._takeoff_s = now_s   # a flight's commands count from its take-off
         return [StatusText(severity, f"companion: {old.name} -> {mode.name} ({reason})")]
 
     def request(self, name: str, now_s: float, status: VehicleStatus) -> tuple[bool, list[Action]]:
@@ -200,8 +215,14 @@ class ModeMachine:
                 actions.append(AutopilotRequest("offboard"))
                 actions += self._go(Mode.TELEOP, now_s, "takeoff complete")
         elif self.mode in (Mode.TELEOP, Mode.HOLD):
+            last = self._last_command_s
+            silent_for = None if last is None or last < self._takeoff_s else now_s - last
             if not status.armed:
                 actions += self._go(Mode.IDLE, now_s, "autopilot disarmed", SEVERITY_WARNING)
+            elif silent_for is not None and silent_for >= p.gcs_land_timeout_s:
+                actions.append(AutopilotRequest("land"))
+                actions += self._go(Mode.LAND, now_s, f"no fresh command for {p.gcs_land_timeout_s:g} s",
+                                    SEVERITY_CRITICAL)
             elif self.mode == Mode.TELEOP and failed:
                 actions += self._go(Mode.HOLD, now_s, "odometry failed", SEVERITY_CRITICAL)
             elif self.mode == Mode.TELEOP and not gcs_ok:

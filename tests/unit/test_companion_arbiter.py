@@ -223,3 +223,16 @@ def test_any_setpoint_is_refused_or_gives_a_bounded_finite_command(frame: int, m
     v, r = script_velocity_h(got, POSE, p)
     assert np.all(np.isfinite(v)) and math.isfinite(r)
     assert float(np.linalg.norm(v)) <= p.script_max_speed_m_s + 1e-6 and abs(r) <= p.script_max_yaw_rate_rad_s
+
+
+def test_the_last_command_is_forgotten_once_the_ground_station_asks_for_a_hold() -> None:
+    """MAVSDK's offboard.stop(): the script's silence after it is meant (the mode machine holds, no land)."""
+    a = Arbiter(ArbiterParams())
+    assert a.last_command_s is None
+    a.on_manual_control(1.0, 0, 0, 500)
+    a.on_heartbeat(2.0)
+    assert a.last_command_s == 1.0               # a heartbeat is no command
+    a.on_set_mode(3.0, offboard=False)
+    assert a.last_command_s is None
+    a.on_manual_control(4.0, 0, 0, 500)
+    assert a.last_command_s == 4.0

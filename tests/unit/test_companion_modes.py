@@ -183,3 +183,34 @@ def test_follows_takeoff_and_landing_commanded_to_the_autopilot_directly() -> No
     assert m.mode == Mode.LAND and _requests(actions) == []
     m.update(3.0, VehicleStatus(armed=False), True)
     assert m.mode == Mode.IDLE
+
+
+def test_a_live_link_without_fresh_commands_holds_then_lands() -> None:
+    """Issue 18: heartbeats keep the link, but every command is stale (a 1 s delay) or the script stopped:
+    the arbiter holds, and after gcs_land_timeout_s without a fresh command the vehicle lands."""
+    params = ModeParams(gcs_timeout_s=0.5, gcs_land_timeout_s=4.0)
+    m, t = _flying_machine(params)
+    m.on_motion_command(t)                      # the last fresh command
+    for k in range(1, 40):                       # heartbeats every 0.1 s: the link stays alive
+        now = t + 0.1 * k
+        m.on_manual_control(now)
+        m.on_motion_command(t)
+        assert _requests(m.update(now, FLYING, True)) == [] and m.mode == Mode.TELEOP
+    m.on_manual_control(t + 4.0)
+    actions = m.update(t + 4.0, FLYING, True)
+    assert _requests(actions) == ["land"] and m.mode == Mode.LAND
+    assert any("no fresh command for 4 s" in s for s in _texts(actions))
+
+
+def test_no_land_before_the_first_command_of_a_flight_or_after_a_hold_was_asked() -> None:
+    params = ModeParams(gcs_timeout_s=0.5, gcs_land_timeout_s=4.0)
+    m = ModeMachine(params)
+    m.on_motion_command(-100.0)                  # a command of an earlier flight
+    m, t = _flying_machine(params)
+    m.on_motion_command(-100.0)
+    for now in (t + 5.0, t + 20.0):
+        m.on_manual_control(now)
+        assert _requests(m.update(now, FLYING, True)) == [] and m.mode == Mode.TELEOP
+    m.on_motion_command(None)                    # the ground station switched to hold (offboard.stop())
+    m.on_manual_control(t + 60.0)
+    assert _requests(m.update(t + 60.0, FLYING, True)) == []
