@@ -12,6 +12,7 @@ a real device, whether they are mapped to the local clock); acks go back to the 
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from collections.abc import Callable
 from typing import Any, Literal
@@ -24,6 +25,14 @@ from companion.cameras.realsense import RealSenseCamera, import_pyrealsense2
 from quadlink.camera import CameraIntrinsics, RgbdFrame
 
 DEPTH_UNIT_M = 0.001   # z16 in mm, as the D400 series
+# an injected frame comes back through librealsense's threads (matcher, alignment) a few ms later: wait that
+# long for it whatever the caller's poll timeout (the daemon polls for 4 ms; a frame read back late would
+# count as a silent device read, and in lock-step the next one is only sent after this one's ack)
+INJECTED_FRAME_TIMEOUT_S = 0.25
+# librealsense's syncer pairs nothing whose hardware-clock stamps are small (measured with pyrealsense2 2.x: none
+# below ~500 s, all from 5000 s), and a SITL's sim-time stamps start near 0: the software device's clock runs
+# this far ahead of its source's, and the camera takes it off again (stamps "device")
+DEVICE_CLOCK_OFFSET_S = 1.0e6
 
 
 class SoftwareRealSense:
@@ -75,7 +84,7 @@ class SoftwareRealSense:
             raise CameraUnavailable(f"software RealSense: frame {frame.seq} is not a {k.width}x{k.height} RGB-D frame")
         depth = np.nan_to_num(np.asarray(frame.depth_m, dtype=np.float64), nan=0.0, posinf=0.0, neginf=0.0)
         z16 = np.clip(np.round(depth / self.depth_unit_m), 0, 65535).astype(np.uint16)
-        stamp_ms = frame.stamp_s * 1000.0
+        stamp_ms = (frame.stamp_s + DEVICE_CLOCK_OFFSET_S) * 1000.0
         self._number += 1
         self._depth_sensor.on_video_frame(self._video_frame(z16, 2, stamp_ms, self._depth_profile))
         self._color_sensor.on_video_frame(self._video_frame(np.asarray(frame.rgb, np.uint8), 3, stamp_ms,
@@ -112,7 +121,9 @@ class SoftwareRealSenseCamera:
         assert self.camera is not None
         self._device.inject(frame)
         self._source_seq = frame.seq
-        out = self.camera.read(timeout_s)
+        out = self.camera.read(max(timeout_s, INJECTED_FRAME_TIMEOUT_S))
+        if out is not None and self._stamps == "device":
+            out = dataclasses.replace(out, stamp_s=out.stamp_s - DEVICE_CLOCK_OFFSET_S)
         if out is None:
             # librealsense's syncer drops the first unmatched frame (it learns the streams from it), and a
             # dropped frame is never acked by the daemon: ack it here, or a lock-step producer would wait on it

@@ -172,7 +172,7 @@ class Flight:
     """A running stack and a ground station on the companion's endpoint. Use :func:`flight`."""
 
     def __init__(self, out_dir: Path, scenario: str, offset: int, lockstep: bool,
-                 companion_config: Path | None, sitl_duration_s: float) -> None:
+                 companion_config: Path | None, sitl_duration_s: float, camera: str = "tcp://127.0.0.1:{port}") -> None:
         from quadlink.demo.cli import Ports
         from quadlink.demo.orchestrator import ProcessSpec, Stack
         from quadlink.mavlink.connection import open_mavlink
@@ -215,7 +215,7 @@ class Flight:
                                                 "--mavlink", f"udpout:127.0.0.1:{p.gcs_bridge}",
                                                 "--params", str(out_dir / "bridge_params.yaml")), ready_after_s=1.0))
         comp = ["companion", "--autopilot", f"udpin:127.0.0.1:{p.autopilot}", "--gcs", f"udpin:127.0.0.1:{p.vehicle}",
-                "--camera", f"tcp://127.0.0.1:{p.camera}", "--image-port", "0",
+                "--camera", camera.format(port=p.camera), "--image-port", "0",
                 "--tlog", str(out_dir / "companion.tlog")]
         if companion_config is None:
             companion_config = companion_config_with(out_dir, **LOADED_MACHINE)
@@ -299,8 +299,10 @@ class Flight:
 
 @contextlib.contextmanager
 def flight(out_dir: Path, scenario: str = "paper-arena", offset: int = 4000, lockstep: bool = True,
-           companion_config: Path | None = None, sitl_duration_s: float = 400.0) -> Iterator[Flight]:
-    f = Flight(out_dir, scenario, offset, lockstep, companion_config, sitl_duration_s)
+           companion_config: Path | None = None, sitl_duration_s: float = 400.0,
+           camera: str = "tcp://127.0.0.1:{port}") -> Iterator[Flight]:
+    """A flight; ``camera``: the companion's camera URL, ``{port}`` the SITL's camera stream port."""
+    f = Flight(out_dir, scenario, offset, lockstep, companion_config, sitl_duration_s, camera)
     try:
         yield f
     finally:
