@@ -90,13 +90,14 @@ class FlightSpec:
 def build_specs(scenario: str, script: Path, out_dir: Path, ports: Ports, lockstep: bool, speed: float,
                 duration_s: float, record_frames: bool = False, sitl_config: str | None = None,
                 operator: str = "haptic", view: bool = True, via_netem: bool = False,
-                teleop_config: Path | None = None, signing_key: Path | None = None) -> list[ProcessSpec]:
+                teleop_config: Path | None = None, signing_key: Path | None = None,
+                companion_config: Path | None = None) -> list[ProcessSpec]:
     """The parts of a flight in start order. ``view=False`` runs headless: no operator image stream from the
     companion, no view or web page in the ground station (neither feeds back into the flight: the haptic
     cue's pan-scan estimate comes from TELEOP_FEEDBACK, not from the images), which saves their CPU.
     ``via_netem``: the ground station talks to the netem proxies' ports (quadlink.demo.link). ``signing_key``:
     the ground link is MAVLink 2 signed with this key (quadlink keygen), and the companion refuses unsigned
-    ground-station packets (issue 16)."""
+    ground-station packets (issue 16). ``companion_config``: the companion's YAML (default configs/companion.yaml)."""
     signed = ("--signing-key", str(signing_key)) if signing_key is not None else ()
     vehicle_port, image_port = (ports.vehicle_netem, ports.image_netem) if via_netem else (ports.vehicle, ports.image)
     sitl = ["sitl", "--scenario", scenario, "--port1", str(ports.mk1), "--port2", str(ports.mk2),
@@ -130,7 +131,7 @@ def build_specs(scenario: str, script: Path, out_dir: Path, ports: Ports, lockst
                                "--mavlink", f"udpout:127.0.0.1:{ports.autopilot}",
                                "--mavlink", f"udpout:127.0.0.1:{ports.gcs_bridge}",
                                "--params", str(out_dir / "bridge_params.yaml")), ready_after_s=2.0),
-        ProcessSpec("companion", ("companion", "--config", str(CONFIG_DIR / "companion.yaml"),
+        ProcessSpec("companion", ("companion", "--config", str(companion_config or CONFIG_DIR / "companion.yaml"),
                                   "--autopilot", f"udpin:127.0.0.1:{ports.autopilot}",
                                   "--gcs", f"udpin:127.0.0.1:{ports.vehicle}",
                                   "--camera", f"tcp://127.0.0.1:{ports.camera}",
