@@ -20,7 +20,12 @@ Sources
     **Position targets** (0xDF8 = 3576 position + yaw, 2552 with yaw ignored, and position + velocity)
     become a bounded velocity toward the target, ``v = clamp(k_p (p_target - p) + v_ff, v_max)``, under the
     same constraints (offset frames are resolved against the position at receipt, as ArduPilot does).
-    Acceleration/force setpoints and partial masks are refused (:class:`Refusal`: STATUSTEXT).
+    **Trajectory setpoints** (issue 19; PX4 style, local frames: position + velocity + acceleration, 2048 with
+    yaw, 1024 with yaw rate; or velocity + acceleration): the companion closes the position loop on its
+    odometry, ``v_ref = v_d - k_p e_x`` (:func:`companion.trajectory_follow.position_loop`), and carries a_d as
+    the acceleration feed-forward (:attr:`MotionCommand.a_ff_h_m_s2`), which the daemon sends only when the
+    safety layer left the velocity untouched. Force setpoints, an acceleration without a velocity, body-frame
+    accelerations and partial masks are refused (:class:`Refusal`: STATUSTEXT).
     An absolute yaw becomes a yaw rate ``k_yaw wrap(yaw_target - yaw)`` (bounded).
 
 Priority and liveness
@@ -46,7 +51,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from companion.reference import OperatorInput, operator_from_manual_control
-from quadlink.frames import wrap_pi
+from companion.trajectory_follow import FollowGains, position_loop
+from quadlink.frames import Rz, wrap_pi
 from quadlink.mavlink import mavlink
 from quadlink.mavlink.setpoint_masks import (
     BODY_FRAMES,
@@ -57,6 +63,7 @@ from quadlink.mavlink.setpoint_masks import (
     TM_YAW,
     TM_YAW_RATE,
 )
+from quadlink.trajectory import TrajectorySample
 
 LOCAL_FRAMES = (mavlink.MAV_FRAME_LOCAL_NED, mavlink.MAV_FRAME_LOCAL_OFFSET_NED)
 OFFSET_FRAMES = (mavlink.MAV_FRAME_LOCAL_OFFSET_NED, mavlink.MAV_FRAME_BODY_OFFSET_NED, mavlink.MAV_FRAME_BODY_FRD)
@@ -81,6 +88,9 @@ class ArbiterParams:
     yaw_gain_per_s: float = 1.5          # absolute yaw target -> yaw rate
     position_gain_per_s: float = 1.0     # position target -> velocity
     position_max_speed_m_s: float = 0.5
+    trajectory_gain_per_s: float = 1.25  # trajectory (p, v, a) setpoint: k_p of v_ref = v_d - k_p e_x (issue 19)
+    trajectory_max_correction_m_s: float = 1.0   # |k_p e_x| clamped to this (a far x_d is not a sprint)
+    trajectory_max_accel_m_s2: float = 3.0       # |a_d| feed-forward clamped to this
 
 
 @dataclass(frozen=True)
@@ -93,6 +103,7 @@ class Setpoint:
     velocity_m_s: tuple[float, float, float] = (0.0, 0.0, 0.0)
     yaw_rad: float = 0.0
     yaw_rate_rad_s: float = 0.0
+    acceleration_m_s2: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
 
 @dataclass(frozen=True)
@@ -114,6 +125,7 @@ class ScriptTarget:
     position_ned_m: tuple[float, float, float] | None       # absolute target, odometry local NED
     yaw_rad: float | None
     yaw_rate_rad_s: float | None
+    accel_ned_m_s2: tuple[float, float, float] | None = None   # trajectory feed-forward a_d, local NED
 
 
 @dataclass(frozen=True)
@@ -128,8 +140,9 @@ class MotionCommand:
     """The arbiter's decision for the reference pipeline.
 
     ``source`` OPERATOR: ``operator`` is the handle (eqs. 2-3). SCRIPT: ``v_h_m_s`` (H, NED, m/s) and
-    ``yaw_rate_rad_s`` replace eqs. (2)-(3). NONE: hold (zero command). ``hold`` is True when no live
-    source commands motion (the ground station may still be connected)."""
+    ``yaw_rate_rad_s`` replace eqs. (2)-(3); ``a_ff_h_m_s2`` (H, m/s^2) is a trajectory's acceleration
+    feed-forward (None for plain velocity/position scripts). NONE: hold (zero command). ``hold`` is True when
+    no live source commands motion (the ground station may still be connected)."""
 
     source: Source
     operator: OperatorInput | None = None
@@ -137,6 +150,7 @@ class MotionCommand:
     yaw_rate_rad_s: float = 0.0
     hold: bool = True
     reason: str = ""
+    a_ff_h_m_s2: NDArray[np.float64] | None = None
 
 
 def _finite(*values: float) -> bool:
@@ -149,12 +163,17 @@ def parse_setpoint(sp: Setpoint, pose: Pose) -> ScriptTarget | Refusal:
     tm = sp.type_mask
     if sp.frame not in BODY_FRAMES + LOCAL_FRAMES:
         return Refusal(f"setpoint frame {sp.frame} not supported (local or body NED)")
-    if tm & TM_FORCE or (tm & TM_ACCEL) != TM_ACCEL:
-        return Refusal("acceleration/force setpoints not supported (velocity or position)")
+    if tm & TM_FORCE:
+        return Refusal("force setpoints not supported (velocity, position or a trajectory)")
     pos_given = (tm & TM_POSITION) == 0
     vel_given = (tm & TM_VELOCITY) == 0
-    if ((tm & TM_POSITION) not in (0, TM_POSITION)) or ((tm & TM_VELOCITY) not in (0, TM_VELOCITY)):
-        return Refusal(f"partial setpoint (type_mask {tm}): give all of x, y, z or none, likewise vx, vy, vz")
+    acc_given = (tm & TM_ACCEL) == 0
+    if any((tm & group) not in (0, group) for group in (TM_POSITION, TM_VELOCITY, TM_ACCEL)):
+        return Refusal(f"partial setpoint (type_mask {tm}): give all of x, y, z or none, likewise v and a")
+    if acc_given and (not vel_given or sp.frame not in LOCAL_FRAMES):
+        return Refusal("acceleration setpoints only as a trajectory: with velocity, in a local frame")
+    if acc_given and not _finite(*sp.acceleration_m_s2):
+        return Refusal("setpoint with NaN or infinite values")
     if not pos_given and not vel_given:
         if tm & TM_YAW and tm & TM_YAW_RATE:
             return Refusal(f"empty setpoint (type_mask {tm})")
@@ -180,18 +199,49 @@ def parse_setpoint(sp: Setpoint, pose: Pose) -> ScriptTarget | Refusal:
             c, s = math.cos(pose.yaw_rad), math.sin(pose.yaw_rad)
             velocity = (c * velocity[0] - s * velocity[1], s * velocity[0] + c * velocity[1], velocity[2])
             body = False
+    accel = tuple(float(a) for a in sp.acceleration_m_s2) if acc_given else None
     if position is not None:
-        return ScriptTarget(None, velocity, position, yaw, yaw_rate)  # type: ignore[arg-type]
+        return ScriptTarget(None, velocity, position, yaw, yaw_rate, accel)  # type: ignore[arg-type]
     if body:
         return ScriptTarget(velocity, None, None, yaw, yaw_rate)  # type: ignore[arg-type]
-    return ScriptTarget(None, velocity, None, yaw, yaw_rate)  # type: ignore[arg-type]
+    return ScriptTarget(None, velocity, None, yaw, yaw_rate, accel)  # type: ignore[arg-type]
 
 
 def script_velocity_h(target: ScriptTarget, pose: Pose, params: ArbiterParams) -> tuple[NDArray[np.float64], float]:
     """A script target as a velocity in H (NED, m/s) and a yaw rate (rad/s, NED), clamped to the script
     limits. Needs the yaw for local frames and the position for position targets (zero otherwise)."""
+    v_h, yaw_rate, _ = script_command_h(target, pose, params)
+    return v_h, yaw_rate
+
+
+def _trajectory_velocity_ned(target: ScriptTarget, pose: Pose, params: ArbiterParams) -> NDArray[np.float64]:
+    """A trajectory setpoint's velocity reference in local NED: v_d - k_p e_x with a position and an estimate
+    (:func:`companion.trajectory_follow.position_loop`, the correction clamped), else v_d."""
+    v_d = np.asarray(target.local_velocity_m_s or (0.0, 0.0, 0.0), dtype=float)
+    if target.position_ned_m is None or pose.position_ned_m is None:
+        return v_d
+    assert target.accel_ned_m_s2 is not None
+    sample = TrajectorySample(0.0, np.asarray(target.position_ned_m, dtype=float), v_d,
+                              np.asarray(target.accel_ned_m_s2, dtype=float), np.zeros(3))
+    gains = FollowGains(params.trajectory_gain_per_s, params.trajectory_max_correction_m_s)
+    return position_loop(sample, pose.position_ned_m, gains).v_ref_ned_m_s
+
+
+def script_command_h(target: ScriptTarget, pose: Pose, params: ArbiterParams
+                     ) -> tuple[NDArray[np.float64], float, NDArray[np.float64] | None]:
+    """:func:`script_velocity_h` plus a trajectory's acceleration feed-forward in H (m/s^2; None for other
+    scripts, and when the yaw is unknown)."""
     v_h = np.zeros(3)
-    if target.body_velocity_m_s is not None:
+    a_h: NDArray[np.float64] | None = None
+    if target.accel_ned_m_s2 is not None:
+        if pose.yaw_rad is not None:
+            R_hw = Rz(-pose.yaw_rad)   # local NED -> H
+            v_h = R_hw @ _trajectory_velocity_ned(target, pose, params)
+            a_h = R_hw @ np.asarray(target.accel_ned_m_s2, dtype=float)
+            n = float(np.linalg.norm(a_h))
+            if n > params.trajectory_max_accel_m_s2:
+                a_h *= params.trajectory_max_accel_m_s2 / n
+    elif target.body_velocity_m_s is not None:
         # relative to the centre of the pan-scan's swing: H is rotated by the offset psi_bar_s (eq. 5)
         c, s = math.cos(pose.scan_yaw_offset_rad), math.sin(pose.scan_yaw_offset_rad)
         b = target.body_velocity_m_s
@@ -217,7 +267,7 @@ def script_velocity_h(target: ScriptTarget, pose: Pose, params: ArbiterParams) -
     else:
         yaw_rate = 0.0
     lim = params.script_max_yaw_rate_rad_s
-    return v_h, min(max(yaw_rate, -lim), lim)
+    return v_h, min(max(yaw_rate, -lim), lim), a_h
 
 
 class Arbiter:
@@ -315,6 +365,7 @@ class Arbiter:
                                  reason="operator" + (" overrides the script" if script else ""))
         if script:
             assert self._script is not None
-            v_h, yaw_rate = script_velocity_h(self._script, pose, self.params)
-            return MotionCommand(Source.SCRIPT, v_h_m_s=v_h, yaw_rate_rad_s=yaw_rate, hold=False, reason="script")
+            v_h, yaw_rate, a_h = script_command_h(self._script, pose, self.params)
+            return MotionCommand(Source.SCRIPT, v_h_m_s=v_h, yaw_rate_rad_s=yaw_rate, hold=False,
+                                 reason="trajectory" if a_h is not None else "script", a_ff_h_m_s2=a_h)
         return MotionCommand(Source.NONE, hold=True, reason="no live source")

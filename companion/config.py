@@ -84,6 +84,10 @@ class ObstacleConfig:
     min_distance_cm: int = 50
     max_distance_cm: int = 350
     allow_unknown_when_fresh: bool = True  # like PX4 CP_GO_NO_DATA=1 while the data are fresh
+    # scripted commands (offboard setpoints, trajectories) toward sectors the map has not looked at: refused by
+    # default (PX4 CP_GO_NO_DATA=0 for scripts); True lets them go where the map has not looked, with fresh data
+    # (paper 003's experiments: a trajectory around the vehicle, the camera looking one way)
+    scripts_into_unknown: bool = False
 
 
 @dataclass(frozen=True)

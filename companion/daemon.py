@@ -78,6 +78,7 @@ from companion.scheduler import Deadlines, StampTicker
 from companion.security import GcsSecurity
 from companion.stats import Stats
 from companion.timesync import AutopilotTime, TimeSync
+from companion.trajectory_follow import feed_forward_after_safety
 from companion.vehicle_state import VehicleState
 from quadlink.camera import RgbdFrame
 from quadlink.mavlink import mavlink
@@ -457,11 +458,14 @@ class Companion:
         step: FrameStep = frame_step(out, op, self._R_qc, self._scan_state(stamp), self.ref_params,
                                      self.modes.operator_enabled, self.cfg.obstacles.allow_unknown_when_fresh,
                                      v_command_h_m_s=cmd.v_h_m_s if cmd.source == Source.SCRIPT else None,
-                                     command_yaw_rate_rad_s=cmd.yaw_rate_rad_s, height_above_takeoff_m=height)
+                                     command_yaw_rate_rad_s=cmd.yaw_rate_rad_s, height_above_takeoff_m=height,
+                                     command_into_unknown=self.cfg.obstacles.scripts_into_unknown)
         self._nearest = step.nearest   # for TELEOP_FEEDBACK at 50 Hz
         self._avoid_points_h_m = step.obstacle_points_h_m   # the operator image's obstacle dots
         self.last_ref = step.ref
-        self._send_setpoint(stamp, step.ref)
+        a_ff = cmd.a_ff_h_m_s2 if cmd.source == Source.SCRIPT else None
+        self._send_setpoint(stamp, step.ref,
+                            feed_forward_after_safety(a_ff, step.ref.constrained, step.ref.v_repulsion_h_m_s))
         self.stats.latencies_s.append(self.clock() - t_in)
         if out is not None:
             self._send_odometry(stamp, out)
@@ -479,9 +483,14 @@ class Companion:
             log.error("frame recording stopped: %s", exc)
             self.frame_recorder = None
 
-    def _send_setpoint(self, stamp_s: float, ref: ReferenceOutput) -> None:
+    def _send_setpoint(self, stamp_s: float, ref: ReferenceOutput, a_ff_h_m_s2: NDArray[np.float64] | None = None
+                       ) -> None:
+        """The safety layer's velocity (and a trajectory's acceleration feed-forward, when the layer left the
+        velocity as commanded: :func:`companion.trajectory_follow.feed_forward_after_safety`)."""
         v, yaw_rate = setpoint_velocity(ref, self.modes.in_control)
-        self.send_autopilot(msgs.setpoint_message(stamp_s, self.sysid, self.ap_compid, v, yaw_rate))
+        if not self.modes.in_control:
+            a_ff_h_m_s2 = None
+        self.send_autopilot(msgs.setpoint_message(stamp_s, self.sysid, self.ap_compid, v, yaw_rate, a_ff_h_m_s2))
         self.stats.setpoints += 1
 
     def _send_odometry(self, stamp_s: float, out: Any) -> None:

@@ -70,7 +70,8 @@ def height_m(out: Any) -> float | None:
 def frame_step(out: Any | None, op: OperatorInput, R_qc: NDArray[np.float64], scan: PanScanState,
                params: ReferenceParams, operator_enabled: bool, allow_unknown_when_fresh: bool,
                v_command_h_m_s: NDArray[np.float64] | None = None, command_yaw_rate_rad_s: float = 0.0,
-               height_above_takeoff_m: float | None | HeightFrom = HeightFrom.ODOMETRY) -> FrameStep:
+               height_above_takeoff_m: float | None | HeightFrom = HeightFrom.ODOMETRY,
+               command_into_unknown: bool = False) -> FrameStep:
     """The reference for a frame; ``out`` is perception's output (None: perception failed on it).
     ``v_command_h_m_s`` / ``command_yaw_rate_rad_s``: a scripted command (companion.arbiter) instead of
     the operator's handle ``op``; the measured velocity feeds the closing-speed law's stopping distance.
@@ -82,7 +83,8 @@ def frame_step(out: Any | None, op: OperatorInput, R_qc: NDArray[np.float64], sc
     # commands any direction, and an operator pulling the handle back reverses away from the camera: neither
     # goes where the map has not looked (PX4's CP_GO_NO_DATA = 0), fresh data or not (campaign flight 25
     # backed blind into a partition, 0.24 m)
-    blind_side = v_command_h_m_s is not None or (operator_enabled and op.qx < 0.0)
+    # (``command_into_unknown``: PX4's CP_GO_NO_DATA = 1 for scripts, as a configuration chooses)
+    blind_side = (v_command_h_m_s is not None and not command_into_unknown) or (operator_enabled and op.qx < 0.0)
     ref = reference_velocity(op, R_qc, scan, points, params, sectors_m=sectors,
                              block_unknown=out is None or not allow_unknown_when_fresh or blind_side,
                              operator_enabled=operator_enabled, sector_offset_rad=math.radians(offset_deg),

@@ -104,7 +104,7 @@ class GcsCommands:
     def on_setpoint(self, msg: Any, pose: Pose) -> list[Output]:
         """A SET_POSITION_TARGET_LOCAL_NED for the arbiter, the vehicle at ``pose``: its refusal, if any."""
         sp = Setpoint(msg.coordinate_frame, msg.type_mask, (msg.x, msg.y, msg.z), (msg.vx, msg.vy, msg.vz), msg.yaw,
-                      msg.yaw_rate)
+                      msg.yaw_rate, (msg.afx, msg.afy, msg.afz))
         refusal = self.arbiter.on_setpoint(self._clock(), sp, pose)
         if refusal is not None:
             return self.refuse_motion(refusal.text)

@@ -25,7 +25,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from quadlink.frames import R_from_euler, R_hq, Rz, quat_wxyz_from_R
 from quadlink.mavlink import mavlink
-from quadlink.mavlink.setpoint_masks import TM_VELOCITY_YAW_RATE
+from quadlink.mavlink.setpoint_masks import TM_VELOCITY_ACCEL_YAW_RATE, TM_VELOCITY_YAW_RATE
 
 TYPE_MASK_VELOCITY_YAW_RATE = TM_VELOCITY_YAW_RATE  # 1479: position, acceleration and yaw ignored
 UINT16_UNKNOWN = 65535
@@ -34,11 +34,17 @@ SECTOR_DEG = 5.0
 
 
 def setpoint_message(time_s: float, target_system: int, target_component: int, v_h_m_s: ArrayLike,
-                     yaw_rate_rad_s: float) -> Any:
+                     yaw_rate_rad_s: float, accel_h_m_s2: ArrayLike | None = None) -> Any:
+    """The velocity setpoint in H (BODY_OFFSET_NED, 1479); with ``accel_h_m_s2`` (a trajectory's feed-forward,
+    issue 19) also the acceleration (mask TM_VELOCITY_ACCEL_YAW_RATE, 1031), which the bridge's geometric
+    tracker (BRG_TRACKER 1) adds as eq. (4)'s a_d."""
     v = np.asarray(v_h_m_s, dtype=float)
+    mask, a = TYPE_MASK_VELOCITY_YAW_RATE, np.zeros(3)
+    if accel_h_m_s2 is not None:
+        mask, a = TM_VELOCITY_ACCEL_YAW_RATE, np.asarray(accel_h_m_s2, dtype=float)
     return mavlink.MAVLink_set_position_target_local_ned_message(
         _ms(time_s), target_system, target_component, mavlink.MAV_FRAME_BODY_OFFSET_NED,
-        TYPE_MASK_VELOCITY_YAW_RATE, 0.0, 0.0, 0.0, float(v[0]), float(v[1]), float(v[2]), 0.0, 0.0, 0.0, 0.0,
+        mask, 0.0, 0.0, 0.0, float(v[0]), float(v[1]), float(v[2]), float(a[0]), float(a[1]), float(a[2]), 0.0,
         float(yaw_rate_rad_s))
 
 

@@ -3,7 +3,10 @@
 Issue 19: the companion stays the one arbiter of motion. It closes the position loop on its own odometry and
 hands the autopilot a velocity reference plus the trajectory's acceleration (SET_POSITION_TARGET_LOCAL_NED with
 the velocity and acceleration bits); the reference passes through the same safety layer as every other command
-before it leaves (the lead wires that: :class:`FollowCommand` is what goes into it).
+before it leaves. Wiring: the arbiter (:mod:`companion.arbiter`) takes a ground station's position + velocity +
+acceleration setpoints and calls :func:`position_loop` at camera rate; its velocity goes through
+:func:`companion.reference.reference_velocity` like any command, and :func:`feed_forward_after_safety` decides
+whether the acceleration goes with the result.
 
 With the bridge's geometric tracker (``firmware_bridge.geometric_tracker``, velocity-only mode) the cascade is
 paper 003's eq. (4) exactly:
@@ -69,6 +72,22 @@ class FollowCommand:
             mavlink.MAV_FRAME_BODY_OFFSET_NED, TYPE_MASK_VELOCITY_ACCEL_YAW_RATE, 0.0, 0.0, 0.0,
             float(v_h[0]), float(v_h[1]), float(v_h[2]), float(a_h[0]), float(a_h[1]), float(a_h[2]), 0.0,
             float(yaw_rate_rad_s))
+
+
+def feed_forward_after_safety(a_ff_h_m_s2: ArrayLike | None, constrained: bool,
+                              v_repulsion_h_m_s: ArrayLike) -> Vec3 | None:
+    """The acceleration feed-forward to send with the safety layer's velocity (H, m/s^2), or None.
+
+    a_d belongs to the trajectory's velocity: once the safety layer changed that velocity (a constraint acted:
+    an obstacle's closing-speed law, the safe distance, an unknown sector, the vertical limits, the speed
+    limit; or the repulsion added to it), the feed-forward would push on toward what the layer is avoiding,
+    so the vehicle gets the constrained velocity alone."""
+    if a_ff_h_m_s2 is None or constrained:
+        return None
+    if float(np.linalg.norm(np.asarray(v_repulsion_h_m_s, dtype=float))) > 1e-9:
+        return None
+    a = np.asarray(a_ff_h_m_s2, dtype=float).reshape(3)
+    return a.copy() if bool(np.all(np.isfinite(a))) else None
 
 
 def position_loop(sample: TrajectorySample, p_est_ned_m: ArrayLike, gains: FollowGains | None = None,

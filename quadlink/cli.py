@@ -29,6 +29,7 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "keygen": ("quadlink.keygen_cli", "Create a MAVLink 2 signing key file for signed ground-station links."),
     "netem": ("quadlink.netem.cli", "A UDP/TCP link with delay, jitter, loss, reordering and a rate limit."),
     "trajectory": ("quadlink.trajectory.cli", "Stream a minimum-snap trajectory (YAML) as MAVLink setpoints."),
+    "paper003": ("quadlink.demo.paper003_cli", "Fly paper 003's hover or oval through the whole stack; its tables."),
 }
 
 

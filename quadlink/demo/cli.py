@@ -114,16 +114,18 @@ def companion_config_for_room(out_dir: Path, scenario: str) -> Path:
 def build_specs(scenario: str, script: Path, out_dir: Path, ports: Ports, lockstep: bool, speed: float,
                 duration_s: float, record_frames: bool = False, sitl_config: str | None = None,
                 operator: str = "haptic", view: bool = True, via_netem: bool = False,
-                teleop_config: Path | None = None, signing_key: Path | None = None) -> list[ProcessSpec]:
+                teleop_config: Path | None = None, signing_key: Path | None = None,
+                companion_config: Path | None = None) -> list[ProcessSpec]:
     """The parts of a flight in start order. ``view=False`` runs headless: no operator image stream from the
     companion, no view or web page in the ground station (neither feeds back into the flight: the haptic
     cue's pan-scan estimate comes from TELEOP_FEEDBACK, not from the images), which saves their CPU.
     ``via_netem``: the ground station talks to the netem proxies' ports (quadlink.demo.link). ``signing_key``:
     the ground link is MAVLink 2 signed with this key (quadlink keygen), and the companion refuses unsigned
-    ground-station packets (issue 16). The companion is told the room's height
-    (:func:`companion_config_for_room`)."""
+    ground-station packets (issue 16). ``companion_config``: the companion's YAML (default: configs/companion.yaml
+    with the room's height, :func:`companion_config_for_room`)."""
     signed = ("--signing-key", str(signing_key)) if signing_key is not None else ()
-    companion_config = companion_config_for_room(out_dir, scenario)
+    if companion_config is None:
+        companion_config = companion_config_for_room(out_dir, scenario)
     vehicle_port, image_port = (ports.vehicle_netem, ports.image_netem) if via_netem else (ports.vehicle, ports.image)
     sitl = ["sitl", "--scenario", scenario, "--port1", str(ports.mk1), "--port2", str(ports.mk2),
             "--camera-port", str(ports.camera), "--truth", f"udpout:127.0.0.1:{ports.truth}",

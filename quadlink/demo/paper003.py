@@ -138,3 +138,36 @@ def _save(fig: Any, path: Path) -> Path:
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path
+
+
+def resample(t_to_s: Array, t_from_s: Array, values: Array) -> Array:
+    """``values`` (N x 3, stamped ``t_from_s``, increasing) linearly interpolated at ``t_to_s``; NaN outside."""
+    t_from = np.asarray(t_from_s, dtype=float)
+    v = np.asarray(values, dtype=float).reshape(-1, 3)
+    t_to = np.asarray(t_to_s, dtype=float)
+    out = np.full((t_to.size, 3), np.nan)
+    if t_from.size < 2:
+        return out
+    inside = (t_to >= t_from[0]) & (t_to <= t_from[-1])
+    for k in range(3):
+        out[inside, k] = np.interp(t_to[inside], t_from, v[:, k])
+    return out
+
+
+def format_tables(t: dict[str, Any]) -> str:
+    """The tables as text, each row beside paper 003's value and issue 19's target."""
+    rows = [("Table 4  position, estimate vs desired", "table4_position_m", "m"),
+            ("Table 5  velocity, estimate vs desired", "table5_velocity_m_s", "m/s"),
+            ("Table 3  velocity, estimate vs truth", "table3_velocity_m_s", "m/s"),
+            ("(truth)  position, truth vs desired", "true_position_vs_desired_m", "m"),
+            ("(truth)  velocity, truth vs desired", "true_velocity_vs_desired_m_s", "m/s")]
+    lines = [f"{'RMSE per axis (x / y / z)':<42} {'quadlink':>24}  {'paper 003':>24}  target"]
+    for title, key, unit in rows:
+        if key not in t:
+            continue
+        ours = " / ".join(f"{v:.3f}" for v in t[key])
+        paper = " / ".join(f"{v:.3f}" for v in t["paper"][key]) if key in t["paper"] else "-"
+        target = f"<= {ISSUE19_TARGETS[key]:g} {unit}" if key in ISSUE19_TARGETS else ""
+        ok = "" if key not in t.get("pass", {}) else ("  pass" if t["pass"][key] else "  FAIL")
+        lines.append(f"{title:<42} {ours + ' ' + unit:>24}  {paper:>24}  {target}{ok}")
+    return "\n".join(lines)

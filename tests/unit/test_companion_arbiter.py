@@ -236,3 +236,59 @@ def test_the_last_command_is_forgotten_once_the_ground_station_asks_for_a_hold()
     assert a.last_command_s is None
     a.on_manual_control(4.0, 0, 0, 500)
     assert a.last_command_s == 4.0
+
+
+# ---------------------------------------------------------------- trajectory setpoints (issue 19)
+def _trajectory_wire(pos: tuple[float, float, float], vel: tuple[float, float, float],
+                     acc: tuple[float, float, float], mask: int = mavlink.POSITION_TARGET_TYPEMASK_YAW_RATE_IGNORE
+                     ) -> Setpoint:
+    """A PX4-style trajectory setpoint (``quadlink trajectory``'s: p + v + a + yaw, LOCAL_NED) through the codec."""
+    codec = mavlink.MAVLink(None, 255, 190)
+    msg = mavlink.MAVLink_set_position_target_local_ned_message(1234, 1, 1, mavlink.MAV_FRAME_LOCAL_NED, mask, *pos,
+                                                                *vel, *acc, math.radians(90.0), 0.0)
+    m = mavlink.MAVLink(None, 1, 191).parse_char(msg.pack(codec))
+    return Setpoint(m.coordinate_frame, m.type_mask, (m.x, m.y, m.z), (m.vx, m.vy, m.vz), m.yaw, m.yaw_rate,
+                    (m.afx, m.afy, m.afz))
+
+
+def test_a_trajectory_setpoint_is_the_companion_position_loop_with_its_acceleration_in_h() -> None:
+    from companion.arbiter import script_command_h
+
+    # vehicle at (1, 2, -1) facing east; desired 0.1 m north of it, moving east at 0.5 m/s, accelerating north
+    t = parse_setpoint(_trajectory_wire((1.1, 2.0, -1.0), (0.0, 0.5, 0.0), (0.4, 0.0, 0.0)), POSE)
+    assert isinstance(t, ScriptTarget) and t.accel_ned_m_s2 == pytest.approx((0.4, 0.0, 0.0))
+    p = ArbiterParams(trajectory_gain_per_s=1.25)
+    v_h, yaw_rate, a_h = script_command_h(t, POSE, p)
+    # v_ref (NED) = v_d - k_p e_x = (0.125, 0.5, 0); in H (x east = forward, y south = right): (0.5, -0.125, 0)
+    assert v_h == pytest.approx([0.5, -0.125, 0.0], abs=1e-6)
+    assert a_h is not None and a_h == pytest.approx([0.0, -0.4, 0.0], abs=1e-6)
+    assert yaw_rate == pytest.approx(0.0, abs=1e-6)   # yaw target = current yaw
+    a = Arbiter(p)
+    assert a.on_setpoint(0.0, _trajectory_wire((1.1, 2.0, -1.0), (0.0, 0.5, 0.0), (0.4, 0.0, 0.0)), POSE) is None
+    cmd = a.command(0.1, POSE)
+    assert cmd.source == Source.SCRIPT and cmd.a_ff_h_m_s2 is not None and cmd.reason == "trajectory"
+    # a plain velocity script carries no feed-forward
+    a.on_setpoint(0.2, _wire(mavlink.MAV_FRAME_BODY_NED, 1479, vel=(0.3, 0.0, 0.0)), POSE)
+    assert a.command(0.3, POSE).a_ff_h_m_s2 is None
+
+
+def test_trajectory_correction_and_feed_forward_are_bounded() -> None:
+    from companion.arbiter import script_command_h
+
+    p = ArbiterParams(trajectory_max_correction_m_s=1.0, trajectory_max_accel_m_s2=3.0, script_max_speed_m_s=1.0)
+    t = parse_setpoint(_trajectory_wire((100.0, 2.0, -1.0), (0.0, 0.0, 0.0), (50.0, 0.0, 0.0)), POSE)
+    assert isinstance(t, ScriptTarget)
+    v_h, _, a_h = script_command_h(t, POSE, p)
+    assert float(np.linalg.norm(v_h)) == pytest.approx(1.0) and a_h is not None
+    assert float(np.linalg.norm(a_h)) == pytest.approx(3.0)
+
+
+@pytest.mark.parametrize("frame, mask, why", [
+    (mavlink.MAV_FRAME_BODY_NED, 1031, "local frame"),                      # body-frame acceleration
+    (mavlink.MAV_FRAME_LOCAL_NED, 3135, "acceleration"),                    # acceleration without a velocity
+    (mavlink.MAV_FRAME_LOCAL_NED, 2048 | 64, "partial"),                    # afx ignored only
+    (mavlink.MAV_FRAME_LOCAL_NED, 2048 | mavlink.POSITION_TARGET_TYPEMASK_FORCE_SET, "force"),
+])
+def test_acceleration_setpoints_other_than_trajectories_are_refused(frame: int, mask: int, why: str) -> None:
+    got = parse_setpoint(_wire(frame, mask), POSE)
+    assert isinstance(got, Refusal) and why in got.text

@@ -2,12 +2,15 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 from test_bridge_geometric_tracker import DT_S, MASS_KG, OVAL_DURATIONS_S, OVAL_NED_M, T_MAX_N, RigidBody
 
 from companion.trajectory_follow import FollowGains, TrajectoryFollower, position_loop
 from firmware_bridge.geometric_tracker import GeometricTracker, TrackingState, TrajectoryTarget
+from quadlink.mavlink import mavlink
 from quadlink.trajectory import TrajectorySample, minimum_snap
 
 OVAL = minimum_snap(OVAL_NED_M, OVAL_DURATIONS_S)
@@ -104,3 +107,29 @@ def test_setpoint_message_reaches_the_bridge_decoder_unchanged() -> None:
     np.testing.assert_allclose(tgt.v_ned_m_s, cmd.v_ref_ned_m_s, atol=1e-6)
     np.testing.assert_allclose(tgt.a_ned_m_s2, cmd.a_ff_ned_m_s2, atol=1e-6)
     assert tgt.p_ned_m is None and tgt.yaw_rate_rad_s == pytest.approx(0.2)
+
+
+def test_the_feed_forward_goes_only_with_the_velocity_the_safety_layer_left_alone() -> None:
+    from companion.trajectory_follow import feed_forward_after_safety
+
+    a = np.array([0.3, -0.2, 0.0])
+    assert feed_forward_after_safety(a, False, np.zeros(3)) == pytest.approx(a)
+    assert feed_forward_after_safety(a, True, np.zeros(3)) is None            # a constraint acted
+    assert feed_forward_after_safety(a, False, [0.0, 0.05, 0.0]) is None     # repulsion added to the velocity
+    assert feed_forward_after_safety(None, False, np.zeros(3)) is None
+    assert feed_forward_after_safety([math.nan, 0.0, 0.0], False, np.zeros(3)) is None
+
+
+def test_the_companion_setpoint_carries_the_feed_forward_as_the_bridge_reads_it() -> None:
+    from companion.messages import setpoint_message
+    from firmware_bridge.geometric_tracker import decode_trajectory_setpoint
+    from quadlink.mavlink.setpoint_masks import TM_VELOCITY_ACCEL_YAW_RATE, TM_VELOCITY_YAW_RATE
+
+    codec = mavlink.MAVLink(None, 1, 191)
+    for accel, mask in ((None, TM_VELOCITY_YAW_RATE), ((0.4, -0.1, 0.0), TM_VELOCITY_ACCEL_YAW_RATE)):
+        msg = setpoint_message(12.5, 1, 1, [0.5, 0.1, -0.05], 0.2, accel)
+        got = mavlink.MAVLink(None, 1, 1).parse_char(msg.pack(codec))
+        assert got.type_mask == mask and got.coordinate_frame == mavlink.MAV_FRAME_BODY_OFFSET_NED
+        target = decode_trajectory_setpoint(got, yaw_rad=0.0)   # H unrotated
+        assert target.v_ned_m_s == pytest.approx([0.5, 0.1, -0.05], abs=1e-6)
+        assert target.a_ned_m_s2 == pytest.approx(accel or (0.0, 0.0, 0.0), abs=1e-6)
