@@ -400,14 +400,23 @@ class Companion:
         return cmd.operator
 
     def _pose(self) -> Pose:
-        """What the arbiter needs of the state: the odometry's position and yaw, the pan-scan's offset."""
+        """What the arbiter needs of the state: the odometry's position and yaw, the pan-scan's offset; the height
+        is the one held to the floor (companion.height), so a trajectory's altitude is the floor's, not the drift's."""
         out = self.last_output
         frame_s = self.time.frame_stamp_s
         scan = self._scan_state(frame_s) if frame_s is not None else NO_SCAN
         if out is None or not out.odometry_ok or out.position_m is None:
             return Pose(None, None, scan.yaw_offset_rad)
-        p = np.asarray(out.position_m, dtype=float)
+        p = self._position_m(out)
         return Pose((float(p[0]), float(p[1]), float(p[2])), float(out.yaw_rad), scan.yaw_offset_rad)
+
+    def _position_m(self, out: Any) -> NDArray[np.float64]:
+        """The odometry's position (local NED from the take-off pose) with the height held to the floor
+        (:mod:`companion.height`): what the arbiter, the autopilot's ODOMETRY and the ground station get."""
+        p = np.array(out.position_m, dtype=float)
+        if self.height.height_m is not None and out.odometry_ok:
+            p[2] = -self.height.height_m
+        return p
 
     def _on_gcs_set_mode(self, msg: Any, base_mode: float, main: float, sub: float, ack: bool = True) -> bool:
         """A mode change for the autopilot (companion.gcs_commands): answered here, or not (it goes on)?"""
@@ -452,9 +461,9 @@ class Companion:
         if out is not None:
             self.last_output = out
             self.stats.perception_s.append(float(out.processing_time_s))
+        height = self.height.update(stamp, height_m(out), None if out is None else out.floor_height_m)
         cmd = self._command()
         op = self._operator_of(cmd)
-        height = self.height.update(stamp, height_m(out), None if out is None else out.floor_height_m)
         step: FrameStep = frame_step(out, op, self._R_qc, self._scan_state(stamp), self.ref_params,
                                      self.modes.operator_enabled, self.cfg.obstacles.allow_unknown_when_fresh,
                                      v_command_h_m_s=cmd.v_h_m_s if cmd.source == Source.SCRIPT else None,
@@ -494,7 +503,7 @@ class Companion:
         self.stats.setpoints += 1
 
     def _send_odometry(self, stamp_s: float, out: Any) -> None:
-        m = msgs.odometry_message(stamp_s, out.position_m, out.roll_rad, out.pitch_rad, out.yaw_rad, out.v_h_m_s,
+        m = msgs.odometry_message(stamp_s, self._position_m(out), out.roll_rad, out.pitch_rad, out.yaw_rad, out.v_h_m_s,
                                   out.omega_q_rad_s, out.v_h_cov, bool(out.odometry_ok),
                                   float(out.odometry_fitness), self._reset_counter)
         self.send_autopilot(m)
@@ -502,7 +511,7 @@ class Companion:
 
     def _send_gcs_telemetry(self, stamp_s: float, out: Any) -> None:
         self.send_gcs(msgs.attitude_message(stamp_s, out.roll_rad, out.pitch_rad, out.yaw_rad, out.omega_q_rad_s))
-        self.send_gcs(msgs.local_position_message(stamp_s, out.position_m, out.yaw_rad, out.v_h_m_s))
+        self.send_gcs(msgs.local_position_message(stamp_s, self._position_m(out), out.yaw_rad, out.v_h_m_s))
         ob = self.cfg.obstacles
         self.send_gcs(msgs.obstacle_distance_message(stamp_s, out.sectors, ob.min_distance_cm, ob.max_distance_cm))
 
