@@ -81,7 +81,7 @@ def simulate_release(cfg: TeleopConfig, loop: DelayedLoop, passivity_on: bool) -
     gains = mapping_gains(cfg.mapping, cfg.device)
     dev = cfg.device
     mass, damping, workspace = (np.array(x, dtype=float) for x in (dev.mass_kg, dev.damping_n_s_m, dev.workspace_m))
-    pc = PassivityController(replace(cfg.passivity, enabled=passivity_on))
+    pc = PassivityController(replace(cfg.passivity, enabled=passivity_on), dev.mass_kg)
     t_release = loop.push_s + loop.hold_s
     n = int(round((t_release + loop.duration_s) / loop.dt_s))
     half = max(int(round(loop.round_trip_s / 2 / loop.dt_s)), 0)
