@@ -30,13 +30,17 @@ sampled damper is stable only for ``alpha T / M < 2``) and its force too (``max_
 ``min_speed_m_s`` nothing can be dissipated and the deficit waits. ``T`` is the period that just ended
 as measured by the observer (at least the nominal one): on a loaded machine a tick lasts 5-30 ms, not 1.
 
-**Why H&R alone leaves a deficit.** The controller acts only *after* the energy is negative, and its
-prediction assumes the force does work ``tau q' T`` over one nominal period at the current velocity.
-When a tick lasts 20 ms instead of 1, the force held over it (zero-order hold) accelerates the handle and
-does ``tau q' T + tau^2 T^2 / (2 M)`` of work; a damping sized for 1 ms (``alpha`` at its 150 N s/m cap,
-``alpha T / M = 12`` at 20 ms) even reverses the handle within the period and becomes active itself. The
-deficit of such a tick is on the account before any damping can answer it (measured: -3.2 mJ at 150 ms
-one way, -6.6 mJ at 300 ms, against epsilon = 1 mJ).
+**Why H&R alone leaves a deficit.** It acts only *after* the energy is negative, and only through a
+damping. (a) On a slow handle a damping cannot take back what a force does: it dissipates at most
+``max_damping_n_s_m v^2 T`` per period while the force does ``|tau| v T``, and nothing below
+``min_speed_m_s``. In a delayed demo flight the deficit was on the yaw axis, that case: the vehicle's own
+yaw (the pan-scan tracking error) moved q~, the cue pushed the released handle at 2-3 mm/s, the damping
+chattered at its 150 N s/m cap and the deficit crept on. (b) Its prediction assumes the force does ``tau q' T`` over
+one nominal period; when a tick lasts 20 ms instead of 1 (a loaded machine), the force held over it
+(zero-order hold) does ``tau q' T + tau^2 T^2 / (2 M)``, and a damping at its cap held 20 ms
+(``alpha T / M = 12``) reverses the handle and pushes it back: the damper itself becomes active. Both
+are on the account before any damping can answer (flown: -3.2 mJ at 150 ms one way, -6.6 mJ at 300 ms,
+against epsilon = 1 mJ; reproduced in tests/unit/test_teleop_passivity.py).
 
 **Passivity layer** (``tank_layer``, behind the controller): the energy tank of Franken, Stramigioli,
 Misra, Secchi & Macchelli, "Bilateral telemanipulation with time delays: a two-layer approach combining

@@ -219,3 +219,32 @@ def test_force_law_untouched_when_the_network_is_passive_even_with_long_ticks(cf
     np.testing.assert_array_equal(on.q_x_m, off.q_x_m)
     np.testing.assert_array_equal(on.force_x_n, off.force_x_n)
     assert on.report.dissipated_j == 0.0
+
+
+def test_layer_withholds_an_active_cue_from_a_released_handle_on_a_loaded_machine() -> None:
+    """The flights' case: the vehicle yaws on its own (the pan-scan tracking error), so q~ steps away from
+    a released handle and the cue K (q - q~) pushes it with energy the hand never put in. H&R's damping at
+    its 150 N s/m cap, held over a 20 ms tick (alpha T / M = 12), reverses the slow handle and injects
+    energy itself; the layer never lets the port deliver what its account does not hold."""
+    from teleop.devices.virtual import step_dynamics
+    from teleop.force import force_law
+    from teleop.force_loop import tau_passive
+
+    cfg = TeleopConfig()
+    mass, friction = np.array(cfg.device.mass_kg), np.array(cfg.device.damping_n_s_m)
+
+    def run(tank_layer: bool) -> PassivityReport:
+        pc = PassivityController(PassivityConfig(enabled=True, tank_layer=tank_layer), cfg.device.mass_kg)
+        q, qd, t, rng = np.zeros(3), np.zeros(3), 0.0, np.random.default_rng(0)
+        q_tilde = np.array([0.0, -0.012, 0.0])
+        while t < 5.0:
+            law = force_law(q, qd, q_tilde, cfg.force, cfg.device.force_limit_n)
+            tau = tau_passive(pc, t, DeviceState(t, q, qd), law, 1e-3, cfg.device.force_limit_n)
+            for _ in range(1 if rng.random() > 0.05 else int(rng.integers(2, 21))):   # 5 % long ticks
+                q, qd = step_dynamics(q, qd, tau, 1e-3, mass, friction)
+                t += 1e-3
+        return pc.report()
+
+    hr_only, layered = run(False), run(True)
+    assert hr_only.min_observed_j < -10 * EPSILON_J and hr_only.dissipated_j < 0.0   # the damper gave energy
+    assert layered.min_observed_j >= -EPSILON_J and layered.output_j <= EPSILON_J
