@@ -6,6 +6,7 @@ Device frame D is NED (x forward, y right, z down), origin at the handle's rest 
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
@@ -60,7 +61,9 @@ class PassivityConfig:
     """Time-domain passivity observer/controller on the device port (teleop/passivity.py, Hannaford & Ryu 2002).
 
     The observer always runs (its energy is logged); ``enabled`` adds the variable damping that keeps the
-    observed energy >= 0 when the force loop is closed through a delayed link.
+    observed energy >= 0 when the force loop is closed through a delayed link, and ``tank_layer`` the
+    energy-tank bound behind it (Franken et al., IEEE T-RO 27(4), 2011): the port never delivers work the
+    observed energy does not hold, predicted over the measured period.
     """
 
     enabled: bool = False
@@ -69,10 +72,16 @@ class PassivityConfig:
     min_speed_m_s: float = 0.002         # no damping below this speed (alpha would be unbounded)
     energy_cap_j: float = 0.0            # cap on each axis' stored credit (energy tank ceiling); 0 = none
     log_period_s: float = 5.0            # energy account to the log every this many seconds
+    tank_layer: bool = True              # the passivity layer behind the damping (only with enabled)
+    period_hold_s: float = 2.0           # the layer predicts over the longest period measured in this window
 
     def __post_init__(self) -> None:
-        if min(self.max_damping_n_s_m, self.max_force_n, self.log_period_s) <= 0:
-            raise ValueError("passivity max_damping_n_s_m, max_force_n and log_period_s must be > 0")
+        values = (self.max_damping_n_s_m, self.max_force_n, self.min_speed_m_s, self.energy_cap_j,
+                  self.log_period_s, self.period_hold_s)
+        if not all(math.isfinite(v) for v in values):
+            raise ValueError("passivity values must be finite")
+        if min(self.max_damping_n_s_m, self.max_force_n, self.log_period_s, self.period_hold_s) <= 0:
+            raise ValueError("passivity max_damping_n_s_m, max_force_n, log_period_s and period_hold_s must be > 0")
         if self.min_speed_m_s < 0 or self.energy_cap_j < 0:
             raise ValueError("passivity min_speed_m_s and energy_cap_j must be >= 0")
 

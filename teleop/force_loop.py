@@ -110,7 +110,7 @@ def run_force_loop(device: HapticDevice, cfg: TeleopConfig, io: ForceLoopIO,
     period = 1.0 / cfg.device.force_rate_hz
     fade = LinkFade(cfg.force.fade_time_s)
     cue_fade = LinkFade(cfg.force.fade_time_s)
-    pc = PassivityController(cfg.passivity)
+    pc = PassivityController(cfg.passivity, cfg.device.mass_kg)
     spin = cfg.device.spin_s
     next_t = clock()
     next_energy_log = next_t + cfg.passivity.log_period_s

@@ -19,6 +19,12 @@ then lets go; afterwards no hand force (``f = 0`` in eq. (1)). The observer runs
 energy the hand stored in the spring is on its account. Without delay the handle returns to rest; with
 a long round trip the cue ``K (q - q~)`` keeps pulling the handle toward where it was a round trip ago.
 Times in the result are relative to the release (negative before it).
+
+**Long ticks.** On a loaded machine the force loop misses its 1 ms deadline: with
+``long_tick_probability > 0`` a tick lasts a random whole number of ``dt_s`` up to ``long_tick_max_s``
+(seeded). The handle, the link and the vehicle still advance every ``dt_s`` (as the virtual device
+sub-steps eq. (1)); the force computed at a tick is held until the next one, and the force loop's tick is
+given the nominal period, as :func:`teleop.force_loop.run_force_loop` gives it.
 """
 
 from __future__ import annotations
@@ -51,6 +57,9 @@ class DelayedLoop:
     hand_damping_n_s_m: float = 15.0
     duration_s: float = 8.0          # after the release
     dt_s: float = 0.001
+    long_tick_probability: float = 0.0   # chance that a force-loop tick lasts longer than dt_s (a loaded machine)
+    long_tick_max_s: float = 0.02        # such a tick lasts a whole number of dt_s, uniform in (dt_s, this]
+    seed: int = 0                        # of the long ticks
 
 
 @dataclass(frozen=True)
@@ -72,7 +81,7 @@ def simulate_release(cfg: TeleopConfig, loop: DelayedLoop, passivity_on: bool) -
     gains = mapping_gains(cfg.mapping, cfg.device)
     dev = cfg.device
     mass, damping, workspace = (np.array(x, dtype=float) for x in (dev.mass_kg, dev.damping_n_s_m, dev.workspace_m))
-    pc = PassivityController(replace(cfg.passivity, enabled=passivity_on))
+    pc = PassivityController(replace(cfg.passivity, enabled=passivity_on), dev.mass_kg)
     t_release = loop.push_s + loop.hold_s
     n = int(round((t_release + loop.duration_s) / loop.dt_s))
     half = max(int(round(loop.round_trip_s / 2 / loop.dt_s)), 0)
@@ -84,6 +93,10 @@ def simulate_release(cfg: TeleopConfig, loop: DelayedLoop, passivity_on: bool) -
     q = np.zeros(3)
     qd = np.zeros(3)
     out = np.zeros((n, 5))
+    rng = np.random.default_rng(loop.seed)
+    max_steps = max(int(round(loop.long_tick_max_s / loop.dt_s)), 1)
+    next_tick = 0
+    tau = np.zeros(3)
     for k in range(n):
         t = k * loop.dt_s
         hand = np.zeros(3)
@@ -99,9 +112,11 @@ def simulate_release(cfg: TeleopConfig, loop: DelayedLoop, passivity_on: bool) -
         if k % feedback_every == 0:
             v_fb = v_back
         qt = q_tilde(VehicleMotion((v_fb, 0.0, 0.0), 0.0, 0.0, 0.0), gains)
-        # the force loop's tick, as run_force_loop does it
-        tau_law = force_law(q, qd, qt, cfg.force, dev.force_limit_n)
-        tau = tau_passive(pc, t, DeviceState(t, q, qd), tau_law, loop.dt_s, dev.force_limit_n)
+        if k == next_tick:   # the force loop's tick, as run_force_loop does it (nominal period given)
+            tau_law = force_law(q, qd, qt, cfg.force, dev.force_limit_n)
+            tau = tau_passive(pc, t, DeviceState(t, q, qd), tau_law, loop.dt_s, dev.force_limit_n)
+            long_tick = max_steps > 1 and rng.random() < loop.long_tick_probability
+            next_tick = k + (int(rng.integers(2, max_steps + 1)) if long_tick else 1)
         out[k] = (t - t_release, q[0], qd[0], tau[0], pc.energy_j[0])
         q, qd = step_dynamics(q, qd, tau + hand, loop.dt_s, mass, damping)
         q, qd = clamp_workspace(q, qd, workspace)

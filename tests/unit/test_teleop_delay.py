@@ -127,7 +127,7 @@ def test_csv_row_carries_the_round_trip_and_the_passivity_account() -> None:
     from teleop.recording import CSV_FIELDS, csv_row
     from teleop.telemetry import Telemetry
 
-    pc = PassivityController(PassivityConfig(enabled=True))
+    pc = PassivityController(PassivityConfig(enabled=True), (0.25, 0.25, 0.25))
     q = 0.0
     for k in range(200):   # the hand pulled along by a force that leads the motion: energy out of the port
         q = 0.01 * math.sin(0.05 * k)

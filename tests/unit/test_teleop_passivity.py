@@ -12,7 +12,7 @@ from teleop.config import DeviceConfig, ForceConfig, PassivityConfig, TeleopConf
 from teleop.devices.base import DeviceState
 from teleop.force import VehicleMotion
 from teleop.force_loop import ForceSnapshot, MotionInput, run_force_loop
-from teleop.passivity import PassivityController, PassivityReport
+from teleop.passivity import PassivityController, PassivityReport, tank_scale
 from teleop.passivity_sim import DelayedLoop, simulate_release
 
 EPSILON_J = 1e-3
@@ -22,10 +22,13 @@ EPSILON_J = 1e-3
 # so the need shows where the operator's feel is made crisper.
 CRISP = TeleopConfig(device=DeviceConfig(damping_n_s_m=(0.5, 0.5, 0.5)), force=ForceConfig(B_n_s_m=(0.5, 0.5, 0.5)))
 LOOP_300MS = DelayedLoop(round_trip_s=0.3, vehicle_time_constant_s=0.05, duration_s=6.0)
+MASS = DeviceConfig().mass_kg
+# a loaded machine: 5 % of the force loop's ticks last 2-20 ms instead of 1 (the force held over them)
+LONG_TICKS = {"long_tick_probability": 0.05, "long_tick_max_s": 0.02}
 
 
 def test_observer_counts_the_work_of_the_held_force() -> None:
-    pc = PassivityController(PassivityConfig())
+    pc = PassivityController(PassivityConfig(), MASS)
     pc.observe(0.0, [0.0, 0.0, 0.0])
     pc.applied([-2.0, 1.0, 0.0], [-2.0, 1.0, 0.0])        # force held over the next period
     pc.observe(0.001, [0.01, 0.01, 0.0])                   # x moved against the force, y along it
@@ -35,7 +38,7 @@ def test_observer_counts_the_work_of_the_held_force() -> None:
 
 def test_controller_dissipates_exactly_the_deficit_and_only_then() -> None:
     cfg = PassivityConfig(enabled=True, max_damping_n_s_m=1e6, max_force_n=1e3)
-    pc = PassivityController(cfg)
+    pc = PassivityController(replace(cfg, tank_layer=False), MASS)
     pc.energy_j = [-0.001, 0.002, -0.001]
     v, tau, T = [0.1, 0.1, 0.0], [0.0, 0.0, 0.0], 0.001
     out = pc.control(v, tau, T)
@@ -43,7 +46,7 @@ def test_controller_dissipates_exactly_the_deficit_and_only_then() -> None:
     assert out[0] == pytest.approx(-0.001 / (T * 0.01) * 0.1)
     assert (-out[0]) * v[0] * T == pytest.approx(0.001)
     assert out[1] == 0.0 and out[2] == 0.0                  # passive axis; axis at rest (nothing to damp)
-    off = PassivityController(replace(cfg, enabled=False))
+    off = PassivityController(replace(cfg, enabled=False), MASS)
     off.energy_j = [-0.001, 0.0, 0.0]
     assert off.control(v, tau, T) == tau                    # observer only: the force is untouched
 
@@ -147,3 +150,101 @@ def test_passivity_config_loads_and_validates(tmp_path) -> None:
         load_teleop_config(path)
     with pytest.raises(ValueError):
         PassivityConfig(max_force_n=0.0)
+    path.write_text("passivity:\n  enabled: true\n  tank_layer: false\n  period_hold_s: 0.5\n")
+    assert load_teleop_config(path).passivity == PassivityConfig(enabled=True, tank_layer=False, period_hold_s=0.5)
+    for bad in ({"period_hold_s": 0.0}, {"period_hold_s": -1.0}, {"period_hold_s": float("nan")},
+                {"max_force_n": float("nan")}, {"min_speed_m_s": float("nan")}, {"energy_cap_j": float("inf")}):
+        with pytest.raises(ValueError):
+            PassivityConfig(**bad)  # type: ignore[arg-type]
+    with pytest.raises(ValueError):
+        PassivityController(PassivityConfig(), (0.25, 0.0, 0.25))
+
+
+# ---- the passivity layer (Franken et al. 2011) behind the H&R controller ------------------------------
+
+def test_tank_scale_bounds_the_work_of_the_held_force() -> None:
+    M, T = 0.25, 0.02
+
+    def work(tau: float, v: float) -> float:      # W of the held force from velocity v over T (no other force)
+        return tau * v * T + tau * tau * T * T / (2 * M)
+
+    assert tank_scale(2.0, 0.1 * T, T, M, 0.01) == 1.0                      # the tank holds W(1) = 7.2 mJ
+    s = tank_scale(2.0, 0.1 * T, T, M, 0.001)                              # it holds 1 mJ: scaled to spend it
+    assert 0.0 < s < 1.0 and work(2.0 * s, 0.1) == pytest.approx(0.001)
+    assert tank_scale(2.0, 0.1 * T, T, M, -0.002) == 0.0                   # empty tank: nothing along the motion
+    # a damping of 150 N s/m held 20 ms (alpha T / M = 12) would reverse the handle and push it back past its
+    # start: with an empty tank it is cut to the force that does no net work (2 M v / T)
+    s = tank_scale(-15.0, 0.1 * T, T, M, 0.0)
+    assert -15.0 * s == pytest.approx(-2 * M * 0.1 / T) and work(-15.0 * s, 0.1) == pytest.approx(0.0, abs=1e-12)
+    assert tank_scale(-0.3, 0.1 * 0.001, 0.001, M, 0.0) == 1.0              # a plain damping at 1 ms: untouched
+
+
+def test_controller_sizes_the_damping_for_the_measured_period() -> None:
+    cfg = PassivityConfig(enabled=True, max_damping_n_s_m=1e6, max_force_n=1e3, tank_layer=False)
+    pc = PassivityController(cfg, MASS)
+    pc.observe(0.0, [0.0, 0.0, 0.0])
+    pc.observe(0.02, [0.0, 0.0, 0.0])                      # the tick lasted 20 ms, not the nominal 1
+    pc.energy_j = [-0.001, 0.0, 0.0]
+    out = pc.control([0.1, 0.0, 0.0], [0.0, 0.0, 0.0], 0.001)
+    assert pc.period_s == pytest.approx(0.02) and pc.period_peak_s == pytest.approx(0.02)
+    assert (-out[0]) * 0.1 * 0.02 == pytest.approx(0.001)  # alpha v^2 T over the measured T burns the deficit
+
+
+@pytest.mark.parametrize("one_way_s", [0.15, 0.3])
+def test_layer_keeps_the_observed_energy_above_epsilon_with_long_ticks(one_way_s: float) -> None:
+    """The released handle of the crisp device under delay, on a loaded machine (long ticks, the force
+    held over them, the nominal period given to the controller as the force loop gives it)."""
+    loop = replace(LOOP_300MS, round_trip_s=2 * one_way_s, **LONG_TICKS)
+    hr_only = replace(CRISP, passivity=replace(CRISP.passivity, tank_layer=False))
+    old = simulate_release(hr_only, loop, True)
+    # H&R alone: the force held over a long tick does work no 1 ms prediction foresaw (the flights' deficit)
+    assert old.report.min_observed_j < -2 * EPSILON_J
+    on = simulate_release(CRISP, loop, True)
+    assert on.report.min_observed_j >= -EPSILON_J
+    assert on.energy_x_j.min() >= -EPSILON_J
+    off = simulate_release(CRISP, loop, False)
+    assert off.rms_velocity_m_s(3.0) > 0.1                  # the need: without control a limit cycle
+    assert on.rms_velocity_m_s(3.0) < 0.1 * off.rms_velocity_m_s(3.0)
+    assert abs(on.q_x_m[-1000:]).max() < 0.01               # at rest near the centre at the end
+
+
+@pytest.mark.parametrize("cfg, one_way_s", [(CRISP, 0.0), (TeleopConfig(), 0.3)], ids=["crisp-0ms", "shipped-300ms"])
+def test_force_law_untouched_when_the_network_is_passive_even_with_long_ticks(cfg: TeleopConfig,
+                                                                            one_way_s: float) -> None:
+    # a passive network (no delay; or the shipped gains, passive at any delay): the account always holds
+    # the work the force can do, so neither the damping nor the layer ever acts, bit for bit
+    loop = replace(LOOP_300MS, round_trip_s=2 * one_way_s, **LONG_TICKS)
+    off, on = simulate_release(cfg, loop, False), simulate_release(cfg, loop, True)
+    assert off.report.min_observed_j >= 0.0
+    np.testing.assert_array_equal(on.q_x_m, off.q_x_m)
+    np.testing.assert_array_equal(on.force_x_n, off.force_x_n)
+    assert on.report.dissipated_j == 0.0
+
+
+def test_layer_withholds_an_active_cue_from_a_released_handle_on_a_loaded_machine() -> None:
+    """The flights' case: the vehicle yaws on its own (the pan-scan tracking error), so q~ steps away from
+    a released handle and the cue K (q - q~) pushes it with energy the hand never put in. H&R's damping at
+    its 150 N s/m cap, held over a 20 ms tick (alpha T / M = 12), reverses the slow handle and injects
+    energy itself; the layer never lets the port deliver what its account does not hold."""
+    from teleop.devices.virtual import step_dynamics
+    from teleop.force import force_law
+    from teleop.force_loop import tau_passive
+
+    cfg = TeleopConfig()
+    mass, friction = np.array(cfg.device.mass_kg), np.array(cfg.device.damping_n_s_m)
+
+    def run(tank_layer: bool) -> PassivityReport:
+        pc = PassivityController(PassivityConfig(enabled=True, tank_layer=tank_layer), cfg.device.mass_kg)
+        q, qd, t, rng = np.zeros(3), np.zeros(3), 0.0, np.random.default_rng(0)
+        q_tilde = np.array([0.0, -0.012, 0.0])
+        while t < 5.0:
+            law = force_law(q, qd, q_tilde, cfg.force, cfg.device.force_limit_n)
+            tau = tau_passive(pc, t, DeviceState(t, q, qd), law, 1e-3, cfg.device.force_limit_n)
+            for _ in range(1 if rng.random() > 0.05 else int(rng.integers(2, 21))):   # 5 % long ticks
+                q, qd = step_dynamics(q, qd, tau, 1e-3, mass, friction)
+                t += 1e-3
+        return pc.report()
+
+    hr_only, layered = run(False), run(True)
+    assert hr_only.min_observed_j < -10 * EPSILON_J and hr_only.dissipated_j < 0.0   # the damper gave energy
+    assert layered.min_observed_j >= -EPSILON_J and layered.output_j <= EPSILON_J
