@@ -86,7 +86,11 @@ def align_pair(ref: PreparedFrame, cur: PreparedFrame, config: OdometryConfig,
     T = np.eye(4) if T_init is None else T_init.copy()
     R_prior = None
     if R_ckm1_ck_prior is not None:
-        R_prior = np.asarray(R_ckm1_ck_prior, dtype=float).T   # rotation of T_ck_ckm1
+        # the nearest rotation (SVD): a prior composed of rounded or calibrated matrices is off SO(3) by ~1e-6
+        # per frame, and a start that is not rigid stays so (the updates are rigid) and accumulates along the
+        # keyframe chain
+        U, _, Vt = np.linalg.svd(np.asarray(R_ckm1_ck_prior, dtype=float))
+        R_prior = (U @ Vt).T   # rotation of T_ck_ckm1
         T[:3, :3] = R_prior   # the gyro's rotation is a better start than any guess
     info_prior = 1.0 / cfg.imu_prior_sigma_rad**2
     # brightness I_k = gain I_km1 + bias (auto exposure), estimated with the motion (as DSO's affine model)
