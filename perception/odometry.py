@@ -237,8 +237,9 @@ class RgbdOdometry:
 
         The chain ``kf_prev -> kf -> ck`` carries the errors of two alignments, the direct ``kf_prev -> ck``
         its own: their information-weighted mean cuts the error each keyframe hands on, which on fast rotation
-        is translation traded for rotation. The chain's estimate is within a pixel, so the second alignment
-        runs on the finest level alone (to ``convergence_eps``, at most the coarsest level's iterations). It is
+        is translation traded for rotation. The chain's estimate is a few pixels at most from the answer, inside
+        the finest level's basin, so the second alignment runs on the finest level alone with the coarsest
+        level's iteration budget (on fast rotation it mostly uses all of it: see perception/README.md). It is
         used only if its fitness would keep ``kf_prev`` a keyframe (``keyframe_min_fitness``): with less overlap
         its error is not the one its information describes (TUM teddy: 0.0053 -> 0.0057 m RPE without it).
         """
