@@ -37,6 +37,9 @@ class PairResult:
     iterations: int
     gain: float = 1.0       # brightness model of the pair: I_k = gain I_km1 + bias
     bias: float = 0.0
+    # Gauss-Newton information (6×6, 1/m² and 1/rad²) of the finest level's last iteration about the twist
+    # xi of T_km1_k <- exp(xi) T_km1_k (the inverse-compositional update); None if not evaluated
+    information: NDArray[np.float64] | None = None
 
 
 _I3 = np.eye(3)
@@ -86,7 +89,11 @@ def align_pair(ref: PreparedFrame, cur: PreparedFrame, config: OdometryConfig,
     T = np.eye(4) if T_init is None else T_init.copy()
     R_prior = None
     if R_ckm1_ck_prior is not None:
-        R_prior = np.asarray(R_ckm1_ck_prior, dtype=float).T   # rotation of T_ck_ckm1
+        # the nearest rotation (SVD): a prior composed of rounded or calibrated matrices is off SO(3) by ~1e-6
+        # per frame, and a start that is not rigid stays so (the updates are rigid) and accumulates along the
+        # keyframe chain
+        U, _, Vt = np.linalg.svd(np.asarray(R_ckm1_ck_prior, dtype=float))
+        R_prior = (U @ Vt).T   # rotation of T_ck_ckm1
         T[:3, :3] = R_prior   # the gyro's rotation is a better start than any guess
     info_prior = 1.0 / cfg.imu_prior_sigma_rad**2
     # brightness I_k = gain I_km1 + bias (auto exposure), estimated with the motion (as DSO's affine model)
@@ -96,6 +103,7 @@ def align_pair(ref: PreparedFrame, cur: PreparedFrame, config: OdometryConfig,
     n_levels = min(cfg.levels, len(ref.levels), len(cur.levels))
     total_iters = 0
     fitness, rmse_i, n_points = 0.0, math.nan, 0
+    information: NDArray[np.float64] | None = None
     for li in range(n_levels - 1, -1, -1):
         k = n_levels - 1 - li  # coarse -> fine index into the per-level tuples
         iters = cfg.iterations[min(k, len(cfg.iterations) - 1)]
@@ -232,6 +240,7 @@ def align_pair(ref: PreparedFrame, cur: PreparedFrame, config: OdometryConfig,
                 inl = ok_i & (r2[:N] < np.float32(_INLIER_INTENSITY**2))
                 n_inl = int(np.count_nonzero(inl))
                 fitness = n_inl / N
+                information = H[:6, :6].copy()
                 rmse_i = math.sqrt(float(np.dot(r2[:N], inl)) / n_inl) if n_inl else math.nan
             else:
                 fitness = 0.0
@@ -240,4 +249,4 @@ def align_pair(ref: PreparedFrame, cur: PreparedFrame, config: OdometryConfig,
           and bool(np.all(np.isfinite(T)))
           and float(np.linalg.norm(T_step[:3, 3])) <= cfg.max_translation_m
           and float(np.linalg.norm(so3_log(T_step[:3, :3]))) <= cfg.max_rotation_rad)
-    return PairResult(T, ok, fitness, rmse_i, n_points, total_iters, gain, bias)
+    return PairResult(T, ok, fitness, rmse_i, n_points, total_iters, gain, bias, information)
