@@ -142,7 +142,8 @@ class Companion:
         self.last_ref: ReferenceOutput | None = None
         self.odometry_ok = False
         self.height = HeightEstimator(HeightParams(cfg.reference.takeoff_height_m,
-                                                   cfg.reference.floor_height_time_constant_s))
+                                                   cfg.reference.floor_height_time_constant_s,
+                                                   cfg.reference.height_fix_max_age_s))
         self._reset_counter = 0
         self._scan_t0_s: float | None = None
         self._gyro_q = np.zeros(3)
@@ -468,6 +469,7 @@ class Companion:
                                      self.modes.operator_enabled, self.cfg.obstacles.allow_unknown_when_fresh,
                                      v_command_h_m_s=cmd.v_h_m_s if cmd.source == Source.SCRIPT else None,
                                      command_yaw_rate_rad_s=cmd.yaw_rate_rad_s, height_above_takeoff_m=height,
+                                     height_verified=self.height.verified(stamp),
                                      command_into_unknown=self.cfg.obstacles.scripts_into_unknown)
         self._nearest = step.nearest   # for TELEOP_FEEDBACK at 50 Hz
         self._avoid_points_h_m = step.obstacle_points_h_m   # the operator image's obstacle dots
@@ -573,7 +575,8 @@ class Companion:
             cmd = self._command()
             op = self._operator_of(cmd)
             ref = fallback_step(self.last_output, op, self._R_qc, self.ref_params, self.modes.operator_enabled,
-                                height_above_takeoff_m=self.height.height_m)
+                                height_above_takeoff_m=self.height.height_m,
+                                height_verified=self.height.verified(self.time.estimate_s(now)))
             self.last_ref = ref
             self._send_setpoint(self.time.estimate_s(now), ref)
         imu_silent = self.time.imu_wall_s is None or now - self.time.imu_wall_s > IMU_SILENT_S

@@ -71,11 +71,12 @@ def frame_step(out: Any | None, op: OperatorInput, R_qc: NDArray[np.float64], sc
                params: ReferenceParams, operator_enabled: bool, allow_unknown_when_fresh: bool,
                v_command_h_m_s: NDArray[np.float64] | None = None, command_yaw_rate_rad_s: float = 0.0,
                height_above_takeoff_m: float | None | HeightFrom = HeightFrom.ODOMETRY,
-               command_into_unknown: bool = False) -> FrameStep:
+               command_into_unknown: bool = False, height_verified: bool = True) -> FrameStep:
     """The reference for a frame; ``out`` is perception's output (None: perception failed on it).
     ``v_command_h_m_s`` / ``command_yaw_rate_rad_s``: a scripted command (companion.arbiter) instead of
     the operator's handle ``op``; the measured velocity feeds the closing-speed law's stopping distance.
-    ``height_above_takeoff_m``: the vehicle's height (None = unknown; default: the odometry's)."""
+    ``height_above_takeoff_m``: the vehicle's height (None = unknown; default: the odometry's);
+    ``height_verified``: checked against the floor lately (otherwise no climb toward a configured ceiling)."""
     h = height_m(out) if isinstance(height_above_takeoff_m, HeightFrom) else height_above_takeoff_m
     points = None if out is None else out.obstacle_points_h_m
     sectors, _, offset_deg = msgs.sector_arrays(None if out is None else out.sectors)
@@ -88,7 +89,8 @@ def frame_step(out: Any | None, op: OperatorInput, R_qc: NDArray[np.float64], sc
     ref = reference_velocity(op, R_qc, scan, points, params, sectors_m=sectors,
                              block_unknown=out is None or not allow_unknown_when_fresh or blind_side,
                              operator_enabled=operator_enabled, sector_offset_rad=math.radians(offset_deg),
-                             height_m=h, v_est_h_m_s=None if out is None or not out.odometry_ok else out.v_h_m_s,
+                             height_m=h, height_verified=height_verified,
+                             v_est_h_m_s=None if out is None or not out.odometry_ok else out.v_h_m_s,
                              v_command_h_m_s=v_command_h_m_s, command_yaw_rate_rad_s=command_yaw_rate_rad_s)
     # the warning and the dots use the avoidance's points: the floor (within the floor margin once the height
     # is known, or below the band without out_of_band_3d) is not an obstacle to it, nor to the operator
@@ -98,13 +100,14 @@ def frame_step(out: Any | None, op: OperatorInput, R_qc: NDArray[np.float64], sc
 
 def fallback_step(last_out: Any | None, op: OperatorInput, R_qc: NDArray[np.float64], params: ReferenceParams,
                   operator_enabled: bool,
-                  height_above_takeoff_m: float | None | HeightFrom = HeightFrom.ODOMETRY) -> ReferenceOutput:
+                  height_above_takeoff_m: float | None | HeightFrom = HeightFrom.ODOMETRY,
+                  height_verified: bool = True) -> ReferenceOutput:
     """No camera: obstacle data stale -> no motion toward unknown (= all) sectors, repulsion from the last
     map kept (conservative), no pan-scan; the operator is zeroed by HOLD (``operator_enabled``)."""
     points = None if last_out is None else last_out.obstacle_points_h_m
     # the last velocity estimate is stale: the stopping distance uses none (the hold is the vehicle's)
     return reference_velocity(op, R_qc, NO_SCAN, points, params, sectors_m=None, block_unknown=True,
-                              operator_enabled=operator_enabled,
+                              operator_enabled=operator_enabled, height_verified=height_verified,
                               height_m=height_m(last_out) if isinstance(height_above_takeoff_m, HeightFrom)
                               else height_above_takeoff_m)
 

@@ -22,10 +22,12 @@ from dataclasses import dataclass
 class HeightParams:
     """``takeoff_height_m``: the body centre above the floor on the landing gear (where the odometry's height
     is 0); ``time_constant_s``: how fast the floor's measurements pull the odometry's height; 0 disables
-    the floor (the odometry's height alone)."""
+    the floor (the odometry's height alone, taken as verified); ``fix_max_age_s``: how long after the last
+    floor seen the height still counts as verified."""
 
     takeoff_height_m: float = 0.1
     time_constant_s: float = 0.5
+    fix_max_age_s: float = 4.0
 
 
 class HeightEstimator:
@@ -36,6 +38,12 @@ class HeightEstimator:
         self.offset_m: float | None = None       # floor's height minus the odometry's, filtered
         self._last_floor_s: float | None = None
         self.height_m: float | None = None       # the last estimate
+
+    def verified(self, stamp_s: float) -> bool:
+        """The height was checked against the floor within ``fix_max_age_s`` (or the floor is not used)."""
+        if self.params.time_constant_s <= 0.0:
+            return self.height_m is not None
+        return self._last_floor_s is not None and 0.0 <= stamp_s - self._last_floor_s <= self.params.fix_max_age_s
 
     def update(self, stamp_s: float, odometry_height_m: float | None, floor_height_m: float | None) -> float | None:
         """The height at ``stamp_s`` from the odometry's height (above its start; None = lost) and the body

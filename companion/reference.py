@@ -88,7 +88,8 @@ class ReferenceParams:
     height of the vehicle's origin above the floor when it stands on it (its landing gear):
     :func:`reference_velocity`'s ``height_m`` is the odometry's, counted from the take-off pose, held to
     the floor the camera sees with ``floor_height_time_constant_s`` (:mod:`companion.height`; 0: the
-    odometry's alone).
+    odometry's alone); without a floor seen for ``height_fix_max_age_s`` the height is not verified and the
+    vehicle does not climb toward a configured ceiling.
     """
 
     k_v_m_s: float = 0.6
@@ -114,6 +115,7 @@ class ReferenceParams:
     floor_min_height_m: float = 0.3
     takeoff_height_m: float = 0.0
     floor_height_time_constant_s: float = 0.5
+    height_fix_max_age_s: float = 4.0
 
     def vertical(self) -> VerticalParams:
         """The vertical limits' parameters (:mod:`companion.vertical_limits`), sharing the safe distance and
@@ -464,7 +466,8 @@ def reference_velocity(op: OperatorInput, R_qc: ArrayLike, scan: PanScanState,
                        sectors_m: ArrayLike | None = None, block_unknown: bool = False,
                        operator_enabled: bool = True, sector_offset_rad: float = 0.0,
                        height_m: float | None = None, v_est_h_m_s: ArrayLike | None = None,
-                       v_command_h_m_s: ArrayLike | None = None, command_yaw_rate_rad_s: float = 0.0
+                       v_command_h_m_s: ArrayLike | None = None, command_yaw_rate_rad_s: float = 0.0,
+                       height_verified: bool = True
                        ) -> ReferenceOutput:
     """Eqs. (2)-(8) with the safety constraints (see module doc).
 
@@ -476,7 +479,8 @@ def reference_velocity(op: OperatorInput, R_qc: ArrayLike, scan: PanScanState,
     the height above the floor. ``v_est_h_m_s``: the estimated velocity in H, for the closing-speed law's
     stopping distance (None: the law without it). ``v_command_h_m_s`` / ``command_yaw_rate_rad_s``: a
     scripted command (from :mod:`companion.arbiter`) that replaces eqs. (2)-(3); everything after them
-    applies to it alike.
+    applies to it alike. ``height_verified``: the height was checked against the floor recently
+    (:mod:`companion.vertical_limits`: otherwise no climb toward a configured ceiling).
     """
     alpha = camera_yaw_rad(R_qc) + scan.yaw_offset_rad  # eq. (6)
     if height_m is not None:
@@ -506,7 +510,7 @@ def reference_velocity(op: OperatorInput, R_qc: ArrayLike, scan: PanScanState,
     v_r, removed = _limit_speed(v_r, c, params.safe_distance_m, params.approach_gain_per_s, reach, v_est_h_m_s,
                                 params.stopping_time_s)
     v_up = None if v_est_h_m_s is None else -float(np.asarray(v_est_h_m_s, dtype=float)[2])
-    limits = vertical_limits(height_m, v_up, params.vertical())
+    limits = vertical_limits(height_m, v_up, params.vertical(), height_verified)
     v_r, vertical = apply_vertical_limits(v_r, limits)
     speed = float(np.linalg.norm(v_r))
     if speed > params.max_speed_m_s:

@@ -14,7 +14,11 @@ negative (climb back) below it. The floor is exempt only for take-off and landin
 flies (TAKEOFF/LAND modes), not this reference.
 
 With the height unknown (odometry lost) no climb is allowed toward a configured ceiling and no descent is
-allowed at all: the vehicle holds its altitude (the mode machine holds it anyway).
+allowed at all: the vehicle holds its altitude (the mode machine holds it anyway). With the height not
+*verified* — no floor seen for a while (:class:`companion.height.HeightEstimator`), so it rests on the
+odometry alone, whose vertical scale can be far off while the camera sees only a close wall (campaign
+2026-12-03 flight 5: a 0.94 m climb measured as 0.35 m, 0.10 m from a 2.24 m ceiling) — no climb is allowed
+toward a configured ceiling either; descending and the floor margin still work on the estimate.
 """
 
 from __future__ import annotations
@@ -72,8 +76,10 @@ def ceiling_height_m(params: VerticalParams) -> float:
     return min(limits)
 
 
-def vertical_limits(height_m: float | None, v_up_est_m_s: float | None, params: VerticalParams) -> VerticalLimits:
-    """The climb and descent bounds at ``height_m`` (above take-off) moving up at ``v_up_est_m_s``."""
+def vertical_limits(height_m: float | None, v_up_est_m_s: float | None, params: VerticalParams,
+                    height_verified: bool = True) -> VerticalLimits:
+    """The climb and descent bounds at ``height_m`` (above take-off) moving up at ``v_up_est_m_s``;
+    ``height_verified`` False: no climb toward a configured ceiling (see the module's docstring)."""
     top = ceiling_height_m(params)
     bottom = params.floor_min_height_m
     if height_m is None or not math.isfinite(height_m):
@@ -81,6 +87,8 @@ def vertical_limits(height_m: float | None, v_up_est_m_s: float | None, params: 
     v_up = 0.0 if v_up_est_m_s is None or not math.isfinite(v_up_est_m_s) else v_up_est_m_s
     k, t_stop = params.gain_per_s, params.stopping_time_s
     climb = k * (top - height_m - t_stop * max(v_up, 0.0)) if math.isfinite(top) else math.inf
+    if not height_verified and math.isfinite(top):
+        climb = min(climb, 0.0)
     descent = k * (height_m - bottom - t_stop * max(-v_up, 0.0))
     return VerticalLimits(top, bottom, climb, descent, height_m)
 

@@ -56,3 +56,15 @@ def test_time_constant_zero_is_the_odometry_alone() -> None:
     est = HeightEstimator(HeightParams(TAKEOFF_M, 0.0))
     assert est.update(0.0, 0.5, 2.0) == pytest.approx(0.5)
     assert est.update(0.1, None, 2.0) is None
+
+
+def test_the_height_is_verified_for_a_while_after_the_floor_was_seen() -> None:
+    est = HeightEstimator(HeightParams(TAKEOFF_M, 0.5, fix_max_age_s=4.0))
+    est.update(0.0, 1.0, None)
+    assert not est.verified(0.0)                              # never seen the floor
+    est.update(1.0, 1.0, 1.0 + TAKEOFF_M)
+    assert est.verified(1.0) and est.verified(5.0) and not est.verified(5.1)
+    assert HeightEstimator(HeightParams(TAKEOFF_M, 0.0)).verified(0.0) is False   # no height at all
+    off = HeightEstimator(HeightParams(TAKEOFF_M, 0.0))
+    off.update(0.0, 1.0, None)
+    assert off.verified(100.0)                                # the floor not used: the odometry's is the height

@@ -187,3 +187,17 @@ def test_a_scripted_command_replaces_the_operator_and_obeys_the_same_constraints
     held = reference_velocity(OperatorInput(), R_QC_FORWARD, NO_SCAN, None, params, height_m=1.0,
                               v_command_h_m_s=[0.5, 0.1, 0.0], operator_enabled=False)
     assert held.v_ref_h_m_s == pytest.approx([0.0, 0.0, 0.0])
+
+
+def test_an_unverified_height_never_climbs_toward_a_ceiling_but_still_descends() -> None:
+    """Campaign 2026-12-03 flight 5: the odometry measured a 0.94 m climb as 0.35 m while only a wall was in
+    view; without a recent floor fix the climb toward the configured ceiling stops."""
+    params = VerticalParams(room_height_m=2.24)
+    free = vertical_limits(1.2, 0.0, params, height_verified=True)
+    blind = vertical_limits(1.2, 0.0, params, height_verified=False)
+    assert free.max_climb_m_s > 0.5 and blind.max_climb_m_s == 0.0
+    assert blind.max_descent_m_s == free.max_descent_m_s > 0.0
+    v, changed = apply_vertical_limits([0.0, 0.0, -0.4], blind)
+    assert changed and v[2] == 0.0
+    # no ceiling configured: nothing to verify against
+    assert vertical_limits(1.2, 0.0, VerticalParams(), height_verified=False).max_climb_m_s == float("inf")
