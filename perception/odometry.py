@@ -128,6 +128,7 @@ class RgbdOdometry:
         self.keyframes = 0                       # keyframes taken since the start (statistics)
         self.rejected_jumps = 0                  # alignments refused by max_translation_jump_m
         self.refined_keyframes = 0               # keyframes fused with a second alignment (keyframe_refinement)
+        self.rejected_refinements = 0            # fusions refused by the step gate (see _refine)
 
     def reset(self) -> None:
         self._kf = self._prev = self._kf_prev = None
@@ -261,6 +262,15 @@ class RgbdOdometry:
         # direct minus chain as a left perturbation in kf_prev's frame, weighted by the direct's share
         delta = _se3_log(inv_T(pair.T_ck_ckm1) @ inv_T(T_p_ck_chain))
         step = np.asarray(np.linalg.solve(info_chain + info_direct, info_direct @ delta), dtype=np.float64)
+        # the fused pose lies between the two estimates, a few pixels from the chain's: a step beyond the jump
+        # gate's translation or the delta itself (an ill-conditioned information, a direct alignment in another
+        # basin) is not a refinement (a SITL flight with the pan-scan off diverged to 40 m without this gate)
+        reach_m = min(cfg.max_translation_jump_m, float(np.linalg.norm(delta[:3])) + 1e-9)
+        too_far = float(np.linalg.norm(step[:3])) > reach_m \
+            or float(np.linalg.norm(step[3:])) > float(np.linalg.norm(delta[3:])) + 1e-9
+        if not np.all(np.isfinite(step)) or too_far:
+            self.rejected_refinements += 1
+            return T_kf_ck
         self.refined_keyframes += 1
         return inv_T(T_p_kf) @ se3_exp(step) @ T_p_ck_chain
 

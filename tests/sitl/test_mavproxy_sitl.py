@@ -167,5 +167,5 @@ def test_mavproxy_session_through_the_companion(tmp_path: Path) -> None:
         odo_gcs.close()
         if companion.poll() is None:
             os.killpg(companion.pid, signal.SIGINT)
-        companion.wait(timeout=10.0)
+        companion.wait(timeout=30.0)
         stack.close()
