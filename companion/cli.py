@@ -9,6 +9,8 @@ from pathlib import Path
 
 import click
 
+from quadlink.signals import STOP_SIGNALS
+
 log = logging.getLogger("companion")
 
 
@@ -127,14 +129,15 @@ def command(config_path: str, autopilot: str | None, gcs: str | None, camera: st
         if not stop.is_set():
             stop.set()
 
-    previous = signal.signal(signal.SIGTERM, on_sigterm)
+    previous = {sig: signal.signal(sig, on_sigterm) for sig in STOP_SIGNALS}   # Ctrl-C too (quadlink.signals)
     try:
         daemon.run(stop, duration)
     except KeyboardInterrupt:
         log.info("interrupted")
     finally:
         stop.set()
-        signal.signal(signal.SIGTERM, previous)
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
         daemon.close()
         s = daemon.stats
         log.info("stopped: %d frames, %d setpoints, %d feedback, routed %d to GCS / %d to autopilot",

@@ -13,6 +13,7 @@ import click
 from quadlink.config import find_config, load_config
 from quadlink.errors import ConfigError
 from quadlink.realtime import MAX_PRIORITY, set_realtime_priority
+from quadlink.signals import STOP_SIGNALS
 from quadlink.vehicle import load_vehicle
 
 log = logging.getLogger(__name__)
@@ -80,7 +81,7 @@ def command(mk_cmd: str | None, mk_imu: str | None, mavlink_urls: tuple[str, ...
     set_realtime_priority(config.realtime_priority)   # before open() starts the reader threads: they inherit it
     daemon = BridgeDaemon(config, vehicle, params_path)
     daemon.open()  # LinkError -> one-line error, exit 2 (quadlink.cli)
-    previous = signal.signal(signal.SIGTERM, lambda *_: daemon.stop())
+    previous = {sig: signal.signal(sig, lambda *_: daemon.stop()) for sig in STOP_SIGNALS}   # quadlink.signals
     log.info("bridge running (Ctrl-C to stop)")
     try:
         daemon.run(duration)
@@ -88,7 +89,8 @@ def command(mk_cmd: str | None, mk_imu: str | None, mavlink_urls: tuple[str, ...
         log.info("Ctrl-C: stopping")
     finally:
         daemon.close()
-        signal.signal(signal.SIGTERM, previous)
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
         s = daemon.stats
         log.info("bridge stopped: %d IMU samples, %d setpoints, %d MAVLink in / %d out", s.imu_samples,
                  s.setpoints_sent, s.mavlink_in, s.mavlink_out)

@@ -11,6 +11,7 @@ import click
 
 from quadlink.errors import ConfigError
 from quadlink.mavlink.security import read_key
+from quadlink.signals import STOP_SIGNALS
 from teleop.config import load_teleop_config
 from teleop.devices import DEVICE_NAMES, HapticDevice, open_device
 from teleop.devices.script import load_script
@@ -76,7 +77,7 @@ def command(device_name: str, script: str | None, vehicle: str | None, image_str
     def on_sigterm(signum: int, frame: FrameType | None) -> None:
         raise KeyboardInterrupt   # SIGTERM stops as cleanly as Ctrl-C (force off, CSV and video closed)
 
-    previous = signal.signal(signal.SIGTERM, on_sigterm)
+    previous = {sig: signal.signal(sig, on_sigterm) for sig in STOP_SIGNALS}   # Ctrl-C too (quadlink.signals)
     try:
         station.start()   # opens the device (its own process) first: a missing backend is a one-line error
         if station.server is not None:
@@ -85,7 +86,8 @@ def command(device_name: str, script: str | None, vehicle: str | None, image_str
     except KeyboardInterrupt:
         log.info("interrupted; stopping")
     finally:
-        signal.signal(signal.SIGTERM, previous)
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
         station.close()
         log.info("ground station stopped (%d MANUAL_CONTROL sent, %d view frames)", station.manual_control_sent,
                  station.view_frames)

@@ -10,6 +10,7 @@ import click
 
 from quadlink.errors import ConfigError
 from quadlink.netem import Impairment, TcpProxy, UdpProxy, parse_endpoint
+from quadlink.signals import STOP_SIGNALS
 
 log = logging.getLogger(__name__)
 
@@ -51,7 +52,8 @@ def command(listen_url: str, to_url: str, delay_ms: float, jitter_ms: float, jit
              kind, *proxy.listen_address, to_host, to_port, delay_ms, jitter_ms, loss, reorder,
              f"{rate_kbit:g} kbit/s" if rate_kbit > 0 else "unlimited", seed)
     stopped = threading.Event()
-    signal.signal(signal.SIGTERM, lambda *_: stopped.set())
+    for sig in STOP_SIGNALS:   # Ctrl-C too (quadlink.signals)
+        signal.signal(sig, lambda *_: stopped.set())
     proxy.start()
     try:
         while not stopped.wait(0.2):
