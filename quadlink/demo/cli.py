@@ -26,6 +26,10 @@ from quadlink.errors import ConfigError
 log = logging.getLogger("quadlink.demo")
 
 DEFAULT_SCRIPT = CONFIG_DIR / "teleop_scripts" / "paper_experiment.yaml"
+# The flight's duration counts from the operator's start: a lock-step SITL on an idle machine runs several times
+# faster than the wall while the parts start one after the other (seconds of wall time, tens of simulated
+# seconds before the operator is there). The SITL's own bound only stops a SITL left behind.
+SITL_DURATION_MARGIN_S = 300.0
 
 
 PORT_NAMES = ("mk1", "mk2", "camera", "image", "autopilot", "gcs_bridge", "vehicle", "truth", "http",
@@ -129,7 +133,7 @@ def build_specs(scenario: str, script: Path, out_dir: Path, ports: Ports, lockst
     vehicle_port, image_port = (ports.vehicle_netem, ports.image_netem) if via_netem else (ports.vehicle, ports.image)
     sitl = ["sitl", "--scenario", scenario, "--port1", str(ports.mk1), "--port2", str(ports.mk2),
             "--camera-port", str(ports.camera), "--truth", f"udpout:127.0.0.1:{ports.truth}",
-            "--duration", f"{duration_s + 30:.0f}"]
+            "--duration", f"{duration_s + SITL_DURATION_MARGIN_S:.0f}"]
     if sitl_config is not None:
         sitl += ["--config", sitl_config]
     if lockstep:
@@ -228,7 +232,10 @@ def run_demo(scenario: str, duration_s: float, out_dir: Path, script: Path, lock
                 log.info("ground link through netem: %.0f ms one way, %.0f ms jitter, %.1f %% loss", link.delay_ms,
                          link.jitter_ms, 100 * link.loss)
             stack.start(part)
-        log.info("all parts running; operator view at http://127.0.0.1:%d ; logs in %s", ports.http, stack.log_dir)
+        # the flight's clock starts with the operator (the SITL ran on while the parts started)
+        t_sim0 = recorder.truth.sim_time_s if math.isfinite(recorder.truth.sim_time_s) else 0.0
+        log.info("all parts running at %.1f s simulated; operator view at http://127.0.0.1:%d ; logs in %s",
+                 t_sim0, ports.http, stack.log_dir)
         next_progress = 0.0
         while not interrupted:
             time.sleep(0.2)
@@ -239,7 +246,7 @@ def run_demo(scenario: str, duration_s: float, out_dir: Path, script: Path, lock
                 log.info("operator script finished")
                 break
             t = recorder.truth
-            if math.isfinite(t.sim_time_s) and t.sim_time_s >= duration_s:
+            if math.isfinite(t.sim_time_s) and t.sim_time_s >= t_sim0 + duration_s:
                 log.info("duration of %.0f s simulated time reached", duration_s)
                 break
             if time.monotonic() >= next_progress:

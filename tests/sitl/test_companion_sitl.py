@@ -174,7 +174,9 @@ def fly_push_toward_column(out_dir: Path, push_s: float, port_offset: int = 700)
         # the operator goes silent: hover, then land
         run_for(120.0, 3.0, None)
         rec.hold_seen = any(mode == 3 for _, mode in rec.modes)
-        run_for(300.0, 25.0, None, until=lambda: not state["armed"] or state["mode"] == 0)
+        # the land timeout counts wall time (gcs_land_timeout_s): a lock-step SITL on an idle machine runs 3x
+        # faster than the wall, so the wait is bounded by wall time, not by simulated time
+        run_for(300.0, 1e9, None, until=lambda: not state["armed"] or state["mode"] == 0)
         # on the ground (truth) with the companion landing or idle (the autopilot's disarm may come later)
         rec.landed = state["mode"] in (0, 4) and -state["pos"][2] < 0.3
         np.savetxt(out_dir / "truth_track.csv", np.asarray(rec.track), delimiter=",",
