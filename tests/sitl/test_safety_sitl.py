@@ -3,7 +3,7 @@ objects and the ceiling (tests/flight_harness.py, from the scene geometry) and t
 
 Each flight asserts clearance >= 0.40 m with d_safe = 0.45 m (the floor is exempt) and that it got where it
 was sent: within 0.6 m of the wall it was pushed at, or its commanded distance when nothing is in the way.
-CI flights are short (<= ~40 s of flight); the longer ones are marked slow.
+CI flights are short (<= ~40 s of flight), one of them in real time; the longer ones are marked slow.
 """
 
 from __future__ import annotations
@@ -264,7 +264,6 @@ def test_mavsdk_native_offboard_into_a_wall_through_the_companion(tmp_path: Path
         _check_mavsdk(f, seen)
 
 
-@pytest.mark.slow
 def test_mavsdk_classic_offboard_into_a_wall_through_the_companion(tmp_path: Path) -> None:
     pytest.importorskip("mavsdk_grpc")
     with flight(tmp_path, offset=_offset(4)) as f:
@@ -272,7 +271,6 @@ def test_mavsdk_classic_offboard_into_a_wall_through_the_companion(tmp_path: Pat
         _check_mavsdk(f, seen)
 
 
-@pytest.mark.slow
 def test_operator_push_in_real_time(tmp_path: Path) -> None:
     """The corner push of the first test with the SITL paced in real time (not lock-step)."""
     with flight(tmp_path, offset=_offset(5), lockstep=False) as f:
