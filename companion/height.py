@@ -49,19 +49,20 @@ class HeightEstimator:
         """The height at ``stamp_s`` from the odometry's height (above its start; None = lost) and the body
         centre's height above the floor seen in this frame (None = not in view)."""
         p = self.params
-        use_floor = p.time_constant_s > 0.0 and floor_height_m is not None and math.isfinite(floor_height_m)
-        floor_m = floor_height_m - p.takeoff_height_m if use_floor else None   # type: ignore[operator]
-        odo_ok = odometry_height_m is not None and math.isfinite(odometry_height_m)
-        if odo_ok and floor_m is not None:
-            innovation = floor_m - odometry_height_m   # type: ignore[operator]
+        floor_m = None   # the floor's height above the take-off pose
+        if p.time_constant_s > 0.0 and floor_height_m is not None and math.isfinite(floor_height_m):
+            floor_m = floor_height_m - p.takeoff_height_m
+        odo_m = odometry_height_m if odometry_height_m is not None and math.isfinite(odometry_height_m) else None
+        if odo_m is not None and floor_m is not None:
+            innovation = floor_m - odo_m
             if self.offset_m is None or self._last_floor_s is None:
                 self.offset_m = innovation
             else:
                 dt = max(stamp_s - self._last_floor_s, 0.0)
                 self.offset_m += (1.0 - math.exp(-dt / p.time_constant_s)) * (innovation - self.offset_m)
             self._last_floor_s = stamp_s
-        if odo_ok:
-            self.height_m = odometry_height_m + (self.offset_m or 0.0)   # type: ignore[operator]
+        if odo_m is not None:
+            self.height_m = odo_m + (self.offset_m or 0.0)
         else:
             self.height_m = floor_m
         return self.height_m

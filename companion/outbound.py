@@ -115,15 +115,15 @@ class Outbox:
     def _pack_as(self, msg: Any, src_system: int, src_component: int, seq: int | None) -> bytes:
         """``msg`` packed as another sender (the autopilot) with the ground stations' signing, when on."""
         codec = self.gcs_codec if self.signing_gcs else self._ap_codec
-        ids = codec.srcSystem, codec.srcComponent, codec.seq
+        own = codec.srcSystem, codec.srcComponent, codec.seq
         codec.srcSystem, codec.srcComponent = src_system, src_component
-        if seq is not None:
-            codec.seq = seq
+        codec.seq = own[2] if seq is None else seq    # a forwarded message keeps its sender's sequence number
         try:
             return bytes(msg.pack(codec))
         finally:
-            codec.srcSystem, codec.srcComponent = ids[0], ids[1]
-            codec.seq = ids[2] if seq is not None or codec is self.gcs_codec else (ids[2] + 1) % 256
+            codec.srcSystem, codec.srcComponent, codec.seq = own
+            if seq is None and codec is self._ap_codec:   # the replies made for the autopilot count their own
+                self._ap_codec.seq = (own[2] + 1) % 256
 
     def to_gcs_as(self, msg: Any, src_system: int, src_component: int) -> bool:
         """``msg`` to the ground stations packed as ``src_system``/``src_component`` (the autopilot) and not in

@@ -91,14 +91,15 @@ class FlightSpec:
                           self.operator, r(self.sitl_config), self.lockstep, self.speed, self.view)
 
 
-def write_companion_config(out_dir: Path, **sections: dict[str, object]) -> Path:
-    """configs/companion.yaml with some keys replaced (``reference={"room_height_m": 3.0}``), written to
+def write_companion_config(out_dir: Path, **sections: object) -> Path:
+    """configs/companion.yaml with some keys replaced (a section's dict is merged into it,
+    ``reference={"room_height_m": 3.0}``; any other value replaces the key), written to
     ``out_dir/companion.yaml``."""
     import yaml
 
     data = yaml.safe_load((CONFIG_DIR / "companion.yaml").read_text())
-    for section, values in sections.items():
-        data[section] = {**data.get(section, {}), **values}
+    for key, value in sections.items():
+        data[key] = {**data.get(key, {}), **value} if isinstance(value, dict) else value
     out_dir.mkdir(parents=True, exist_ok=True)
     path = out_dir / "companion.yaml"
     path.write_text(yaml.safe_dump(data, sort_keys=False))

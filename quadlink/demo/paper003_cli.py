@@ -36,7 +36,7 @@ import click
 import numpy as np
 
 from quadlink import CONFIG_DIR
-from quadlink.demo.cli import Ports, build_specs
+from quadlink.demo.cli import Ports, build_specs, write_companion_config
 from quadlink.demo.orchestrator import ProcessDied, Stack
 from quadlink.demo.paper003 import Paper003Series, format_tables, make_plots, push_recoveries, resample, tables
 from quadlink.errors import ConfigError
@@ -74,17 +74,12 @@ def write_configs(out_dir: Path, companion_overrides: dict[str, dict[str, object
     """The companion's YAML (configs/companion.yaml with :data:`COMPANION_OVERRIDES`; perception's velocity
     estimator ``filters``, eqs. 9-13 of paper 000, or ``ukf``, paper 003's) and the bridge's parameter file
     (``bridge_params.yaml``, which build_specs passes) in ``out_dir``; returns the companion's path."""
-    import yaml
-
-    data = yaml.safe_load((CONFIG_DIR / "companion.yaml").read_text())
-    for section, values in {**COMPANION_OVERRIDES, **(companion_overrides or {})}.items():
-        data[section] = {**data.get(section, {}), **values}
+    overrides: dict[str, object] = {**COMPANION_OVERRIDES, **(companion_overrides or {})}
     out_dir.mkdir(parents=True, exist_ok=True)
     if estimator != "filters":
         (out_dir / "perception.yaml").write_text(f"estimator: {estimator}\n")
-        data["perception_config"] = str(out_dir / "perception.yaml")
-    path = out_dir / "companion.yaml"
-    path.write_text(yaml.safe_dump(data))
+        overrides["perception_config"] = str(out_dir / "perception.yaml")
+    path = write_companion_config(out_dir, **overrides)
     (out_dir / "bridge_params.yaml").write_text("".join(f"{k}: {v}\n" for k, v in BRIDGE_PARAMS.items()))
     return path
 
