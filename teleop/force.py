@@ -8,7 +8,12 @@ what the vehicle actually does:
 * ``q~_z = v_z,H / k_v``                                             eq. (18)
 
 eq. (17) is written with the sign of the mapping (eq. (3) has psi_d' = -k_psi q_y), so that q = q~
-exactly when the vehicle follows the command, and the cue vanishes. The force is saturated (norm,
+exactly when the vehicle follows the command, and the cue vanishes. The paper's mapping has no dead-band;
+ours has one (the device's and the companion's, ``MappingGains.command_onset_m``), so ``q~`` adds back
+``sign(q) min(|q|, onset)``: beyond the onset the cue is ``K (v_commanded - v) / k`` and it vanishes when the
+vehicle follows; inside it the cue is the vehicle's own motion ``-K v / k``, with no extra stiffness.
+Without it the cue held a 6 mm offset, 0.38 N against every push at ``K`` 60 N/m, and the handle
+stopped at less than half the travel the operator's force asked for. The force is saturated (norm,
 direction kept) at the device limit and multiplied by a link gain that ramps (rate-limited, never
 a jump) to 0 when the vehicle link is lost and back to 1 when it returns.
 """
@@ -37,13 +42,23 @@ class VehicleMotion:
     pan_scan_yaw_rate_rad_s: float          # pan-scan component of the yaw rate (psi_s')
 
 
-def q_tilde(motion: VehicleMotion, gains: MappingGains) -> Vec3:
-    """eqs. (16)-(18): device position equivalent to the vehicle's actual motion."""
+def q_tilde(motion: VehicleMotion, gains: MappingGains, q_m: Vec3 | None = None) -> Vec3:
+    """eqs. (16)-(18): device position equivalent to the vehicle's actual motion.
+
+    With the handle's position ``q_m``, the mapping's dead-band is added back (module docstring); without
+    it, the paper's eqs. as written (a mapping without dead-band).
+    """
     vx, vy, vz = motion.v_h_m_s
     q_x = (math.cos(motion.alpha_rad) * vx + math.sin(motion.alpha_rad) * vy) / gains.k_v_xy_per_s  # eq. (16)
     q_psi = (motion.yaw_rate_rad_s - motion.pan_scan_yaw_rate_rad_s) / (gains.yaw_sign * gains.k_psi_rad_s_m)  # (17)
     q_z = vz / gains.k_v_z_per_s  # eq. (18)
-    return np.array([v if math.isfinite(v) else 0.0 for v in (q_x, q_psi, q_z)])
+    qt = [v if math.isfinite(v) else 0.0 for v in (q_x, q_psi, q_z)]
+    if q_m is not None:
+        for i, onset in enumerate(gains.command_onset_m):
+            q = float(q_m[i])
+            if math.isfinite(q):
+                qt[i] += math.copysign(min(abs(q), onset), q)
+    return np.array(qt)
 
 
 def saturate(force_n: Vec3, limit_n: float) -> Vec3:

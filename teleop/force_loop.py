@@ -122,7 +122,7 @@ def run_force_loop(device: HapticDevice, cfg: TeleopConfig, io: ForceLoopIO,
         ok = m is not None and link_ok(m.t_recv_s, t, cfg.force.link_timeout_s)
         gain = fade.update(ok, t)
         cue = cue_fade.update(ok and m is not None and m.cue_wanted, t)
-        qt = q_tilde(m.motion, gains) if m is not None else None
+        qt = q_tilde(m.motion, gains, state.q_m) if m is not None else None
         tau_law = force_law(state.q_m, state.qdot_m_s, qt, cfg.force, cfg.device.force_limit_n, gain, cue)
         tau = tau_passive(pc, t, state, tau_law, period, cfg.device.force_limit_n)
         device.set_force(tau)

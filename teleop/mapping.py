@@ -42,21 +42,27 @@ class MappingGains:
     k_v_z_per_s: float       # m/s per m of q_z
     k_psi_rad_s_m: float     # rad/s per m of q_y (magnitude; the sign is yaw_sign)
     yaw_sign: float
+    # per axis (x, y, z), the device position at which the companion's command starts to move: the device
+    # dead-band plus the companion's, carried back to metres of q
+    command_onset_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
 
 def mapping_gains(mapping: MappingConfig, device: DeviceConfig) -> MappingGains:
     """Slope of velocity vs device position beyond both dead-bands: v = k (|q| - db_eff) sign(q).
 
     The companion maps n -> (|n| - db_c) / (1 - db_c), so one metre of q beyond the device dead-band is
-    worth ``max / ((workspace - deadband) (1 - db_c))``. The offset of the two dead-bands (a few mm) is
-    not inverted in q~ (eq. (16) has no offset); it shows as a small constant cue K x offset.
+    worth ``max / ((workspace - deadband) (1 - db_c))``, and the command starts at
+    ``db_eff = deadband + db_c (workspace - deadband)`` (``command_onset_m``, 6.3 mm with the shipped
+    config), which :func:`teleop.force.q_tilde` adds back so that the cue vanishes when the vehicle follows.
     """
     span = [w - d for w, d in zip(device.workspace_m, mapping.deadband_m)]
     if min(span) <= 0:
         raise ValueError("dead-band must be smaller than the workspace on every axis")
     scale = 1.0 - mapping.companion_deadband
+    onset = tuple(d + mapping.companion_deadband * s for d, s in zip(mapping.deadband_m, span))
     return MappingGains(mapping.max_speed_m_s / (span[0] * scale), mapping.max_climb_m_s / (span[2] * scale),
-                        mapping.max_yaw_rate_rad_s / (span[1] * scale), mapping.yaw_sign)
+                        mapping.max_yaw_rate_rad_s / (span[1] * scale), mapping.yaw_sign,
+                        (onset[0], onset[1], onset[2]))
 
 
 def shape_axis(q_m: float, deadband_m: float, workspace_m: float) -> float:

@@ -29,7 +29,7 @@ from quadlink.vehicle import load_vehicle
 from teleop.config import TeleopConfig
 from teleop.devices.script import ScriptConfig, ScriptStepConfig, build_script
 from teleop.devices.virtual import ScriptedOperator, VirtualDevice
-from teleop.mapping import ManualControl, command_to_velocity
+from teleop.mapping import ManualControl, command_to_velocity, mapping_gains
 from teleop.station import Station
 
 CHROMIUM = shutil.which("chromium") or ("/usr/bin/chromium" if Path("/usr/bin/chromium").exists() else None)
@@ -183,9 +183,11 @@ def test_force_opposes_the_push_when_the_vehicle_is_blocked(running):
     time.sleep(1.0)   # settle (handle time constant m / (c + B) = 50 ms)
     f = station.force
     assert f is not None and f.q_tilde_m is not None
-    assert f.q_tilde_m[0] == pytest.approx(0.0, abs=1e-9)        # blocked: q~ = 0 (eq. (16))
-    # equilibrium of eq. (1) with eq. (15): push = (K_f + K) q, force = -push
-    q_eq = PUSH_N / (cfg.force.K_f_n_m[0] + cfg.force.K_n_m[0])
+    # blocked: q~ is the handle position that commands rest, the command's onset (eq. (16) + dead-band)
+    onset = mapping_gains(cfg.mapping, cfg.device).command_onset_m[0]
+    assert f.q_tilde_m[0] == pytest.approx(onset, abs=1e-9)
+    # equilibrium of eq. (1) with eq. (15): push = K_f q + K (q - onset), force = -push
+    q_eq = (PUSH_N + cfg.force.K_n_m[0] * onset) / (cfg.force.K_f_n_m[0] + cfg.force.K_n_m[0])
     assert f.device.q_m[0] == pytest.approx(q_eq, rel=0.05)
     assert f.tau_d_n[0] == pytest.approx(-PUSH_N, rel=0.05)
     q_blocked = f.device.q_m[0]
@@ -247,7 +249,8 @@ def test_force_process_shares_state_and_buttons(tmp_path):
         snap = proc.snapshot()
         assert presses == ["arm"]
         assert snap is not None and snap.q_tilde_m is not None
-        q_eq = 2.0 / (cfg.force.K_f_n_m[0] + cfg.force.K_n_m[0])
+        onset = mapping_gains(cfg.mapping, cfg.device).command_onset_m[0]   # blocked: q~ = the onset
+        q_eq = (2.0 + cfg.force.K_n_m[0] * onset) / (cfg.force.K_f_n_m[0] + cfg.force.K_n_m[0])
         assert snap.device.q_m[0] == pytest.approx(q_eq, rel=0.05)
         assert snap.tau_d_n[0] == pytest.approx(-2.0, rel=0.05)
         np.testing.assert_allclose(snap.device.operator_force_n, [2.0, 0.0, 0.0])

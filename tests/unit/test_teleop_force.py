@@ -39,20 +39,39 @@ def test_q_tilde_removes_pan_scan_component_eq17():
 @given(st.floats(-0.08, 0.08), st.floats(-0.08, 0.08), st.floats(-0.08, 0.08))
 @settings(max_examples=60, deadline=None)
 def test_no_cue_when_the_vehicle_does_what_is_commanded(qx, qy, qz):
-    """q~ is the inverse of the mapping: a vehicle tracking the command exactly gives q~ = q (outside the dead-band)."""
+    """q~ inverts the real mapping (device and companion dead-bands included): a vehicle that does exactly
+    what the handle commands gives q~ = q wherever the handle commands motion."""
     q = np.array([qx, qy, qz])
     cmd = map_device_to_command(q, MAP, DEV)
     forward, v_down, yaw_rate = command_to_velocity(cmd, MAP)
     alpha = 0.7
     motion = VehicleMotion((forward * math.cos(alpha), forward * math.sin(alpha), v_down), alpha, yaw_rate, 0.0)
-    qt = q_tilde(motion, GAINS)
+    qt = q_tilde(motion, GAINS, q)
     db = np.asarray(MAP.deadband_m)
-    span = np.asarray(DEV.workspace_m) - db
-    offset = db + MAP.companion_deadband * span                 # both dead-bands: eq. (16) has no offset
-    expected = np.sign(q) * np.maximum(np.abs(q) - offset, 0.0)
+    onset = db + MAP.companion_deadband * (np.asarray(DEV.workspace_m) - db)
+    np.testing.assert_allclose(GAINS.command_onset_m, onset)
+    # inside the onset the vehicle is commanded to rest, and resting it is q~ = q as well
     # rounding of MANUAL_CONTROL to integers: 1/1000 of full scale (1/500 for z)
     tol = np.array([0.076 / 1000, 0.076 / 1000, 0.076 / 500]) + 1e-9
-    assert np.all(np.abs(qt - expected) <= tol)
+    assert np.all(np.abs(qt - q) <= tol)
+    # the paper's eq. (16) as written (no dead-band) leaves the onset as a standing cue
+    literal = q_tilde(motion, GAINS)
+    np.testing.assert_allclose(np.abs(q - literal), np.minimum(np.abs(q), onset), atol=float(tol.max()))
+
+
+def test_a_push_held_by_the_spring_alone_once_the_vehicle_follows():
+    """1 N on the handle, the vehicle at the commanded speed: the force law's equilibrium is q = F / K_f.
+
+    The shipped gains (K 60 N/m) with the literal eq. (16) held the handle at about 0.022 m instead of
+    0.05 m: the dead-band's offset was a standing 0.38 N against the push (the demo's approach stalled)."""
+    cfg = ForceConfig()
+    for q_x in np.linspace(0.0, 0.08, 161):
+        q = np.array([q_x, 0.0, 0.0])
+        forward, _, _ = command_to_velocity(map_device_to_command(q, MAP, DEV), MAP)
+        qt = q_tilde(VehicleMotion((forward, 0.0, 0.0), 0.0, 0.0, 0.0), GAINS, q)
+        if force_law(q, np.zeros(3), qt, cfg, 12.0)[0] + 1.0 <= 0.0:   # the spring balances 1 N here
+            break
+    assert q_x == pytest.approx(1.0 / cfg.K_f_n_m[0], abs=0.001)
 
 
 def test_force_law_terms_eq15():
