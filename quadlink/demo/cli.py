@@ -20,7 +20,14 @@ from quadlink import CONFIG_DIR
 from quadlink.demo.link import LinkImpairment, LinkProxies, teleop_config_with_passivity, write_link_stats
 from quadlink.demo.orchestrator import ProcessDied, ProcessSpec, Stack
 from quadlink.demo.recorder import Recorder
-from quadlink.demo.report import FlightLog, compute_report, load_flight, summary_table, write_report
+from quadlink.demo.report import (
+    FlightLog,
+    avoidance_distances,
+    compute_report,
+    load_flight,
+    summary_table,
+    write_report,
+)
 from quadlink.errors import ConfigError
 
 log = logging.getLogger("quadlink.demo")
@@ -276,7 +283,7 @@ def run_demo(scenario: str, duration_s: float, out_dir: Path, script: Path, lock
         flight = load_flight(out_dir)
         if on_flight is not None:
             on_flight(flight)
-        report = compute_report(flight, cpu, str(scenario))
+        report = compute_report(flight, cpu, str(scenario), *avoidance_distances(out_dir))
         report["plots"] = []
         (out_dir / "report.json").write_text(json.dumps(report, indent=2, default=float) + "\n")
     report["interrupted"] = interrupted

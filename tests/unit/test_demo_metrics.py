@@ -60,17 +60,23 @@ def test_report_on_synthetic_flight(rng: np.random.Generator) -> None:
     f = FlightLog(
         t_truth=t, p_ned=np.stack([np.cumsum(v_n) * 0.02, 0 * t, -alt], axis=1),
         v_ned=np.stack([v_n, 0 * t, 0 * t], axis=1), t_att=t, yaw_true=0 * t,
-        t_dist0=t, dist0_m=np.full(t.size, 1.0), t_dist1=t, dist1_m=np.where(t > 3, 0.95, 3.0),
+        t_dist0=t, dist0_m=np.full(t.size, 1.0), t_dist1=t, dist1_m=np.where(t > 3, 0.85, 3.0),
         t_fb=t, v_est_h=np.stack([v_n + rng.normal(0, 0.01, t.size), 0 * t, 0 * t], axis=1),
         v_cmd_h=np.stack([v_n, 0 * t, 0 * t], axis=1), v_rep_h=np.zeros((t.size, 3)),
         pan_scan_rate=0.5 * np.sin(2 * math.pi * 0.2 * t), yaw_rate_cmd=0.5 * np.sin(2 * math.pi * 0.2 * t),
-        gyro_yaw_rate=0.4 * np.sin(2 * math.pi * 0.2 * t - 0.3), obstacle_est_m=np.full(t.size, 0.9),
+        gyro_yaw_rate=0.4 * np.sin(2 * math.pi * 0.2 * t - 0.3), obstacle_est_m=np.where(t > 3, 0.8, 3.5),
         mode=np.full(t.size, 2.0), t_setpoint=np.arange(0, 20, 1 / 30),
     )
     report = compute_report(f, {"sitl": 10.0}, "synthetic")
     assert report["velocity_rmse_m_s"]["x"] == pytest.approx(0.01, abs=0.003)
-    assert report["min_true_obstacle_distance_m"] == pytest.approx(0.95)
+    assert report["min_true_obstacle_distance_m"] == pytest.approx(0.85)
+    # within eq. (7)'s influence distance (0.9 m) the estimate is on the safe side; before t = 3 s the nearest
+    # wall (3.0 m) was seen 0.5 m too far: it counts for the whole flight only
+    assert report["estimate_le_truth_within_m"] == pytest.approx(0.9)
     assert report["fraction_estimate_le_truth"] == 1.0
+    flying = (alt > 0.3)
+    assert report["fraction_estimate_le_truth_whole_flight"] == pytest.approx(
+        np.sum(flying & (t > 3)) / np.sum(flying), abs=0.01)
     assert report["pan_scan"]["measured_amplitude_rad_s"] == pytest.approx(0.4, rel=0.05)
     assert report["pan_scan"]["phase_lag_rad"] == pytest.approx(0.3, abs=0.05)
     # the yaw loop identified from the feedback: 0.8 of the carrier, 0.3 rad late (eq. 5's -pi added)
