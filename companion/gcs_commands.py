@@ -116,7 +116,9 @@ class GcsCommands:
         """A mode change for the autopilot (``base_mode`` and the PX4 main/sub mode, as floats from a command's
         params): handled here (else it goes on to the autopilot)?, and what to send (the arbiter's events; the
         ack as the autopilot when ``ack`` and handled: SET_MODE has none)."""
-        if not (int(base_mode) & mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED) or not all(map(math.isfinite, (main, sub))):
+        # a NaN or inf param (MAVSDK sends NaN for unused ones) goes on to the autopilot, which refuses it
+        if not all(map(math.isfinite, (base_mode, main, sub))) or \
+                not (int(base_mode) & mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED):
             return False, []
         main_i, sub_i = int(main), int(sub)
         offboard = main_i == Px4MainMode.OFFBOARD

@@ -283,6 +283,8 @@ def test_mode_changes_are_answered_as_the_autopilot_only_while_the_companion_fli
     assert rig.cmds.on_set_mode(set_mode, CUSTOM, Px4MainMode.AUTO, 6.0) == (False, [])   # RTL: the autopilot's
     assert rig.cmds.on_set_mode(set_mode, 0.0, Px4MainMode.POSCTL, 0.0) == (False, [])
     assert rig.cmds.on_set_mode(set_mode, CUSTOM, math.nan, 0.0) == (False, [])
+    for base in (math.nan, math.inf, -math.inf):   # param1 NaN (found by the companion's fuzz test) or inf
+        assert rig.cmds.on_set_mode(set_mode, base, Px4MainMode.POSCTL, 0.0) == (False, [])
 
 
 def test_setpoints_engage_offboard_and_the_reported_mode_follows() -> None:
