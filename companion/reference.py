@@ -505,6 +505,12 @@ def reference_velocity(op: OperatorInput, R_qc: ArrayLike, scan: PanScanState,
         reach = max(reach, params.safe_distance_m + speed * (params.stopping_time_s + 1.0 / params.approach_gain_per_s))
     p = _points(obstacle_points_h_m, params, height_m, reach)   # the repulsion uses those within d_0
     v_o = _repulsion(p, params)
+    if sectors_m is not None:
+        # the repulsion is motion nobody commanded: like a script's, it never goes where the map has not
+        # looked (campaign 3, flight 1: pan-scan off, the push off a seen wall carried the vehicle sideways
+        # to 0.36 m of a partition's end it had never seen); inside the safe distance the speed law below
+        # still sends the vehicle back out
+        v_o, _ = remove_toward_unknown(v_o, sectors_m, params.unknown_sector_guard_rad, sector_offset_rad)
     v_r = v_d + v_o  # eq. (7)
     c = _constraint_points(obstacle_points_h_m, params, height_m, reach, band=p)
     v_r, removed = _limit_speed(v_r, c, params.safe_distance_m, params.approach_gain_per_s, reach, v_est_h_m_s,

@@ -28,6 +28,7 @@ SAFE_DISTANCE_M = 0.45
 # configs/companion.yaml reference.influence_distance_m: beyond it the obstacle estimate drives nothing (eq. (7)'s
 # potential is zero); a flight's own companion.yaml, when its folder has one, overrides both
 INFLUENCE_DISTANCE_M = 0.9
+TRUTH_RESOLUTION_M = 0.01   # the SITL's DISTANCE_SENSOR truth is in whole centimetres (sim_sitl.truth)
 
 TARGETS = {
     "velocity_rmse_m_s": 0.05,  # per axis, at most
@@ -166,13 +167,14 @@ def compute_report(flight: FlightLog, cpu_s: dict[str, float] | None = None, sce
         reach_m = influence_distance_m
         near = metrics.interpolate(flight.t_dist1, flight.dist1_m, flight.t_fb) <= reach_m
         report["estimate_le_truth_within_m"] = reach_m
+        # the truth comes in whole centimetres (DISTANCE_SENSOR): an estimate within its resolution is not above it
         report["fraction_estimate_le_truth"] = metrics.fraction_at_or_below(
-            flight.t_fb, np.where(near, est, np.nan), flight.t_dist1, flight.dist1_m)
+            flight.t_fb, np.where(near, est, np.nan), flight.t_dist1, flight.dist1_m, TRUTH_RESOLUTION_M)
         report["fraction_estimate_le_truth_whole_flight"] = metrics.fraction_at_or_below(
-            flight.t_fb, est, flight.t_dist1, flight.dist1_m)
+            flight.t_fb, est, flight.t_dist1, flight.dist1_m, TRUTH_RESOLUTION_M)
         if flight.t_dist0.size:
             report["fraction_estimate_le_truth_all_surfaces"] = metrics.fraction_at_or_below(
-                flight.t_fb, est, flight.t_dist0, flight.dist0_m)
+                flight.t_fb, est, flight.t_dist0, flight.dist0_m, TRUTH_RESOLUTION_M)
     if flight.t_fb.size:
         teleop = flight.mode == mavlink.QUADLINK_TELEOP_MODE_TELEOP
         if np.sum(teleop) > 30:

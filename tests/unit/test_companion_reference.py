@@ -231,6 +231,30 @@ def test_unknown_sectors_block_horizontal_motion_toward_them() -> None:
     assert blocked and v == pytest.approx([0.0, 0.0, 0.0])
 
 
+def test_the_repulsion_never_pushes_toward_where_the_map_has_not_looked() -> None:
+    """A wall seen 0.7 m ahead repels the vehicle backward (inside eq. (7)'s influence distance, outside the
+    safe distance). With the sectors behind unknown the push is dropped (campaign 3, flight 1); with them
+    observed and free it stays; inside the safe distance the speed law still backs the vehicle out."""
+    params = ReferenceParams()
+    wall = [[0.7, y, 0.0] for y in np.linspace(-0.3, 0.3, 7)]
+    rear_unknown = np.full(72, np.inf)
+    rear_unknown[27:46] = np.nan                   # 135..225 deg: behind, never seen
+    seen = np.full(72, np.inf)
+    seen[0] = 0.7
+    hold = {"operator_enabled": False}
+    blind = reference_velocity(OperatorInput(), R_QC_FORWARD, NO_SCAN, wall, params, sectors_m=rear_unknown, **hold)
+    known = reference_velocity(OperatorInput(), R_QC_FORWARD, NO_SCAN, wall, params, sectors_m=seen, **hold)
+    assert known.v_repulsion_h_m_s[0] < -0.05 and known.v_ref_h_m_s[0] < -0.05
+    assert blind.v_repulsion_h_m_s == pytest.approx([0.0, 0.0, 0.0]) and blind.v_ref_h_m_s == pytest.approx([0, 0, 0])
+    # the operator's push along the camera's axis (in view) is not blocked, and still stops short of the wall
+    push = reference_velocity(OperatorInput(qx=1.0), R_QC_FORWARD, NO_SCAN, wall, params, sectors_m=rear_unknown)
+    assert 0.0 < push.v_ref_h_m_s[0] < params.k_v_m_s
+    too_close = [[0.3, y, 0.0] for y in np.linspace(-0.3, 0.3, 7)]
+    out = reference_velocity(OperatorInput(), R_QC_FORWARD, NO_SCAN, too_close, params, sectors_m=rear_unknown,
+                             **hold)
+    assert out.v_ref_h_m_s[0] < -0.05                 # backed out of the safe distance by the speed law
+
+
 def test_hold_keeps_repulsion_but_drops_operator() -> None:
     params = ReferenceParams()
     out = reference_velocity(OperatorInput(qx=1.0, qy=1.0), R_QC_FORWARD, NO_SCAN, [[0.5, 0, 0]], params,
