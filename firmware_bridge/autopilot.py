@@ -72,7 +72,7 @@ class Autopilot(ConnectService):
         self.tracker.set_gains(self.params.tracker_gains())
         if isinstance(self.tracker, GeometricTracker):
             self.tracker.set_geometric_gains(self.params.geometric_gains())
-        self._apply_tracker_selection()
+        self.apply_tracker_selection()
         self.filter.set_tau(self.params["BRG_ATT_TAU"])
         self.vertical.max_climb_m_s = self.params["MPC_Z_VEL_MAX_UP"]
         self.vertical.max_descent_m_s = self.params["MPC_Z_VEL_MAX_DN"]
@@ -97,12 +97,12 @@ class Autopilot(ConnectService):
         except Exception as exc:  # noqa: BLE001 - one message's bug must not end the flight loop (issue 16)
             self.note_malformed("handler_errors", now_s, f"{mtype}: {type(exc).__name__}: {exc}")
             return []
-        return out + self._flush_events()
+        return out + self.flush_events()
 
     def _on_param(self, now_s: float, msg: Any, link: int) -> list[Outbound]:
         reply = self.param_service.handle(now_s, msg)
         for severity, text in reply.events:
-            self._event(severity, text)
+            self.event(severity, text)
         if reply.refused:
             self.counters["param_refused"] += 1
         if reply.changed is not None:

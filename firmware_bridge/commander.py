@@ -35,31 +35,31 @@ class CommanderService(OffboardService):
             return
         log.info("mode %s -> %s%s", self.mode.name, mode.name, f" ({reason})" if reason else "")
         self.mode = mode
-        self._touchdown_since_s = None
+        self.touchdown_since_s = None
         if mode == FlightMode.TAKEOFF:
             self._start_takeoff(now_s)
 
     def _start_takeoff(self, now_s: float) -> None:
         was_in_air, self.in_air = self.in_air, True
-        self._takeoff_start_s = now_s   # BRG_TKO_OL_T counts from here (a loss in the climb re-enters phase 1)
-        self._tko_climbed_m = self.height_m if was_in_air else 0.0
-        self._tko_disagree_told = False
+        self.takeoff_start_s = now_s   # BRG_TKO_OL_T counts from here (a loss in the climb re-enters phase 1)
+        self.tko_climbed_m = self.height_m if was_in_air else 0.0
+        self.tko_disagree_told = False
         if self.odom_ok:
             self.takeoff_phase = TakeoffPhase.CLOSED_LOOP
-            if self._z_ground_m is None:
-                self._z_ground_m = self._odom_z_m
-            self._event(mavlink.MAV_SEVERITY_INFO, f"Takeoff to {self.takeoff_target_m:.1f} m")
+            if self.z_ground_m is None:
+                self.z_ground_m = self.odom_z_m
+            self.event(mavlink.MAV_SEVERITY_INFO, f"Takeoff to {self.takeoff_target_m:.1f} m")
             return
         # phase 1: the camera cannot see yet; climb level on the accelerometer until odometry arrives
         self.takeoff_phase = TakeoffPhase.OPEN_LOOP
         self.blind = True
-        self._hover_thrust_learned = None
-        self._blind_descent = None
+        self.hover_thrust_learned = None
+        self.blind_descent = None
         if not was_in_air:
             self.vertical.reset_ground()
-        self._z_ground_m = None
+        self.z_ground_m = None
         self.height_m = self.vertical.height_m
-        self._event(mavlink.MAV_SEVERITY_INFO, f"Takeoff to {self.takeoff_target_m:.1f} m, open loop until odometry")
+        self.event(mavlink.MAV_SEVERITY_INFO, f"Takeoff to {self.takeoff_target_m:.1f} m, open loop until odometry")
 
     def on_board_status(self, now_s: float, status: BoardStatusLike) -> list[Outbound]:
         prev = self.board_status
@@ -67,17 +67,17 @@ class CommanderService(OffboardService):
         self.board_status_time_s = now_s
         if not self.board_link_ok:
             self.board_link_ok = True
-            self._event(mavlink.MAV_SEVERITY_INFO, "Board link up")
-        if status.failsafe and not self._board_failsafe_reported:
-            self._board_failsafe_reported = True
-            self._event(mavlink.MAV_SEVERITY_CRITICAL, f"Board failsafe (flags 0x{status.error_flags:x})")
+            self.event(mavlink.MAV_SEVERITY_INFO, "Board link up")
+        if status.failsafe and not self.board_failsafe_reported:
+            self.board_failsafe_reported = True
+            self.event(mavlink.MAV_SEVERITY_CRITICAL, f"Board failsafe (flags 0x{status.error_flags:x})")
         elif not status.failsafe:
-            self._board_failsafe_reported = False
+            self.board_failsafe_reported = False
         if prev is not None and bool(prev.armed) != bool(status.armed):
-            self._event(mavlink.MAV_SEVERITY_INFO, "Board armed" if status.armed else "Board disarmed")
+            self.event(mavlink.MAV_SEVERITY_INFO, "Board armed" if status.armed else "Board disarmed")
         if status.flight_state == BoardFlightState.FLYING and self.armed_cmd:
             self.in_air = True
-        return self._flush_events()
+        return self.flush_events()
 
     def on_board_version(self, text: str, version_int: int = 0) -> None:
         self.board_version = text
@@ -86,43 +86,43 @@ class CommanderService(OffboardService):
 
     def _disarm(self, now_s: float, why: str) -> None:
         if self.armed_cmd:
-            self._event(mavlink.MAV_SEVERITY_INFO, why)
+            self.event(mavlink.MAV_SEVERITY_INFO, why)
         self.armed_cmd = False
         self.in_air = False
         self.failsafe_reason = None
-        self._fs_hover_until_s = None
-        self._z_ground_m = None
+        self.fs_hover_until_s = None
+        self.z_ground_m = None
         self.height_m = 0.0
         self.blind = False
         self.takeoff_phase = None
-        self._blind_descent = None
-        self._reset_trackers()
+        self.blind_descent = None
+        self.reset_trackers()
 
     def _check_links(self, now_s: float) -> None:
         p = self.params
-        board_fresh = self._fresh(self.board_status_time_s, now_s, p["BRG_BOARD_LOSS_T"]) or \
-            self._fresh(self.imu_time_s, now_s, p["BRG_BOARD_LOSS_T"])
+        board_fresh = self.fresh(self.board_status_time_s, now_s, p["BRG_BOARD_LOSS_T"]) or \
+            self.fresh(self.imu_time_s, now_s, p["BRG_BOARD_LOSS_T"])
         if self.board_link_ok and not board_fresh:
             self.board_link_ok = False
-            self._event(mavlink.MAV_SEVERITY_CRITICAL, "Board link lost")
+            self.event(mavlink.MAV_SEVERITY_CRITICAL, "Board link lost")
             self.failsafe_reason = "board link lost"
-        odom_fresh = self._fresh(self.odom_time_s, now_s, p["BRG_ODOM_LOSS_T"])
+        odom_fresh = self.fresh(self.odom_time_s, now_s, p["BRG_ODOM_LOSS_T"])
         if self.odom_ok and not odom_fresh:
             self.odom_ok = False
             if self.in_air and self.mode == FlightMode.TAKEOFF and self.height_m < p["BRG_TKO_OL_ALT"]:
                 # low in the climb the camera may lose the floor (too near, too fast): as if it had never
                 # seen it, climb open loop until odometry returns, within BRG_TKO_OL_ALT / BRG_TKO_OL_T
-                self._event(mavlink.MAV_SEVERITY_WARNING,
+                self.event(mavlink.MAV_SEVERITY_WARNING,
                             f"Odometry lost at {self.height_m:.2f} m in takeoff: open loop until odometry")
                 stale_s = now_s - self.odom_time_s if self.odom_time_s is not None else 0.0
-                self.height_m -= self._vz_dead_reckoned * max(stale_s, 0.0)  # the climb since the last odometry
-                self.vertical.align(self.height_m, self._vz_dead_reckoned)
+                self.height_m -= self.vz_dead_reckoned * max(stale_s, 0.0)  # the climb since the last odometry
+                self.vertical.align(self.height_m, self.vz_dead_reckoned)
                 self.takeoff_phase = TakeoffPhase.OPEN_LOOP
                 self.blind = True
             elif self.in_air:
-                self._event(mavlink.MAV_SEVERITY_CRITICAL, "Odometry lost: level hold, descending")
+                self.event(mavlink.MAV_SEVERITY_CRITICAL, "Odometry lost: level hold, descending")
                 self.failsafe_reason = "odometry lost"
-                self._vz_dead_reckoned = float(self.v_est_h(now_s)[2])
+                self.vz_dead_reckoned = float(self.v_est_h(now_s)[2])
                 self.set_mode(FlightMode.LAND, now_s, "odometry lost")
             else:
                 log.info("odometry lost (on the ground: nothing depends on it)")  # the health bit says it
@@ -130,22 +130,22 @@ class CommanderService(OffboardService):
             self.odom_ok = True
             self._odometry_ok_event()
         if self.mode == FlightMode.OFFBOARD and self.in_air and \
-                not self._fresh(self.setpoint_time_s, now_s, p["COM_OF_LOSS_T"]):
+                not self.fresh(self.setpoint_time_s, now_s, p["COM_OF_LOSS_T"]):
             self.failsafe_reason = "offboard setpoints lost"
-            self._event(mavlink.MAV_SEVERITY_CRITICAL,
+            self.event(mavlink.MAV_SEVERITY_CRITICAL,
                         f"Offboard lost >{p['COM_OF_LOSS_T']:.1f}s: hover, then land")
-            self._fs_hover_until_s = now_s + p["BRG_FS_HOVER_T"]
+            self.fs_hover_until_s = now_s + p["BRG_FS_HOVER_T"]
             self.set_mode(FlightMode.LOITER, now_s, "offboard setpoints lost")
         # the board must follow our arm request within a second, else we stop asking
         if self.board_link_ok and self.board_status is not None and bool(self.board_status.armed) != self.armed_cmd:
-            if self._arm_mismatch_since_s is None:
-                self._arm_mismatch_since_s = now_s
-            elif now_s - self._arm_mismatch_since_s > ARM_FOLLOW_TIMEOUT_S and self.armed_cmd:
-                self._event(mavlink.MAV_SEVERITY_CRITICAL, "Board did not arm: disarming")
+            if self.arm_mismatch_since_s is None:
+                self.arm_mismatch_since_s = now_s
+            elif now_s - self.arm_mismatch_since_s > ARM_FOLLOW_TIMEOUT_S and self.armed_cmd:
+                self.event(mavlink.MAV_SEVERITY_CRITICAL, "Board did not arm: disarming")
                 self._disarm(now_s, "Board did not arm")
-                self._arm_mismatch_since_s = None
+                self.arm_mismatch_since_s = None
         else:
-            self._arm_mismatch_since_s = None
+            self.arm_mismatch_since_s = None
 
     def _on_set_mode(self, now_s: float, msg: Any, link: int) -> list[Outbound]:
         if msg.target_system not in (0, self.sysid):
@@ -156,13 +156,13 @@ class CommanderService(OffboardService):
         return []
 
     def _on_command_long(self, now_s: float, msg: Any, link: int) -> list[Outbound]:
-        if not self._for_us(msg):
+        if not self.for_us(msg):
             return []
         params = (msg.param1, msg.param2, msg.param3, msg.param4, msg.param5, msg.param6, msg.param7)
         return self._command(now_s, msg, link, msg.command, params)
 
     def _on_command_int(self, now_s: float, msg: Any, link: int) -> list[Outbound]:
-        if not self._for_us(msg):
+        if not self.for_us(msg):
             return []
         params = (msg.param1, msg.param2, msg.param3, msg.param4, float(msg.x), float(msg.y), msg.z)
         return self._command(now_s, msg, link, msg.command, params)
@@ -181,30 +181,30 @@ class CommanderService(OffboardService):
             # param1 must be exactly 0 or 1: NaN is MAVLink's "unused", never "disarm" (issue 16)
             if p[0] not in (0.0, 1.0):
                 self.counters["commands_refused"] += 1
-                self._event(mavlink.MAV_SEVERITY_WARNING, f"Arm/disarm refused: param1 {p[0]!r}")
+                self.event(mavlink.MAV_SEVERITY_WARNING, f"Arm/disarm refused: param1 {p[0]!r}")
                 return DENIED, []
             force = p[1] == FORCE_ARM_DISARM_MAGIC  # NaN (MAVSDK's unused) is not the magic number
             if p[0] == 1.0:
                 if not self.board_link_ok:
-                    self._event(mavlink.MAV_SEVERITY_CRITICAL, "Arming denied: no board link")
+                    self.event(mavlink.MAV_SEVERITY_CRITICAL, "Arming denied: no board link")
                     return TEMP, []
                 if self.board_status is not None and self.board_status.failsafe and not force:
-                    self._event(mavlink.MAV_SEVERITY_CRITICAL, "Arming denied: board failsafe")
+                    self.event(mavlink.MAV_SEVERITY_CRITICAL, "Arming denied: board failsafe")
                     return TEMP, []
                 if not self.armed_cmd:
                     self.armed_cmd = True
                     self.in_air = False
                     self.blind = False
                     self.takeoff_phase = None
-                    self._blind_descent = None
-                    self._z_ground_m = self._odom_z_m if self.odom_ok else None
+                    self.blind_descent = None
+                    self.z_ground_m = self.odom_z_m if self.odom_ok else None
                     self.height_m = 0.0
                     if self.mode in (FlightMode.LAND, FlightMode.TAKEOFF):
                         self.set_mode(FlightMode.POSCTL, now_s, "armed on the ground")  # else LAND disarms at once
-                    self._event(mavlink.MAV_SEVERITY_INFO, "Armed")
+                    self.event(mavlink.MAV_SEVERITY_INFO, "Armed")
                 return ACCEPTED, []
             if self.in_air and not force:
-                self._event(mavlink.MAV_SEVERITY_WARNING, "Disarm denied: in air (force with 21196)")
+                self.event(mavlink.MAV_SEVERITY_WARNING, "Disarm denied: in air (force with 21196)")
                 return DENIED, []
             self._disarm(now_s, "Disarmed")
             return ACCEPTED, []
@@ -233,7 +233,7 @@ class CommanderService(OffboardService):
             result = self.streams.set_interval(p[0], p[1])
             if result == mavlink.MAV_RESULT_DENIED:
                 self.counters["commands_refused"] += 1
-                self._event(mavlink.MAV_SEVERITY_WARNING, f"Message interval refused: {p[0]!r} {p[1]!r} us")
+                self.event(mavlink.MAV_SEVERITY_WARNING, f"Message interval refused: {p[0]!r} {p[1]!r} us")
             return result, []
         self.counters["unsupported_commands"] += 1
         log.info("unsupported command %d", command)
@@ -247,25 +247,25 @@ class CommanderService(OffboardService):
     def _request_mode(self, mode: FlightMode, now_s: float) -> int:
         TEMP = mavlink.MAV_RESULT_TEMPORARILY_REJECTED
         if mode == FlightMode.OFFBOARD:
-            if not self._fresh(self.setpoint_time_s, now_s, SETPOINT_FRESH_FOR_OFFBOARD_S) or \
-                    (self._vel_sp is None and self._att_sp is None):
-                self._event(mavlink.MAV_SEVERITY_WARNING, "Offboard denied: no setpoint stream")
+            if not self.fresh(self.setpoint_time_s, now_s, SETPOINT_FRESH_FOR_OFFBOARD_S) or \
+                    (self.vel_sp is None and self.att_sp is None):
+                self.event(mavlink.MAV_SEVERITY_WARNING, "Offboard denied: no setpoint stream")
                 return TEMP
-            if self._vel_sp is not None and not self.odom_ok:
-                self._event(mavlink.MAV_SEVERITY_WARNING, "Offboard denied: no odometry")
+            if self.vel_sp is not None and not self.odom_ok:
+                self.event(mavlink.MAV_SEVERITY_WARNING, "Offboard denied: no odometry")
                 return TEMP
         if mode == FlightMode.TAKEOFF:
             if not self.armed_cmd:
-                self._event(mavlink.MAV_SEVERITY_WARNING, "Takeoff denied: not armed")
+                self.event(mavlink.MAV_SEVERITY_WARNING, "Takeoff denied: not armed")
                 return TEMP
             if self.in_air and not self.odom_ok and not self.blind:
-                self._event(mavlink.MAV_SEVERITY_WARNING, "Takeoff denied: odometry lost in the air")
+                self.event(mavlink.MAV_SEVERITY_WARNING, "Takeoff denied: odometry lost in the air")
                 return TEMP
         if mode in HOLD_MODES and self.in_air and self.blind and not self.odom_ok:
-            self._event(mavlink.MAV_SEVERITY_WARNING, f"{mode.name} denied: no odometry yet")
+            self.event(mavlink.MAV_SEVERITY_WARNING, f"{mode.name} denied: no odometry yet")
             return TEMP
         self.failsafe_reason = None if mode != FlightMode.LAND else self.failsafe_reason
-        self._fs_hover_until_s = None
+        self.fs_hover_until_s = None
         if mode == self.mode and mode == FlightMode.TAKEOFF:
             return mavlink.MAV_RESULT_ACCEPTED
         self.set_mode(mode, now_s, "requested")

@@ -69,7 +69,7 @@ class ConnectService(FlightControlService):
             index = int_param(p[1], -1)
             return self.param_service.param_value(names[index]) if 0 <= index < len(names) else None
         if msg_id == mavlink.MAVLINK_MSG_ID_HIGHRES_IMU:
-            a, w = self._last_accel_q, self._last_gyro_q
+            a, w = self.last_accel_q, self.last_gyro_q
             return self.mav.highres_imu_encode(int(self.last_imu_time_usec), float(a[0]), float(a[1]), float(a[2]),
                                                float(w[0]), float(w[1]), float(w[2]), 0.0, 0.0, 0.0, 0.0, 0.0, 0.0,
                                                0.0, 0x3F)
@@ -82,7 +82,7 @@ class ConnectService(FlightControlService):
         return self._message_by_id(msg_id, now_s)
 
     def _on_mission(self, now_s: float, msg: Any, link: int) -> list[Outbound]:
-        if not self._for_us(msg):
+        if not self.for_us(msg):
             return []
         return [Outbound(m, link) for m in gcs_services.handle_mission(msg)]
 

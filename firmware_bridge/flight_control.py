@@ -35,89 +35,89 @@ class FlightControlService(CommanderService):
 
     def control_step(self, now_s: float) -> BoardCommand:
         """The 100 Hz step: failsafes, mode logic, the velocity tracker; the board's next setpoint."""
-        dt = CONTROL_DT_S if self._control_time_s is None else min(max(now_s - self._control_time_s, 1e-3), 0.1)
-        self._control_time_s = now_s
+        dt = CONTROL_DT_S if self.control_time_s is None else min(max(now_s - self.control_time_s, 1e-3), 0.1)
+        self.control_time_s = now_s
         self._check_links(now_s)
         self._update_height(dt)
         est = self.filter.estimate
         if not self.in_air or (not self.odom_ok and not self.blind) or \
-                (self.mode == FlightMode.OFFBOARD and self._att_sp is not None):
-            self._yaw_sp_rad = None  # heading hold only in velocity control (or the blind climb) in the air
+                (self.mode == FlightMode.OFFBOARD and self.att_sp is not None):
+            self.yaw_sp_rad = None  # heading hold only in velocity control (or the blind climb) in the air
         if not self.armed_cmd:
             self.in_air = False
             self.blind = False
             self.takeoff_phase = None
-            self._blind_descent = None
-            self._reset_trackers()
-            self._apply_tracker_selection()
-            self._on_ground_armed_since_s = None
+            self.blind_descent = None
+            self.reset_trackers()
+            self.apply_tracker_selection()
+            self.on_ground_armed_since_s = None
             return self._board(BoardCommand(0.0, 0.0, 0.0, 0.0, False))
         if not self.in_air:
             # armed on the ground: motors at idle, level, nothing integrates (PX4's "landed" state)
-            self._reset_trackers()
-            self._apply_tracker_selection()
-            self._dv_h_imu[:] = 0.0
-            if self._on_ground_armed_since_s is None:
-                self._on_ground_armed_since_s = now_s
+            self.reset_trackers()
+            self.apply_tracker_selection()
+            self.dv_h_imu[:] = 0.0
+            if self.on_ground_armed_since_s is None:
+                self.on_ground_armed_since_s = now_s
             timeout = self.params["COM_DISARM_PRFLT"]
-            if timeout > 0 and now_s - self._on_ground_armed_since_s > timeout:
+            if timeout > 0 and now_s - self.on_ground_armed_since_s > timeout:
                 self._disarm(now_s, "Auto-disarm: no takeoff")
                 return self._board(BoardCommand(0.0, 0.0, 0.0, 0.0, False))
             if self.mode == FlightMode.LAND:
                 self._disarm(now_s, "Landed, disarming")
                 return self._board(BoardCommand(0.0, 0.0, 0.0, 0.0, False))
             return self._board(BoardCommand(0.0, 0.0, 0.0, 0.0, True))
-        self._on_ground_armed_since_s = None
+        self.on_ground_armed_since_s = None
 
         # ---- no odometry yet in this flight: take-off phase 1, or the landing that ends it
-        if self.blind and not self.odom_ok and not (self.mode == FlightMode.OFFBOARD and self._att_sp is not None):
+        if self.blind and not self.odom_ok and not (self.mode == FlightMode.OFFBOARD and self.att_sp is not None):
             return self._blind_step(now_s, dt, est)
 
         # ---- odometry lost in the air: level attitude hold and descend on the IMU's vertical speed
-        if not self.odom_ok and not (self.mode == FlightMode.OFFBOARD and self._att_sp is not None):
+        if not self.odom_ok and not (self.mode == FlightMode.OFFBOARD and self.att_sp is not None):
             v_ref = np.array([0.0, 0.0, self.params["MPC_LAND_SPEED"]])
-            v_est = np.array([0.0, 0.0, self._vz_dead_reckoned])
+            v_est = np.array([0.0, 0.0, self.vz_dead_reckoned])
             cmd = self.pid_tracker.update(dt, v_ref, 0.0, v_est, est.roll_rad, est.pitch_rad)
             cmd = AttitudeCommand(0.0, 0.0, 0.0, cmd.thrust_fraction, cmd.a_des_h_m_s2, cmd.saturated)
-            self._detect_touchdown(now_s, cmd, abs(self._vz_dead_reckoned))
+            self._detect_touchdown(now_s, cmd, abs(self.vz_dead_reckoned))
             return self._finish(cmd)
 
-        if self.mode == FlightMode.OFFBOARD and self._att_sp is not None:
-            return self._finish(self._attitude_command(self._att_sp, est))
+        if self.mode == FlightMode.OFFBOARD and self.att_sp is not None:
+            return self._finish(self._attitude_command(self.att_sp, est))
 
         v_ref = np.zeros(3)
         yaw_rate = 0.0
         a_ref: np.ndarray | None = None
-        if self.mode == FlightMode.OFFBOARD and self._vel_sp is not None:
-            v_ref, yaw_rate = self._velocity_reference(self._vel_sp, est.yaw_rad)
-            dv, a_ref = self._trajectory_terms(self._vel_sp, est.yaw_rad, now_s)
+        if self.mode == FlightMode.OFFBOARD and self.vel_sp is not None:
+            v_ref, yaw_rate = self._velocity_reference(self.vel_sp, est.yaw_rad)
+            dv, a_ref = self._trajectory_terms(self.vel_sp, est.yaw_rad, now_s)
             v_ref = v_ref + dv
         elif self.mode == FlightMode.TAKEOFF:
             # the climb ends when the odometry's height or its integrated climb rate says it is high enough:
             # a height stuck or drifting (a campaign flight's odometry position moved 0.3 m while its velocity,
             # and the vehicle, climbed 3 m into the ceiling) cannot carry the vehicle past the target
-            self._tko_climbed_m -= float(self.v_est_h(now_s)[2]) * dt
-            height = max(self.height_m, self._tko_climbed_m)
-            if self._tko_climbed_m > self.height_m + TKO_HEIGHT_DISAGREE_M and not self._tko_disagree_told:
-                self._tko_disagree_told = True
-                self._event(mavlink.MAV_SEVERITY_WARNING,   # STATUSTEXT: 50 characters
-                            f"Takeoff: odometry height {self.height_m:.2f}, climbed {self._tko_climbed_m:.2f} m")
+            self.tko_climbed_m -= float(self.v_est_h(now_s)[2]) * dt
+            height = max(self.height_m, self.tko_climbed_m)
+            if self.tko_climbed_m > self.height_m + TKO_HEIGHT_DISAGREE_M and not self.tko_disagree_told:
+                self.tko_disagree_told = True
+                self.event(mavlink.MAV_SEVERITY_WARNING,   # STATUSTEXT: 50 characters
+                            f"Takeoff: odometry height {self.height_m:.2f}, climbed {self.tko_climbed_m:.2f} m")
             remaining = self.takeoff_target_m - height
             v_ref[2] = -min(self.params["MPC_TKO_SPEED"], max(1.0 * remaining, 0.1))
             if remaining <= 0.05:
-                self._event(mavlink.MAV_SEVERITY_INFO, f"Takeoff complete at {height:.2f} m")
+                self.event(mavlink.MAV_SEVERITY_INFO, f"Takeoff complete at {height:.2f} m")
                 self.takeoff_phase = None
                 self.set_mode(FlightMode.LOITER, now_s, "takeoff complete")
                 v_ref[2] = 0.0
         elif self.mode == FlightMode.LAND:
             v_ref[2] = self.params["MPC_LAND_SPEED"]
-        elif self._fs_hover_until_s is not None and now_s >= self._fs_hover_until_s:
-            self._fs_hover_until_s = None
-            self._event(mavlink.MAV_SEVERITY_WARNING, "Failsafe: hover done, landing")
+        elif self.fs_hover_until_s is not None and now_s >= self.fs_hover_until_s:
+            self.fs_hover_until_s = None
+            self.event(mavlink.MAV_SEVERITY_WARNING, "Failsafe: hover done, landing")
             self.set_mode(FlightMode.LAND, now_s, "failsafe")
-        sp = self._vel_sp
+        sp = self.vel_sp
         if self.mode == FlightMode.OFFBOARD and sp is not None and sp.yaw_rate_rad_s is None and sp.yaw_rad is not None:
-            self._yaw_sp_rad = None  # an absolute yaw target is tracked in _velocity_reference
+            self.yaw_sp_rad = None  # an absolute yaw target is tracked in _velocity_reference
         else:
             yaw_rate = self._heading_hold(dt, yaw_rate, est.yaw_rad)
         v_est = self.v_est_h(now_s)
@@ -145,19 +145,19 @@ class FlightControlService(CommanderService):
         vz_est = self.vertical.vz_m_s
         elapsed = 0.0
         if self.mode == FlightMode.TAKEOFF:
-            elapsed = now_s - (self._takeoff_start_s if self._takeoff_start_s is not None else now_s)
+            elapsed = now_s - (self.takeoff_start_s if self.takeoff_start_s is not None else now_s)
             height = self.vertical.height_m
             if height >= p["BRG_TKO_OL_ALT"] or elapsed >= p["BRG_TKO_OL_T"]:
-                self._event(mavlink.MAV_SEVERITY_CRITICAL,
+                self.event(mavlink.MAV_SEVERITY_CRITICAL,
                             f"No odometry in takeoff ({elapsed:.1f}s, {height:.2f}m): land")
                 self.failsafe_reason = "no odometry in takeoff"
                 self.takeoff_phase = None
                 self.set_mode(FlightMode.LAND, now_s, "no odometry in takeoff")
         elif self.mode != FlightMode.LAND:
-            self._event(mavlink.MAV_SEVERITY_CRITICAL, "No odometry: landing")
+            self.event(mavlink.MAV_SEVERITY_CRITICAL, "No odometry: landing")
             self.set_mode(FlightMode.LAND, now_s, "no odometry")
         if self.mode == FlightMode.TAKEOFF:
-            self._tko_climbed_m = self.vertical.height_m   # the closed-loop phase integrates on from here
+            self.tko_climbed_m = self.vertical.height_m   # the closed-loop phase integrates on from here
             remaining = self.takeoff_target_m - self.vertical.height_m
             vz_ref = -min(p["BRG_TKO_OL_SPD"], max(remaining, 0.0))  # slows into the target, then holds
             ceiling = hover_prior * (1.0 + margin)
@@ -167,10 +167,10 @@ class FlightControlService(CommanderService):
         probing = False
         if self.mode != FlightMode.TAKEOFF:
             vz_ref = p["BRG_OL_LAND_SPD"]
-            if self._blind_descent is None:
-                self._blind_descent = (now_s, self.vertical.height_m)
-            start_s, height0 = self._blind_descent
-            learned = self._hover_thrust_learned if self._hover_thrust_learned is not None else hover_prior
+            if self.blind_descent is None:
+                self.blind_descent = (now_s, self.vertical.height_m)
+            start_s, height0 = self.blind_descent
+            learned = self.hover_thrust_learned if self.hover_thrust_learned is not None else hover_prior
             ceiling = min(max(learned, hover_prior * (1.0 - margin)), hover_prior * (1.0 + margin))
             probing = self.vertical.height_m <= 0.0 or \
                 now_s - start_s > height0 / vz_ref + BLIND_DESCENT_EXTRA_S
@@ -187,9 +187,9 @@ class FlightControlService(CommanderService):
         if self.mode == FlightMode.TAKEOFF and not self.vertical.estimate.pinned:
             # what the climb needs, tilt-compensated: the descent's thrust ceiling
             level = thrust * math.cos(est.roll_rad) * math.cos(est.pitch_rad)
-            if self._hover_thrust_learned is None:
-                self._hover_thrust_learned = level
-            self._hover_thrust_learned += (level - self._hover_thrust_learned) * dt / HOVER_LEARN_TAU_S
+            if self.hover_thrust_learned is None:
+                self.hover_thrust_learned = level
+            self.hover_thrust_learned += (level - self.hover_thrust_learned) * dt / HOVER_LEARN_TAU_S
         if self.mode == FlightMode.LAND:
             ground = probing and thrust <= ceiling + 1e-6 and \
                 abs(self.vertical.estimate.accel_z_m_s2) < GROUND_CONTACT_ACCEL_M_S2
@@ -200,12 +200,12 @@ class FlightControlService(CommanderService):
         """Yaw rate tracked through a heading setpoint (like PX4's yaw control): the setpoint integrates the
         reference rate, and the heading error (yaw anchored to the odometry) adds ``MC_YAW_P`` * error, so a
         zero yaw rate holds the heading instead of letting the board's rate loop drift."""
-        if self._yaw_sp_rad is None:
-            self._yaw_sp_rad = yaw_rad
-        self._yaw_sp_rad = wrap_pi(self._yaw_sp_rad + yaw_rate_ref * dt)
-        error = wrap_pi(self._yaw_sp_rad - yaw_rad)
+        if self.yaw_sp_rad is None:
+            self.yaw_sp_rad = yaw_rad
+        self.yaw_sp_rad = wrap_pi(self.yaw_sp_rad + yaw_rate_ref * dt)
+        error = wrap_pi(self.yaw_sp_rad - yaw_rad)
         if abs(error) > MAX_HEADING_ERROR_RAD:  # do not wind up behind a saturated or blocked yaw
-            self._yaw_sp_rad = wrap_pi(yaw_rad + math.copysign(MAX_HEADING_ERROR_RAD, error))
+            self.yaw_sp_rad = wrap_pi(yaw_rad + math.copysign(MAX_HEADING_ERROR_RAD, error))
             error = math.copysign(MAX_HEADING_ERROR_RAD, error)
         return yaw_rate_ref + self.params["MC_YAW_P"] * error
 
@@ -216,8 +216,8 @@ class FlightControlService(CommanderService):
             # cannot happen with finite inputs (every boundary checks them); if it does, fly level at the
             # last finite thrust rather than send a NaN or nothing (the board would cut or failsafe)
             self.counters["nonfinite_commands"] = self.counters.get("nonfinite_commands", 0) + 1
-            self._event(mavlink.MAV_SEVERITY_CRITICAL, "Non-finite control output: level hold")
-            self._reset_trackers()
+            self.event(mavlink.MAV_SEVERITY_CRITICAL, "Non-finite control output: level hold")
+            self.reset_trackers()
             return self._board(BoardCommand(0.0, 0.0, 0.0, self.last_board_command.thrust, self.armed_cmd))
         return self._board(BoardCommand(cmd.roll_rad, cmd.pitch_rad, cmd.yaw_rate_rad_s, cmd.thrust_fraction,
                                         self.armed_cmd))
@@ -244,10 +244,10 @@ class FlightControlService(CommanderService):
     def _update_height(self, dt: float) -> None:
         if self.blind:
             self.height_m = self.vertical.height_m
-        elif self._z_ground_m is not None and self._odom_z_m is not None:
-            self.height_m = -(self._odom_z_m - self._z_ground_m)
+        elif self.z_ground_m is not None and self.odom_z_m is not None:
+            self.height_m = -(self.odom_z_m - self.z_ground_m)
         elif self.in_air:
-            self.height_m -= float(self.v_est_h(self._control_time_s or 0.0)[2]) * dt
+            self.height_m -= float(self.v_est_h(self.control_time_s or 0.0)[2]) * dt
         else:
             self.height_m = 0.0
 
@@ -260,10 +260,10 @@ class FlightControlService(CommanderService):
                         and self.board_status.flight_state == BoardFlightState.LANDED)
         low_thrust = cmd.thrust_fraction < p["LNDMC_THR_MAX"] * self.tracker.hover_thrust_fraction
         if ground_contact or (vz_abs_m_s < p["LNDMC_Z_VEL_MAX"] and (low_thrust or board_landed)):
-            if self._touchdown_since_s is None:
-                self._touchdown_since_s = now_s
-            elif now_s - self._touchdown_since_s >= p["LNDMC_TIME_S"]:
+            if self.touchdown_since_s is None:
+                self.touchdown_since_s = now_s
+            elif now_s - self.touchdown_since_s >= p["LNDMC_TIME_S"]:
                 self.in_air = False
                 self._disarm(now_s, "Landed, disarming")
         else:
-            self._touchdown_since_s = None
+            self.touchdown_since_s = None

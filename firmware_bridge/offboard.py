@@ -61,14 +61,14 @@ class OffboardService(TelemetryService):
         self.imu_time_s = now_s
         self.last_imu_time_usec = int(time_usec)
         self.imu_samples += 1
-        self._last_accel_q = np.asarray(accel_q_m_s2, dtype=float)
-        self._last_gyro_q = np.asarray(gyro_q_rad_s, dtype=float)
-        est = self.filter.update(now_s, self._last_gyro_q, self._last_accel_q)
+        self.last_accel_q = np.asarray(accel_q_m_s2, dtype=float)
+        self.last_gyro_q = np.asarray(gyro_q_rad_s, dtype=float)
+        est = self.filter.update(now_s, self.last_gyro_q, self.last_accel_q)
         # acceleration in H from the specific force: a_h = R_hq f_q + g e3
-        a_h = R_hq(est.roll_rad, est.pitch_rad) @ self._last_accel_q + np.array([0.0, 0.0, GRAVITY_M_S2])
+        a_h = R_hq(est.roll_rad, est.pitch_rad) @ self.last_accel_q + np.array([0.0, 0.0, GRAVITY_M_S2])
         if self.in_air:
-            self._dv_h_imu += a_h * dt
-            self._vz_dead_reckoned += a_h[2] * dt - self._vz_dead_reckoned * dt / ODOM_LOST_VZ_LEAK_TAU_S
+            self.dv_h_imu += a_h * dt
+            self.vz_dead_reckoned += a_h[2] * dt - self.vz_dead_reckoned * dt / ODOM_LOST_VZ_LEAK_TAU_S
         board = self.last_board_command
         self.vertical.update(dt, float(a_h[2]), board.thrust if board.armed else 0.0, on_ground=not self.in_air)
         return self._imu_telemetry(now_s, int(time_usec), est)
@@ -76,8 +76,8 @@ class OffboardService(TelemetryService):
     def v_est_h(self, now_s: float) -> np.ndarray:
         """Velocity in H: last odometry plus the IMU-integrated change since (short horizon)."""
         if self.odom_time_s is not None and now_s - self.odom_time_s <= IMU_PREDICTION_HORIZON_S:
-            return self._v_h_odom + self._dv_h_imu
-        return self._v_h_odom.copy()
+            return self.v_h_odom + self.dv_h_imu
+        return self.v_h_odom.copy()
 
     def _velocity_reference(self, sp: VelocitySetpoint, yaw_rad: float) -> tuple[np.ndarray, float]:
         if sp.v_h is not None:
@@ -102,11 +102,11 @@ class OffboardService(TelemetryService):
         (-k_v (v - v_ref)) that is paper 003's -k_x e_x - k_v e_v exactly (BRG_GEO_KX, BRG_GEO_KV).
         """
         dv = np.zeros(3)
-        if sp.p_ned is not None and self._odom_p_ned_m is not None and self.odom_ok \
-                and self._fresh(self.odom_time_s, now_s, self.params["BRG_ODOM_LOSS_T"]):
+        if sp.p_ned is not None and self.odom_p_ned_m is not None and self.odom_ok \
+                and self.fresh(self.odom_time_s, now_s, self.params["BRG_ODOM_LOSS_T"]):
             k_v = self.params["BRG_GEO_KV"]
             k_p = self.params["BRG_GEO_KX"] / k_v if k_v > 0 else 0.0
-            e_x = self._odom_p_ned_m - np.array(sp.p_ned)
+            e_x = self.odom_p_ned_m - np.array(sp.p_ned)
             dv = Rz(-yaw_rad) @ np.clip(-k_p * e_x, -POSITION_CORRECTION_MAX_M_S, POSITION_CORRECTION_MAX_M_S)
         if sp.a_h is not None:
             return dv, np.array(sp.a_h)
@@ -115,7 +115,7 @@ class OffboardService(TelemetryService):
         return dv, None
 
     def _on_set_position_target_local_ned(self, now_s: float, msg: Any, link: int) -> list[Outbound]:
-        if not self._for_us(msg):
+        if not self.for_us(msg):
             return []
         tm = int(msg.type_mask)
         frame = msg.coordinate_frame
@@ -138,17 +138,17 @@ class OffboardService(TelemetryService):
         p = None if target.p_ned_m is None else \
             (float(target.p_ned_m[0]), float(target.p_ned_m[1]), float(target.p_ned_m[2]))
         body = frame in BODY_FRAMES
-        self._vel_sp = VelocitySetpoint(v if body else None, None if body else v, yaw_rate, yaw,
+        self.vel_sp = VelocitySetpoint(v if body else None, None if body else v, yaw_rate, yaw,
                                         a_h=a if body else None, a_ned=None if body else a, p_ned=p)
-        self._att_sp = None
+        self.att_sp = None
         self.setpoint_time_s = now_s
         if self.mode == FlightMode.OFFBOARD and self.armed_cmd and not self.in_air and v[2] < -0.1:
             self.in_air = True  # a climb command from the ground takes off
-            self._z_ground_m = self._odom_z_m
+            self.z_ground_m = self.odom_z_m
         return []
 
     def _on_set_attitude_target(self, now_s: float, msg: Any, link: int) -> list[Outbound]:
-        if not self._for_us(msg):
+        if not self.for_us(msg):
             return []
         tm = msg.type_mask
         q = np.asarray(msg.q, dtype=float)
@@ -168,8 +168,8 @@ class OffboardService(TelemetryService):
         if not all(math.isfinite(x) for x in (yaw_rate, thrust) if x is not None):
             self._reject_setpoint("Attitude setpoint rejected: non-finite field")  # min(max(NaN)) passes NaN
             return []
-        self._att_sp = AttitudeSetpoint(float(roll), float(pitch), yaw_rate, yaw, thrust)
-        self._vel_sp = None
+        self.att_sp = AttitudeSetpoint(float(roll), float(pitch), yaw_rate, yaw, thrust)
+        self.vel_sp = None
         self.setpoint_time_s = now_s
         if self.mode == FlightMode.OFFBOARD and self.armed_cmd and not self.in_air and thrust is not None \
                 and thrust > 0.5 * self.tracker.hover_thrust_fraction:
@@ -183,7 +183,7 @@ class OffboardService(TelemetryService):
                 msg.child_frame_id not in ODOM_BODY_FRAMES + ODOM_WORLD_FRAMES:
             self.counters["odometry_rejected"] += 1
             if self.counters["odometry_rejected"] in (1, 10, 100, 1000):
-                self._event(mavlink.MAV_SEVERITY_WARNING,
+                self.event(mavlink.MAV_SEVERITY_WARNING,
                             f"Odometry rejected: frames {msg.frame_id}/{msg.child_frame_id}")
             return []
         if getattr(msg, "quality", 0) < self.params["BRG_ODOM_QMIN"]:
@@ -199,19 +199,19 @@ class OffboardService(TelemetryService):
             v_h = R_hq(roll, pitch) @ v  # body FRD -> H (paper 000: H is yaw-aligned, level)
         else:
             v_h = Rz(-yaw) @ v  # local NED -> H
-        self._v_h_odom = v_h
-        self._dv_h_imu[:] = 0.0
-        self._vz_dead_reckoned = float(v_h[2])
+        self.v_h_odom = v_h
+        self.dv_h_imu[:] = 0.0
+        self.vz_dead_reckoned = float(v_h[2])
         z = float(msg.z) if math.isfinite(msg.z) else None
-        reset = self._odom_reset_counter is not None and msg.reset_counter != self._odom_reset_counter
-        self._odom_reset_counter = int(msg.reset_counter)
-        if self.in_air and z is not None and (reset or self._z_ground_m is None):
+        reset = self.odom_reset_counter is not None and msg.reset_counter != self.odom_reset_counter
+        self.odom_reset_counter = int(msg.reset_counter)
+        if self.in_air and z is not None and (reset or self.z_ground_m is None):
             # the odometry's frame began (or was reset) in the air: anchor it so the height stays continuous
             # (a frame that merely paused, the same reset counter, keeps its anchor: it is the better height)
-            self._z_ground_m = z + self.height_m
-        self._odom_z_m = z
+            self.z_ground_m = z + self.height_m
+        self.odom_z_m = z
         p_ned = np.array([msg.x, msg.y, msg.z], dtype=float)
-        self._odom_p_ned_m = p_ned if np.all(np.isfinite(p_ned)) else None
+        self.odom_p_ned_m = p_ned if np.all(np.isfinite(p_ned)) else None
         self.odom_time_s = now_s
         if not self.odom_ok:
             self.odom_ok = True
@@ -220,12 +220,12 @@ class OffboardService(TelemetryService):
             self.blind = False
             if self.mode == FlightMode.TAKEOFF:
                 self.takeoff_phase = TakeoffPhase.CLOSED_LOOP
-            self._event(mavlink.MAV_SEVERITY_INFO, f"Odometry at {self.height_m:.2f} m: closed loop")
+            self.event(mavlink.MAV_SEVERITY_INFO, f"Odometry at {self.height_m:.2f} m: closed loop")
         return []
 
     def _odometry_ok_event(self) -> None:
         if self.in_air:
-            self._event(mavlink.MAV_SEVERITY_INFO, "Odometry ok")
+            self.event(mavlink.MAV_SEVERITY_INFO, "Odometry ok")
         else:  # on the ground odometry comes and goes (the camera sees the floor too close): the health bit says it
             log.info("odometry ok")
 
@@ -233,4 +233,4 @@ class OffboardService(TelemetryService):
         """Count a refused setpoint; STATUSTEXT on the 1st, 10th, 100th, 1000th."""
         self.counters["setpoint_rejected"] += 1
         if self.counters["setpoint_rejected"] in (1, 10, 100, 1000):
-            self._event(mavlink.MAV_SEVERITY_WARNING, text)
+            self.event(mavlink.MAV_SEVERITY_WARNING, text)

@@ -57,7 +57,7 @@ class TelemetryService(BridgeState):
         """HIGHRES_IMU / ATTITUDE / ATTITUDE_QUATERNION for one IMU sample, at their stream rates."""
         out: list[Outbound] = []
         if self.streams.due(mavlink.MAVLINK_MSG_ID_HIGHRES_IMU, now_s):
-            a, w = self._last_accel_q, self._last_gyro_q
+            a, w = self.last_accel_q, self.last_gyro_q
             out.append(Outbound(self.mav.highres_imu_encode(
                 int(time_usec), float(a[0]), float(a[1]), float(a[2]), float(w[0]), float(w[1]), float(w[2]),
                 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0x3F)))
@@ -75,7 +75,7 @@ class TelemetryService(BridgeState):
 
     def tick(self, now_s: float) -> list[Outbound]:
         """Periodic telemetry (call at >= 50 Hz) and the STATUSTEXT events of the last steps."""
-        out = self._flush_events()
+        out = self.flush_events()
         if self.streams.due(mavlink.MAVLINK_MSG_ID_HEARTBEAT, now_s):
             out.append(Outbound(self.heartbeat()))
         if self.streams.due(mavlink.MAVLINK_MSG_ID_SYS_STATUS, now_s):
@@ -120,7 +120,7 @@ class TelemetryService(BridgeState):
 
     def sys_status(self, now_s: float) -> Any:
         flags = self.board_status.error_flags if self.board_status is not None else 0
-        imu_ok = self._fresh(self.imu_time_s, now_s, self.params["BRG_BOARD_LOSS_T"]) \
+        imu_ok = self.fresh(self.imu_time_s, now_s, self.params["BRG_BOARD_LOSS_T"]) \
             and not flags & BoardError.IMU_SATURATED
         board_ok = self.board_link_ok and self.board_status is not None and not self.board_status.failsafe \
             and not flags & BoardError.SETPOINT_TIMEOUT
@@ -159,7 +159,7 @@ class TelemetryService(BridgeState):
                                               int(round(frac * 100)) if frac is not None else -1)
 
     def system_time(self, now_s: float) -> Any:
-        unix_us = int(self._unix_clock() * 1e6) if self._unix_clock is not None else 0
+        unix_us = int(self.unix_clock() * 1e6) if self.unix_clock is not None else 0
         return self.mav.system_time_encode(unix_us, int(now_s * 1000) & 0xFFFFFFFF)
 
     def autopilot_version(self) -> Any:
