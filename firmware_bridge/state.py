@@ -1,12 +1,13 @@
 """The bridge's one state machine: its state and the few helpers every service shares.
 
 :class:`BridgeState` holds everything the autopilot knows (board, IMU, odometry, setpoints, mode, arming,
-take-off, counters). The services are mixins over it, one module each, none with sockets, threads or a
-wall clock (time is always ``now_s``): :mod:`~firmware_bridge.commander` (arming, commands, mode requests,
-failsafes), :mod:`~firmware_bridge.flight_control` (the 100 Hz closed loop, blind take-off, heading hold),
+take-off, counters). The services are objects that each hold this one state (and the services they use), one
+module each, none with sockets, threads or a wall clock (time is always ``now_s``):
+:mod:`~firmware_bridge.commander` (arming, commands, mode requests, failsafes),
+:mod:`~firmware_bridge.flight_control` (the 100 Hz closed loop, blind take-off, heading hold),
 :mod:`~firmware_bridge.offboard` (setpoints and odometry -> H), :mod:`~firmware_bridge.telemetry`
-(heartbeat, SYS_STATUS, streams); :class:`firmware_bridge.autopilot.Autopilot` composes them with the
-shared parameter service.
+(heartbeat, SYS_STATUS, streams), :mod:`~firmware_bridge.connect` (what ground stations ask on connect);
+:class:`firmware_bridge.autopilot.Autopilot` builds them with the shared parameter service.
 """
 
 from __future__ import annotations
@@ -110,7 +111,10 @@ class AttitudeSetpoint:
 
 
 class BridgeState:
-    """The autopilot's state (see the module docstring); services add behaviour, never state of their own."""
+    """The autopilot's state (see the module docstring); services add behaviour, never state of their own.
+
+    Its public fields are what the services share: each service's docstring names those it owns (writes).
+    """
 
     def __init__(self, vehicle: VehicleConfig, params: ParamTable, sysid: int = 1, compid: int = 1,
                  unix_clock: Callable[[], float] | None = None) -> None:
