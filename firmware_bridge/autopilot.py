@@ -30,11 +30,11 @@ Where things live:
 
 Every service is an object holding the one :class:`~firmware_bridge.state.BridgeState` and, passed to its
 constructor, the services it uses; the dependencies run one way (telemetry and offboard use no other service,
-connect uses telemetry, the commander uses offboard and connect, flight control uses the commander and
-offboard). :class:`Autopilot` builds them, routes each MAVLink message to its service and applies parameter
-changes; its attributes (``mode``, ``armed_cmd``, ``counters``, ``tracker``...) are the state's, read and
-written through :class:`_Shared`. One unexpected exception in one message's handler is caught, counted
-(``handler_errors``) and logged at most every few seconds: it never ends the daemon's loop.
+connect uses telemetry and the parameter service, the commander uses offboard and connect, flight control uses
+the commander and offboard). :class:`Autopilot` builds them, routes each MAVLink message to its service and
+applies parameter changes; its attributes (``mode``, ``armed_cmd``, ``counters``, ``tracker``...) are the
+state's, read and written through :class:`_Shared`. One unexpected exception in one message's handler is caught,
+counted (``handler_errors``) and logged at most every few seconds: it never ends the daemon's loop.
 """
 
 from __future__ import annotations
