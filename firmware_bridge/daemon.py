@@ -1,9 +1,9 @@
 """The bridge process: MK ports and MAVLink endpoints wired to the pure :class:`~firmware_bridge.autopilot.Autopilot`.
 
-Concurrency model: a few reader threads (MK port 1, MK port 2, one per MAVLink endpoint) that only
-read with a timeout and put what they got on one queue; the main thread owns the autopilot and
-does all decoding, control and writing. Every wait has a timeout; :meth:`BridgeDaemon.stop` (or
-Ctrl-C in the CLI) ends all threads within ~0.2 s.
+Concurrency model: a few reader threads (MK port 1, MK port 2, one per MAVLink endpoint;
+:mod:`firmware_bridge.links`) that only read with a timeout and put what they got on one queue; the main
+thread owns the autopilot and does all decoding, control and writing. Every wait has a timeout;
+:meth:`BridgeDaemon.stop` (or Ctrl-C in the CLI) ends all threads within ~0.2 s.
 
 Time (the system contract): the board's IMU sample counter is the clock. Sample k is at board
 time k * 2 ms (the 12-bit counter is unwrapped, and aligned with ``BoardStatus.imu_sample_count``);
@@ -28,6 +28,7 @@ from typing import Any
 import numpy as np
 
 from firmware_bridge.autopilot import Autopilot, BoardCommand, Outbound
+from firmware_bridge.links import LinkReaders, StreamHolder
 from firmware_bridge.params import DEFAULT_PARAMS_PATH, ParamTable, load_param_file, save_param_file
 from firmware_bridge.telemetry import encode_sw_version
 from quadlink.errors import ConfigError, LinkError, ProtocolError
@@ -76,43 +77,6 @@ class BridgeConfig:
             raise ValueError(f"realtime_priority must be 0 (off) or 1..{MAX_PRIORITY}")
 
 
-class _StreamHolder:
-    """A byte stream that a reader thread may reopen after a link error; writes go to the current one."""
-
-    def __init__(self, url: str, opener: Callable[[str], ByteStream]) -> None:
-        self.url = url
-        self._opener = opener
-        self._lock = threading.Lock()
-        self.stream: ByteStream | None = opener(url)
-
-    def write(self, data: bytes) -> bool:
-        with self._lock:
-            stream = self.stream
-        if stream is None:
-            return False
-        try:
-            stream.write(data)
-            return True
-        except LinkError as exc:
-            log.warning("%s", exc)
-            return False
-
-    def reopen(self) -> bool:
-        try:
-            stream = self._opener(self.url)
-        except LinkError:
-            return False
-        with self._lock:
-            self.stream = stream
-        return True
-
-    def drop(self) -> None:
-        with self._lock:
-            stream, self.stream = self.stream, None
-        if stream is not None:
-            stream.close()
-
-
 @dataclass
 class BridgeStats:
     imu_samples: int = 0
@@ -144,8 +108,8 @@ class BridgeDaemon:
         self._queue: queue.Queue[tuple[Any, ...]] = queue.Queue(maxsize=20000)
         self._stop = threading.Event()
         self._threads: list[threading.Thread] = []
-        self.cmd: _StreamHolder | None = None
-        self.imu: _StreamHolder | None = None
+        self.cmd: StreamHolder | None = None
+        self.imu: StreamHolder | None = None
         self.mavlinks: list[Any] = []
         self._cmd_decoder = FrameDecoder()
         self._imu_decoder = FrameDecoder()
@@ -172,10 +136,10 @@ class BridgeDaemon:
         """Open every link (raises :class:`LinkError` naming the first that fails) and start the readers."""
         c = self.config
         log.info("MK port 1 (commands/telemetry): %s", c.mk_cmd_url)
-        self.cmd = _StreamHolder(c.mk_cmd_url, self._stream_opener)
+        self.cmd = StreamHolder(c.mk_cmd_url, self._stream_opener)
         log.info("MK port 2 (IMU): %s", c.mk_imu_url)
         try:
-            self.imu = _StreamHolder(c.mk_imu_url, self._stream_opener)
+            self.imu = StreamHolder(c.mk_imu_url, self._stream_opener)
         except LinkError:
             self.cmd.drop()
             raise
@@ -188,15 +152,8 @@ class BridgeDaemon:
             raise
         log.info("MAVLink endpoints: %s (sysid %d compid %d)", ", ".join(c.mavlink_urls), c.sysid, c.compid)
         log.info("parameters: %s (%d)", self.params_path, len(self.params))
-        self._threads = [threading.Thread(target=self._read_mk, args=("cmd", self.cmd), daemon=True,
-                                          name="mk-cmd"),
-                         threading.Thread(target=self._read_mk, args=("imu", self.imu), daemon=True,
-                                          name="mk-imu")]
-        for i, conn in enumerate(self.mavlinks):
-            self._threads.append(threading.Thread(target=self._read_mavlink, args=(i, conn), daemon=True,
-                                                  name=f"mavlink-{i}"))
-        for t in self._threads:
-            t.start()
+        readers = LinkReaders(self._put, self._stop, self.clock, c.reconnect_interval_s)
+        self._threads = readers.start(self.cmd, self.imu, self.mavlinks)
 
     def enable_signing(self) -> None:
         """MAVLink 2 signing (pymavlink's, on each link's own codec: what it sends is signed, what it receives
@@ -232,45 +189,12 @@ class BridgeDaemon:
                 pass
         self._save_params(force=True)
 
-    # ------------------------------------------------------------------ reader threads
+    # ------------------------------------------------------------------ the reader threads' queue
     def _put(self, item: tuple[Any, ...]) -> None:
         try:
             self._queue.put(item, timeout=0.1)
         except queue.Full:
             log.warning("bridge input queue full; dropping %s input", item[0])
-
-    def _read_mk(self, kind: str, holder: _StreamHolder) -> None:
-        while not self._stop.is_set():
-            stream = holder.stream
-            if stream is None:
-                if self._stop.wait(self.config.reconnect_interval_s):
-                    return
-                if holder.reopen():
-                    self._put(("link", kind, f"{holder.url}: reconnected"))
-                continue
-            try:
-                data = stream.read(4096, 0.1)
-            except LinkError as exc:
-                self._put(("link", kind, str(exc)))
-                holder.drop()
-                continue
-            if data:
-                self._put((kind, data, self.clock()))
-
-    def _read_mavlink(self, index: int, conn: Any) -> None:
-        # Raw bytes only: pymavlink's MAVLink object is not thread-safe (a parse in this thread while the
-        # main thread packs a message loses messages), so all parsing and packing happen in the main thread.
-        while not self._stop.is_set():
-            try:
-                if not conn.select(0.1):
-                    continue
-                data = conn.recv(65535)
-            except (OSError, ValueError) as exc:  # a dead socket or a closed serial port
-                self._put(("mavbad", index, str(exc)))
-                self._stop.wait(0.1)
-                continue
-            if data:
-                self._put(("mav", index, bytes(data)))
 
     # ------------------------------------------------------------------ main loop
     def run(self, duration_s: float | None = None) -> None:

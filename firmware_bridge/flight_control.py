@@ -15,7 +15,8 @@ import numpy as np
 from firmware_bridge.commander import CommanderService
 from firmware_bridge.geometric_tracker import GeometricTracker
 from firmware_bridge.modes import FlightMode
-from firmware_bridge.state import AttitudeSetpoint, BoardCommand
+from firmware_bridge.offboard import OffboardService
+from firmware_bridge.state import AttitudeSetpoint, BoardCommand, BridgeState
 from firmware_bridge.velocity_tracker import AttitudeCommand
 from quadlink.frames import wrap_pi
 from quadlink.mavlink import mavlink
@@ -30,102 +31,111 @@ CONTROL_DT_S = 0.01  # nominal step (every 5th IMU sample); the measured dt is b
 YAW_TRACK_GAIN_1_S = 2.0  # an absolute yaw target is tracked through the yaw-rate command
 
 
-class FlightControlService(CommanderService):
-    """The control step over the shared :class:`BridgeState`."""
+class FlightControlService:
+    """The control step over the shared :class:`~firmware_bridge.state.BridgeState`: owns the height, the heading
+    setpoint, the take-off climb's and the blind flight's bookkeeping (climb, learnt hover thrust, descent), the
+    touchdown and auto-disarm timers and the last commands. Uses the commander (failsafes, mode changes,
+    disarming) and the offboard service (the velocity estimate, the setpoints in H)."""
+
+    def __init__(self, state: BridgeState, commander: CommanderService, offboard: OffboardService) -> None:
+        self.state = state
+        self.commander = commander
+        self.offboard = offboard
 
     def control_step(self, now_s: float) -> BoardCommand:
         """The 100 Hz step: failsafes, mode logic, the velocity tracker; the board's next setpoint."""
-        dt = CONTROL_DT_S if self._control_time_s is None else min(max(now_s - self._control_time_s, 1e-3), 0.1)
-        self._control_time_s = now_s
-        self._check_links(now_s)
+        s = self.state
+        dt = CONTROL_DT_S if s.control_time_s is None else min(max(now_s - s.control_time_s, 1e-3), 0.1)
+        s.control_time_s = now_s
+        self.commander.check_links(now_s)
         self._update_height(dt)
-        est = self.filter.estimate
-        if not self.in_air or (not self.odom_ok and not self.blind) or \
-                (self.mode == FlightMode.OFFBOARD and self._att_sp is not None):
-            self._yaw_sp_rad = None  # heading hold only in velocity control (or the blind climb) in the air
-        if not self.armed_cmd:
-            self.in_air = False
-            self.blind = False
-            self.takeoff_phase = None
-            self._blind_descent = None
-            self._reset_trackers()
-            self._apply_tracker_selection()
-            self._on_ground_armed_since_s = None
+        est = s.filter.estimate
+        if not s.in_air or (not s.odom_ok and not s.blind) or \
+                (s.mode == FlightMode.OFFBOARD and s.att_sp is not None):
+            s.yaw_sp_rad = None  # heading hold only in velocity control (or the blind climb) in the air
+        if not s.armed_cmd:
+            s.in_air = False
+            s.blind = False
+            s.takeoff_phase = None
+            s.blind_descent = None
+            s.reset_trackers()
+            s.apply_tracker_selection()
+            s.on_ground_armed_since_s = None
             return self._board(BoardCommand(0.0, 0.0, 0.0, 0.0, False))
-        if not self.in_air:
+        if not s.in_air:
             # armed on the ground: motors at idle, level, nothing integrates (PX4's "landed" state)
-            self._reset_trackers()
-            self._apply_tracker_selection()
-            self._dv_h_imu[:] = 0.0
-            if self._on_ground_armed_since_s is None:
-                self._on_ground_armed_since_s = now_s
-            timeout = self.params["COM_DISARM_PRFLT"]
-            if timeout > 0 and now_s - self._on_ground_armed_since_s > timeout:
-                self._disarm(now_s, "Auto-disarm: no takeoff")
+            s.reset_trackers()
+            s.apply_tracker_selection()
+            s.dv_h_imu[:] = 0.0
+            if s.on_ground_armed_since_s is None:
+                s.on_ground_armed_since_s = now_s
+            timeout = s.params["COM_DISARM_PRFLT"]
+            if timeout > 0 and now_s - s.on_ground_armed_since_s > timeout:
+                self.commander.disarm(now_s, "Auto-disarm: no takeoff")
                 return self._board(BoardCommand(0.0, 0.0, 0.0, 0.0, False))
-            if self.mode == FlightMode.LAND:
-                self._disarm(now_s, "Landed, disarming")
+            if s.mode == FlightMode.LAND:
+                self.commander.disarm(now_s, "Landed, disarming")
                 return self._board(BoardCommand(0.0, 0.0, 0.0, 0.0, False))
             return self._board(BoardCommand(0.0, 0.0, 0.0, 0.0, True))
-        self._on_ground_armed_since_s = None
+        s.on_ground_armed_since_s = None
 
         # ---- no odometry yet in this flight: take-off phase 1, or the landing that ends it
-        if self.blind and not self.odom_ok and not (self.mode == FlightMode.OFFBOARD and self._att_sp is not None):
+        if s.blind and not s.odom_ok and not (s.mode == FlightMode.OFFBOARD and s.att_sp is not None):
             return self._blind_step(now_s, dt, est)
 
         # ---- odometry lost in the air: level attitude hold and descend on the IMU's vertical speed
-        if not self.odom_ok and not (self.mode == FlightMode.OFFBOARD and self._att_sp is not None):
-            v_ref = np.array([0.0, 0.0, self.params["MPC_LAND_SPEED"]])
-            v_est = np.array([0.0, 0.0, self._vz_dead_reckoned])
-            cmd = self.pid_tracker.update(dt, v_ref, 0.0, v_est, est.roll_rad, est.pitch_rad)
+        if not s.odom_ok and not (s.mode == FlightMode.OFFBOARD and s.att_sp is not None):
+            v_ref = np.array([0.0, 0.0, s.params["MPC_LAND_SPEED"]])
+            v_est = np.array([0.0, 0.0, s.vz_dead_reckoned])
+            cmd = s.pid_tracker.update(dt, v_ref, 0.0, v_est, est.roll_rad, est.pitch_rad)
             cmd = AttitudeCommand(0.0, 0.0, 0.0, cmd.thrust_fraction, cmd.a_des_h_m_s2, cmd.saturated)
-            self._detect_touchdown(now_s, cmd, abs(self._vz_dead_reckoned))
+            self._detect_touchdown(now_s, cmd, abs(s.vz_dead_reckoned))
             return self._finish(cmd)
 
-        if self.mode == FlightMode.OFFBOARD and self._att_sp is not None:
-            return self._finish(self._attitude_command(self._att_sp, est))
+        if s.mode == FlightMode.OFFBOARD and s.att_sp is not None:
+            return self._finish(self._attitude_command(s.att_sp, est))
 
         v_ref = np.zeros(3)
         yaw_rate = 0.0
         a_ref: np.ndarray | None = None
-        if self.mode == FlightMode.OFFBOARD and self._vel_sp is not None:
-            v_ref, yaw_rate = self._velocity_reference(self._vel_sp, est.yaw_rad)
-            dv, a_ref = self._trajectory_terms(self._vel_sp, est.yaw_rad, now_s)
+        if s.mode == FlightMode.OFFBOARD and s.vel_sp is not None:
+            v_ref, yaw_rate = self.offboard.velocity_reference(s.vel_sp, est.yaw_rad)
+            dv, a_ref = self.offboard.trajectory_terms(s.vel_sp, est.yaw_rad, now_s)
             v_ref = v_ref + dv
-        elif self.mode == FlightMode.TAKEOFF:
+        elif s.mode == FlightMode.TAKEOFF:
             # the climb ends when the odometry's height or its integrated climb rate says it is high enough:
             # a height stuck or drifting (a campaign flight's odometry position moved 0.3 m while its velocity,
             # and the vehicle, climbed 3 m into the ceiling) cannot carry the vehicle past the target
-            self._tko_climbed_m -= float(self.v_est_h(now_s)[2]) * dt
-            height = max(self.height_m, self._tko_climbed_m)
-            if self._tko_climbed_m > self.height_m + TKO_HEIGHT_DISAGREE_M and not self._tko_disagree_told:
-                self._tko_disagree_told = True
-                self._event(mavlink.MAV_SEVERITY_WARNING,   # STATUSTEXT: 50 characters
-                            f"Takeoff: odometry height {self.height_m:.2f}, climbed {self._tko_climbed_m:.2f} m")
-            remaining = self.takeoff_target_m - height
-            v_ref[2] = -min(self.params["MPC_TKO_SPEED"], max(1.0 * remaining, 0.1))
+            s.tko_climbed_m -= float(self.offboard.v_est_h(now_s)[2]) * dt
+            height = max(s.height_m, s.tko_climbed_m)
+            if s.tko_climbed_m > s.height_m + TKO_HEIGHT_DISAGREE_M and not s.tko_disagree_told:
+                s.tko_disagree_told = True
+                s.event(mavlink.MAV_SEVERITY_WARNING,   # STATUSTEXT: 50 characters
+                        f"Takeoff: odometry height {s.height_m:.2f}, climbed {s.tko_climbed_m:.2f} m")
+            remaining = s.takeoff_target_m - height
+            v_ref[2] = -min(s.params["MPC_TKO_SPEED"], max(1.0 * remaining, 0.1))
             if remaining <= 0.05:
-                self._event(mavlink.MAV_SEVERITY_INFO, f"Takeoff complete at {height:.2f} m")
-                self.takeoff_phase = None
-                self.set_mode(FlightMode.LOITER, now_s, "takeoff complete")
+                s.event(mavlink.MAV_SEVERITY_INFO, f"Takeoff complete at {height:.2f} m")
+                s.takeoff_phase = None
+                self.commander.set_mode(FlightMode.LOITER, now_s, "takeoff complete")
                 v_ref[2] = 0.0
-        elif self.mode == FlightMode.LAND:
-            v_ref[2] = self.params["MPC_LAND_SPEED"]
-        elif self._fs_hover_until_s is not None and now_s >= self._fs_hover_until_s:
-            self._fs_hover_until_s = None
-            self._event(mavlink.MAV_SEVERITY_WARNING, "Failsafe: hover done, landing")
-            self.set_mode(FlightMode.LAND, now_s, "failsafe")
-        sp = self._vel_sp
-        if self.mode == FlightMode.OFFBOARD and sp is not None and sp.yaw_rate_rad_s is None and sp.yaw_rad is not None:
-            self._yaw_sp_rad = None  # an absolute yaw target is tracked in _velocity_reference
+        elif s.mode == FlightMode.LAND:
+            v_ref[2] = s.params["MPC_LAND_SPEED"]
+        elif s.fs_hover_until_s is not None and now_s >= s.fs_hover_until_s:
+            s.fs_hover_until_s = None
+            s.event(mavlink.MAV_SEVERITY_WARNING, "Failsafe: hover done, landing")
+            self.commander.set_mode(FlightMode.LAND, now_s, "failsafe")
+        sp = s.vel_sp
+        if s.mode == FlightMode.OFFBOARD and sp is not None and sp.yaw_rate_rad_s is None and sp.yaw_rad is not None:
+            s.yaw_sp_rad = None  # an absolute yaw target is tracked in velocity_reference
         else:
             yaw_rate = self._heading_hold(dt, yaw_rate, est.yaw_rad)
-        v_est = self.v_est_h(now_s)
-        if isinstance(self.tracker, GeometricTracker):  # eq. (4)'s a_d feed-forward (the PID tracker has none)
-            cmd = self.tracker.update(dt, v_ref, yaw_rate, v_est, est.roll_rad, est.pitch_rad, a_ref_h=a_ref)
+        v_est = self.offboard.v_est_h(now_s)
+        if isinstance(s.tracker, GeometricTracker):  # eq. (4)'s a_d feed-forward (the PID tracker has none)
+            cmd = s.tracker.update(dt, v_ref, yaw_rate, v_est, est.roll_rad, est.pitch_rad, a_ref_h=a_ref)
         else:
-            cmd = self.tracker.update(dt, v_ref, yaw_rate, v_est, est.roll_rad, est.pitch_rad)
-        if self.mode == FlightMode.LAND:
+            cmd = s.tracker.update(dt, v_ref, yaw_rate, v_est, est.roll_rad, est.pitch_rad)
+        if s.mode == FlightMode.LAND:
             self._detect_touchdown(now_s, cmd, abs(v_est[2]))
         return self._finish(cmd)
 
@@ -139,60 +149,61 @@ class FlightControlService(CommanderService):
         took BLIND_DESCENT_EXTRA_S longer than height / rate) the cap drops to BRG_FS_DESC_THR x hover: in the
         air the vehicle then accelerates downwards, on the ground the accelerometer shows nothing, which is
         the touchdown test that does not depend on the drifting velocity."""
-        p = self.params
-        hover_prior = self.pid_tracker.hover_thrust_fraction
+        s = self.state
+        p = s.params
+        hover_prior = s.pid_tracker.hover_thrust_fraction
         margin = p["BRG_TKO_THR_MRG"]
-        vz_est = self.vertical.vz_m_s
+        vz_est = s.vertical.vz_m_s
         elapsed = 0.0
-        if self.mode == FlightMode.TAKEOFF:
-            elapsed = now_s - (self._takeoff_start_s if self._takeoff_start_s is not None else now_s)
-            height = self.vertical.height_m
+        if s.mode == FlightMode.TAKEOFF:
+            elapsed = now_s - (s.takeoff_start_s if s.takeoff_start_s is not None else now_s)
+            height = s.vertical.height_m
             if height >= p["BRG_TKO_OL_ALT"] or elapsed >= p["BRG_TKO_OL_T"]:
-                self._event(mavlink.MAV_SEVERITY_CRITICAL,
-                            f"No odometry in takeoff ({elapsed:.1f}s, {height:.2f}m): land")
-                self.failsafe_reason = "no odometry in takeoff"
-                self.takeoff_phase = None
-                self.set_mode(FlightMode.LAND, now_s, "no odometry in takeoff")
-        elif self.mode != FlightMode.LAND:
-            self._event(mavlink.MAV_SEVERITY_CRITICAL, "No odometry: landing")
-            self.set_mode(FlightMode.LAND, now_s, "no odometry")
-        if self.mode == FlightMode.TAKEOFF:
-            self._tko_climbed_m = self.vertical.height_m   # the closed-loop phase integrates on from here
-            remaining = self.takeoff_target_m - self.vertical.height_m
+                s.event(mavlink.MAV_SEVERITY_CRITICAL,
+                        f"No odometry in takeoff ({elapsed:.1f}s, {height:.2f}m): land")
+                s.failsafe_reason = "no odometry in takeoff"
+                s.takeoff_phase = None
+                self.commander.set_mode(FlightMode.LAND, now_s, "no odometry in takeoff")
+        elif s.mode != FlightMode.LAND:
+            s.event(mavlink.MAV_SEVERITY_CRITICAL, "No odometry: landing")
+            self.commander.set_mode(FlightMode.LAND, now_s, "no odometry")
+        if s.mode == FlightMode.TAKEOFF:
+            s.tko_climbed_m = s.vertical.height_m   # the closed-loop phase integrates on from here
+            remaining = s.takeoff_target_m - s.vertical.height_m
             vz_ref = -min(p["BRG_TKO_OL_SPD"], max(remaining, 0.0))  # slows into the target, then holds
             ceiling = hover_prior * (1.0 + margin)
             ramp_s = p["BRG_TKO_RAMP_T"]
             if ramp_s > 0:
                 ceiling *= min(1.0, elapsed / ramp_s)
         probing = False
-        if self.mode != FlightMode.TAKEOFF:
+        if s.mode != FlightMode.TAKEOFF:
             vz_ref = p["BRG_OL_LAND_SPD"]
-            if self._blind_descent is None:
-                self._blind_descent = (now_s, self.vertical.height_m)
-            start_s, height0 = self._blind_descent
-            learned = self._hover_thrust_learned if self._hover_thrust_learned is not None else hover_prior
+            if s.blind_descent is None:
+                s.blind_descent = (now_s, s.vertical.height_m)
+            start_s, height0 = s.blind_descent
+            learned = s.hover_thrust_learned if s.hover_thrust_learned is not None else hover_prior
             ceiling = min(max(learned, hover_prior * (1.0 - margin)), hover_prior * (1.0 + margin))
-            probing = self.vertical.height_m <= 0.0 or \
+            probing = s.vertical.height_m <= 0.0 or \
                 now_s - start_s > height0 / vz_ref + BLIND_DESCENT_EXTRA_S
             if probing:
                 ceiling *= p["BRG_FS_DESC_THR"]
-        if self.vertical.estimate.pinned:
-            self.pid_tracker.reset()  # the ground carries the vehicle while the thrust ramps: nothing to integrate
+        if s.vertical.estimate.pinned:
+            s.pid_tracker.reset()  # the ground carries the vehicle while the thrust ramps: nothing to integrate
         yaw_rate = self._heading_hold(dt, 0.0, est.yaw_rad)
-        cmd = self.pid_tracker.update(dt, np.array([0.0, 0.0, vz_ref]), yaw_rate, np.array([0.0, 0.0, vz_est]),
-                                  est.roll_rad, est.pitch_rad)
+        cmd = s.pid_tracker.update(dt, np.array([0.0, 0.0, vz_ref]), yaw_rate, np.array([0.0, 0.0, vz_est]),
+                                   est.roll_rad, est.pitch_rad)
         thrust = min(cmd.thrust_fraction, ceiling)
         cmd = AttitudeCommand(0.0, 0.0, cmd.yaw_rate_rad_s, thrust, cmd.a_des_h_m_s2,
                               cmd.saturated or thrust < cmd.thrust_fraction)
-        if self.mode == FlightMode.TAKEOFF and not self.vertical.estimate.pinned:
+        if s.mode == FlightMode.TAKEOFF and not s.vertical.estimate.pinned:
             # what the climb needs, tilt-compensated: the descent's thrust ceiling
             level = thrust * math.cos(est.roll_rad) * math.cos(est.pitch_rad)
-            if self._hover_thrust_learned is None:
-                self._hover_thrust_learned = level
-            self._hover_thrust_learned += (level - self._hover_thrust_learned) * dt / HOVER_LEARN_TAU_S
-        if self.mode == FlightMode.LAND:
+            if s.hover_thrust_learned is None:
+                s.hover_thrust_learned = level
+            s.hover_thrust_learned += (level - s.hover_thrust_learned) * dt / HOVER_LEARN_TAU_S
+        if s.mode == FlightMode.LAND:
             ground = probing and thrust <= ceiling + 1e-6 and \
-                abs(self.vertical.estimate.accel_z_m_s2) < GROUND_CONTACT_ACCEL_M_S2
+                abs(s.vertical.estimate.accel_z_m_s2) < GROUND_CONTACT_ACCEL_M_S2
             self._detect_touchdown(now_s, cmd, abs(vz_est), ground_contact=ground)
         return self._finish(cmd)
 
@@ -200,34 +211,36 @@ class FlightControlService(CommanderService):
         """Yaw rate tracked through a heading setpoint (like PX4's yaw control): the setpoint integrates the
         reference rate, and the heading error (yaw anchored to the odometry) adds ``MC_YAW_P`` * error, so a
         zero yaw rate holds the heading instead of letting the board's rate loop drift."""
-        if self._yaw_sp_rad is None:
-            self._yaw_sp_rad = yaw_rad
-        self._yaw_sp_rad = wrap_pi(self._yaw_sp_rad + yaw_rate_ref * dt)
-        error = wrap_pi(self._yaw_sp_rad - yaw_rad)
+        s = self.state
+        if s.yaw_sp_rad is None:
+            s.yaw_sp_rad = yaw_rad
+        s.yaw_sp_rad = wrap_pi(s.yaw_sp_rad + yaw_rate_ref * dt)
+        error = wrap_pi(s.yaw_sp_rad - yaw_rad)
         if abs(error) > MAX_HEADING_ERROR_RAD:  # do not wind up behind a saturated or blocked yaw
-            self._yaw_sp_rad = wrap_pi(yaw_rad + math.copysign(MAX_HEADING_ERROR_RAD, error))
+            s.yaw_sp_rad = wrap_pi(yaw_rad + math.copysign(MAX_HEADING_ERROR_RAD, error))
             error = math.copysign(MAX_HEADING_ERROR_RAD, error)
-        return yaw_rate_ref + self.params["MC_YAW_P"] * error
+        return yaw_rate_ref + s.params["MC_YAW_P"] * error
 
     def _finish(self, cmd: AttitudeCommand) -> BoardCommand:
-        self.last_command = cmd
+        s = self.state
+        s.last_command = cmd
         values = (cmd.roll_rad, cmd.pitch_rad, cmd.yaw_rate_rad_s, cmd.thrust_fraction)
         if not all(math.isfinite(v) for v in values):
             # cannot happen with finite inputs (every boundary checks them); if it does, fly level at the
             # last finite thrust rather than send a NaN or nothing (the board would cut or failsafe)
-            self.counters["nonfinite_commands"] = self.counters.get("nonfinite_commands", 0) + 1
-            self._event(mavlink.MAV_SEVERITY_CRITICAL, "Non-finite control output: level hold")
-            self._reset_trackers()
-            return self._board(BoardCommand(0.0, 0.0, 0.0, self.last_board_command.thrust, self.armed_cmd))
+            s.counters["nonfinite_commands"] = s.counters.get("nonfinite_commands", 0) + 1
+            s.event(mavlink.MAV_SEVERITY_CRITICAL, "Non-finite control output: level hold")
+            s.reset_trackers()
+            return self._board(BoardCommand(0.0, 0.0, 0.0, s.last_board_command.thrust, s.armed_cmd))
         return self._board(BoardCommand(cmd.roll_rad, cmd.pitch_rad, cmd.yaw_rate_rad_s, cmd.thrust_fraction,
-                                        self.armed_cmd))
+                                        s.armed_cmd))
 
     def _board(self, command: BoardCommand) -> BoardCommand:
-        self.last_board_command = command
+        self.state.last_board_command = command
         return command
 
     def _attitude_command(self, sp: AttitudeSetpoint, est: Any) -> AttitudeCommand:
-        g = self.tracker.gains
+        g = self.state.tracker.gains
         roll = min(max(sp.roll_rad, -g.max_tilt_rad), g.max_tilt_rad)
         pitch = min(max(sp.pitch_rad, -g.max_tilt_rad), g.max_tilt_rad)
         if sp.yaw_rate_rad_s is not None:
@@ -237,33 +250,35 @@ class FlightControlService(CommanderService):
         else:
             yaw_rate = 0.0
         yaw_rate = min(max(yaw_rate, -g.max_yaw_rate_rad_s), g.max_yaw_rate_rad_s)
-        thrust = self.tracker.hover_thrust_fraction if sp.thrust is None else sp.thrust
+        thrust = self.state.tracker.hover_thrust_fraction if sp.thrust is None else sp.thrust
         thrust = min(max(thrust, 0.0), g.thrust_max_fraction)
         return AttitudeCommand(roll, pitch, yaw_rate, thrust)
 
     def _update_height(self, dt: float) -> None:
-        if self.blind:
-            self.height_m = self.vertical.height_m
-        elif self._z_ground_m is not None and self._odom_z_m is not None:
-            self.height_m = -(self._odom_z_m - self._z_ground_m)
-        elif self.in_air:
-            self.height_m -= float(self.v_est_h(self._control_time_s or 0.0)[2]) * dt
+        s = self.state
+        if s.blind:
+            s.height_m = s.vertical.height_m
+        elif s.z_ground_m is not None and s.odom_z_m is not None:
+            s.height_m = -(s.odom_z_m - s.z_ground_m)
+        elif s.in_air:
+            s.height_m -= float(self.offboard.v_est_h(s.control_time_s or 0.0)[2]) * dt
         else:
-            self.height_m = 0.0
+            s.height_m = 0.0
 
     def _detect_touchdown(self, now_s: float, cmd: AttitudeCommand, vz_abs_m_s: float,
                           ground_contact: bool = False) -> None:
         """Low vertical speed with low thrust (or the board saying landed), or ``ground_contact`` (thrust
         below hover without vertical acceleration, flight without odometry), held for LNDMC_TIME_S."""
-        p = self.params
-        board_landed = (self.board_link_ok and self.board_status is not None
-                        and self.board_status.flight_state == BoardFlightState.LANDED)
-        low_thrust = cmd.thrust_fraction < p["LNDMC_THR_MAX"] * self.tracker.hover_thrust_fraction
+        s = self.state
+        p = s.params
+        board_landed = (s.board_link_ok and s.board_status is not None
+                        and s.board_status.flight_state == BoardFlightState.LANDED)
+        low_thrust = cmd.thrust_fraction < p["LNDMC_THR_MAX"] * s.tracker.hover_thrust_fraction
         if ground_contact or (vz_abs_m_s < p["LNDMC_Z_VEL_MAX"] and (low_thrust or board_landed)):
-            if self._touchdown_since_s is None:
-                self._touchdown_since_s = now_s
-            elif now_s - self._touchdown_since_s >= p["LNDMC_TIME_S"]:
-                self.in_air = False
-                self._disarm(now_s, "Landed, disarming")
+            if s.touchdown_since_s is None:
+                s.touchdown_since_s = now_s
+            elif now_s - s.touchdown_since_s >= p["LNDMC_TIME_S"]:
+                s.in_air = False
+                self.commander.disarm(now_s, "Landed, disarming")
         else:
-            self._touchdown_since_s = None
+            s.touchdown_since_s = None

@@ -17,10 +17,10 @@ from typing import Any
 
 import numpy as np
 
+from firmware_bridge.attitude_filter import AttitudeEstimate
 from firmware_bridge.geometric_tracker import SetpointRejected, decode_trajectory_setpoint
 from firmware_bridge.modes import FlightMode, TakeoffPhase
-from firmware_bridge.state import AttitudeSetpoint, Outbound, VelocitySetpoint
-from firmware_bridge.telemetry import TelemetryService
+from firmware_bridge.state import AttitudeSetpoint, BridgeState, Outbound, VelocitySetpoint
 from quadlink.frames import GRAVITY_M_S2, R_from_quat_wxyz, R_hq, Rz, euler_from_R, wrap_pi
 from quadlink.mavlink import mavlink
 from quadlink.mavlink.setpoint_masks import (
@@ -49,37 +49,44 @@ QUAT_NORM_TOLERANCE = 0.1
 YAW_TRACK_GAIN_1_S = 2.0  # an absolute yaw target is tracked through the yaw-rate command
 
 
-class OffboardService(TelemetryService):
-    """Setpoint, odometry and IMU ingestion over the shared :class:`~firmware_bridge.state.BridgeState`."""
+class OffboardService:
+    """Setpoint, odometry and IMU ingestion into the shared :class:`~firmware_bridge.state.BridgeState`: owns the
+    setpoints (``vel_sp``, ``att_sp``), the odometry and IMU fields and the velocity estimate in H; depends on no
+    other service."""
+
+    def __init__(self, state: BridgeState) -> None:
+        self.state = state
 
     def on_imu(self, now_s: float, time_usec: int, accel_q_m_s2: np.ndarray,
-               gyro_q_rad_s: np.ndarray) -> list[Outbound]:
-        """One IMU sample (SI, body FRD) at board time ``time_usec``; returns its telemetry."""
-        dt = 0.0 if self.imu_time_s is None else now_s - self.imu_time_s
-        if self.imu_time_s is None or dt < 0 or dt > IMU_DT_MAX_S:
-            dt = 1.0 / self.vehicle.imu.rate_hz
-        self.imu_time_s = now_s
-        self.last_imu_time_usec = int(time_usec)
-        self.imu_samples += 1
-        self._last_accel_q = np.asarray(accel_q_m_s2, dtype=float)
-        self._last_gyro_q = np.asarray(gyro_q_rad_s, dtype=float)
-        est = self.filter.update(now_s, self._last_gyro_q, self._last_accel_q)
+               gyro_q_rad_s: np.ndarray) -> AttitudeEstimate:
+        """One IMU sample (SI, body FRD) at board time ``time_usec``; returns the attitude estimate it gave."""
+        s = self.state
+        dt = 0.0 if s.imu_time_s is None else now_s - s.imu_time_s
+        if s.imu_time_s is None or dt < 0 or dt > IMU_DT_MAX_S:
+            dt = 1.0 / s.vehicle.imu.rate_hz
+        s.imu_time_s = now_s
+        s.last_imu_time_usec = int(time_usec)
+        s.imu_samples += 1
+        s.last_accel_q = np.asarray(accel_q_m_s2, dtype=float)
+        s.last_gyro_q = np.asarray(gyro_q_rad_s, dtype=float)
+        est = s.filter.update(now_s, s.last_gyro_q, s.last_accel_q)
         # acceleration in H from the specific force: a_h = R_hq f_q + g e3
-        a_h = R_hq(est.roll_rad, est.pitch_rad) @ self._last_accel_q + np.array([0.0, 0.0, GRAVITY_M_S2])
-        if self.in_air:
-            self._dv_h_imu += a_h * dt
-            self._vz_dead_reckoned += a_h[2] * dt - self._vz_dead_reckoned * dt / ODOM_LOST_VZ_LEAK_TAU_S
-        board = self.last_board_command
-        self.vertical.update(dt, float(a_h[2]), board.thrust if board.armed else 0.0, on_ground=not self.in_air)
-        return self._imu_telemetry(now_s, int(time_usec), est)
+        a_h = R_hq(est.roll_rad, est.pitch_rad) @ s.last_accel_q + np.array([0.0, 0.0, GRAVITY_M_S2])
+        if s.in_air:
+            s.dv_h_imu += a_h * dt
+            s.vz_dead_reckoned += a_h[2] * dt - s.vz_dead_reckoned * dt / ODOM_LOST_VZ_LEAK_TAU_S
+        board = s.last_board_command
+        s.vertical.update(dt, float(a_h[2]), board.thrust if board.armed else 0.0, on_ground=not s.in_air)
+        return est
 
     def v_est_h(self, now_s: float) -> np.ndarray:
         """Velocity in H: last odometry plus the IMU-integrated change since (short horizon)."""
-        if self.odom_time_s is not None and now_s - self.odom_time_s <= IMU_PREDICTION_HORIZON_S:
-            return self._v_h_odom + self._dv_h_imu
-        return self._v_h_odom.copy()
+        s = self.state
+        if s.odom_time_s is not None and now_s - s.odom_time_s <= IMU_PREDICTION_HORIZON_S:
+            return s.v_h_odom + s.dv_h_imu
+        return s.v_h_odom.copy()
 
-    def _velocity_reference(self, sp: VelocitySetpoint, yaw_rad: float) -> tuple[np.ndarray, float]:
+    def velocity_reference(self, sp: VelocitySetpoint, yaw_rad: float) -> tuple[np.ndarray, float]:
         if sp.v_h is not None:
             v_ref = np.array(sp.v_h)
         else:
@@ -93,20 +100,21 @@ class OffboardService(TelemetryService):
             yaw_rate = 0.0
         return v_ref, yaw_rate
 
-    def _trajectory_terms(self, sp: VelocitySetpoint, yaw_rad: float,
-                          now_s: float) -> tuple[np.ndarray, np.ndarray | None]:
+    def trajectory_terms(self, sp: VelocitySetpoint, yaw_rad: float,
+                         now_s: float) -> tuple[np.ndarray, np.ndarray | None]:
         """A trajectory setpoint's extra terms in H: the velocity correction of its position x_d and its a_d.
 
         With a position (LOCAL_NED, the odometry's frame) and fresh odometry, v_ref gains -(k_x / k_v) e_x,
         e_x = p_odom - x_d, clamped to ``POSITION_CORRECTION_MAX_M_S`` per axis: through the velocity-only eq. (4)
         (-k_v (v - v_ref)) that is paper 003's -k_x e_x - k_v e_v exactly (BRG_GEO_KX, BRG_GEO_KV).
         """
+        s = self.state
         dv = np.zeros(3)
-        if sp.p_ned is not None and self._odom_p_ned_m is not None and self.odom_ok \
-                and self._fresh(self.odom_time_s, now_s, self.params["BRG_ODOM_LOSS_T"]):
-            k_v = self.params["BRG_GEO_KV"]
-            k_p = self.params["BRG_GEO_KX"] / k_v if k_v > 0 else 0.0
-            e_x = self._odom_p_ned_m - np.array(sp.p_ned)
+        if sp.p_ned is not None and s.odom_p_ned_m is not None and s.odom_ok \
+                and s.fresh(s.odom_time_s, now_s, s.params["BRG_ODOM_LOSS_T"]):
+            k_v = s.params["BRG_GEO_KV"]
+            k_p = s.params["BRG_GEO_KX"] / k_v if k_v > 0 else 0.0
+            e_x = s.odom_p_ned_m - np.array(sp.p_ned)
             dv = Rz(-yaw_rad) @ np.clip(-k_p * e_x, -POSITION_CORRECTION_MAX_M_S, POSITION_CORRECTION_MAX_M_S)
         if sp.a_h is not None:
             return dv, np.array(sp.a_h)
@@ -114,8 +122,9 @@ class OffboardService(TelemetryService):
             return dv, Rz(-yaw_rad) @ np.array(sp.a_ned)
         return dv, None
 
-    def _on_set_position_target_local_ned(self, now_s: float, msg: Any, link: int) -> list[Outbound]:
-        if not self._for_us(msg):
+    def on_set_position_target_local_ned(self, now_s: float, msg: Any, link: int) -> list[Outbound]:
+        s = self.state
+        if not s.for_us(msg):
             return []
         tm = int(msg.type_mask)
         frame = msg.coordinate_frame
@@ -138,17 +147,18 @@ class OffboardService(TelemetryService):
         p = None if target.p_ned_m is None else \
             (float(target.p_ned_m[0]), float(target.p_ned_m[1]), float(target.p_ned_m[2]))
         body = frame in BODY_FRAMES
-        self._vel_sp = VelocitySetpoint(v if body else None, None if body else v, yaw_rate, yaw,
-                                        a_h=a if body else None, a_ned=None if body else a, p_ned=p)
-        self._att_sp = None
-        self.setpoint_time_s = now_s
-        if self.mode == FlightMode.OFFBOARD and self.armed_cmd and not self.in_air and v[2] < -0.1:
-            self.in_air = True  # a climb command from the ground takes off
-            self._z_ground_m = self._odom_z_m
+        s.vel_sp = VelocitySetpoint(v if body else None, None if body else v, yaw_rate, yaw,
+                                    a_h=a if body else None, a_ned=None if body else a, p_ned=p)
+        s.att_sp = None
+        s.setpoint_time_s = now_s
+        if s.mode == FlightMode.OFFBOARD and s.armed_cmd and not s.in_air and v[2] < -0.1:
+            s.in_air = True  # a climb command from the ground takes off
+            s.z_ground_m = s.odom_z_m
         return []
 
-    def _on_set_attitude_target(self, now_s: float, msg: Any, link: int) -> list[Outbound]:
-        if not self._for_us(msg):
+    def on_set_attitude_target(self, now_s: float, msg: Any, link: int) -> list[Outbound]:
+        s = self.state
+        if not s.for_us(msg):
             return []
         tm = msg.type_mask
         q = np.asarray(msg.q, dtype=float)
@@ -168,69 +178,69 @@ class OffboardService(TelemetryService):
         if not all(math.isfinite(x) for x in (yaw_rate, thrust) if x is not None):
             self._reject_setpoint("Attitude setpoint rejected: non-finite field")  # min(max(NaN)) passes NaN
             return []
-        self._att_sp = AttitudeSetpoint(float(roll), float(pitch), yaw_rate, yaw, thrust)
-        self._vel_sp = None
-        self.setpoint_time_s = now_s
-        if self.mode == FlightMode.OFFBOARD and self.armed_cmd and not self.in_air and thrust is not None \
-                and thrust > 0.5 * self.tracker.hover_thrust_fraction:
-            self.in_air = True
+        s.att_sp = AttitudeSetpoint(float(roll), float(pitch), yaw_rate, yaw, thrust)
+        s.vel_sp = None
+        s.setpoint_time_s = now_s
+        if s.mode == FlightMode.OFFBOARD and s.armed_cmd and not s.in_air and thrust is not None \
+                and thrust > 0.5 * s.tracker.hover_thrust_fraction:
+            s.in_air = True
         return []
 
-    def _on_odometry(self, now_s: float, msg: Any, link: int) -> list[Outbound]:
+    def on_odometry(self, now_s: float, msg: Any, link: int) -> list[Outbound]:
+        s = self.state
         q = np.asarray(msg.q, dtype=float)
         v = np.array([msg.vx, msg.vy, msg.vz], dtype=float)
         if not np.all(np.isfinite(v)) or msg.frame_id not in ODOM_WORLD_FRAMES or \
                 msg.child_frame_id not in ODOM_BODY_FRAMES + ODOM_WORLD_FRAMES:
-            self.counters["odometry_rejected"] += 1
-            if self.counters["odometry_rejected"] in (1, 10, 100, 1000):
-                self._event(mavlink.MAV_SEVERITY_WARNING,
-                            f"Odometry rejected: frames {msg.frame_id}/{msg.child_frame_id}")
+            s.counters["odometry_rejected"] += 1
+            if s.counters["odometry_rejected"] in (1, 10, 100, 1000):
+                s.event(mavlink.MAV_SEVERITY_WARNING, f"Odometry rejected: frames {msg.frame_id}/{msg.child_frame_id}")
             return []
-        if getattr(msg, "quality", 0) < self.params["BRG_ODOM_QMIN"]:
+        if getattr(msg, "quality", 0) < s.params["BRG_ODOM_QMIN"]:
             # the companion's "failed" (0; MAVLink's -1): not a velocity source, it simply does not refresh
-            self.counters["odometry_low_quality"] += 1
+            s.counters["odometry_low_quality"] += 1
             return []
-        est = self.filter.estimate
+        est = s.filter.estimate
         roll, pitch, yaw = est.roll_rad, est.pitch_rad, est.yaw_rad
         if np.all(np.isfinite(q)) and abs(np.linalg.norm(q) - 1.0) < QUAT_NORM_TOLERANCE:
             roll, pitch, yaw = euler_from_R(R_from_quat_wxyz(q / np.linalg.norm(q)))
-            self.filter.set_yaw(yaw)  # anchor the heading to the companion's local frame
+            s.filter.set_yaw(yaw)  # anchor the heading to the companion's local frame
         if msg.child_frame_id in ODOM_BODY_FRAMES:
             v_h = R_hq(roll, pitch) @ v  # body FRD -> H (paper 000: H is yaw-aligned, level)
         else:
             v_h = Rz(-yaw) @ v  # local NED -> H
-        self._v_h_odom = v_h
-        self._dv_h_imu[:] = 0.0
-        self._vz_dead_reckoned = float(v_h[2])
+        s.v_h_odom = v_h
+        s.dv_h_imu[:] = 0.0
+        s.vz_dead_reckoned = float(v_h[2])
         z = float(msg.z) if math.isfinite(msg.z) else None
-        reset = self._odom_reset_counter is not None and msg.reset_counter != self._odom_reset_counter
-        self._odom_reset_counter = int(msg.reset_counter)
-        if self.in_air and z is not None and (reset or self._z_ground_m is None):
+        reset = s.odom_reset_counter is not None and msg.reset_counter != s.odom_reset_counter
+        s.odom_reset_counter = int(msg.reset_counter)
+        if s.in_air and z is not None and (reset or s.z_ground_m is None):
             # the odometry's frame began (or was reset) in the air: anchor it so the height stays continuous
             # (a frame that merely paused, the same reset counter, keeps its anchor: it is the better height)
-            self._z_ground_m = z + self.height_m
-        self._odom_z_m = z
+            s.z_ground_m = z + s.height_m
+        s.odom_z_m = z
         p_ned = np.array([msg.x, msg.y, msg.z], dtype=float)
-        self._odom_p_ned_m = p_ned if np.all(np.isfinite(p_ned)) else None
-        self.odom_time_s = now_s
-        if not self.odom_ok:
-            self.odom_ok = True
-            self._odometry_ok_event()
-        if self.blind and self.in_air:
-            self.blind = False
-            if self.mode == FlightMode.TAKEOFF:
-                self.takeoff_phase = TakeoffPhase.CLOSED_LOOP
-            self._event(mavlink.MAV_SEVERITY_INFO, f"Odometry at {self.height_m:.2f} m: closed loop")
+        s.odom_p_ned_m = p_ned if np.all(np.isfinite(p_ned)) else None
+        s.odom_time_s = now_s
+        if not s.odom_ok:
+            s.odom_ok = True
+            self.odometry_ok_event()
+        if s.blind and s.in_air:
+            s.blind = False
+            if s.mode == FlightMode.TAKEOFF:
+                s.takeoff_phase = TakeoffPhase.CLOSED_LOOP
+            s.event(mavlink.MAV_SEVERITY_INFO, f"Odometry at {s.height_m:.2f} m: closed loop")
         return []
 
-    def _odometry_ok_event(self) -> None:
-        if self.in_air:
-            self._event(mavlink.MAV_SEVERITY_INFO, "Odometry ok")
+    def odometry_ok_event(self) -> None:
+        if self.state.in_air:
+            self.state.event(mavlink.MAV_SEVERITY_INFO, "Odometry ok")
         else:  # on the ground odometry comes and goes (the camera sees the floor too close): the health bit says it
             log.info("odometry ok")
 
     def _reject_setpoint(self, text: str) -> None:
         """Count a refused setpoint; STATUSTEXT on the 1st, 10th, 100th, 1000th."""
-        self.counters["setpoint_rejected"] += 1
-        if self.counters["setpoint_rejected"] in (1, 10, 100, 1000):
-            self._event(mavlink.MAV_SEVERITY_WARNING, text)
+        self.state.counters["setpoint_rejected"] += 1
+        if self.state.counters["setpoint_rejected"] in (1, 10, 100, 1000):
+            self.state.event(mavlink.MAV_SEVERITY_WARNING, text)

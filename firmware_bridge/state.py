@@ -1,12 +1,13 @@
 """The bridge's one state machine: its state and the few helpers every service shares.
 
 :class:`BridgeState` holds everything the autopilot knows (board, IMU, odometry, setpoints, mode, arming,
-take-off, counters). The services are mixins over it, one module each, none with sockets, threads or a
-wall clock (time is always ``now_s``): :mod:`~firmware_bridge.commander` (arming, commands, mode requests,
-failsafes), :mod:`~firmware_bridge.flight_control` (the 100 Hz closed loop, blind take-off, heading hold),
+take-off, counters). The services are objects that each hold this one state (and the services they use), one
+module each, none with sockets, threads or a wall clock (time is always ``now_s``):
+:mod:`~firmware_bridge.commander` (arming, commands, mode requests, failsafes),
+:mod:`~firmware_bridge.flight_control` (the 100 Hz closed loop, blind take-off, heading hold),
 :mod:`~firmware_bridge.offboard` (setpoints and odometry -> H), :mod:`~firmware_bridge.telemetry`
-(heartbeat, SYS_STATUS, streams); :class:`firmware_bridge.autopilot.Autopilot` composes them with the
-shared parameter service.
+(heartbeat, SYS_STATUS, streams), :mod:`~firmware_bridge.connect` (what ground stations ask on connect);
+:class:`firmware_bridge.autopilot.Autopilot` builds them with the shared parameter service.
 """
 
 from __future__ import annotations
@@ -110,14 +111,17 @@ class AttitudeSetpoint:
 
 
 class BridgeState:
-    """The autopilot's state (see the module docstring); services add behaviour, never state of their own."""
+    """The autopilot's state (see the module docstring); services add behaviour, never state of their own.
+
+    Its public fields are what the services share: each service's docstring names those it owns (writes).
+    """
 
     def __init__(self, vehicle: VehicleConfig, params: ParamTable, sysid: int = 1, compid: int = 1,
                  unix_clock: Callable[[], float] | None = None) -> None:
         self.vehicle = vehicle
         self.params = params
         self.sysid, self.compid = sysid, compid
-        self._unix_clock = unix_clock  # injected (time.time in the daemon); SYSTEM_TIME only
+        self.unix_clock = unix_clock  # injected (time.time in the daemon); SYSTEM_TIME only
         self.mav = mavlink.MAVLink(None, sysid, compid)  # encoder only, no file
         # the PID velocity tracker always exists: take-off phase 1, the blind landing and the odometry-lost
         # descent fly on it whatever BRG_TRACKER says; ``tracker`` is the one BRG_TRACKER selects for the closed
@@ -139,48 +143,48 @@ class BridgeState:
         self.board_version: str | None = None
         self.board_version_int = 0
         self.board_link_ok = False
-        self._board_failsafe_reported = False
-        self._arm_mismatch_since_s: float | None = None
+        self.board_failsafe_reported = False
+        self.arm_mismatch_since_s: float | None = None
         # IMU
         self.imu_time_s: float | None = None
         self.last_imu_time_usec = 0
         self.imu_samples = 0
-        self._last_accel_q = np.array([0.0, 0.0, -GRAVITY_M_S2])
-        self._last_gyro_q = np.zeros(3)
+        self.last_accel_q = np.array([0.0, 0.0, -GRAVITY_M_S2])
+        self.last_gyro_q = np.zeros(3)
         # odometry
         self.odom_time_s: float | None = None
-        self._v_h_odom = np.zeros(3)
-        self._dv_h_imu = np.zeros(3)
-        self._odom_z_m: float | None = None
+        self.v_h_odom = np.zeros(3)
+        self.dv_h_imu = np.zeros(3)
+        self.odom_z_m: float | None = None
         self.odom_ok = False
-        self._vz_dead_reckoned = 0.0
-        self._odom_reset_counter: int | None = None
-        self._odom_p_ned_m: np.ndarray | None = None  # the odometry's position (its local frame), if finite
+        self.vz_dead_reckoned = 0.0
+        self.odom_reset_counter: int | None = None
+        self.odom_p_ned_m: np.ndarray | None = None  # the odometry's position (its local frame), if finite
         # flight without odometry (take-off phase 1 and the landing after it): accelerometer-only vertical
         self.vertical = VerticalEstimator(vehicle.hover_thrust_fraction, params["MPC_Z_VEL_MAX_UP"],
                                           params["MPC_Z_VEL_MAX_DN"])
         self.blind = False  # in the air and no odometry acquired yet in this flight
         self.takeoff_phase: TakeoffPhase | None = None
-        self._takeoff_start_s: float | None = None
-        self._tko_climbed_m = 0.0           # the take-off's climb, integrated from the velocity estimate
-        self._tko_disagree_told = False
-        self._hover_thrust_learned: float | None = None
-        self._blind_descent: tuple[float, float] | None = None  # (start time, estimated height then)
+        self.takeoff_start_s: float | None = None
+        self.tko_climbed_m = 0.0           # the take-off's climb, integrated from the velocity estimate
+        self.tko_disagree_told = False
+        self.hover_thrust_learned: float | None = None
+        self.blind_descent: tuple[float, float] | None = None  # (start time, estimated height then)
         # setpoints
         self.setpoint_time_s: float | None = None
-        self._vel_sp: VelocitySetpoint | None = None
-        self._att_sp: AttitudeSetpoint | None = None
+        self.vel_sp: VelocitySetpoint | None = None
+        self.att_sp: AttitudeSetpoint | None = None
         # takeoff / landing
         self.height_m = 0.0  # above the take-off point, integrated or from odometry z
-        self._z_ground_m: float | None = None
+        self.z_ground_m: float | None = None
         self.takeoff_target_m = params["MIS_TAKEOFF_ALT"]
-        self._touchdown_since_s: float | None = None
-        self._fs_hover_until_s: float | None = None
-        self._on_ground_armed_since_s: float | None = None
+        self.touchdown_since_s: float | None = None
+        self.fs_hover_until_s: float | None = None
+        self.on_ground_armed_since_s: float | None = None
         self.last_command: AttitudeCommand | None = None
         self.last_board_command = BoardCommand(0.0, 0.0, 0.0, 0.0, False)
-        self._control_time_s: float | None = None
-        self._yaw_sp_rad: float | None = None
+        self.control_time_s: float | None = None
+        self.yaw_sp_rad: float | None = None
         # streams and counters
         self.streams = StreamScheduler()
         self.stream_interval_s = self.streams.interval_s  # the same dict: the scheduler's table
@@ -200,12 +204,12 @@ class BridgeState:
                                         self.params.tracker_gains(), self.params.geometric_gains())
         self.tracker_kind = k
 
-    def _reset_trackers(self) -> None:
+    def reset_trackers(self) -> None:
         self.pid_tracker.reset()
         if self.tracker is not self.pid_tracker:
             self.tracker.reset()
 
-    def _apply_tracker_selection(self) -> None:
+    def apply_tracker_selection(self) -> None:
         """Switch to the tracker ``BRG_TRACKER`` names, on the ground only (no handover in the air: the two
         trackers' integrals mean different things, so a switch waits for the landing; STATUSTEXT says so)."""
         wanted = TrackerKind(int(self.params["BRG_TRACKER"]))
@@ -215,22 +219,22 @@ class BridgeState:
         if self.in_air:
             if not self._tracker_switch_noted:
                 self._tracker_switch_noted = True
-                self._event(mavlink.MAV_SEVERITY_NOTICE, f"BRG_TRACKER {int(wanted)}: applied once landed")
+                self.event(mavlink.MAV_SEVERITY_NOTICE, f"BRG_TRACKER {int(wanted)}: applied once landed")
             return
         self._select_tracker(int(wanted))
         self._tracker_switch_noted = False
-        self._event(mavlink.MAV_SEVERITY_INFO, f"Tracker: {wanted.name.lower()}")
+        self.event(mavlink.MAV_SEVERITY_INFO, f"Tracker: {wanted.name.lower()}")
 
-    def _event(self, severity: int, text: str) -> None:
+    def event(self, severity: int, text: str) -> None:
         log.log(logging.WARNING if severity <= mavlink.MAV_SEVERITY_WARNING else logging.INFO, "%s", text)
         self.events.append((severity, text[:50]))
 
-    def _flush_events(self) -> list[Outbound]:
+    def flush_events(self) -> list[Outbound]:
         out = [Outbound(self.mav.statustext_encode(sev, text.encode("ascii", "replace"))) for sev, text in self.events]
         self.events.clear()
         return out
 
-    def _fresh(self, stamp_s: float | None, now_s: float, timeout_s: float) -> bool:
+    def fresh(self, stamp_s: float | None, now_s: float, timeout_s: float) -> bool:
         return stamp_s is not None and now_s - stamp_s <= timeout_s
 
     @property
@@ -248,7 +252,7 @@ class BridgeState:
             log.warning("malformed input: %s %s (counts: mavlink %d, mk %d)", kind, detail,
                         self.counters["mavlink_bad"], self.counters["mk_bad"])
 
-    def _for_us(self, msg: Any) -> bool:
+    def for_us(self, msg: Any) -> bool:
         ts = getattr(msg, "target_system", 0)
         tc = getattr(msg, "target_component", 0)
         return ts in (0, self.sysid) and tc in (0, self.compid)

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 from typing import Any
 
+from firmware_bridge.attitude_filter import AttitudeEstimate
 from firmware_bridge.modes import FlightMode
 from firmware_bridge.state import BridgeState, Outbound
 from quadlink import __version__
@@ -50,79 +51,85 @@ def encode_sw_version(major: int, minor: int, patch: int, version_type: int = 0)
     return int.from_bytes(bytes([version_type & 0xFF, patch & 0xFF, minor & 0xFF, major & 0xFF]), "little")
 
 
-class TelemetryService(BridgeState):
-    """Periodic and on-request telemetry over the shared :class:`~firmware_bridge.state.BridgeState`."""
+class TelemetryService:
+    """Periodic and on-request telemetry. Reads the shared :class:`~firmware_bridge.state.BridgeState`; of it,
+    changes only the stream schedule (what is due) and the event queue it flushes."""
 
-    def _imu_telemetry(self, now_s: float, time_usec: int, est: Any) -> list[Outbound]:
+    def __init__(self, state: BridgeState) -> None:
+        self.state = state
+
+    def imu_streams(self, now_s: float, time_usec: int, est: AttitudeEstimate) -> list[Outbound]:
         """HIGHRES_IMU / ATTITUDE / ATTITUDE_QUATERNION for one IMU sample, at their stream rates."""
+        s = self.state
         out: list[Outbound] = []
-        if self.streams.due(mavlink.MAVLINK_MSG_ID_HIGHRES_IMU, now_s):
-            a, w = self._last_accel_q, self._last_gyro_q
-            out.append(Outbound(self.mav.highres_imu_encode(
+        if s.streams.due(mavlink.MAVLINK_MSG_ID_HIGHRES_IMU, now_s):
+            a, w = s.last_accel_q, s.last_gyro_q
+            out.append(Outbound(s.mav.highres_imu_encode(
                 int(time_usec), float(a[0]), float(a[1]), float(a[2]), float(w[0]), float(w[1]), float(w[2]),
                 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0x3F)))
         boot_ms = int(time_usec // 1000) & 0xFFFFFFFF
-        if self.streams.due(mavlink.MAVLINK_MSG_ID_ATTITUDE, now_s):
-            out.append(Outbound(self.mav.attitude_encode(boot_ms, est.roll_rad, est.pitch_rad, est.yaw_rad,
-                                                         est.rollspeed_rad_s, est.pitchspeed_rad_s,
-                                                         est.yawspeed_rad_s)))
-        if self.streams.due(mavlink.MAVLINK_MSG_ID_ATTITUDE_QUATERNION, now_s):
+        if s.streams.due(mavlink.MAVLINK_MSG_ID_ATTITUDE, now_s):
+            out.append(Outbound(s.mav.attitude_encode(boot_ms, est.roll_rad, est.pitch_rad, est.yaw_rad,
+                                                      est.rollspeed_rad_s, est.pitchspeed_rad_s,
+                                                      est.yawspeed_rad_s)))
+        if s.streams.due(mavlink.MAVLINK_MSG_ID_ATTITUDE_QUATERNION, now_s):
             q = quat_wxyz_from_euler(est.roll_rad, est.pitch_rad, est.yaw_rad)  # [w, x, y, z], as MAVLink
-            out.append(Outbound(self.mav.attitude_quaternion_encode(
+            out.append(Outbound(s.mav.attitude_quaternion_encode(
                 boot_ms, float(q[0]), float(q[1]), float(q[2]), float(q[3]), est.rollspeed_rad_s,
                 est.pitchspeed_rad_s, est.yawspeed_rad_s)))
         return out
 
     def tick(self, now_s: float) -> list[Outbound]:
         """Periodic telemetry (call at >= 50 Hz) and the STATUSTEXT events of the last steps."""
-        out = self._flush_events()
-        if self.streams.due(mavlink.MAVLINK_MSG_ID_HEARTBEAT, now_s):
+        s = self.state
+        out = s.flush_events()
+        if s.streams.due(mavlink.MAVLINK_MSG_ID_HEARTBEAT, now_s):
             out.append(Outbound(self.heartbeat()))
-        if self.streams.due(mavlink.MAVLINK_MSG_ID_SYS_STATUS, now_s):
+        if s.streams.due(mavlink.MAVLINK_MSG_ID_SYS_STATUS, now_s):
             out.append(Outbound(self.sys_status(now_s)))
-        if self.streams.due(mavlink.MAVLINK_MSG_ID_SYSTEM_TIME, now_s):
+        if s.streams.due(mavlink.MAVLINK_MSG_ID_SYSTEM_TIME, now_s):
             out.append(Outbound(self.system_time(now_s)))
-        if self.streams.due(mavlink.MAVLINK_MSG_ID_EXTENDED_SYS_STATE, now_s):
-            out.append(Outbound(self.mav.extended_sys_state_encode(0, self.landed_state())))
-        if self.streams.due(mavlink.MAVLINK_MSG_ID_BATTERY_STATUS, now_s):
+        if s.streams.due(mavlink.MAVLINK_MSG_ID_EXTENDED_SYS_STATE, now_s):
+            out.append(Outbound(s.mav.extended_sys_state_encode(0, self.landed_state())))
+        if s.streams.due(mavlink.MAVLINK_MSG_ID_BATTERY_STATUS, now_s):
             out.append(Outbound(self.battery_status()))
         return out
 
     def landed_state(self) -> int:
-        if not self.in_air:
+        if not self.state.in_air:
             return mavlink.MAV_LANDED_STATE_ON_GROUND
-        if self.mode == FlightMode.TAKEOFF:
+        if self.state.mode == FlightMode.TAKEOFF:
             return mavlink.MAV_LANDED_STATE_TAKEOFF
-        if self.mode == FlightMode.LAND:
+        if self.state.mode == FlightMode.LAND:
             return mavlink.MAV_LANDED_STATE_LANDING
         return mavlink.MAV_LANDED_STATE_IN_AIR
 
     def heartbeat(self) -> Any:
+        s = self.state
         base = mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
-        if self.armed:
+        if s.armed:
             base |= mavlink.MAV_MODE_FLAG_SAFETY_ARMED
-        if self.failsafe_reason or not self.board_link_ok or \
-                (self.board_status is not None and self.board_status.failsafe):
+        if s.failsafe_reason or not s.board_link_ok or (s.board_status is not None and s.board_status.failsafe):
             status = mavlink.MAV_STATE_CRITICAL
-        elif self.armed:
+        elif s.armed:
             status = mavlink.MAV_STATE_ACTIVE
         else:
             status = mavlink.MAV_STATE_STANDBY
-        return self.mav.heartbeat_encode(mavlink.MAV_TYPE_QUADROTOR, AUTOPILOT_IDENTITY, base,
-                                         self.mode.custom_mode, status)
+        return s.mav.heartbeat_encode(mavlink.MAV_TYPE_QUADROTOR, AUTOPILOT_IDENTITY, base, s.mode.custom_mode, status)
 
     def battery_fraction(self) -> float | None:
-        if self.board_status is None:
+        status = self.state.board_status
+        if status is None:
             return None
-        b = self.vehicle.battery
-        cell_v = self.board_status.battery_mv / 1000.0 / b.cells
+        b = self.state.vehicle.battery
+        cell_v = status.battery_mv / 1000.0 / b.cells
         return min(max((cell_v - b.empty_cell_v) / (b.full_cell_v - b.empty_cell_v), 0.0), 1.0)
 
     def sys_status(self, now_s: float) -> Any:
-        flags = self.board_status.error_flags if self.board_status is not None else 0
-        imu_ok = self._fresh(self.imu_time_s, now_s, self.params["BRG_BOARD_LOSS_T"]) \
-            and not flags & BoardError.IMU_SATURATED
-        board_ok = self.board_link_ok and self.board_status is not None and not self.board_status.failsafe \
+        s = self.state
+        flags = s.board_status.error_flags if s.board_status is not None else 0
+        imu_ok = s.fresh(s.imu_time_s, now_s, s.params["BRG_BOARD_LOSS_T"]) and not flags & BoardError.IMU_SATURATED
+        board_ok = s.board_link_ok and s.board_status is not None and not s.board_status.failsafe \
             and not flags & BoardError.SETPOINT_TIMEOUT
         # No geofence here (not present, not enabled); its health bit means "not breached", as ArduPilot
         # reports it: left clear, MAVProxy's fence module announces a "fence breach" at connect.
@@ -130,9 +137,9 @@ class TelemetryService(BridgeState):
         if imu_ok:
             health |= mavlink.MAV_SYS_STATUS_SENSOR_3D_GYRO | mavlink.MAV_SYS_STATUS_SENSOR_3D_ACCEL | \
                 mavlink.MAV_SYS_STATUS_AHRS
-        if self.board_link_ok and not (self.board_status is not None and self.board_status.failsafe):
+        if s.board_link_ok and not (s.board_status is not None and s.board_status.failsafe):
             health |= mavlink.MAV_SYS_STATUS_PREARM_CHECK   # the conditions the arm command checks
-        if self.odom_ok:
+        if s.odom_ok:
             health |= mavlink.MAV_SYS_STATUS_SENSOR_VISION_POSITION | \
                 mavlink.MAV_SYS_STATUS_SENSOR_XY_POSITION_CONTROL | mavlink.MAV_SYS_STATUS_SENSOR_Z_ALTITUDE_CONTROL
         if board_ok:
@@ -141,30 +148,53 @@ class TelemetryService(BridgeState):
         frac = self.battery_fraction()
         if frac is not None and frac > BATTERY_HEALTHY_FRACTION and not flags & BoardError.BATTERY_LOW:
             health |= mavlink.MAV_SYS_STATUS_SENSOR_BATTERY
-        voltage_mv = int(self.board_status.battery_mv) if self.board_status is not None else 0xFFFF
+        voltage_mv = int(s.board_status.battery_mv) if s.board_status is not None else 0xFFFF
         remaining = int(round(frac * 100)) if frac is not None else -1
-        c = self.counters
+        c = s.counters
         errors = c["mavlink_bad"] + c["mk_bad"]
-        return self.mav.sys_status_encode(SENSORS_PRESENT, SENSORS_PRESENT, health, 0, min(voltage_mv, 0xFFFF), -1,
-                                          remaining, 0, min(errors, 0xFFFF), min(c["mavlink_bad"], 0xFFFF),
-                                          min(c["mk_bad"], 0xFFFF), min(c["setpoint_rejected"], 0xFFFF),
-                                          min(c["odometry_rejected"], 0xFFFF))
+        return s.mav.sys_status_encode(SENSORS_PRESENT, SENSORS_PRESENT, health, 0, min(voltage_mv, 0xFFFF), -1,
+                                       remaining, 0, min(errors, 0xFFFF), min(c["mavlink_bad"], 0xFFFF),
+                                       min(c["mk_bad"], 0xFFFF), min(c["setpoint_rejected"], 0xFFFF),
+                                       min(c["odometry_rejected"], 0xFFFF))
 
     def battery_status(self) -> Any:
-        mv = int(self.board_status.battery_mv) if self.board_status is not None else 0xFFFF
+        s = self.state
+        mv = int(s.board_status.battery_mv) if s.board_status is not None else 0xFFFF
         frac = self.battery_fraction()
         voltages = [min(mv, 0xFFFE)] + [0xFFFF] * 9
-        return self.mav.battery_status_encode(0, mavlink.MAV_BATTERY_FUNCTION_ALL, mavlink.MAV_BATTERY_TYPE_LIPO,
-                                              32767, voltages, -1, -1, -1,
-                                              int(round(frac * 100)) if frac is not None else -1)
+        return s.mav.battery_status_encode(0, mavlink.MAV_BATTERY_FUNCTION_ALL, mavlink.MAV_BATTERY_TYPE_LIPO,
+                                           32767, voltages, -1, -1, -1,
+                                           int(round(frac * 100)) if frac is not None else -1)
 
     def system_time(self, now_s: float) -> Any:
-        unix_us = int(self._unix_clock() * 1e6) if self._unix_clock is not None else 0
-        return self.mav.system_time_encode(unix_us, int(now_s * 1000) & 0xFFFFFFFF)
+        unix_clock = self.state.unix_clock
+        unix_us = int(unix_clock() * 1e6) if unix_clock is not None else 0
+        return self.state.mav.system_time_encode(unix_us, int(now_s * 1000) & 0xFFFFFFFF)
 
     def autopilot_version(self) -> Any:
+        s = self.state
         major, minor, patch = (int(x) for x in (__version__.split(".") + ["0", "0"])[:3])
         sw = encode_sw_version(major, minor, patch, mavlink.FIRMWARE_VERSION_TYPE_OFFICIAL)
-        uid = (VERSION_UID_PREFIX << 48) | (self.sysid << 8) | self.compid
-        return self.mav.autopilot_version_encode(CAPABILITIES, sw, self.board_version_int, 0, 0,
-                                                 [0] * 8, [0] * 8, [0] * 8, 0, 0, uid)
+        uid = (VERSION_UID_PREFIX << 48) | (s.sysid << 8) | s.compid
+        return s.mav.autopilot_version_encode(CAPABILITIES, sw, s.board_version_int, 0, 0,
+                                              [0] * 8, [0] * 8, [0] * 8, 0, 0, uid)
+
+    def message_by_id(self, msg_id: int, now_s: float) -> Any:
+        """The telemetry message ``msg_id``, on request (REQUEST_MESSAGE); None if it is not one of these."""
+        if msg_id == mavlink.MAVLINK_MSG_ID_AUTOPILOT_VERSION:
+            return self.autopilot_version()
+        if msg_id == mavlink.MAVLINK_MSG_ID_HEARTBEAT:
+            return self.heartbeat()
+        if msg_id == mavlink.MAVLINK_MSG_ID_SYS_STATUS:
+            return self.sys_status(now_s)
+        if msg_id == mavlink.MAVLINK_MSG_ID_SYSTEM_TIME:
+            return self.system_time(now_s)
+        if msg_id == mavlink.MAVLINK_MSG_ID_EXTENDED_SYS_STATE:
+            return self.state.mav.extended_sys_state_encode(0, self.landed_state())
+        if msg_id == mavlink.MAVLINK_MSG_ID_BATTERY_STATUS:
+            return self.battery_status()
+        if msg_id == mavlink.MAVLINK_MSG_ID_ATTITUDE:
+            e = self.state.filter.estimate
+            return self.state.mav.attitude_encode(int(now_s * 1000) & 0xFFFFFFFF, e.roll_rad, e.pitch_rad,
+                                                  e.yaw_rad, e.rollspeed_rad_s, e.pitchspeed_rad_s, e.yawspeed_rad_s)
+        return None

@@ -256,22 +256,24 @@ def test_malformed_input_is_counted_not_fatal():
 # ---------------------------------------------------------------- frames
 def test_offboard_body_frame_is_yaw_aligned_and_local_ned_is_rotated_by_yaw():
     ap = Autopilot(VehicleConfig(), ParamTable())
-    ap._on_set_position_target_local_ned(0.0, msg(velocity_body(1.0, 0.0, 0.0)), 0)
-    v_ref, _ = ap._velocity_reference(ap._vel_sp, yaw_rad=math.radians(90.0))
+    offboard, state = ap.offboard, ap.state
+    offboard.on_set_position_target_local_ned(0.0, msg(velocity_body(1.0, 0.0, 0.0)), 0)
+    v_ref, _ = offboard.velocity_reference(state.vel_sp, yaw_rad=math.radians(90.0))
     np.testing.assert_allclose(v_ref, [1.0, 0.0, 0.0], atol=1e-12)  # body: forward stays forward
-    ap._on_set_position_target_local_ned(0.0, msg(velocity_body(1.0, 0.0, 0.0, frame=mavlink.MAV_FRAME_LOCAL_NED)), 0)
-    v_ref, _ = ap._velocity_reference(ap._vel_sp, yaw_rad=math.radians(90.0))
+    local = velocity_body(1.0, 0.0, 0.0, frame=mavlink.MAV_FRAME_LOCAL_NED)
+    offboard.on_set_position_target_local_ned(0.0, msg(local), 0)
+    v_ref, _ = offboard.velocity_reference(state.vel_sp, yaw_rad=math.radians(90.0))
     np.testing.assert_allclose(v_ref, [0.0, -1.0, 0.0], atol=1e-12)  # north while facing east = left in H
     # velocity + yaw (MAVSDK set_velocity_ned, mask 2503): yaw tracked through the yaw rate
     sp = GCS.set_position_target_local_ned_encode(0, 1, 1, mavlink.MAV_FRAME_LOCAL_NED, 2503, 0, 0, 0, 0, 0, 0,
                                                   0, 0, 0, 0.5, 0)
-    ap._on_set_position_target_local_ned(0.0, msg(sp), 0)
-    _, yaw_rate = ap._velocity_reference(ap._vel_sp, yaw_rad=0.0)
+    offboard.on_set_position_target_local_ned(0.0, msg(sp), 0)
+    _, yaw_rate = offboard.velocity_reference(state.vel_sp, yaw_rad=0.0)
     assert yaw_rate > 0
     # positions are not accepted (no position controller): counted, not silently flown
     pos = GCS.set_position_target_local_ned_encode(0, 1, 1, mavlink.MAV_FRAME_LOCAL_NED, 0b110111111000,
                                                    1, 2, 3, 0, 0, 0, 0, 0, 0, 0, 0)
-    ap._on_set_position_target_local_ned(0.0, msg(pos), 0)
+    offboard.on_set_position_target_local_ned(0.0, msg(pos), 0)
     assert ap.counters["setpoint_rejected"] == 1
 
 
@@ -449,21 +451,21 @@ def trajectory_sp(v, a, p=None, frame=mavlink.MAV_FRAME_LOCAL_NED):
 
 def test_velocity_acceleration_position_masks_are_accepted_like_px4():
     ap = Autopilot(VehicleConfig(), ParamTable())
-    ap._on_set_position_target_local_ned(0.0, msg(trajectory_sp((0.5, 0.0, 0.0), (0.2, -0.1, 0.0))), 0)
+    set_target, state = ap.offboard.on_set_position_target_local_ned, ap.state
+    set_target(0.0, msg(trajectory_sp((0.5, 0.0, 0.0), (0.2, -0.1, 0.0))), 0)
     assert ap.counters["setpoint_rejected"] == 0
-    assert ap._vel_sp.v_ned == pytest.approx((0.5, 0.0, 0.0)) and ap._vel_sp.a_ned == pytest.approx((0.2, -0.1, 0.0))
-    ap._on_set_position_target_local_ned(0.0, msg(trajectory_sp((0.5, 0, 0), (0.2, 0, 0), p=(1.0, 2.0, -1.2))), 0)
-    assert ap.counters["setpoint_rejected"] == 0 and ap._vel_sp.p_ned == pytest.approx((1.0, 2.0, -1.2))
+    assert state.vel_sp.v_ned == pytest.approx((0.5, 0.0, 0.0))
+    assert state.vel_sp.a_ned == pytest.approx((0.2, -0.1, 0.0))
+    set_target(0.0, msg(trajectory_sp((0.5, 0, 0), (0.2, 0, 0), p=(1.0, 2.0, -1.2))), 0)
+    assert ap.counters["setpoint_rejected"] == 0 and state.vel_sp.p_ned == pytest.approx((1.0, 2.0, -1.2))
     # body frames: velocity and acceleration in H, unrotated
-    ap._on_set_position_target_local_ned(0.0, msg(trajectory_sp((0.3, 0, 0), (0, 0.4, 0),
-                                                                frame=mavlink.MAV_FRAME_BODY_NED)), 0)
-    assert ap._vel_sp.v_h == pytest.approx((0.3, 0, 0)) and ap._vel_sp.a_h == pytest.approx((0, 0.4, 0))
+    set_target(0.0, msg(trajectory_sp((0.3, 0, 0), (0, 0.4, 0), frame=mavlink.MAV_FRAME_BODY_NED)), 0)
+    assert state.vel_sp.v_h == pytest.approx((0.3, 0, 0)) and state.vel_sp.a_h == pytest.approx((0, 0.4, 0))
     # a position in a body frame, a partial acceleration group and a force setpoint are refused and counted
-    ap._on_set_position_target_local_ned(0.0, msg(trajectory_sp((0, 0, 0), (0, 0, 0), p=(1, 0, 0),
-                                                                frame=mavlink.MAV_FRAME_BODY_NED)), 0)
+    set_target(0.0, msg(trajectory_sp((0, 0, 0), (0, 0, 0), p=(1, 0, 0), frame=mavlink.MAV_FRAME_BODY_NED)), 0)
     partial = GCS.set_position_target_local_ned_encode(0, 1, 1, mavlink.MAV_FRAME_LOCAL_NED, 3527 & ~0b1000000,
                                                        0, 0, 0, 0, 0, 0, 1, 0, 0, 0, 0)
-    ap._on_set_position_target_local_ned(0.0, msg(partial), 0)
+    set_target(0.0, msg(partial), 0)
     assert ap.counters["setpoint_rejected"] == 2
 
 
@@ -517,10 +519,10 @@ def test_acceleration_feed_forward_reaches_the_geometric_tracker():
     np.testing.assert_allclose(a1 - a0, Rz(-yaw) @ a_d, atol=0.02)
     # position term: x_d 0.5 m north of the odometry's position -> +0.5 * k_x / k_v m/s of v_ref north
     ap = sim.ap
-    p_now = ap._odom_p_ned_m.copy()
+    p_now = ap.state.odom_p_ned_m.copy()
     ahead = trajectory_sp((0, 0, 0), (0, 0, 0), p=tuple(p_now + [0.5, 0, 0]))
-    ap._on_set_position_target_local_ned(sim.t, msg(ahead), 0)
-    dv, _ = ap._trajectory_terms(ap._vel_sp, 0.0, sim.t)
+    ap.offboard.on_set_position_target_local_ned(sim.t, msg(ahead), 0)
+    dv, _ = ap.offboard.trajectory_terms(ap.state.vel_sp, 0.0, sim.t)
     np.testing.assert_allclose(dv, [0.5 * 4.0 / 3.2, 0.0, 0.0], atol=1e-9)
 
 def test_connect_services_protocol_version_request_message_mission_and_ftp():

@@ -55,7 +55,7 @@ def test_position_target_with_a_non_finite_used_field_is_refused(field):
         sp = GCS.set_position_target_local_ned_encode(0, 1, 1, mavlink.MAV_FRAME_LOCAL_NED, 2503, 0, 0, 0,
                                                       0.5, 0, 0, 0, 0, 0, math.nan, 0)
     ap.handle_mavlink(0.0, msg(sp))
-    assert ap.counters["setpoint_rejected"] == 1 and ap._vel_sp is None  # before: yaw rate NaN -> 0.0, accepted
+    assert ap.counters["setpoint_rejected"] == 1 and ap.state.vel_sp is None  # before: yaw rate NaN -> 0.0, accepted
 
 
 def test_board_command_refuses_nan_and_the_control_step_stays_finite(monkeypatch):
