@@ -138,11 +138,13 @@ class CommanderService:
                 s.event(mavlink.MAV_SEVERITY_CRITICAL, "Odometry lost: level hold, descending")
                 s.failsafe_reason = "odometry lost"
                 s.vz_dead_reckoned = float(self.offboard.v_est_h(now_s)[2])
+                s.odom_lost_s = now_s
                 self.set_mode(FlightMode.LAND, now_s, "odometry lost")
             else:
                 log.info("odometry lost (on the ground: nothing depends on it)")  # the health bit says it
         elif odom_fresh and not s.odom_ok:
             s.odom_ok = True
+            s.odom_lost_s = None
             self.offboard.odometry_ok_event()
         if s.mode == FlightMode.OFFBOARD and s.in_air and \
                 not s.fresh(s.setpoint_time_s, now_s, p["COM_OF_LOSS_T"]):

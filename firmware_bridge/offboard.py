@@ -75,6 +75,7 @@ class OffboardService:
         if s.in_air:
             s.dv_h_imu += a_h * dt
             s.vz_dead_reckoned += a_h[2] * dt - s.vz_dead_reckoned * dt / ODOM_LOST_VZ_LEAK_TAU_S
+            s.vxy_h_dead_reckoned += a_h[:2] * dt - s.vxy_h_dead_reckoned * dt / ODOM_LOST_VZ_LEAK_TAU_S
         board = s.last_board_command
         s.vertical.update(dt, float(a_h[2]), board.thrust if board.armed else 0.0, on_ground=not s.in_air)
         return est
@@ -212,6 +213,7 @@ class OffboardService:
         s.v_h_odom = v_h
         s.dv_h_imu[:] = 0.0
         s.vz_dead_reckoned = float(v_h[2])
+        s.vxy_h_dead_reckoned = np.array(v_h[:2], dtype=float)
         z = float(msg.z) if math.isfinite(msg.z) else None
         reset = s.odom_reset_counter is not None and msg.reset_counter != s.odom_reset_counter
         s.odom_reset_counter = int(msg.reset_counter)

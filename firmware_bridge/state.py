@@ -158,6 +158,10 @@ class BridgeState:
         self.odom_z_m: float | None = None
         self.odom_ok = False
         self.vz_dead_reckoned = 0.0
+        # the horizontal velocity in H from the last odometry on, integrated from the IMU (leaky): it brakes
+        # the slide when the odometry is lost in the air (firmware_bridge.flight_control)
+        self.vxy_h_dead_reckoned = np.zeros(2)
+        self.odom_lost_s: float | None = None   # when the odometry was lost in the air (None: not lost)
         self.odom_reset_counter: int | None = None
         self.odom_p_ned_m: np.ndarray | None = None  # the odometry's position (its local frame), if finite
         # flight without odometry (take-off phase 1 and the landing after it): accelerometer-only vertical

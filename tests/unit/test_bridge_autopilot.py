@@ -8,6 +8,7 @@ through the same inputs the daemon feeds: IMU samples at 500 Hz, BoardStatus at 
 from __future__ import annotations
 
 import math
+from unittest import mock
 
 import numpy as np
 import pytest
@@ -365,6 +366,32 @@ def test_odometry_loss_levels_and_descends():
     assert any("Odometry lost" in t for t in sim.statustext)
     sim.step(10.0)
     assert sim.p[2] == pytest.approx(0.0) and not sim.ap.armed_cmd
+
+
+def test_odometry_lost_while_sliding_brakes_on_the_imu_then_levels():
+    """Campaign 2, flight 16: the odometry failed at 0.4 m/s near a box and the level hold let the vehicle
+    slide on. The bridge brakes the velocity it last knew, dead-reckoned on the IMU, then levels."""
+    def slide_after_loss(brake_s: float) -> tuple[float, Sim]:
+        sim = Sim()
+        fly_to_hover(sim)
+        sim.step(0.5, setpoint=velocity_body(0, 0, 0))
+        assert sim.command(mavlink.MAV_CMD_DO_SET_MODE, 1, 6, 0)[0] == mavlink.MAV_RESULT_ACCEPTED
+        sim.step(3.0, setpoint=velocity_body(0.4, 0, 0))
+        assert sim.v[0] == pytest.approx(0.4, abs=0.05)
+        p0 = sim.p[:2].copy()
+        sim.odom = False
+        with mock.patch("firmware_bridge.flight_control.ODOM_LOST_BRAKE_S", brake_s):
+            sim.step(4.0, setpoint=velocity_body(0.4, 0, 0))   # the setpoints go on: no odometry, no offboard
+        return float(np.linalg.norm(sim.p[:2] - p0)), sim
+
+    braked, sim = slide_after_loss(1.0)
+    levelled_at_once, _ = slide_after_loss(0.0)
+    assert sim.ap.mode == FlightMode.LAND and sim.ap.failsafe_reason == "odometry lost"
+    cmd = sim.ap.last_board_command
+    assert cmd.roll_rad == 0.0 and cmd.pitch_rad == 0.0       # level once the braking is over
+    assert np.linalg.norm(sim.v[:2]) < 0.05
+    # 0.5 s to notice the loss at 0.4 m/s is 0.2 m whatever is done; the braking takes about half the rest
+    assert braked < levelled_at_once - 0.1 and braked < 0.45
 
 
 def test_board_link_loss_is_reported_and_blocks_arming():
