@@ -68,11 +68,13 @@ from companion.height import HeightEstimator, HeightParams
 from companion.interfaces import ImageSink, MavLink, Pipeline, PipelineFactory, default_pipeline_factory
 from companion.link_reader import CodecReader
 from companion.modes import AutopilotRequest, Mode, ModeMachine, StatusText
+from companion.operator_input import OperatorInput, operator_from_manual_control
 from companion.outbound import AutopilotAck, GcsReply, Outbox, Output
 from companion.pan_scan import PanScanParams, PanScanState, pan_scan
 from companion.params import PARAM_NAMES, CompanionParams, ParamService
 from companion.perception_stage import PerceptionStage
-from companion.reference import OperatorInput, ReferenceOutput, ReferenceParams, operator_from_manual_control
+from companion.reference import ReferenceOutput
+from companion.reference_params import ReferenceParams
 from companion.router import route_from_autopilot, route_from_gcs
 from companion.scheduler import Deadlines, StampTicker
 from companion.security import GcsSecurity

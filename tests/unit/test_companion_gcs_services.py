@@ -19,7 +19,7 @@ from companion.guard import ErrorCounter
 from companion.modes import AutopilotRequest, Mode, ModeMachine, ModeParams, StatusText, VehicleStatus
 from companion.outbound import AutopilotAck, GcsReply, Outbox, Output
 from companion.params import PARAM_NAMES, CompanionParams, ParamService
-from companion.reference import ReferenceParams
+from companion.reference_params import ReferenceParams
 from companion.security import GcsSecurity
 from companion.stats import Stats
 from quadlink.errors import QuadlinkError

@@ -8,7 +8,7 @@ import pytest
 
 from companion.config import PanScanConfig
 from companion.params import PARAM_NAMES, CompanionParams, handle_param_message, set_by_index
-from companion.reference import ReferenceParams
+from companion.reference_params import ReferenceParams
 from companion.router import route_from_autopilot, route_from_gcs
 from companion.scheduler import Deadlines, StampTicker
 from quadlink.mavlink import mavlink
