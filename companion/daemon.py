@@ -7,8 +7,8 @@ setpoints). Every wait is bounded; :meth:`Companion.close` releases everything. 
 are the operator image publisher's (:mod:`companion.image_publisher`: the loop hands frames over
 without ever waiting on a viewer).
 
-This module owns the links, the clock and the order of things; what it wires is pure (time passed in or
-injected, no sockets), each part tested on its own:
+This module owns the links, the clock and the order of things; the parts it wires are pure (time passed in or
+injected, no sockets) except the edges named as such, and each is tested on its own:
 
 * the two endpoints: :mod:`companion.router` (which message goes where), :mod:`companion.autopilot_input` and
   :mod:`companion.gcs_input` (each message, by type, to its service), :mod:`companion.outbound` (what the
@@ -23,7 +23,7 @@ injected, no sockets), each part tested on its own:
   :mod:`companion.frame_step` (perception output + operator input + mode -> setpoint and feedback),
   :mod:`companion.frame_state` (what a frame leaves for the rest of the loop);
 * time: :mod:`companion.imu_clock` (feedback on the IMU's stamps, the bounded wait for the IMU),
-  :mod:`companion.scheduler` (the periodic tasks); records: :mod:`companion.recording`, :mod:`companion.stats`.
+  :mod:`companion.scheduler` (periodic tasks); :mod:`companion.recording` (an edge), :mod:`companion.stats`.
 
 The ground-station endpoint is hostile (issue 16): see :mod:`companion.security`; the autopilot link is
 internal (the bridge on the same board, or PX4 over its serial port): no signing there.

@@ -1,14 +1,16 @@
-"""The daemon's pure parts: routing decisions, deadlines and periodic tasks, the parameter service, the progress
-line (unit tier)."""
+"""The daemon's small parts: routing decisions, deadlines and periodic tasks, the parameter service, the progress
+line, the frame recording (unit tier)."""
 
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import pytest
 
 from companion.config import PanScanConfig
 from companion.params import PARAM_NAMES, CompanionParams, handle_param_message, set_by_index
+from companion.recording import FrameRecording
 from companion.reference_params import ReferenceParams
 from companion.router import route_from_autopilot, route_from_gcs
 from companion.scheduler import Deadlines, PeriodicTasks, StampTicker, Task
@@ -118,3 +120,26 @@ def test_the_progress_line_gives_the_camera_rate_since_the_last_line() -> None:
     assert text.endswith("gcs link lost  manual 0  routed 0 to GCS / 0 to autopilot  height ?  commands 0 ok")
     stats.frames += 50
     assert "camera 10.0 fps" in line.line(stats, "TELEOP", True, False, "height ?", "commands 0 ok")
+
+
+def test_a_failing_frame_recording_stops_and_the_loop_goes_on() -> None:
+    class Full:
+        def __init__(self) -> None:
+            self.written, self.closed = 0, False
+
+        def write(self, frame: object) -> None:
+            self.written += 1
+            if self.written == 2:
+                raise OSError("No space left on device")
+
+        def close(self) -> None:
+            self.closed = True
+
+    writer = Full()
+    frame: Any = None
+    rec = FrameRecording(writer)
+    for _ in range(4):
+        rec.write(frame)
+    rec.close()
+    assert writer.written == 2 and not writer.closed   # stopped at the failure; nothing more to close
+    FrameRecording(None).write(frame)   # no recording: nothing to do
