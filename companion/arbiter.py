@@ -50,7 +50,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from companion.reference import OperatorInput, operator_from_manual_control
+from companion.operator_input import OperatorInput, operator_from_manual_control
 from companion.trajectory_follow import FollowGains, position_loop
 from quadlink.frames import Rz, wrap_pi
 from quadlink.mavlink import mavlink

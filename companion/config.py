@@ -10,7 +10,7 @@ from typing import Literal
 from companion.arbiter import ArbiterParams
 from companion.modes import ModeParams
 from companion.pan_scan import PanScanParams
-from companion.reference import ReferenceParams
+from companion.reference_params import ReferenceParams
 from quadlink.config import find_config, load_config
 from quadlink.mavlink.security import SecurityConfig
 

@@ -18,16 +18,11 @@ from numpy.typing import NDArray
 
 from companion import messages as msgs
 from companion.modes import Mode
+from companion.obstacle_points import avoidance_points, nearest_obstacle
+from companion.operator_input import OperatorInput, camera_yaw_rad
 from companion.pan_scan import PanScanParams, PanScanState
-from companion.reference import (
-    OperatorInput,
-    ReferenceOutput,
-    ReferenceParams,
-    avoidance_points,
-    camera_yaw_rad,
-    nearest_obstacle,
-    reference_velocity,
-)
+from companion.reference import ReferenceOutput, reference_velocity
+from companion.reference_params import ReferenceParams
 from quadlink.frames import R_hq, euler_yaw_rate_rad_s
 from quadlink.operator_image import (
     MAX_OBSTACLE_POINTS,

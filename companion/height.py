@@ -66,3 +66,8 @@ class HeightEstimator:
         else:
             self.height_m = floor_m
         return self.height_m
+
+    def summary(self) -> str:
+        """The height and the floor's offset for the progress line."""
+        h, off = self.height_m, self.offset_m
+        return "height ?" if h is None else f"height {h:.2f} m (floor {'?' if off is None else f'{off:+.2f}'})"

@@ -163,3 +163,10 @@ def teleop_feedback_message(time_s: float, v_est_h_m_s: ArrayLike, v_cmd_h_m_s: 
         float(r[0]), float(r[1]), float(r[2]), float(alpha_rad), float(pan_scan_yaw_rate_rad_s),
         float(yaw_rate_cmd_rad_s), float(gyro_yaw_rate_rad_s), float(o[0]), float(o[1]), float(o[2]),
         float(obstacle_distance_m), int(mode) & 0xFF, int(flags) & 0xFF)
+
+
+def heartbeat_message(mode: int) -> Any:
+    """The companion's HEARTBEAT: an onboard controller, not an autopilot, its mode (QUADLINK_TELEOP_MODE) as
+    custom_mode."""
+    return mavlink.MAVLink_heartbeat_message(mavlink.MAV_TYPE_ONBOARD_CONTROLLER, mavlink.MAV_AUTOPILOT_INVALID, 0,
+                                             int(mode), mavlink.MAV_STATE_ACTIVE, 3)

@@ -7,7 +7,9 @@ them to :class:`Outbox` in order (with the mode machine's :class:`~companion.mod
 
 * :class:`GcsReply` — a message for the ground stations, packed (and signed, when configured) as this
   system's companion, or as another of its components (the acks answered for the autopilot);
-* :class:`AutopilotAck` — a reply made as the autopilot itself would make it, packed with its identity.
+* :class:`AutopilotAck` — a reply made as the autopilot itself would make it, packed with its identity;
+* :class:`ToAutopilot` — a message for the autopilot from the companion (its TIMESYNC answers, the acked
+  commands: :mod:`companion.autopilot_input`).
 
 With signing on the ground-station endpoint, everything the ground stations receive is signed with the
 link's key, the autopilot's traffic the companion forwards included (re-packed with its sender's ids and
@@ -50,7 +52,14 @@ class AutopilotAck:
     msg: Any
 
 
-Output = StatusText | AutopilotRequest | GcsReply | AutopilotAck
+@dataclass(frozen=True)
+class ToAutopilot:
+    """``msg`` for the autopilot from the companion."""
+
+    msg: Any
+
+
+Output = StatusText | AutopilotRequest | GcsReply | AutopilotAck | ToAutopilot
 
 
 class Outbox:
@@ -99,6 +108,12 @@ class Outbox:
             self.errors.record(f"non-finite {msg.get_type()}", ValueError(", ".join(bad)))
             return
         self._send(self.autopilot, msg, self.codec)
+
+    def status_text(self, st: StatusText) -> None:
+        """``st`` logged and sent to the ground stations as STATUSTEXT (its text cut to the field's 50 bytes)."""
+        level = logging.WARNING if st.severity <= mavlink.MAV_SEVERITY_WARNING else logging.INFO
+        log.log(level, "%s", st.text)
+        self.to_gcs(mavlink.MAVLink_statustext_message(st.severity, st.text.encode()[:50]))
 
     def to_gcs(self, msg: Any, src_component: int | None = None) -> None:
         """Pack (signed when configured) and send to the ground stations; ``src_component`` answers for another

@@ -27,7 +27,7 @@ from companion.config import PanScanConfig, pan_scan_params
 from companion.modes import SEVERITY_INFO, StatusText
 from companion.outbound import GcsReply
 from companion.pan_scan import PanScanParams
-from companion.reference import ReferenceParams
+from companion.reference_params import ReferenceParams
 from quadlink.errors import ConfigError
 from quadlink.mavlink import mavlink
 

@@ -1,12 +1,14 @@
 """The daemon's deadlines (pure: the time is an argument, from the daemon's one injected clock).
 
-:class:`Deadlines` keeps named periodic tasks (heartbeat, TIMESYNC, fallback setpoints, progress log on
-wall time); :class:`StampTicker` paces a task on the autopilot's stamps (TELEOP_FEEDBACK on the IMU clock,
-aligned to multiples of its period so its rate holds whatever the IMU rate).
+:class:`PeriodicTasks` says which of the daemon's periodic tasks (:class:`Task`: heartbeat, TIMESYNC, the
+command-age figures, fallback setpoints, feedback without IMU, progress log) are due on wall time, over
+:class:`Deadlines`, named periodic deadlines; :class:`StampTicker` paces a task on the autopilot's stamps
+(TELEOP_FEEDBACK on the IMU clock, aligned to multiples of its period so its rate holds whatever the IMU rate).
 """
 
 from __future__ import annotations
 
+import enum
 import math
 
 
@@ -41,3 +43,32 @@ class StampTicker:
             self._next_s = (math.floor(stamp_s / self.period_s + 1e-6) + 1) * self.period_s
             return True
         return False
+
+
+class Task(enum.Enum):
+    """The daemon's periodic tasks, in the order they run when due together."""
+
+    HEARTBEAT = "heartbeat"          # the companion's HEARTBEAT to the autopilot and the ground stations
+    TIMESYNC = "timesync"            # a TIMESYNC request to the autopilot
+    GCS_TIMESYNC = "gcs_timesync"    # a TIMESYNC request to the ground stations (the clock of their commands)
+    COMMAND_AGE = "command_age"      # the command-age figures to the ground stations
+    FALLBACK = "fallback"            # a setpoint from the last map while the camera is silent
+    FEEDBACK = "feedback"            # TELEOP_FEEDBACK on wall time while the IMU is silent
+    PROGRESS = "progress"            # the progress log line
+
+
+class PeriodicTasks:
+    """``periods_s``: every :class:`Task`'s period (s, wall time); the first progress line is due one period
+    after ``start_s``, the other tasks at the first :meth:`due`."""
+
+    def __init__(self, periods_s: dict[Task, float], start_s: float) -> None:
+        self.periods_s = periods_s
+        self._deadlines = Deadlines()
+        self._deadlines.arm(Task.PROGRESS.value, start_s + periods_s[Task.PROGRESS])
+
+    def due(self, now_s: float, camera_silent: bool, imu_silent: bool) -> list[Task]:
+        """The tasks due at ``now_s``, in order, each re-armed: FALLBACK only while the camera is silent, FEEDBACK
+        only while the IMU is (otherwise the IMU's stamps pace it); a task not run is not re-armed."""
+        when = {Task.FALLBACK: camera_silent, Task.FEEDBACK: imu_silent}
+        return [task for task in Task
+                if when.get(task, True) and self._deadlines.due(task.value, now_s, self.periods_s[task])]

@@ -1,8 +1,10 @@
-"""The daemon's counters and the figures of its progress line."""
+"""The daemon's counters and its progress line (:class:`ProgressLine`, logged every :data:`PROGRESS_EVERY_S`)."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+
+PROGRESS_EVERY_S = 5.0
 
 
 def _recent_median_ms(values_s: list[float], n: int = 300) -> str:
@@ -39,3 +41,17 @@ class Stats:
         if len(self.latencies_s) > limit:
             del self.latencies_s[:-keep]
             del self.perception_s[:-keep]
+
+
+class ProgressLine:
+    """The status line logged every ``period_s``: the mode, the camera's rate since the last line, the counters
+    (:meth:`Stats.summary`), the height and the ground stations' command figures."""
+
+    def __init__(self, period_s: float = PROGRESS_EVERY_S) -> None:
+        self.period_s = period_s
+        self._frames = 0
+
+    def line(self, stats: Stats, mode_name: str, odometry_ok: bool, gcs_ok: bool, height: str, commands: str) -> str:
+        fps = (stats.frames - self._frames) / self.period_s
+        self._frames = stats.frames
+        return f"mode {mode_name}  camera {fps:.1f} fps  {stats.summary(odometry_ok, gcs_ok)}  {height}  {commands}"

@@ -4,10 +4,10 @@ The camera looks 30 deg down and never sees the ceiling, so the climb is bounded
 like PX4's (``GF_MAX_VER_DIST``) and ArduPilot's (``FENCE_ALT_MAX``) altitude fences: a maximum height
 above the take-off floor and/or the room's height (its ceiling, minus the safe distance). Ceiling points
 that the obstacle map holds (seen earlier, e.g. under a low beam) act through the reference's 3D
-constraints (:mod:`companion.reference`, ``out_of_band_3d``).
+constraints (:mod:`companion.obstacle_points`, ``out_of_band_3d``).
 
 The height is the odometry's, above the take-off floor (NED: height = -z of the position). Both limits
-use the reference's closing-speed law with its stopping distance (:func:`companion.reference.
+use the reference's closing-speed law with its stopping distance (:func:`companion.avoidance.
 limit_speed_toward_obstacles`): the climb speed is at most ``k (h_max - h - t_stop max(v_up, 0))``, the
 descent speed near the floor at most ``k (h - h_min - t_stop max(v_down, 0))`` — zero at ``h_min`` and
 negative (climb back) below it. The floor is exempt only for take-off and landing, which the autopilot

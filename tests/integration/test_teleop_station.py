@@ -20,8 +20,10 @@ import pytest
 from companion.frame_step import operator_image_meta
 from companion.image_publisher import OperatorImagePublisher
 from companion.modes import Mode
+from companion.operator_input import OperatorInput
 from companion.pan_scan import PanScanParams, pan_scan
-from companion.reference import OperatorInput, ReferenceParams, reference_velocity
+from companion.reference import reference_velocity
+from companion.reference_params import ReferenceParams
 from quadlink.camera import CameraIntrinsics, RgbdFrame
 from quadlink.mavlink import mavlink
 from quadlink.mavlink.connection import open_mavlink

@@ -11,8 +11,10 @@ import pytest
 
 from companion.frame_step import operator_image_meta
 from companion.modes import Mode
+from companion.operator_input import OperatorInput
 from companion.pan_scan import PanScanParams, pan_scan
-from companion.reference import OperatorInput, ReferenceParams, reference_velocity
+from companion.reference import reference_velocity
+from companion.reference_params import ReferenceParams
 from quadlink.camera import CameraIntrinsics, RecordDecoder, RgbdFrame, encode_record
 from quadlink.errors import ProtocolError
 from quadlink.operator_image import OperatorImageMeta
@@ -131,8 +133,8 @@ def test_the_floor_is_neither_a_dot_nor_an_obstacle_warning_while_landing(height
     """Landing over a bare floor: the avoidance ignores it (below the band, or within the floor margin), so the
     feedback's nearest obstacle is none and the image carries no obstacle dots (was: the floor's points as
     orange dots and 'OBSTACLE 0.50 m')."""
+    from companion.avoidance import repulsion_velocity
     from companion.frame_step import frame_step
-    from companion.reference import repulsion_velocity
 
     params = ReferenceParams()
     floor = _floor_h_m(height_m)

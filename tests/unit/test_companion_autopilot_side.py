@@ -1,5 +1,7 @@
 """The companion's autopilot side on its own (unit tier): the autopilot's time as the companion knows it and
-the TIMESYNC with it (companion.timesync), and the perception stage (companion.perception_stage)."""
+the TIMESYNC with it (companion.timesync), the autopilot's messages by type (companion.autopilot_input), the
+IMU clock (companion.imu_clock), the perception stage (companion.perception_stage) and what a frame leaves for
+the rest of the loop (companion.frame_state)."""
 
 from __future__ import annotations
 
@@ -8,10 +10,20 @@ from typing import Any
 import numpy as np
 import pytest
 
+from companion.autopilot_input import AutopilotInput
+from companion.commands import CommandQueue
+from companion.frame_state import FrameState
+from companion.frame_step import NO_SCAN
 from companion.guard import ErrorCounter
+from companion.height import HeightParams
+from companion.imu_clock import IMU_LAG_LIMIT, IMU_SILENT_S, ImuClock, imu_sample
+from companion.modes import Mode, ModeMachine, ModeParams, StatusText, VehicleStatus
+from companion.outbound import ToAutopilot
+from companion.pan_scan import PanScanParams, pan_scan
 from companion.perception_stage import PerceptionStage
 from companion.stats import Stats
 from companion.timesync import AutopilotTime, TimeSync
+from companion.vehicle_state import VehicleState
 from quadlink.camera import CameraIntrinsics, RgbdFrame
 from quadlink.mavlink import mavlink
 
@@ -92,3 +104,75 @@ def test_perception_starts_on_the_first_frame_and_refuses_a_changed_camera() -> 
     assert stage.on_frame(frame(3)) is None
     stage.on_imu(0.3, np.zeros(3), np.zeros(3))
     assert stats.pipeline_errors == 3 and len(pipes) == 1
+
+
+def test_a_refused_arm_during_takeoff_goes_back_to_the_mode_machine_and_timesync_is_answered() -> None:
+    modes = ModeMachine(ModeParams())
+    queue = CommandQueue()
+    ap = AutopilotInput(VehicleState(), queue, modes, TimeSync(), lambda: 2.0)
+    ok, actions = modes.request("takeoff", 1.0, VehicleStatus())
+    assert ok and modes.mode == Mode.TAKEOFF
+    for a in actions:
+        if not isinstance(a, StatusText):
+            queue.push(a)
+    (sent,) = ap.poll_commands(1.0, SYSID, AP_COMPID)   # the arm first, to the autopilot, confirmation 0
+    assert isinstance(sent, ToAutopilot) and sent.msg.command == mavlink.MAV_CMD_COMPONENT_ARM_DISARM
+    assert (sent.msg.target_system, sent.msg.target_component, sent.msg.confirmation) == (SYSID, AP_COMPID, 0)
+    out = ap.on_message(wire(mavlink.MAVLink_command_ack_message(mavlink.MAV_CMD_COMPONENT_ARM_DISARM,
+                                                                 mavlink.MAV_RESULT_DENIED, 0, 0, SYSID, 191)))
+    told = [o.text for o in out if isinstance(o, StatusText)]
+    assert told[0] == "companion: autopilot arm failed (MAV_RESULT_DENIED)"
+    assert modes.mode == Mode.IDLE and queue.pending == []
+    (reply,) = ap.on_message(wire(mavlink.MAVLink_timesync_message(0, 777)))
+    assert isinstance(reply, ToAutopilot) and (reply.msg.tc1, reply.msg.ts1) == (2_000_000_000, 777)
+
+
+def test_the_vehicle_state_follows_the_autopilot_heartbeat_not_a_ground_station_s() -> None:
+    vehicle = VehicleState()
+    ap = AutopilotInput(vehicle, CommandQueue(), ModeMachine(ModeParams()), TimeSync(), lambda: 3.0)
+    armed = mavlink.MAV_MODE_FLAG_SAFETY_ARMED
+    ap.on_message(wire(mavlink.MAVLink_heartbeat_message(mavlink.MAV_TYPE_GCS, mavlink.MAV_AUTOPILOT_INVALID, armed, 0,
+                                                         0, 3)))
+    assert not vehicle.armed and vehicle.heartbeat_wall_s is None
+    ap.on_message(wire(mavlink.MAVLink_heartbeat_message(mavlink.MAV_TYPE_QUADROTOR, mavlink.MAV_AUTOPILOT_PX4, armed,
+                                                         0, 0, 3)))
+    assert vehicle.armed and vehicle.heartbeat_wall_s == 3.0
+
+
+def imu(time_usec: int, gyro_z: float = 0.1) -> Any:
+    return wire(mavlink.MAVLink_highres_imu_message(time_usec, 0.0, 0.0, -9.81, 0.0, 0.0, gyro_z, 0, 0, 0, 0, 0, 0, 0,
+                                                    0x3F))
+
+
+def test_imu_samples_are_checked_and_the_wait_for_them_gives_up_on_a_lagging_stream() -> None:
+    sample = imu_sample(imu(2_500_000))
+    assert sample is not None and sample.stamp_s == 2.5 and sample.gyro_q_rad_s[2] == pytest.approx(0.1)
+    assert imu_sample(imu(2_500_000, gyro_z=float("nan"))) is None and imu_sample(imu(2**60)) is None
+    clock = ImuClock(feedback_rate_hz=50.0, imu_wait_s=0.005, imu_slack_s=0.005)
+    assert clock.feedback_due(1.000) and not clock.feedback_due(1.010) and clock.feedback_due(1.021)
+    assert ImuClock.silent(5.0, None) and ImuClock.silent(5.0, 5.0 - 2 * IMU_SILENT_S)
+    assert not ImuClock.silent(5.0, 4.95)
+    assert not clock.should_wait(1.0, None) and not clock.should_wait(1.0, 0.7)   # no IMU, or not flowing
+    assert clock.should_wait(1.0, 0.99) and not clock.caught_up(1.0, 0.99) and clock.caught_up(1.0, 0.996)
+    for _ in range(IMU_LAG_LIMIT):
+        clock.on_wait_timeout()
+    assert not clock.should_wait(1.0, 0.99)   # it keeps lagging: no more waiting
+
+
+def test_the_frame_state_counts_odometry_restarts_and_starts_the_pan_scan_at_teleop() -> None:
+    st = FrameState(HeightParams())
+    good, bad = type("Out", (), {"odometry_ok": True}), type("Out", (), {"odometry_ok": False})
+    st.on_odometry(good, first_frame=True)
+    st.on_odometry(bad, first_frame=False)
+    st.on_odometry(None, first_frame=False)
+    st.on_odometry(good, first_frame=False)
+    assert st.odometry_ok and st.reset_counter == 1
+    scan = PanScanParams(True, 0.6, 1.5)
+    st.on_mode(Mode.HOLD, 9.0)
+    assert st.scan(Mode.HOLD, 9.5, scan) == NO_SCAN
+    st.on_mode(Mode.TELEOP, 10.0)
+    st.on_mode(Mode.TELEOP, 11.0)   # already scanning: the origin stays
+    assert st.scan(Mode.TELEOP, 12.0, scan) == pan_scan(scan, 2.0)
+    st.on_mode(Mode.HOLD, 13.0)
+    st.on_mode(Mode.TELEOP, None)   # re-entered before any frame: from 0
+    assert st.scan(Mode.TELEOP, 14.0, scan) == pan_scan(scan, 14.0)

@@ -1,6 +1,7 @@
 """The companion's ground-station services on their own (unit tier): the endpoint's gate
 (companion.security), the commands (companion.gcs_commands), the parameter service (companion.params), the
-command clock (companion.command_clock) and the sending edge (companion.outbound). Messages go through
+command clock (companion.command_clock), the messages by type (companion.gcs_input), the arbiter's command as
+the loop takes it (companion.motion) and the sending edge (companion.outbound). Messages go through
 pymavlink's codec as on the wire; clocks are injected."""
 
 from __future__ import annotations
@@ -15,11 +16,14 @@ from companion.arbiter import Arbiter, ArbiterParams, Pose
 from companion.command_clock import GcsCommandClock
 from companion.config import PanScanConfig
 from companion.gcs_commands import GcsCommands
+from companion.gcs_input import GcsInput
 from companion.guard import ErrorCounter
 from companion.modes import AutopilotRequest, Mode, ModeMachine, ModeParams, StatusText, VehicleStatus
+from companion.motion import Motion
+from companion.operator_input import OperatorInput
 from companion.outbound import AutopilotAck, GcsReply, Outbox, Output
 from companion.params import PARAM_NAMES, CompanionParams, ParamService
-from companion.reference import ReferenceParams
+from companion.reference_params import ReferenceParams
 from companion.security import GcsSecurity
 from companion.stats import Stats
 from quadlink.errors import QuadlinkError
@@ -325,6 +329,65 @@ def test_the_command_clock_answers_requests_and_keeps_a_bounded_set_of_senders()
     report = {m.name: m.value for m in clock.report(2000)}
     assert report == {"CMD_OK": 1, "CMD_DROP": 0, "CMD_STALE": 0, "CMD_UNPAIR": 0}   # no age percentiles yet
     assert clock.summary().startswith("commands 1 ok / 0 dropped")
+
+
+# ---- companion.gcs_input, companion.motion -------------------------------------------------------------------
+class InputRig(Rig):
+    def __init__(self) -> None:
+        super().__init__()
+        self.stats = Stats()
+        self.clock_ = GcsCommandClock(0.5, 0.2)
+        self.input = GcsInput(GcsSecurity(SecurityConfig(), SYSID, COMPID, self.clock), self.clock_, self.cmds,
+                              self.cmds.params, self.arbiter, self.modes, self.stats, COMPID, self.clock)
+
+    def on(self, msg: Any) -> tuple[list[Output], bool]:
+        handled = self.input.on_message(msg, SYSID, AP_COMPID, lambda: Pose(None, None, 0.0))
+        return handled.outputs, handled.forward
+
+
+def manual(x: int, src_system: int = 255) -> Any:
+    return wire(mavlink.MAVLink_manual_control_message(SYSID, x, 0, 500, 0, 0), src_system)
+
+
+def test_ground_station_messages_go_to_their_service_and_on_to_the_autopilot_as_routed() -> None:
+    rig = InputRig()
+    out, forward = rig.on(manual(500, src_system=77))   # not on the allowlist: refused, told, not counted
+    assert not forward and texts(out) and rig.stats.refused_senders == 1 and rig.stats.manual_controls == 0
+    assert rig.on(manual(500)) == ([], False) and rig.stats.manual_controls == 1
+    rig.modes.update(rig.clock(), VehicleStatus(), True)
+    assert rig.arbiter.operator_alive(rig.clock()) and rig.modes.gcs_ok   # a fresh command: the link is alive
+    set_mode = wire(mavlink.MAVLink_set_mode_message(SYSID, int(CUSTOM), POSCTL.custom_mode))
+    assert rig.on(set_mode) == ([], True)   # IDLE: the autopilot's own mode, it answers
+    out, forward = rig.on(wire(mavlink.MAVLink_param_request_list_message(SYSID, 0)))   # broadcast: both answer
+    assert forward and [o.msg.param_id for o in out if isinstance(o, GcsReply)] == list(PARAM_NAMES)
+    out, forward = rig.on(wire(mavlink.MAVLink_timesync_message(0, 5)))
+    assert not forward and [o.msg.ts1 for o in out if isinstance(o, GcsReply)] == [5]
+    rig.modes.mode = Mode.TELEOP
+    out, forward = rig.on(command(mavlink.MAV_CMD_DO_SET_MODE, CUSTOM, Px4MainMode.POSCTL, target_component=AP_COMPID))
+    assert not forward and [o.msg.command for o in out if isinstance(o, AutopilotAck)] == [mavlink.MAV_CMD_DO_SET_MODE]
+
+
+def test_the_operator_input_reaches_the_reference_only_while_its_command_is_fresh() -> None:
+    rig = InputRig()
+    told: list[StatusText] = []
+    motion = Motion(rig.arbiter, rig.clock_.age, rig.clock, told.append)
+    rig.on(manual(1000))
+    cmd = motion.command(Pose(None, None, 0.0))
+    assert motion.operator_of(cmd).qx == pytest.approx(1.0) and motion.last is cmd
+    assert motion.reported_mode(Mode.TELEOP) == Mode.TELEOP
+    rig.clock.t += 0.6   # older than the age (0.5 s): zeroed
+    assert motion.operator_of(cmd) == OperatorInput()
+    held = motion.command(Pose(None, None, 0.0))   # and the arbiter holds: reported as HOLD
+    assert held.hold and motion.reported_mode(Mode.TELEOP) == Mode.HOLD and motion.reported_mode(Mode.LAND) == Mode.LAND
+    assert all(t.text.startswith("companion: ") for t in told)
+
+
+def test_a_status_text_is_sent_cut_to_its_field() -> None:
+    gcs = MemLink()
+    Outbox(MemLink(), gcs, SYSID, COMPID, AP_COMPID, ErrorCounter(Clock()), Stats(), None, lambda: 0.0).status_text(
+        StatusText(mavlink.MAV_SEVERITY_WARNING, "companion: " + "x" * 60))
+    (msg,) = map(parsed, gcs.sent)
+    assert msg.get_type() == "STATUSTEXT" and msg.severity == mavlink.MAV_SEVERITY_WARNING and len(msg.text) == 50
 
 
 # ---- companion.outbound ------------------------------------------------------------------------------------

@@ -10,19 +10,17 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from companion.pan_scan import PanScanParams, PanScanState, pan_scan, swing_amplitude_rad
-from companion.reference import (
-    OperatorInput,
-    ReferenceParams,
-    camera_yaw_rad,
+from companion.avoidance import (
     limit_speed_toward_obstacles,
-    nearest_obstacle,
-    operator_from_manual_control,
-    reference_velocity,
     remove_toward_close_obstacles,
     remove_toward_unknown,
     repulsion_velocity,
 )
+from companion.obstacle_points import nearest_obstacle
+from companion.operator_input import OperatorInput, camera_yaw_rad, operator_from_manual_control
+from companion.pan_scan import PanScanParams, PanScanState, pan_scan, swing_amplitude_rad
+from companion.reference import reference_velocity
+from companion.reference_params import ReferenceParams
 from quadlink.analysis.yaw_identification import (
     IdentificationError,
     fit_sinusoid,

@@ -16,14 +16,12 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from companion.avoidance import limit_speed_toward_obstacles
+from companion.obstacle_points import surface_points
+from companion.operator_input import OperatorInput
 from companion.pan_scan import PanScanState
-from companion.reference import (
-    OperatorInput,
-    ReferenceParams,
-    limit_speed_toward_obstacles,
-    reference_velocity,
-    surface_points,
-)
+from companion.reference import reference_velocity
+from companion.reference_params import ReferenceParams
 from companion.vertical_limits import VerticalParams, apply_vertical_limits, ceiling_height_m, vertical_limits
 from firmware_bridge.velocity_tracker import VelocityTracker
 from quadlink.frames import GRAVITY_M_S2

@@ -1,16 +1,20 @@
-"""The daemon's pure parts: routing decisions, deadlines, the parameter service (unit tier)."""
+"""The daemon's small parts: routing decisions, deadlines and periodic tasks, the parameter service, the progress
+line, the frame recording (unit tier)."""
 
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import pytest
 
 from companion.config import PanScanConfig
 from companion.params import PARAM_NAMES, CompanionParams, handle_param_message, set_by_index
-from companion.reference import ReferenceParams
+from companion.recording import FrameRecording
+from companion.reference_params import ReferenceParams
 from companion.router import route_from_autopilot, route_from_gcs
-from companion.scheduler import Deadlines, StampTicker
+from companion.scheduler import Deadlines, PeriodicTasks, StampTicker, Task
+from companion.stats import ProgressLine, Stats
 from quadlink.mavlink import mavlink
 
 ME = 191
@@ -95,3 +99,47 @@ def test_params_validate_and_the_protocol_answers() -> None:
     assert changed is None and p.reference.k_psi_rad_s == pytest.approx(0.5)
     assert [r.get_type() for r in replies] == ["PARAM_VALUE", "STATUSTEXT"]
     assert replies[0].param_id == "CMP_K_PSI" and replies[0].param_value == pytest.approx(0.5)
+
+
+def test_periodic_tasks_run_in_order_and_the_conditional_ones_only_while_their_condition_holds() -> None:
+    periods = {task: 1.0 for task in Task} | {Task.FEEDBACK: 0.02, Task.PROGRESS: 5.0}
+    tasks = PeriodicTasks(periods, start_s=0.0)
+    assert tasks.due(0.0, camera_silent=False, imu_silent=False) == [Task.HEARTBEAT, Task.TIMESYNC, Task.GCS_TIMESYNC,
+                                                                      Task.COMMAND_AGE]
+    assert tasks.due(0.5, camera_silent=True, imu_silent=True) == [Task.FALLBACK, Task.FEEDBACK]
+    assert tasks.due(0.51, camera_silent=True, imu_silent=True) == []
+    assert tasks.due(1.0, camera_silent=False, imu_silent=False) == [Task.HEARTBEAT, Task.TIMESYNC, Task.GCS_TIMESYNC,
+                                                                      Task.COMMAND_AGE]
+    assert tasks.due(5.0, camera_silent=False, imu_silent=False)[-1] == Task.PROGRESS   # first one period in
+
+
+def test_the_progress_line_gives_the_camera_rate_since_the_last_line() -> None:
+    stats, line = Stats(frames=150), ProgressLine(5.0)
+    text = line.line(stats, "TELEOP", True, False, "height ?", "commands 0 ok")
+    assert text.startswith("mode TELEOP  camera 30.0 fps  frame->setpoint p50 -")
+    assert text.endswith("gcs link lost  manual 0  routed 0 to GCS / 0 to autopilot  height ?  commands 0 ok")
+    stats.frames += 50
+    assert "camera 10.0 fps" in line.line(stats, "TELEOP", True, False, "height ?", "commands 0 ok")
+
+
+def test_a_failing_frame_recording_stops_and_the_loop_goes_on() -> None:
+    class Full:
+        def __init__(self) -> None:
+            self.written, self.closed = 0, False
+
+        def write(self, frame: object) -> None:
+            self.written += 1
+            if self.written == 2:
+                raise OSError("No space left on device")
+
+        def close(self) -> None:
+            self.closed = True
+
+    writer = Full()
+    frame: Any = None
+    rec = FrameRecording(writer)
+    for _ in range(4):
+        rec.write(frame)
+    rec.close()
+    assert writer.written == 2 and not writer.closed   # stopped at the failure; nothing more to close
+    FrameRecording(None).write(frame)   # no recording: nothing to do

@@ -9,7 +9,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from companion.frame_step import NO_SCAN, frame_step
-from companion.reference import OperatorInput, ReferenceParams
+from companion.operator_input import OperatorInput
+from companion.reference_params import ReferenceParams
 
 # the camera looks along +x of H (optical z = body x): eq. (2) moves the operator along it
 R_QC_FORWARD = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])

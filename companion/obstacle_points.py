@@ -1,0 +1,162 @@
+"""Which map points the avoidance acts on (pure): the obstacle map's points in H (vehicle at the origin), as the
+repulsion and the safety constraints (:mod:`companion.avoidance`) and the operator's view take them.
+
+With ``horizontal_only`` (:class:`companion.reference_params.ReferenceParams`) the points within
+``vertical_band_m`` of the vehicle's height stand for obstacles that extend through it (the camera, looking
+down, samples them below the vehicle): they act by their horizontal distance, projected to z = 0. Points
+within ``floor_margin_m`` of the floor, once the height is known, are the floor, not obstacles. With
+``out_of_band_3d`` the other points constrain the motion by their 3D distance. A surface sampled by points
+is stood in for by the segments between neighbouring samples (:func:`surface_points`).
+:func:`nearest_obstacle` is the nearest point as TELEOP_FEEDBACK and the operator image report it.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from companion.reference_params import ReferenceParams
+
+
+def finite_rows(points_h_m: ArrayLike) -> NDArray[np.float64]:
+    """Points as N x 3 floats without the rows holding a NaN or inf (one flat check first: rows are only
+    filtered when something is wrong)."""
+    p = np.asarray(points_h_m, dtype=float).reshape(-1, 3)
+    return p if np.isfinite(p).all() else p[np.isfinite(p).all(axis=1)]
+
+
+def avoidance_mask(p: NDArray[np.float64], params: ReferenceParams | None, height_m: float | None,
+                   reach_m: float) -> NDArray[np.bool_] | None:
+    """Which of the finite points ``p`` the avoidance acts on (None: all of them); see :func:`select_points`."""
+    x, y, z = p[:, 0], p[:, 1], p[:, 2]
+    horizontal = params is not None and params.horizontal_only
+    keep = None
+    if math.isfinite(reach_m):
+        r2 = x * x + y * y
+        if not horizontal:
+            r2 += z * z
+        keep = r2 < reach_m * reach_m
+    if params is not None and height_m is not None and math.isfinite(height_m):
+        floor = (height_m - z) > params.floor_margin_m  # height of the point above the floor (H: z down)
+        keep = floor if keep is None else keep & floor
+    if horizontal:
+        assert params is not None
+        band = np.abs(z) <= params.vertical_band_m
+        keep = band if keep is None else keep & band
+    return keep
+
+
+def select_points(points_h_m: ArrayLike | None, params: ReferenceParams | None = None,
+                  height_m: float | None = None, reach_m: float = math.inf) -> NDArray[np.float64]:
+    """Finite points, minus the floor (if ``height_m`` above it is known); with ``params.horizontal_only``
+    those within the height band, projected to z = 0; only those closer than ``reach_m``.
+
+    One boolean mask over the (typically ~2000) map particles, one copy of the few that pass: this runs
+    at camera rate on the whole map."""
+    if points_h_m is None:
+        return np.zeros((0, 3))
+    p = finite_rows(points_h_m)
+    keep = avoidance_mask(p, params, height_m, reach_m)
+    p = p[keep] if keep is not None else p.copy()
+    if params is not None and params.horizontal_only:
+        p[:, 2] = 0.0
+    return p
+
+
+def constraint_points(points_h_m: ArrayLike | None, params: ReferenceParams, height_m: float | None,
+                      reach_m: float, band: NDArray[np.float64] | None = None) -> NDArray[np.float64]:
+    """The vectors (vehicle to obstacle, in H) the safety constraints act on: the band's points projected
+    horizontally (``band``, if already computed by :func:`select_points` with the same reach), the closest points
+    of the surfaces they sample (:func:`surface_points`) and, with ``out_of_band_3d``, the other non-floor
+    points in 3D."""
+    if band is None:
+        band = select_points(points_h_m, params, height_m, reach_m)
+    parts = [band, surface_points(band, params.surface_gap_m, params.influence_distance_m)]
+    if params.horizontal_only and params.out_of_band_3d and points_h_m is not None:
+        p = finite_rows(points_h_m)
+        keep = np.abs(p[:, 2]) > params.vertical_band_m
+        keep &= np.einsum("ij,ij->i", p, p) < reach_m * reach_m
+        if height_m is not None and math.isfinite(height_m):
+            keep &= (height_m - p[:, 2]) > params.floor_margin_m
+        parts.append(p[keep])
+    return np.concatenate(parts) if any(x.shape[0] for x in parts[1:]) else band
+
+
+def surface_points(points_h_m: NDArray[np.float64], max_gap_m: float, reach_m: float,
+                   grid_m: float = 0.05, neighbours: int = 6) -> NDArray[np.float64]:
+    """Closest points (to the vehicle at the origin) of the segments joining map points less than
+    ``max_gap_m`` apart, for the points within ``reach_m + max_gap_m / 2``.
+
+    A surface sampled by points is nearer than its nearest sample wherever the vehicle faces the gap
+    between two samples; the segment between them is the surface's piecewise-linear stand-in. The points
+    are thinned to one per ``grid_m`` cell first (the map holds several particles per measured point),
+    then each is joined to its ``neighbours`` next points in azimuth as the vehicle sees them (the gaps
+    that matter are between samples adjacent in the view; O(n) segments instead of all pairs). Only
+    segments whose closest point lies strictly between their ends add a point (otherwise the end is
+    itself a map point)."""
+    if points_h_m.shape[0] < 2 or max_gap_m <= 0.0:
+        return np.zeros((0, 3))
+    p = points_h_m[np.einsum("ij,ij->i", points_h_m, points_h_m) < (reach_m + max_gap_m / 2.0) ** 2]
+    if p.shape[0] < 2:
+        return np.zeros((0, 3))
+    cell = np.floor(p / grid_m).astype(np.int64) + (1 << 20)   # non-negative within +-50 km at 5 cm
+    _, first = np.unique((cell[:, 0] << 42) | (cell[:, 1] << 21) | cell[:, 2], return_index=True)
+    p = p[first]
+    n = p.shape[0]
+    if n < 2:
+        return np.zeros((0, 3))
+    p = p[np.argsort(np.arctan2(p[:, 1], p[:, 0]))]
+    k = min(neighbours, n - 1)
+    i = np.repeat(np.arange(n), k)
+    j = (i + np.tile(np.arange(1, k + 1), n)) % n
+    if 2 * k >= n:   # few points: the cyclic neighbours repeat pairs
+        pair = np.unique(np.minimum(i, j) * n + np.maximum(i, j))
+        i, j = pair // n, pair % n
+    a, ab = p[i], p[j] - p[i]
+    length2 = np.einsum("ij,ij->i", ab, ab)
+    t = -np.einsum("ij,ij->i", a, ab) / np.maximum(length2, 1e-12)
+    inner = (length2 < max_gap_m * max_gap_m) & (length2 > 1e-12) & (t > 1e-6) & (t < 1.0 - 1e-6)
+    return a[inner] + t[inner, None] * ab[inner]
+
+
+def avoidance_points(points_h_m: ArrayLike | None, params: ReferenceParams,
+                     height_m: float | None = None) -> NDArray[np.float64]:
+    """The map points the safety constraints act on, where they are (not projected): finite, not the floor
+    (when ``height_m`` is known) and, with ``horizontal_only``, within the height band — plus, with
+    ``out_of_band_3d``, the other non-floor points (as :func:`constraint_points` takes them). What the operator
+    is shown as obstacles and warned about, so the view never flags what the avoidance ignores (the floor)."""
+    if points_h_m is None:
+        return np.zeros((0, 3))
+    p = finite_rows(points_h_m)
+    if params.horizontal_only and params.out_of_band_3d:
+        keep = avoidance_mask(p, None, None, math.inf)   # all finite points ...
+        if height_m is not None and math.isfinite(height_m):
+            keep = (height_m - p[:, 2]) > params.floor_margin_m   # ... but the floor
+    else:
+        keep = avoidance_mask(p, params, height_m, math.inf)
+    return p[keep] if keep is not None else p.copy()
+
+
+def nearest_obstacle(points_h_m: ArrayLike | None, params: ReferenceParams) -> tuple[NDArray[np.float64], float] | None:
+    """The nearest map point as the avoidance sees it: with ``horizontal_only``, a point within the height band
+    counts by its horizontal distance (and is reported projected to z = 0) — the band stands for obstacles
+    that extend vertically through the vehicle's height, which the camera, looking down, samples below it;
+    other points (the floor, say) count by their 3D distance. None if there are no finite points."""
+    if points_h_m is None:
+        return None
+    p = finite_rows(points_h_m)
+    if p.shape[0] == 0:
+        return None
+    x, y, z = p[:, 0], p[:, 1], p[:, 2]
+    d2 = x * x + y * y
+    if params.horizontal_only:
+        d2 = np.where(np.abs(z) <= params.vertical_band_m, d2, d2 + z * z)
+    else:
+        d2 = d2 + z * z
+    i = int(np.argmin(d2))
+    v = p[i].copy()
+    if params.horizontal_only and abs(v[2]) <= params.vertical_band_m:
+        v[2] = 0.0
+    return v, math.sqrt(float(d2[i]))
