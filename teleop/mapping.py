@@ -1,6 +1,6 @@
 """Device position q (frame D, NED) -> operator command, paper 000 eqs. (2)-(3). Pure.
 
-The companion (companion/reference.py) turns MANUAL_CONTROL into the desired velocity of eqs. (2)-(3):
+The companion (companion/operator_input.py) turns MANUAL_CONTROL into the desired velocity of eqs. (2)-(3):
 ``v_d = k_v (q_x cos a, q_x sin a, q_z)`` and the yaw rate ``k_psi q_y`` (the paper's -k_psi q_y
 written for NED: handle to the right -> turn right). On the wire the command is normalized: ``x``
 (forward, along alpha) and ``y`` (yaw rate; ``r`` with ``yaw_axis: r``) in -1000..1000, ``z`` (climb)
