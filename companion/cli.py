@@ -57,6 +57,28 @@ def command(config_path: str, autopilot: str | None, gcs: str | None, camera: st
             image_host: str | None, signing_key: Path | None, require_signing: bool | None,
             tlog_path: Path | None, frames_path: Path | None, duration: float | None) -> None:
     """Start the companion daemon: perception, reference velocity, MAVLink to autopilot and ground station."""
+    stop = threading.Event()
+
+    def on_stop_signal(*_: object) -> None:
+        # is_set() first: Event.set() takes a lock, and a second signal inside it would deadlock the handler
+        if not stop.is_set():
+            stop.set()
+
+    # installed before the start-up (imports, links, perception: seconds on a loaded board), so that a Ctrl-C
+    # during it stops the command as well (quadlink.signals; a SIGINT 3 s in was lost at load 6)
+    previous = {sig: signal.signal(sig, on_stop_signal) for sig in STOP_SIGNALS}
+    try:
+        _start_and_run(stop, config_path, autopilot, gcs, camera, image_port, image_host, signing_key,
+                       require_signing, tlog_path, frames_path, duration)
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+
+
+def _start_and_run(stop: threading.Event, config_path: str, autopilot: str | None, gcs: str | None,
+                   camera: str | None, image_port: int | None, image_host: str | None, signing_key: Path | None,
+                   require_signing: bool | None, tlog_path: Path | None, frames_path: Path | None,
+                   duration: float | None) -> None:
     threads = _math_threads()
     import dataclasses
 
@@ -123,21 +145,12 @@ def command(config_path: str, autopilot: str | None, gcs: str | None, camera: st
     if frames is not None:
         log.info("recording camera frames to %s", frames_path)
     daemon = Companion(cfg, ap, ground, cam, factory, image_server=images, tlog=tlog, frame_recorder=frames)
-    stop = threading.Event()
-    def on_sigterm(*_: object) -> None:
-        # is_set() first: Event.set() takes a lock, and a second signal inside it would deadlock the handler
-        if not stop.is_set():
-            stop.set()
-
-    previous = {sig: signal.signal(sig, on_sigterm) for sig in STOP_SIGNALS}   # Ctrl-C too (quadlink.signals)
     try:
         daemon.run(stop, duration)
     except KeyboardInterrupt:
         log.info("interrupted")
     finally:
         stop.set()
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
         daemon.close()
         s = daemon.stats
         log.info("stopped: %d frames, %d setpoints, %d feedback, routed %d to GCS / %d to autopilot",
