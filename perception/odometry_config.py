@@ -47,7 +47,7 @@ class OdometryConfig:
     keyframe_max_translation_m: float = 0.1
     keyframe_max_rotation_rad: float = 0.087         # 5 degrees
     keyframe_min_fitness: float = 0.7
-    keyframe_refinement: bool = False                # a new keyframe is also aligned against the keyframe before
+    keyframe_refinement: bool = True                 # a new keyframe is also aligned against the keyframe before
                                                      # the current one and the two estimates are fused by their
                                                      # information (DVO-SLAM's local window of keyframes)
     register_depth_in_time: bool = True              # turn an unsynchronised depth image to the colour instant
