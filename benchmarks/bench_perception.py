@@ -267,21 +267,28 @@ def bench_pipeline(seconds: float = 3.0) -> None:
     print(f"  UKF predict (100 Hz): {t_pred * 1e6:.0f} us, pose update: {t_upd * 1e6:.0f} us")
 
 
-def sitl_flight(seconds: float, estimator: Literal["filters", "ukf"], seed: int = 0) -> None:
-    """In-process SITL (pybullet world, firmware, IMU and camera models with noise; no sockets): a pan-scanning
-    flight flown on the *true* state (so the estimate is only measured, not in the loop), perception vs truth."""
-    from quadlink.frames import Rz, euler_from_R
+def _sitl_rig(scenario: str, config: PerceptionConfig, seed: int) -> tuple[Any, Any, Any, Any, PerceptionPipeline]:
+    """The in-process SITL vehicle (world, firmware, IMU) in ``scenario``, its camera and a pipeline on them:
+    (vehicle config, SITL config, SimVehicle, RgbdCamera, PerceptionPipeline)."""
     from sim_sitl.camera_sim import RgbdCamera
     from sim_sitl.config import load_scenario, load_sitl_config
-    from sim_sitl.firmware import AttitudeCommand
     from sim_sitl.vehicle_sim import SimVehicle
 
     veh = load_vehicle()
     cfg = load_sitl_config()
-    sim = SimVehicle(veh, cfg, load_scenario("paper-arena"), np.random.default_rng(seed))
+    sim = SimVehicle(veh, cfg, load_scenario(scenario), np.random.default_rng(seed))
     cam = RgbdCamera(sim.world, veh.camera, cfg.camera_noise, np.random.default_rng(seed + 1))
-    pipe = PerceptionPipeline(PerceptionConfig(estimator=estimator), cam.intrinsics, cam.R_qc, np.asarray(cam.p_qc_m),
-                              np.random.default_rng(seed + 2))
+    pipe = PerceptionPipeline(config, cam.intrinsics, cam.R_qc, np.asarray(cam.p_qc_m), np.random.default_rng(seed + 2))
+    return veh, cfg, sim, cam, pipe
+
+
+def sitl_flight(seconds: float, estimator: Literal["filters", "ukf"], seed: int = 0) -> None:
+    """In-process SITL (pybullet world, firmware, IMU and camera models with noise; no sockets): a pan-scanning
+    flight flown on the *true* state (so the estimate is only measured, not in the loop), perception vs truth."""
+    from quadlink.frames import Rz, euler_from_R
+    from sim_sitl.firmware import AttitudeCommand
+
+    veh, _, sim, cam, pipe = _sitl_rig("paper-arena", PerceptionConfig(estimator=estimator), seed)
     hover = veh.hover_thrust_fraction
     g = 9.81
     errs, t_cpu, n_frames, ok = [], 0.0, 0, 0
@@ -350,18 +357,11 @@ def sitl_oval(window: bool, seed: int = 0, **odometry: Any) -> dict[str, Any]:
     from quadlink.frames import Rz, euler_from_R
     from quadlink.trajectory.cli import load_trajectory_file
     from quadlink.trajectory.minsnap import minimum_snap
-    from sim_sitl.camera_sim import RgbdCamera
-    from sim_sitl.config import load_scenario, load_sitl_config
     from sim_sitl.firmware import AttitudeCommand
-    from sim_sitl.vehicle_sim import SimVehicle
 
-    veh = load_vehicle()
-    cfg = load_sitl_config()
-    sim = SimVehicle(veh, cfg, load_scenario("empty"), np.random.default_rng(seed))
-    cam = RgbdCamera(sim.world, veh.camera, cfg.camera_noise, np.random.default_rng(seed + 1))
     pcfg = PerceptionConfig()
     pcfg = replace(pcfg, odometry=replace(pcfg.odometry, keyframe_refinement=window, **odometry))
-    pipe = PerceptionPipeline(pcfg, cam.intrinsics, cam.R_qc, np.asarray(cam.p_qc_m), np.random.default_rng(seed + 2))
+    veh, _, sim, cam, pipe = _sitl_rig("empty", pcfg, seed)
     _, oval = load_trajectory_file(CONFIG_DIR / "trajectories" / "oval.yaml")
     p0 = sim.world.state.p_ned_m.copy()
     hover_p = p0 + np.array([0.0, 0.0, -1.2 - p0[2]])
