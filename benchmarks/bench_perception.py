@@ -349,7 +349,8 @@ def sitl_oval(window: bool, seed: int = 0, **odometry: Any) -> dict[str, Any]:
     oval as ``quadlink paper003 oval`` does (``configs/scenarios`` ``empty``, pan-scan off, heading 0): take-off
     to 1.2 m, 6 s to P1, the 9 s oval (up to 1 m/s), 2 s hold, flown on the *true* state so that the odometry is
     only measured. The pipeline's body position against the truth, as drift from the first tracked frame above
-    0.8 m (the local world's yaw is the first frame's, ~0). ``window``: ``keyframe_refinement``; ``odometry``: other
+    0.8 m (the local world's yaw is the first frame's, ~0), and its floor height (``perception.floor``) against the
+    true height. ``window``: ``keyframe_refinement``; ``odometry``: other
     :class:`OdometryConfig` fields."""
     from dataclasses import replace
 
@@ -398,7 +399,8 @@ def sitl_oval(window: bool, seed: int = 0, **odometry: Any) -> dict[str, Any]:
                 seq += 1
                 n_frames += 1
                 n_ok += out.odometry_ok
-                rows.append((t, *out.position_m, *s.p_ned_m, out.odometry_ok))
+                floor_m = math.nan if out.floor_height_m is None else out.floor_height_m
+                rows.append((t, *out.position_m, *s.p_ned_m, out.odometry_ok, floor_m - (-s.p_ned_m[2])))
     finally:
         sim.close()
     a = np.array(rows, dtype=float)
@@ -409,10 +411,12 @@ def sitl_oval(window: bool, seed: int = 0, **odometry: Any) -> dict[str, Any]:
     t = a[start:, 0]
     in_oval = (t >= t_up + t_lead) & (t <= t_up + t_lead + oval.duration_s)
     e_oval = e[in_oval] - e[in_oval][0]
+    e_floor = a[start:, 8][np.isfinite(a[start:, 8])]
     return {"window": window, "frames": n_frames, "ok": n_ok / max(n_frames, 1), "from_s": float(a[start, 0]),
             "end_error_m": e[-1], "max_error_m": np.abs(e).max(axis=0), "oval_drift_m": e_oval[-1],
             "oval_max_m": np.abs(e_oval).max(axis=0), "keyframes": pipe._odometry.keyframes,
-            "refined": pipe._odometry.refined_keyframes, "rejected": pipe._odometry.rejected_refinements, "rows": a}
+            "refined": pipe._odometry.refined_keyframes, "rejected": pipe._odometry.rejected_refinements, "rows": a,
+            "floor_rms_m": float(np.sqrt(np.mean(e_floor**2))), "floor_max_m": float(np.abs(e_floor).max())}
 
 
 def print_sitl_oval(seeds: int) -> None:
@@ -425,7 +429,8 @@ def print_sitl_oval(seeds: int) -> None:
             print(f"  seed {seed} window {'on ' if window else 'off'}: end {f(r['end_error_m'])}, max |e| "
                   f"{f(r['max_error_m'])} (from {r['from_s']:.1f} s); over the oval drift {f(r['oval_drift_m'])}, "
                   f"max |e| {f(r['oval_max_m'])}; ok {r['ok']:.1%} of {r['frames']}, keyframes {r['keyframes']}, "
-                  f"refined {r['refined']}, refused {r['rejected']}", flush=True)
+                  f"refined {r['refined']}, refused {r['rejected']}; floor height error rms "
+                  f"{r['floor_rms_m']:.3f}, max {r['floor_max_m']:.3f}", flush=True)
 
 
 def main() -> None:
