@@ -14,6 +14,9 @@ Run: ``.venv/bin/python benchmarks/bench_perception.py [--passes N] [--synthetic
   Targets (issue 20): on ``tum_fr1_rpy_mid`` RPE1s <= 0.025 m and <= 2.4 deg; time <= 0.5x the faster peer.
 * Obstacle map: sector extraction + eq. (14) time update + measurement + 72-sector summary per QVGA frame.
   Target <= 2 ms.
+* ``--sitl-oval SEEDS``: paper 003's oval (take-off, lead-in, the 9 s oval at up to 1 m/s, pan-scan off) in the
+  in-process SITL flown on truth, the pipeline's position drift against the truth with the keyframe window
+  off and on (issue 20: the window's SITL drift), per seed; nothing else runs.
 * ``--sitl-seconds 60``: velocity in H vs SITL truth on an in-process SITL flight (pybullet, IMU and depth
   noise models), both estimators. Target: RMSE per axis <= 0.05 m/s.
 * Pipeline: ``PerceptionPipeline`` on a synthetic pan-scanning flight (500 Hz IMU + 30 Hz QVGA frames),
@@ -264,21 +267,28 @@ def bench_pipeline(seconds: float = 3.0) -> None:
     print(f"  UKF predict (100 Hz): {t_pred * 1e6:.0f} us, pose update: {t_upd * 1e6:.0f} us")
 
 
-def sitl_flight(seconds: float, estimator: Literal["filters", "ukf"], seed: int = 0) -> None:
-    """In-process SITL (pybullet world, firmware, IMU and camera models with noise; no sockets): a pan-scanning
-    flight flown on the *true* state (so the estimate is only measured, not in the loop), perception vs truth."""
-    from quadlink.frames import Rz, euler_from_R
+def _sitl_rig(scenario: str, config: PerceptionConfig, seed: int) -> tuple[Any, Any, Any, Any, PerceptionPipeline]:
+    """The in-process SITL vehicle (world, firmware, IMU) in ``scenario``, its camera and a pipeline on them:
+    (vehicle config, SITL config, SimVehicle, RgbdCamera, PerceptionPipeline)."""
     from sim_sitl.camera_sim import RgbdCamera
     from sim_sitl.config import load_scenario, load_sitl_config
-    from sim_sitl.firmware import AttitudeCommand
     from sim_sitl.vehicle_sim import SimVehicle
 
     veh = load_vehicle()
     cfg = load_sitl_config()
-    sim = SimVehicle(veh, cfg, load_scenario("paper-arena"), np.random.default_rng(seed))
+    sim = SimVehicle(veh, cfg, load_scenario(scenario), np.random.default_rng(seed))
     cam = RgbdCamera(sim.world, veh.camera, cfg.camera_noise, np.random.default_rng(seed + 1))
-    pipe = PerceptionPipeline(PerceptionConfig(estimator=estimator), cam.intrinsics, cam.R_qc, np.asarray(cam.p_qc_m),
-                              np.random.default_rng(seed + 2))
+    pipe = PerceptionPipeline(config, cam.intrinsics, cam.R_qc, np.asarray(cam.p_qc_m), np.random.default_rng(seed + 2))
+    return veh, cfg, sim, cam, pipe
+
+
+def sitl_flight(seconds: float, estimator: Literal["filters", "ukf"], seed: int = 0) -> None:
+    """In-process SITL (pybullet world, firmware, IMU and camera models with noise; no sockets): a pan-scanning
+    flight flown on the *true* state (so the estimate is only measured, not in the loop), perception vs truth."""
+    from quadlink.frames import Rz, euler_from_R
+    from sim_sitl.firmware import AttitudeCommand
+
+    veh, _, sim, cam, pipe = _sitl_rig("paper-arena", PerceptionConfig(estimator=estimator), seed)
     hover = veh.hover_thrust_fraction
     g = 9.81
     errs, t_cpu, n_frames, ok = [], 0.0, 0, 0
@@ -334,6 +344,95 @@ def sitl_flight(seconds: float, estimator: Literal["filters", "ukf"], seed: int 
 
 
 
+def sitl_oval(window: bool, seed: int = 0, **odometry: Any) -> dict[str, Any]:
+    """In-process SITL (pybullet world, firmware, IMU and camera models with noise; no sockets) flying paper 003's
+    oval as ``quadlink paper003 oval`` does (``configs/scenarios`` ``empty``, pan-scan off, heading 0): take-off
+    to 1.2 m, 6 s to P1, the 9 s oval (up to 1 m/s), 2 s hold, flown on the *true* state so that the odometry is
+    only measured. The pipeline's body position against the truth, as drift from the first tracked frame above
+    0.8 m (the local world's yaw is the first frame's, ~0), and its floor height (``perception.floor``) against the
+    true height. ``window``: ``keyframe_refinement``; ``odometry``: other
+    :class:`OdometryConfig` fields."""
+    from dataclasses import replace
+
+    from quadlink import CONFIG_DIR
+    from quadlink.frames import Rz, euler_from_R
+    from quadlink.trajectory.cli import load_trajectory_file
+    from quadlink.trajectory.minsnap import minimum_snap
+    from sim_sitl.firmware import AttitudeCommand
+
+    pcfg = PerceptionConfig()
+    pcfg = replace(pcfg, odometry=replace(pcfg.odometry, keyframe_refinement=window, **odometry))
+    veh, _, sim, cam, pipe = _sitl_rig("empty", pcfg, seed)
+    _, oval = load_trajectory_file(CONFIG_DIR / "trajectories" / "oval.yaml")
+    p0 = sim.world.state.p_ned_m.copy()
+    hover_p = p0 + np.array([0.0, 0.0, -1.2 - p0[2]])
+    t_up, t_lead = 4.0, 6.0
+    lead = minimum_snap(np.array([hover_p, oval.sample(0.0).p_m]), [t_lead])
+    t_end = t_up + t_lead + oval.duration_s + 2.0
+
+    def reference(t: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        if t < t_up:
+            z = p0[2] + (hover_p[2] - p0[2]) * min(t / (t_up - 1.0), 1.0)
+            return np.array([p0[0], p0[1], z]), np.zeros(3), np.zeros(3)
+        r = lead.sample(t - t_up) if t < t_up + t_lead else oval.sample(t - t_up - t_lead)
+        return r.p_m, r.v_m_s, r.a_m_s2
+
+    g = 9.81
+    frame_every = round(500 / veh.camera.rate_hz)
+    rows, seq, n_ok, n_frames = [], 0, 0, 0
+    try:
+        while sim.t_s < t_end:
+            res = sim.tick()
+            s, t = res.state, res.t_s
+            pipe.on_imu(t, res.imu.gyro_q_rad_s, res.imu.accel_q_m_s2)
+            if res.tick % 5 == 0:   # 100 Hz truth-based tracker with the reference's acceleration
+                p_r, v_r, a_r = reference(t)
+                roll, pitch, yaw = euler_from_R(s.R_ned_q)
+                a_w = a_r + 0.45 * v_r + 4.0 * (p_r - s.p_ned_m) + 3.0 * (v_r - s.v_ned_m_s)
+                a_h = Rz(yaw).T @ a_w
+                thrust = veh.hover_thrust_fraction * (g - a_w[2]) / g / max(math.cos(roll) * math.cos(pitch), 0.5)
+                sim.on_setpoint(AttitudeCommand(float(np.clip(a_h[1] / g, -0.3, 0.3)),
+                                                float(np.clip(-a_h[0] / g, -0.3, 0.3)), -1.0 * yaw,
+                                                float(np.clip(thrust, 0.0, 1.0)), True, (res.tick // 5) & 0xFF))
+            if res.tick % frame_every == 0:
+                out = pipe.on_frame(cam.render(s, seq, t))
+                seq += 1
+                n_frames += 1
+                n_ok += out.odometry_ok
+                floor_m = math.nan if out.floor_height_m is None else out.floor_height_m
+                rows.append((t, *out.position_m, *s.p_ned_m, out.odometry_ok, floor_m - (-s.p_ned_m[2])))
+    finally:
+        sim.close()
+    a = np.array(rows, dtype=float)
+    start = int(np.argmax((a[:, 6] < -0.8) & (a[:, 7] > 0)))
+    d_est = a[start:, 1:4] - a[start, 1:4]
+    d_true = a[start:, 4:7] - a[start, 4:7]
+    e = d_est - d_true
+    t = a[start:, 0]
+    in_oval = (t >= t_up + t_lead) & (t <= t_up + t_lead + oval.duration_s)
+    e_oval = e[in_oval] - e[in_oval][0]
+    e_floor = a[start:, 8][np.isfinite(a[start:, 8])]
+    return {"window": window, "frames": n_frames, "ok": n_ok / max(n_frames, 1), "from_s": float(a[start, 0]),
+            "end_error_m": e[-1], "max_error_m": np.abs(e).max(axis=0), "oval_drift_m": e_oval[-1],
+            "oval_max_m": np.abs(e_oval).max(axis=0), "keyframes": pipe._odometry.keyframes,
+            "refined": pipe._odometry.refined_keyframes, "rejected": pipe._odometry.rejected_refinements, "rows": a,
+            "floor_rms_m": float(np.sqrt(np.mean(e_floor**2))), "floor_max_m": float(np.abs(e_floor).max())}
+
+
+def print_sitl_oval(seeds: int) -> None:
+    print("== paper 003's oval in the in-process SITL (empty room, pan-scan off), flown on truth: the pipeline's body "
+          "position drift against the truth (m, NED), window off / on")
+    for seed in range(seeds):
+        for window in (False, True):
+            r = sitl_oval(window, seed)
+            f = lambda v: "/".join(f"{x:+.3f}" for x in v)   # noqa: E731
+            print(f"  seed {seed} window {'on ' if window else 'off'}: end {f(r['end_error_m'])}, max |e| "
+                  f"{f(r['max_error_m'])} (from {r['from_s']:.1f} s); over the oval drift {f(r['oval_drift_m'])}, "
+                  f"max |e| {f(r['oval_max_m'])}; ok {r['ok']:.1%} of {r['frames']}, keyframes {r['keyframes']}, "
+                  f"refined {r['refined']}, refused {r['rejected']}; floor height error rms "
+                  f"{r['floor_rms_m']:.3f}, max {r['floor_max_m']:.3f}", flush=True)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--passes", type=int, default=3)
@@ -342,8 +441,13 @@ def main() -> None:
     ap.add_argument("--only-odometry", action="store_true", help="the odometry comparison alone")
     ap.add_argument("--sitl-seconds", type=float, default=0.0,
                     help="also fly an in-process SITL pan-scan flight this long (issue: 60 s; minutes each)")
+    ap.add_argument("--sitl-oval", type=int, default=0, metavar="SEEDS",
+                    help="paper 003's oval in the in-process SITL, window off and on, for this many seeds")
     args = ap.parse_args()
     cv2.setNumThreads(1)
+    if args.sitl_oval:
+        print_sitl_oval(args.sitl_oval)
+        return
     print(f"load average at start: {os.getloadavg()[0]:.2f} (shared machine; times are CPU time of this process)")
     if not args.skip_odometry:
         bench_odometry(args.passes, args.synthetic_frames)

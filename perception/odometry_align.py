@@ -245,7 +245,7 @@ def align_pair(ref: PreparedFrame, cur: PreparedFrame, config: OdometryConfig,
             else:
                 fitness = 0.0
     T_step = T if T_ref_ckm1 is None else T @ T_ref_ckm1   # the motion since the previous frame
-    ok = (fitness >= cfg.min_fitness and n_points >= cfg.min_points
+    ok = (fitness >= cfg.min_fitness and n_points >= max(cfg.min_points, cfg.min_reference_points)
           and bool(np.all(np.isfinite(T)))
           and float(np.linalg.norm(T_step[:3, 3])) <= cfg.max_translation_m
           and float(np.linalg.norm(so3_log(T_step[:3, :3]))) <= cfg.max_rotation_rad)

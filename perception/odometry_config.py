@@ -31,6 +31,11 @@ class OdometryConfig:
     imu_prior_sigma_rad: float = 0.01                # std of the gyro rotation prior between frames
     min_fitness: float = 0.3                         # inlier share below which the result is not ok
     min_points: int = 100
+    min_reference_points: int = 2000                 # an alignment is ok only if its reference (keyframe) has this
+                                                     # many valid-depth points at the finest level (half its budget,
+                                                     # 2.6 % of QVGA): a smaller patch, such as the sliver of floor
+                                                     # a take-off first sees at a grazing angle, leaves the motion
+                                                     # ill-posed (SITL: 742 points tilted the world by 2-5 deg)
     max_translation_m: float = 0.5                   # per-frame sanity bounds
     max_rotation_rad: float = 0.6
     max_translation_jump_m: float = 0.03             # per-frame translation this far from the constant-velocity
@@ -47,7 +52,7 @@ class OdometryConfig:
     keyframe_max_translation_m: float = 0.1
     keyframe_max_rotation_rad: float = 0.087         # 5 degrees
     keyframe_min_fitness: float = 0.7
-    keyframe_refinement: bool = False                # a new keyframe is also aligned against the keyframe before
+    keyframe_refinement: bool = True                 # a new keyframe is also aligned against the keyframe before
                                                      # the current one and the two estimates are fused by their
                                                      # information (DVO-SLAM's local window of keyframes)
     register_depth_in_time: bool = True              # turn an unsynchronised depth image to the colour instant

@@ -21,6 +21,7 @@ from numpy.typing import NDArray
 
 from perception.attitude import AttitudeConfig, AttitudeFilter, orthonormalise
 from perception.floor import FloorConfig, measure_floor
+from perception.level import LevelConfig, OdometryLevel
 from perception.obstacle_map import ObstacleMap, ObstacleMapConfig, ObstacleSectors
 from perception.obstacles import ObstacleConfig, extract_obstacles
 from perception.odometry import OdometryConfig, RgbdOdometry
@@ -49,6 +50,7 @@ class PerceptionConfig:
     obstacles: ObstacleConfig = field(default_factory=ObstacleConfig)
     obstacle_map: ObstacleMapConfig = field(default_factory=ObstacleMapConfig)
     floor: FloorConfig = field(default_factory=FloorConfig)   # the height above the floor seen in depth
+    level: LevelConfig = field(default_factory=LevelConfig)   # the roll and pitch that level the floor's depth
 
 
 @dataclass(frozen=True)
@@ -87,6 +89,7 @@ class PerceptionPipeline:
         self._velocity = VelocityEstimator(self.R_qc, self.p_qc_m, config.velocity)
         self._ukf = Ukf(config.ukf) if config.estimator == "ukf" else None
         self._map = ObstacleMap(config.obstacle_map)
+        self._level = OdometryLevel(config.level)
         self._last_imu_stamp: float | None = None
         self._prev_R_wq: NDArray[np.float64] | None = None  # attitude at the previous frame
         self._imu_since_frame = False
@@ -150,6 +153,10 @@ class PerceptionPipeline:
             if self._R_w_q0 is None:
                 self._R_w_q0 = R_hq(roll, pitch)   # world: level, heading of the first frame
             R_wq, p_w = body_pose_in_world(T_c0_ck, self.R_qc, self.p_qc_m, self._R_w_q0)
+            # the floor is levelled with the odometry's attitude, its world held to gravity slowly
+            # (perception.level): the filter's roll and pitch carry a manoeuvre's acceleration
+            level_rp = self._level.update(frame.stamp_s, R_wq, roll, pitch) \
+                if odometry_ok and cfg.level.time_constant_s > 0.0 else (roll, pitch)
             vel = self._velocity.update(frame.stamp_s, T_c0_ck, odometry_ok, omega, roll, pitch)
             v_h, v_h_cov = vel.v_h_m_s, vel.v_h_cov
             self._last_odo = (odometry_ok, float(fitness), R_wq, p_w, np.asarray(v_h_cov, dtype=float))
@@ -157,6 +164,7 @@ class PerceptionPipeline:
             self._odometry_due -= 1
             odometry_ok, fitness, R_wq, p_w, v_h_cov = self._last_odo   # type: ignore[misc]
             v_h = self._prev_v_h
+            level_rp = (roll, pitch)
         yaw = euler_from_R(R_wq)[2]
         if self._ukf is not None:
             if run_odometry and (odometry_ok or not self._ukf.initialised):
@@ -178,7 +186,7 @@ class PerceptionPipeline:
             obs = extract_obstacles(frame.depth_m, K, self.R_qc, self.p_qc_m, roll, pitch, cfg.obstacles)
             self._map.measure(frame.stamp_s, obs, self._rng)
             points_c = obs.points_c_m
-            floor = measure_floor(frame.depth_m, K, self.R_qc, self.p_qc_m, roll, pitch, cfg.floor)
+            floor = measure_floor(frame.depth_m, K, self.R_qc, self.p_qc_m, *level_rp, cfg.floor)
         else:
             points_c = np.zeros((0, 3))
             floor = None
