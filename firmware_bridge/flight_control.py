@@ -31,6 +31,7 @@ BLIND_DESCENT_EXTRA_S = 3.0  # the blind descent probes for the ground after hei
 # long before the attitude goes level. Campaign 2, flight 16: levelled at once, the vehicle slid 0.19 m on landing
 # to 0.21 m of a box. Longer, and the accelerometer's bias (~0.05 m/s^2) would steer it instead.
 ODOM_LOST_BRAKE_S = 1.0
+ODOM_LOST_BRAKE_TILT_RAD = 0.15   # ~1.5 m/s^2: 0.4 m/s braked in under 0.3 s
 CONTROL_DT_S = 0.01  # nominal step (every 5th IMU sample); the measured dt is bounded to [1 ms, 100 ms]
 YAW_TRACK_GAIN_1_S = 2.0  # an absolute yaw target is tracked through the yaw-rate command
 
@@ -91,15 +92,21 @@ class FlightControlService:
         # then level attitude hold; descend on the IMU's vertical speed throughout
         if not s.odom_ok and not (s.mode == FlightMode.OFFBOARD and s.att_sp is not None):
             v_ref = np.array([0.0, 0.0, s.params["MPC_LAND_SPEED"]])
-            braking = s.odom_lost_s is not None and now_s - s.odom_lost_s < ODOM_LOST_BRAKE_S
+            # not while resting on something: thrust below the touchdown test's (campaign 4, flight 14 sat in LAND
+            # on the floor, its odometry's velocity garbage, and a brake on it skidded the vehicle 0.16 m)
+            resting = s.last_board_command.thrust < s.params["LNDMC_THR_MAX"] * s.tracker.hover_thrust_fraction
+            braking = s.odom_lost_s is not None and now_s - s.odom_lost_s < ODOM_LOST_BRAKE_S and not resting
+            if resting:
+                s.odom_lost_s = None   # no brake later in this loss either
             vxy = s.vxy_h_dead_reckoned if braking and np.all(np.isfinite(s.vxy_h_dead_reckoned)) else (0.0, 0.0)
             v_est = np.array([vxy[0], vxy[1], s.vz_dead_reckoned])
             cmd = s.pid_tracker.update(dt, v_ref, 0.0, v_est, est.roll_rad, est.pitch_rad)
             if not braking:
                 cmd = AttitudeCommand(0.0, 0.0, 0.0, cmd.thrust_fraction, cmd.a_des_h_m_s2, cmd.saturated)
-            else:
-                cmd = AttitudeCommand(cmd.roll_rad, cmd.pitch_rad, 0.0, cmd.thrust_fraction, cmd.a_des_h_m_s2,
-                                      cmd.saturated)
+            else:   # a gentle brake: the velocity it acts on is a dead reckoning
+                roll = min(max(cmd.roll_rad, -ODOM_LOST_BRAKE_TILT_RAD), ODOM_LOST_BRAKE_TILT_RAD)
+                pitch = min(max(cmd.pitch_rad, -ODOM_LOST_BRAKE_TILT_RAD), ODOM_LOST_BRAKE_TILT_RAD)
+                cmd = AttitudeCommand(roll, pitch, 0.0, cmd.thrust_fraction, cmd.a_des_h_m_s2, cmd.saturated)
             self._detect_touchdown(now_s, cmd, abs(s.vz_dead_reckoned))
             return self._finish(cmd)
 

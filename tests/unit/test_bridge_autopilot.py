@@ -13,7 +13,7 @@ from unittest import mock
 import numpy as np
 import pytest
 
-from firmware_bridge.autopilot import CAPABILITIES, Autopilot, FlightMode
+from firmware_bridge.autopilot import CAPABILITIES, Autopilot, BoardCommand, FlightMode
 from firmware_bridge.params import PARAM_SPECS, ParamTable
 from quadlink.frames import GRAVITY_M_S2, R_from_euler, quat_wxyz_from_euler
 from quadlink.mavlink import mavlink
@@ -392,6 +392,27 @@ def test_odometry_lost_while_sliding_brakes_on_the_imu_then_levels():
     assert np.linalg.norm(sim.v[:2]) < 0.05
     # 0.5 s to notice the loss at 0.4 m/s is 0.2 m whatever is done; the braking takes about half the rest
     assert braked < levelled_at_once - 0.1 and braked < 0.45
+
+
+def test_odometry_lost_while_resting_on_the_floor_does_not_brake():
+    """Campaign 4, flight 14: in LAND on the floor (touchdown not yet seen, the odometry's velocity garbage), the
+    odometry stopped. A brake on its last velocity tilted the vehicle on the ground and skidded it 0.16 m. With
+    the thrust below the touchdown test's (LNDMC_THR_MAX x hover) it is resting: level, no brake."""
+    sim = Sim()
+    fly_to_hover(sim)
+    sim.ap.state.vxy_h_dead_reckoned[:] = (0.0, -0.35)        # the garbage velocity it last saw
+    state = sim.ap.state
+    resting = 0.5 * state.params["LNDMC_THR_MAX"] * state.tracker.hover_thrust_fraction
+    sim.odom = False
+    commands = []
+    for _ in range(1000):                                      # 2 s in IMU steps, the thrust held at resting
+        last = state.last_board_command
+        state.last_board_command = BoardCommand(last.roll_rad, last.pitch_rad, last.yaw_rate_rad_s, resting,
+                                                last.armed)
+        sim.step(0.002)
+        commands.append(state.last_board_command)
+    assert sim.ap.failsafe_reason == "odometry lost"
+    assert all(c.roll_rad == 0.0 and c.pitch_rad == 0.0 for c in commands)
 
 
 def test_board_link_loss_is_reported_and_blocks_arming():
