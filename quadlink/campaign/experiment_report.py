@@ -29,7 +29,8 @@ from quadlink.demo.paper003 import (
     PAPER_TABLE5_VELOCITY_M_S,
 )
 
-#: the figures of each experiment: key, title, unit, paper 003's value per axis, issue 19's bound (upper, or range)
+#: the figures of each experiment: key, title, unit, paper 003's value per axis, issue 19's bound (upper, or range);
+#: issue 19 also asks each of the oval's figures to beat paper 003's (counted per axis, not part of PASS)
 OVAL_FIGURES: tuple[tuple[str, str, str, tuple[float, ...] | None, Any], ...] = (
     ("table4_position_m", "T4 pos est-des", "m", PAPER_TABLE4_POSITION_M, ISSUE19_TARGETS["table4_position_m"]),
     ("table5_velocity_m_s", "T5 vel est-des", "m/s", PAPER_TABLE5_VELOCITY_M_S,
@@ -81,13 +82,16 @@ def _figure_spec(name: str) -> tuple[tuple[str, str, str, tuple[float, ...] | No
 def summarize_experiment(results: list[FlightResult], options: CampaignOptions, wall_s: float) -> dict[str, Any]:
     rows = [experiment_row(r) for r in results]
     stats: dict[str, Any] = {}
-    for key, *_ in _figure_spec(options.experiment):
+    oval = experiment(options.experiment).paper003 == "oval"
+    for key, _, _, paper, _ in _figure_spec(options.experiment):
         values = np.array([row["figures"][key] for row in rows if key in row["figures"]], dtype=float).reshape(-1, 3)
         finite = np.where(np.isfinite(values), values, np.inf)  # a push never back counts as worst
         stats[key] = {"min": finite.min(axis=0).tolist() if values.size else [math.nan] * 3,
                       "median": np.median(finite, axis=0).tolist() if values.size else [math.nan] * 3,
                       "worst": finite.max(axis=0).tolist() if values.size else [math.nan] * 3,
                       "flights": int(values.shape[0])}
+        if oval and paper is not None:
+            stats[key]["beats_paper"] = np.sum(finite < np.asarray(paper)[None, :], axis=0).astype(int).tolist()
     return {
         "experiment": options.experiment,
         "code_version": ", ".join(sorted({r.code_version or "unknown" for r in results})) or "unknown",
@@ -133,6 +137,10 @@ def experiment_summary_text(campaign: dict[str, Any]) -> str:
                  + "".join(f" | {_three(list(paper) if paper else None):<19}" for _, _, _, paper, _ in spec))
     lines.append(f"{'target':>6} {'':<7} {'':>13} {'':>7} {'':>6}"
                  + "".join(f" | {_bound(bound):<19}" for *_, bound in spec))
+    if any("beats_paper" in f for f in s["figures"].values()):
+        beats = [s["figures"][key].get("beats_paper") for key, *_ in spec]
+        lines.append(f"{'beats':>6} {'paper':<7} {'(flights)':>13} {'':>7} {'':>6}"
+                     + "".join(f" | {_three(b, '{:d}') if b else '':<19}" for b in beats))
     lines += ["", f"PASS {len(s['passed'])} of {s['flights']} (failed: {s['failed'] or 'none'}; "
                   f"did not finish: {s['not_flown'] or 'none'}); wall {s['wall_time_s']:.0f} s", "replay:"]
     lines += [f"  flight {r['index']:>4}: {r['replay']}" for r in campaign["flights"]]

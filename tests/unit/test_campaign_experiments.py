@@ -117,10 +117,12 @@ def test_report_of_an_oval_campaign(tmp_path: Path) -> None:
     t4 = campaign["summary"]["figures"]["table4_position_m"]
     assert t4["worst"] == pytest.approx([0.07] * 3) and t4["median"] == pytest.approx([0.03] * 3)
     assert t4["flights"] == 3
+    assert t4["beats_paper"] == [2, 2, 1]   # 0.01 beats 0.057 / 0.066 / 0.013, 0.03 only x and y, 0.07 none
     assert campaign["summary"]["passed"] == [0, 1] and campaign["summary"]["failed"] == [2, 3]
     text = experiment_summary_text(campaign)
     assert "seed 5, code abc1234" in text and "PASS 2 of 4" in text
     assert "0.057/0.066/0.013" in text  # paper 003's Table 4 beside ours
+    assert "2/2/1" in text
     assert (f"quadlink paper003 oval --scenario {tmp_path}/flight-0002/scenario.yaml "
             f"--sitl-config {tmp_path}/flight-0002/sitl.yaml --out {tmp_path}/flight-0002/replay") in text
     assert "ProcessDied: bridge" in text
@@ -138,5 +140,6 @@ def test_report_of_a_hover_campaign(tmp_path: Path) -> None:
     assert [r["verdict"] for r in campaign["flights"]] == ["PASS", "PASS", "FAIL"]
     back = campaign["summary"]["figures"]["back_after_s"]
     assert back["worst"][2] == math.inf and back["median"] == pytest.approx([1.5, 1.5, 2.4])
+    assert "beats_paper" not in back
     text = experiment_summary_text(campaign)
     assert "quadlink paper003 hover --scenario" in text and "PASS 2 of 3" in text
