@@ -8,6 +8,7 @@ from pathlib import Path
 
 import click
 
+from quadlink.campaign.experiments import EXPERIMENTS
 from quadlink.campaign.runner import CampaignCancelled, CampaignOptions, load_results, run_campaign
 
 log = logging.getLogger("quadlink.campaign")
@@ -36,14 +37,21 @@ log = logging.getLogger("quadlink.campaign")
               help="Fly nothing: rebuild campaign.json and the summary from OUT's finished flights (wall time "
                    "estimated from the flights' wall times and --parallel).")
 @click.option("--first-index", default=0, show_default=True, help="Index of the first flight (continue a campaign).")
+@click.option("--experiment", type=click.Choice(["teleop", *EXPERIMENTS]), default="teleop", show_default=True,
+              help="teleop: randomized operator sessions in randomized arenas (the safety envelope); paper003-oval / "
+                   "paper003-hover: paper 003's experiment from a drawn start pose with the vehicle and sensor draws "
+                   "(its figures against issue 19's targets; --duration, --offboard-share, --fixed-share and --view "
+                   "do not apply).")
 def command(n_flights: int, seed: int, out_dir: Path, parallel: int, address: str | None, duration_s: float,
             cpus_per_flight: float, port_offset: int, offboard_share: float, fixed_share: float,
-            view: bool, report_only: bool, first_index: int) -> None:
-    """Fly N randomized flights (arena, start, operator, vehicle and sensors) and report the safety envelope."""
+            view: bool, report_only: bool, first_index: int, experiment: str) -> None:
+    """Fly N randomized flights (arena, start, operator, vehicle and sensors) and report the safety envelope, or
+    N flights of one of paper 003's experiments and report its figures."""
+    from quadlink.campaign.experiment_report import experiment_summary_text, write_experiment_campaign
     from quadlink.campaign.report import summary_text, write_campaign
 
     options = CampaignOptions(n_flights, seed, out_dir, duration_s, parallel, address, cpus_per_flight, port_offset,
-                              offboard_share, fixed_share, first_index, view)
+                              offboard_share, fixed_share, first_index, view, experiment)
     t0 = time.monotonic()
     cancelled = False
     if report_only:
@@ -55,9 +63,14 @@ def command(n_flights: int, seed: int, out_dir: Path, parallel: int, address: st
         except CampaignCancelled as exc:
             results, cancelled = exc.results, True
         wall_s = time.monotonic() - t0
-    campaign = write_campaign(results, options, wall_s)
-    click.echo(f"\nCampaign report ({out_dir}/campaign.json, {campaign['plot']}):")
-    click.echo(summary_text(campaign))
+    if experiment == "teleop":
+        campaign = write_campaign(results, options, wall_s)
+        click.echo(f"\nCampaign report ({out_dir}/campaign.json, {campaign['plot']}):")
+        click.echo(summary_text(campaign))
+    else:
+        campaign = write_experiment_campaign(results, options, wall_s)
+        click.echo(f"\nCampaign report ({out_dir}/campaign.json):")
+        click.echo(experiment_summary_text(campaign))
     if cancelled:
         click.echo(f"quadlink campaign: cancelled; the report covers the {len(results)} finished flights", err=True)
         raise SystemExit(130)

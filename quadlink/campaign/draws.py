@@ -65,6 +65,19 @@ def draw_flight(campaign_seed: int, index: int, duration_s: float, offboard_shar
     op_rng = np.random.default_rng(operator_ss)
     offboard = bool(op_rng.random() < offboard_share)
     session = generate_session(op_rng, arena.scenario, duration_s, offboard=offboard)
+    vehicle, sitl, vehicle_record = draw_vehicle_and_sensors(vehicle_ss, sitl_ss)
+    record = {
+        "campaign_seed": campaign_seed, "index": index, "seed_sequence": {"entropy": seq.entropy,
+                                                                          "spawn_key": list(seq.spawn_key)},
+        "arena": arena.record, "operator": session.record, **vehicle_record,
+    }
+    return FlightDraws(index, campaign_seed, arena.scenario, session, vehicle, sitl, record)
+
+
+def draw_vehicle_and_sensors(vehicle_ss: np.random.SeedSequence, sitl_ss: np.random.SeedSequence,
+                             ) -> tuple[dict[str, Any], dict[str, Any], dict[str, Any]]:
+    """The vehicle config and the SITL config (YAML data, without file paths) of one flight, and their record
+    (``vehicle`` and ``sitl_seed`` of draws.json): mass, camera mount, IMU bias spreads, depth noise, SITL seed."""
     rng = np.random.default_rng(vehicle_ss)
     vehicle = yaml.safe_load((CONFIG_DIR / "vehicle.yaml").read_text())
     mass_scale = float(rng.uniform(1 - MASS_SPREAD, 1 + MASS_SPREAD))
@@ -84,22 +97,17 @@ def draw_flight(campaign_seed: int, index: int, duration_s: float, offboard_shar
     sitl["imu_noise"]["gyro_bias_init_rad_s"] = imu_nominal.gyro_bias_init_rad_s * gyro_scale
     sitl.setdefault("camera_noise", {})
     sitl["camera_noise"]["depth_sigma_per_m2"] = cam_nominal.depth_sigma_per_m2 * depth_scale
-    record = {
-        "campaign_seed": campaign_seed, "index": index, "seed_sequence": {"entropy": seq.entropy,
-                                                                          "spawn_key": list(seq.spawn_key)},
-        "arena": arena.record, "operator": session.record,
-        "vehicle": {"mass_scale": mass_scale, "mass_kg": vehicle["mass_kg"], "camera_tilt_deg_xyz": tilt_deg,
-                    "accel_bias_sigma_scale": accel_scale, "gyro_bias_sigma_scale": gyro_scale,
-                    "depth_noise_scale": depth_scale},
-        "sitl_seed": sitl_seed,
-    }
-    return FlightDraws(index, campaign_seed, arena.scenario, session, vehicle, sitl, record)
+    record = {"vehicle": {"mass_scale": mass_scale, "mass_kg": vehicle["mass_kg"], "camera_tilt_deg_xyz": tilt_deg,
+                          "accel_bias_sigma_scale": accel_scale, "gyro_bias_sigma_scale": gyro_scale,
+                          "depth_noise_scale": depth_scale},
+              "sitl_seed": sitl_seed}
+    return vehicle, sitl, record
 
 
 @dataclass(frozen=True)
 class FlightFiles:
     scenario: Path
-    operator: Path
+    operator: Path  # not written for an experiment flight (its ground-station client is the experiment's)
     vehicle: Path
     sitl: Path
     draws: Path
@@ -107,13 +115,20 @@ class FlightFiles:
 
 def write_flight_files(draws: FlightDraws, folder: Path) -> FlightFiles:
     """Write the configs the parts load, and ``draws.json``, into ``folder``."""
+    files = write_sitl_files(draws.scenario, draws.vehicle, draws.sitl, draws.record, folder)
+    files.operator.write_text(yaml.safe_dump(draws.session.script, sort_keys=False))
+    return files
+
+
+def write_sitl_files(scenario: ScenarioConfig, vehicle: dict[str, Any], sitl: dict[str, Any],
+                     record: dict[str, Any], folder: Path) -> FlightFiles:
+    """``scenario.yaml``, ``vehicle.yaml``, ``sitl.yaml`` (naming the other two) and ``draws.json`` in ``folder``."""
     folder.mkdir(parents=True, exist_ok=True)
     files = FlightFiles(folder / "scenario.yaml", folder / "operator.yaml", folder / "vehicle.yaml",
                         folder / "sitl.yaml", folder / "draws.json")
-    files.scenario.write_text(yaml.safe_dump(scenario_to_dict(draws.scenario), sort_keys=False))
-    files.operator.write_text(yaml.safe_dump(draws.session.script, sort_keys=False))
-    files.vehicle.write_text(yaml.safe_dump(draws.vehicle, sort_keys=False))
-    sitl = {**draws.sitl, "vehicle": str(files.vehicle.resolve()), "scenario": str(files.scenario.resolve())}
+    files.scenario.write_text(yaml.safe_dump(scenario_to_dict(scenario), sort_keys=False))
+    files.vehicle.write_text(yaml.safe_dump(vehicle, sort_keys=False))
+    sitl = {**sitl, "vehicle": str(files.vehicle.resolve()), "scenario": str(files.scenario.resolve())}
     files.sitl.write_text(yaml.safe_dump(sitl, sort_keys=False))
-    files.draws.write_text(json.dumps(draws.record, indent=2) + "\n")
+    files.draws.write_text(json.dumps(record, indent=2) + "\n")
     return files

@@ -2,8 +2,10 @@
 
 A flight (:func:`fly`) is the demo's orchestration (:func:`quadlink.demo.cli.run_demo`): the SITL in
 lock-step, the bridge, the companion and the operator as separate processes over their real links, on the
-ports of one per-flight block (:func:`flight_ports`). The task reserves ``cpus_per_flight`` CPUs
-(``num_cpus``); at most ``parallel`` flights are in the air at once, each on its own port slot.
+ports of one per-flight block (:func:`flight_ports`); or, with ``experiment`` set, one of paper 003's
+experiments (:func:`quadlink.campaign.experiment_flight.fly_experiment`) on the same ports. The task
+reserves ``cpus_per_flight`` CPUs (``num_cpus``); at most ``parallel`` flights are in the air at once, each
+on its own port slot.
 
 How the code reaches the workers:
 
@@ -27,6 +29,7 @@ import json
 import logging
 import math
 import os
+import subprocess
 import sys
 import time
 from collections.abc import Callable
@@ -82,6 +85,7 @@ class CampaignOptions:
     fixed_share: float = 0.2  # share of flights in paper-arena or office
     first_index: int = 0
     view: bool = False  # the operator image view in each flight (costs CPU, changes nothing in the flight)
+    experiment: str = "teleop"  # or one of quadlink.campaign.experiments.EXPERIMENTS (paper003-oval, -hover)
 
 
 @dataclass
@@ -99,6 +103,19 @@ class FlightResult:
     node: str = ""
     t_start_unix_s: float = math.nan
     t_end_unix_s: float = math.nan
+    headline: str = ""  # the flight's key figure for the progress line
+    code_version: str = ""  # git describe of the checkout that flew it
+
+
+def code_version() -> str:
+    """``git describe --always --dirty`` of the checkout that runs ("unknown" outside git, e.g. a Ray cluster's
+    shipped working_dir)."""
+    try:
+        out = subprocess.run(["git", "describe", "--always", "--dirty"], cwd=REPO_ROOT, capture_output=True,
+                             text=True, timeout=10.0, check=True)
+    except (OSError, subprocess.SubprocessError):
+        return "unknown"
+    return out.stdout.strip() or "unknown"
 
 
 def flight_ports(port_offset: int, slot: int) -> int:
@@ -116,6 +133,10 @@ def fly(options: CampaignOptions, index: int, slot: int, attempt: int,
     from quadlink.demo.cli import run_demo
     from quadlink.demo.orchestrator import ProcessDied
 
+    if options.experiment != "teleop":
+        from quadlink.campaign.experiment_flight import fly_experiment
+
+        return fly_experiment(options, index, slot, attempt)
     folder = flight_folder(options.out_dir, index)
     if attempt > 1:
         kill_leftovers(folder / "logs")
@@ -125,7 +146,7 @@ def fly(options: CampaignOptions, index: int, slot: int, attempt: int,
     offset = flight_ports(options.port_offset, slot)
     t0 = time.monotonic()
     result = FlightResult(index, "ok", attempt, str(folder), draws=draws.record, port_offset=offset,
-                          node=os.uname().nodename, t_start_unix_s=time.time())
+                          node=os.uname().nodename, t_start_unix_s=time.time(), code_version=code_version())
     scenario = load_config(files.scenario, ScenarioConfig)
     envelopes: list[Envelope] = []
     try:
@@ -149,6 +170,7 @@ def fly(options: CampaignOptions, index: int, slot: int, attempt: int,
         result.envelope = asdict(envelopes[0])
     elif truth.is_file():  # a part died: the demo wrote no report, the truth log is still there
         result.envelope = asdict(envelope(read_truth(truth), scenario))
+    result.headline = f"min d {result.envelope.get('min_nonfloor_m', math.nan):.2f} m"
     (folder / "result.json").write_text(json.dumps(asdict(result), indent=2, default=float) + "\n")
     return result
 
@@ -200,8 +222,7 @@ def progress_line(done: int, total: int, running: int, retried: int, failed: int
     text = (f"[{'#' * filled}{'.' * (width - filled)}] {done}/{total} running {running} retried {retried} "
             f"failed {failed} elapsed {_fmt_s(elapsed_s)} ETA {_fmt_s(eta)}")
     if last is not None:
-        d = last.envelope.get("min_nonfloor_m", math.nan)
-        text += f" | flight {last.index} {last.status} min d {d:.2f} m ({last.wall_s:.0f} s)"
+        text += f" | flight {last.index} {last.status} {last.headline} ({last.wall_s:.0f} s)"
     return text
 
 

@@ -2,8 +2,11 @@
 geometric tracker, companion, a ground-station client streaming position + velocity + acceleration setpoints),
 ``quadlink.demo.paper003_cli.run_paper003`` — the code behind ``quadlink paper003 oval|hover``.
 
-* the oval: Tables 3-5 of paper 003 within issue 19's bounds, the truth's tracking error, and the evidence that
-  the companion flew it (its setpoints to the bridge carry the acceleration feed-forward, mask 1031);
+* the oval, flown as a campaign flight (issue 19's campaign: a drawn start pose turned -158 deg from north and a
+  vehicle 8 % heavier than the stack's model, ``quadlink campaign --experiment paper003-oval``'s flight code
+  without Ray): Tables 3-5 of paper 003 within issue 19's bounds, the truth's tracking error, the evidence that
+  the companion flew it (its setpoints to the bridge carry the acceleration feed-forward, mask 1031), and the
+  flight's folder (draws, result, PASS);
 * a trajectory straight through a column: the companion's safety layer stops the vehicle short of it (minimum
   true distance to the column's surface >= 0.40 m, safe distance 0.45 m) — the trajectory yields;
 * the hover with paper 003's three pushes (slow): each back within 5 cm in under 3 s.
@@ -13,6 +16,7 @@ Port offsets 5100-5700 (other SITL tests: 700-1000, 1000-2500, 3300-3800, 4300-4
 
 from __future__ import annotations
 
+import json
 import math
 import os
 from pathlib import Path
@@ -21,6 +25,8 @@ import numpy as np
 import pytest
 
 from quadlink import CONFIG_DIR
+from quadlink.campaign.experiments import draw_experiment_flight
+from quadlink.campaign.runner import CampaignOptions, fly
 from quadlink.demo.paper003 import ISSUE19_TARGETS
 from quadlink.demo.paper003_cli import format_hover, run_paper003
 from quadlink.mavlink import mavlink
@@ -45,7 +51,17 @@ def _companion_setpoint_masks(tlog: Path) -> list[int]:
 
 
 def test_oval_through_the_companion_within_paper_003s_bounds(tmp_path: Path) -> None:
-    report = run_paper003("oval", tmp_path, port_offset=OFFSET, plots=False)
+    seed, index = 19, 4   # flight 4 of the README's campaign
+    draws = draw_experiment_flight(seed, index, "paper003-oval").record
+    assert abs(draws["arena"]["start"]["yaw_deg"]) > 90 and draws["vehicle"]["mass_scale"] > 1.05  # what it tests
+    result = fly(CampaignOptions(1, seed, tmp_path, port_offset=OFFSET, experiment="paper003-oval",
+                                 first_index=index), index, 0, 1)
+    assert result.status == "ok", result.failure
+    folder = Path(result.folder)
+    assert json.loads((folder / "draws.json").read_text()) == draws == result.draws
+    assert json.loads((folder / "result.json").read_text())["headline"] == result.headline == "PASS"
+    report = result.report
+    assert report["start_yaw_deg"] == draws["arena"]["start"]["yaw_deg"]
     t = report["tables"]
     print(report["trajectory"])
     for key in ("table4_position_m", "table5_velocity_m_s", "table3_velocity_m_s",
@@ -57,7 +73,7 @@ def test_oval_through_the_companion_within_paper_003s_bounds(tmp_path: Path) -> 
     assert np.all(np.asarray(t["true_position_vs_desired_m"]) <= TRUE_POSITION_BOUND_M), t["true_position_vs_desired_m"]
     assert np.all(np.asarray(t["true_velocity_vs_desired_m_s"]) <= ISSUE19_TARGETS["table5_velocity_m_s"])
     # the companion flew it: velocity + acceleration feed-forward to the bridge (not the client's setpoints raw)
-    masks = _companion_setpoint_masks(tmp_path / "companion.tlog")
+    masks = _companion_setpoint_masks(folder / "companion.tlog")
     assert sum(m == TM_VELOCITY_ACCEL_YAW_RATE for m in masks) > 200, sorted(set(masks))
 
 

@@ -2,12 +2,17 @@
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from quadlink.demo.paper003 import Paper003Series, make_plots, push_recoveries, tables
+from quadlink.demo.paper003 import Paper003Series, Recovery, hover_pass, make_plots, push_recoveries, tables
+from quadlink.demo.paper003_cli import Recording
+from quadlink.demo.paper003_cli import _series as flight_series
+from quadlink.frames import Rz
+from quadlink.trajectory.minsnap import minimum_snap
 
 
 def _series(offset_p: np.ndarray, offset_v: np.ndarray, est_bias_v: np.ndarray) -> Paper003Series:
@@ -60,3 +65,34 @@ def test_plots_are_written(tmp_path: Path) -> None:
     assert [p.name for p in paths] == ["paper003_fig10_xy.png", "paper003_fig11_position.png",
                                        "paper003_fig12_velocity.png"]
     assert all(p.stat().st_size > 10_000 for p in paths)
+
+
+def test_oval_figures_turn_the_truth_into_the_odometrys_axes() -> None:
+    """A flight started at yaw 120 deg that tracks perfectly: the truth (arena axes) and the estimate (start-heading
+    axes) differ by the start yaw; the figures must see no error."""
+    traj = minimum_snap(np.array([[-1.0, -1.5, -1.2], [0.0, -0.5, -1.2], [0.0, 0.5, -1.2], [-1.0, -1.5, -1.2]]),
+                        [3.0, 1.7, 4.3])
+    yaw = math.radians(120.0)
+    rec = Recording()
+    t0 = 10.0
+    for t in np.arange(0.0, 25.0, 0.02):
+        s = traj.sample(min(max(t - t0, 0.0), traj.duration_s))
+        v = s.v_m_s if t0 <= t <= t0 + traj.duration_s else np.zeros(3)
+        p_arena, v_arena = Rz(yaw) @ s.p_m + [0.3, -0.2, 0.0], Rz(yaw) @ v   # truth: arena axes, another origin
+        rec.truth.append((t, *p_arena, *v_arena))
+        if round(t / 0.02) % 2 == 0:   # the estimate at half the rate
+            rec.estimate.append((t, *s.p_m, *v))
+    series, _ = flight_series(rec, traj, t0, yaw)
+    tab = tables(series)
+    for key in ("table4_position_m", "table3_velocity_m_s", "true_position_vs_desired_m"):
+        assert max(tab[key]) < 2e-3, (key, tab[key])
+    unturned = tables(flight_series(rec, traj, t0, 0.0)[0])
+    assert max(unturned["table3_velocity_m_s"]) > 0.2   # without the turn the truth's velocity is elsewhere
+
+
+def test_hover_pass_per_criterion() -> None:
+    good = [Recovery(30.0, 0.72, 1.3, 1.7), Recovery(40.0, 0.81, 1.2, 2.1), Recovery(50.0, 0.8, 1.2, 2.6)]
+    assert hover_pass(good) == {"three_pushes": True, "push_size": True, "back_within_3_s": True}
+    assert hover_pass(good[:2])["three_pushes"] is False
+    assert hover_pass([*good[:2], Recovery(50.0, 0.4, 0.8, 1.0)])["push_size"] is False
+    assert hover_pass([*good[:2], Recovery(50.0, 0.8, 1.2, math.inf)])["back_within_3_s"] is False
