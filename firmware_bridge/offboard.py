@@ -42,6 +42,7 @@ ODOM_BODY_FRAMES = (mavlink.MAV_FRAME_BODY_FRD, mavlink.MAV_FRAME_BODY_NED)
 # SET_ATTITUDE_TARGET type_mask bits (ATTITUDE_TARGET_TYPEMASK)
 
 IMU_PREDICTION_HORIZON_S = 0.3
+TKO_REANCHOR_M = 0.3   # odometry back in an open-loop take-off: its height this far from the climb -> re-anchored
 POSITION_CORRECTION_MAX_M_S = 1.0  # a trajectory setpoint's position term, per axis (a far x_d is not a sprint)
 ODOM_LOST_VZ_LEAK_TAU_S = 3.0
 IMU_DT_MAX_S = 0.1  # a longer gap (or a step back) restarts the integration at the nominal sample period
@@ -229,6 +230,15 @@ class OffboardService:
             s.odom_ok = True
             self.odometry_ok_event()
         if s.blind and s.in_air:
+            # the climb so far was measured by the IMU (s.height_m); an anchor taken on the ground from an odometry
+            # that was drifting there (its height is only held to the floor once the camera sees it, in the air)
+            # can put the odometry's height far from it: CI flew a take-off that ended at once "at 0.99 m" with
+            # the vehicle 0.28 m up. Beyond TKO_REANCHOR_M the odometry is re-anchored to the measured climb.
+            if z is not None and s.z_ground_m is not None and \
+                    abs(-(z - s.z_ground_m) - s.height_m) > TKO_REANCHOR_M:
+                s.event(mavlink.MAV_SEVERITY_WARNING,   # STATUSTEXT: 50 characters
+                        f"Odometry height {-(z - s.z_ground_m):.2f} m, climbed {s.height_m:.2f}")
+                s.z_ground_m = z + s.height_m
             s.blind = False
             if s.mode == FlightMode.TAKEOFF:
                 s.takeoff_phase = TakeoffPhase.CLOSED_LOOP

@@ -49,6 +49,7 @@ class Sim:
         self.statustext: list[str] = []
         self.wind_n = np.zeros(3)
         self.yaw_drift_rad_s = 0.0  # the board's rate loop does not hold the heading perfectly
+        self.odom_z_offset_m = 0.0  # the odometry's z error (a drifting odometry on the ground)
 
     @property
     def t(self) -> float:
@@ -101,7 +102,8 @@ class Sim:
                 v_q = R.T @ self.v
                 q = quat_wxyz_from_euler(self.roll, self.pitch, self.yaw)
                 self.send(GCS.odometry_encode(self.k * 2000, mavlink.MAV_FRAME_LOCAL_FRD, mavlink.MAV_FRAME_BODY_FRD,
-                                              *self.p, q, *v_q, 0.0, 0.0, 0.0, [math.nan] * 21, [math.nan] * 21,
+                                              *(self.p + np.array([0.0, 0.0, self.odom_z_offset_m])), q, *v_q,
+                                              0.0, 0.0, 0.0, [math.nan] * 21, [math.nan] * 21,
                                               0, 0, 100))  # quality 100: quality 0 is "failed"
             if setpoint is not None and self.k % 10 == 0:
                 self.send(setpoint)

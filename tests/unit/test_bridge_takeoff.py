@@ -230,3 +230,26 @@ def test_a_stuck_odometry_height_cannot_carry_the_take_off_past_its_target():
     assert sim.ap.mode == FlightMode.LOITER, sim.statustext
     assert height(sim) == pytest.approx(1.2, abs=0.15)
     assert any(t.startswith("Takeoff: odometry height") and "climbed" in t for t in sim.statustext), sim.statustext
+
+
+def test_odometry_back_in_the_climb_far_from_the_measured_climb_is_re_anchored():
+    """CI: the odometry drifted on the ground (its height is only held to the floor once the camera sees it), the
+    ground anchor was taken from it at arming, and when the odometry came back in the open-loop climb its height
+    read 0.99 m with the vehicle 0.28 m up: the take-off ended at once. Now the odometry is re-anchored to the
+    climb the IMU measured, and the take-off climbs to its target."""
+    sim = Sim()
+    sim.odom_z_offset_m = 0.7                      # on the ground the odometry says 0.7 m below the truth
+    sim.step(0.5)
+    assert sim.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1)[0] == mavlink.MAV_RESULT_ACCEPTED
+    sim.step(1.0)
+    assert sim.command(mavlink.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, math.nan, math.nan, math.nan, 1.0)[0] == \
+        mavlink.MAV_RESULT_ACCEPTED
+    sim.odom = False                               # lost at lift-off (the camera too near the floor)
+    while height(sim) < 0.3:
+        sim.step(0.02)
+    sim.odom_z_offset_m = 0.0                      # in the air the floor corrects it
+    sim.odom = True
+    sim.step(6.0)
+    assert any("Odometry height" in t for t in sim.statustext), sim.statustext
+    assert sim.ap.mode == FlightMode.LOITER and sim.ap.failsafe_reason is None
+    assert height(sim) == pytest.approx(1.0, abs=0.1)
