@@ -47,7 +47,10 @@ def test_operator_pushes_along_the_south_wall_into_the_corner(tmp_path: Path) ->
     """The case of issue 14 (0.30 m before): x = 700 forward at 50 Hz for 30 s from the start. alpha points
     south-west: the vehicle reaches the south wall obliquely, slides west along it, ends in the corner.
     An oblique push presses on the wall with only its normal part (and box-d's top lies under the path), so
-    the slide runs farther from the wall than a head-on push rests: "along the wall" is within 1 m of it."""
+    the slide runs farther from the wall than a head-on push rests: "along the wall" is within 1 m of it.
+    Since the repulsion no longer pushes toward where the map has not looked, the vehicle may instead come to
+    rest beside box-d, 2 m west of its start, with the operator still pushing (1 CI run in 3): it must have gone
+    west along the wall by 1 m either way, and stopped neither blocked at the start nor short of the wall."""
     with flight(tmp_path, offset=_offset(0)) as f:
         f.take_off()
         t0, p0 = f.t_s, f.p_arena.copy()
@@ -55,8 +58,8 @@ def test_operator_pushes_along_the_south_wall_into_the_corner(tmp_path: Path) ->
         _assert_clear(f, t0)
         near_wall = [s for s in f.log.flying() if s.t_s >= t0 and s.p_arena_ned_m[0] < POSTER_FACE_X_M + 1.0]
         assert near_wall, "never reached the south wall"
-        slid = max(abs(s.p_arena_ned_m[1] - near_wall[0].p_arena_ned_m[1]) for s in near_wall)
-        assert slid > 1.0, f"did not slide along the wall ({slid:.2f} m)"
+        went_west = max(p0[1] - s.p_arena_ned_m[1] for s in near_wall)
+        assert went_west > 1.0, f"did not go west along the wall ({went_west:.2f} m from the start)"
         # pushed into the corner it gets within 0.6 m of a wall (no over-blocking)
         closest_wall = min(s.clearance.wall_m for s in f.log.flying() if s.t_s >= t0)
         assert closest_wall <= 0.6, f"kept {closest_wall:.2f} m from the walls"
