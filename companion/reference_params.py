@@ -30,8 +30,13 @@ class ReferenceParams:
     repulsion and the safe distance act in the horizontal plane, on the points within
     ``vertical_band_m`` of the vehicle's height (the camera looks down, so it samples tall obstacles
     mostly below the vehicle: in 3D their sum would push the vehicle up, and the floor is not an
-    obstacle to horizontal motion); False is the paper's 3D form. When the height above the take-off
-    floor is known, points within ``floor_margin_m`` of the floor are the floor, not obstacles (a low
+    obstacle to horizontal motion); False is the paper's 3D form. The band is as tall as the safe distance:
+    near a wall the camera, blind within its minimum range, sees only the wall's lower part (0.45 m from a
+    wall, nothing higher than ~0.39 m below the vehicle), and a point just below a narrower band, taken in
+    3D, let the vehicle close to 0.30 m of the wall it samples (CI, corner push: sqrt(0.45^2 - 0.32^2)); a
+    point within the safe distance of the vehicle's height is nearer than the safe distance in 3D whenever
+    the vehicle is over it, so projecting it costs no passage the safe distance allows. When the height above
+    the take-off floor is known, points within ``floor_margin_m`` of the floor are the floor, not obstacles (a low
     vehicle sees the floor ahead at its own height: repelled by it, it would back away blindly).
 
     Safety constraints (issue 14): ``stopping_time_s`` is the distance the vehicle travels, per m/s of its
@@ -68,7 +73,7 @@ class ReferenceParams:
     max_speed_m_s: float = 1.5
     unknown_sector_guard_rad: float = math.radians(15.0)
     horizontal_only: bool = True
-    vertical_band_m: float = 0.3
+    vertical_band_m: float = 0.45
     floor_margin_m: float = 0.15
     stopping_time_s: float = 0.8
     surface_gap_m: float = 0.9

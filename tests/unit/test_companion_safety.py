@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Callable
 
 import numpy as np
 import pytest
@@ -35,10 +36,11 @@ def _rz(a: float) -> np.ndarray:
 
 
 def fly_at_wall(push_m_s: float, angle_deg: float, spacing_m: float, params: ReferenceParams,
-                use_velocity: bool = True, latency_s: float = 1 / 30, duration_s: float = 12.0
-                ) -> tuple[float, float, float]:
+                use_velocity: bool = True, latency_s: float = 1 / 30, duration_s: float = 12.0,
+                wall_dz_m: Callable[[float], float | None] | None = None) -> tuple[float, float, float]:
     """Push at a wall 2 m ahead (plane x = 2) at ``angle_deg`` from its normal; returns (closest, final
-    distance, distance slid along the wall)."""
+    distance, distance slid along the wall). ``wall_dz_m(distance)``: how far below the vehicle the wall's
+    samples lie at that distance from it (None: not seen, the last samples stay); default at its height."""
     tracker = VelocityTracker(1.0, 20.0)
     p = dataclasses.replace(params, k_v_m_s=max(push_m_s, params.k_v_m_s), max_speed_m_s=max(push_m_s, 1.5))
     wall_y = np.arange(-40.0, 40.0, spacing_m)
@@ -48,10 +50,13 @@ def fly_at_wall(push_m_s: float, angle_deg: float, spacing_m: float, params: Ref
     closest = math.inf
     R = _rz(math.radians(angle_deg)) @ R_QC_FORWARD
     step = 0
+    dz = 0.0
     while t < duration_s:
         if t >= next_frame:
             next_frame += 1 / 30
-            pts = np.column_stack([2.0 - x[0] + 0 * wall_y, wall_y - x[1], 0 * wall_y])
+            seen = wall_dz_m(2.0 - x[0]) if wall_dz_m is not None else 0.0
+            dz = dz if seen is None else seen
+            pts = np.column_stack([2.0 - x[0] + 0 * wall_y, wall_y - x[1], dz + 0 * wall_y])
             out = reference_velocity(OperatorInput(qx=push_m_s / p.k_v_m_s), R, NO_SCAN, pts, p,
                                      v_est_h_m_s=np.array([*v, 0.0]) if use_velocity else None)
             pending.append((t + latency_s, out.v_ref_h_m_s[:2].copy()))
@@ -80,6 +85,30 @@ def test_pushed_at_a_wall_the_real_tracker_never_enters_the_safe_distance(push: 
         assert slid > 1.0          # pushed obliquely, it slides along the wall
 
 
+def camera_sees_wall_dz_m(distance_m: float) -> float | None:
+    """How far below the vehicle the SITL's camera (configs/vehicle.yaml: 0.11 m ahead of and 0.05 m below
+    the centre when facing the wall, looking 1-59 deg down, blind within 0.5 m) sees the nearest part of a
+    wall ``distance_m`` ahead — its closest valid pixel; None: nothing of the wall is in view."""
+    w = distance_m - 0.11
+    below = max(w * math.tan(math.radians(1.0)), math.sqrt(max(0.5**2 - w * w, 0.0)))
+    return below + 0.05 if w > 0.0 and below <= w * math.tan(math.radians(59.0)) else None
+
+
+@pytest.mark.parametrize("push, angle", [(0.6, 0.0), (1.0, 0.0), (0.6, 30.0)])
+def test_a_wall_seen_only_below_the_vehicle_still_stops_it(push: float, angle: float) -> None:
+    """Near a wall the camera, blind within its minimum range, sees only the wall's lower part (0.42 m below
+    the vehicle at the safe distance, 0.46 m at 0.40 m). The height band is as tall as the safe distance, so
+    those samples still stand for the wall; with the old 0.30 m band they counted in 3D, sqrt(0.45^2 - dz^2)
+    horizontally, and a push reached 0.30 m of the wall (CI's corner push, issue 14); in this model, where
+    nothing remembers the wall at its height, it flies through."""
+    assert camera_sees_wall_dz_m(0.45) == pytest.approx(0.417, abs=0.005)
+    closest, _, _ = fly_at_wall(push, angle, 0.5, ReferenceParams(), wall_dz_m=camera_sees_wall_dz_m)
+    assert closest >= ReferenceParams().safe_distance_m - 0.02, f"closest {closest:.3f} m"
+    narrow = dataclasses.replace(ReferenceParams(), vertical_band_m=0.3)
+    closest, _, _ = fly_at_wall(push, angle, 0.5, narrow, wall_dz_m=camera_sees_wall_dz_m)
+    assert closest < 0.40
+
+
 def test_without_the_stopping_distance_the_same_push_overshoots() -> None:
     # the law of issue 6 (no velocity term) lets the real tracker coast through the safe distance
     closest, _, _ = fly_at_wall(1.0, 0.0, 0.5, ReferenceParams(), use_velocity=False)
@@ -100,7 +129,7 @@ def test_sparse_wall_samples_are_bridged_into_a_surface() -> None:
 
 def test_points_out_of_the_band_constrain_in_3d() -> None:
     params = ReferenceParams(repulsion_gain_m3_s=0.0, stopping_time_s=0.0)
-    box_top = [[0.1, 0.0, 0.35]]   # a box top 0.35 m below, just ahead: out of the 0.3 m band
+    box_top = [[0.1, 0.0, 0.5]]    # a box top 0.5 m below, just ahead: out of the 0.45 m band
     v, changed = limit_speed_toward_obstacles(np.array([0.0, 0.0, 0.3]), box_top, 0.45, 1.2, params, height_m=1.0)
     assert changed and v[2] < 0.3
     off = dataclasses.replace(params, out_of_band_3d=False)
