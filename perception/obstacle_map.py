@@ -15,7 +15,13 @@
       psi_j = dT (psidot_k + psidot_k+1 + n_psi,j) / 2
 
   (the paper prints ``v_k+1 - v_k``; the trapezoidal *sum* is what makes ``u`` a displacement).
-* **Ageing and removal**: particles older than ``max_age_s`` or farther than ``radius_m`` are dropped.
+* **Ageing and removal**: particles older than ``max_age_s`` or farther than ``radius_m`` are dropped —
+  except that within ``near_field_m`` (horizontally) of the vehicle they live ``near_field_max_age_s``. The
+  camera looks 45 deg right and down: a wall the vehicle slides along on its left, or one it is too close to
+  see (the minimum range), is not seen again however long the vehicle stays beside it, and forgetting it
+  after ``max_age_s`` let a pushed vehicle close to 0.30 m of it (issue 14, the corner push: the wall ahead
+  had been seen 8 s before, from 1 m east). What the camera does see again still replaces it (carving and
+  overwriting), and a held particle that leaves the near field goes at once if it is older than ``max_age_s``.
 * **Sector summary** like MAVLink ``OBSTACLE_DISTANCE``: 72 sectors of 5° about the z axis of H (sector 0
   centred on the heading, clockwise positive as NED yaw), the nearest horizontal distance of the
   particles within ``z_band_m`` of the vehicle; ``inf`` where the sector was observed within
@@ -42,6 +48,8 @@ class ObstacleMapConfig:
     max_particles: int = 20000
     radius_m: float = 5.0             # particles farther than this are dropped
     max_age_s: float = 8.0            # ... and older than this
+    near_field_m: float = 0.9         # ... but within this horizontal distance of the vehicle (the repulsion's
+    near_field_max_age_s: float = 20.0  # influence distance) only older than this
     velocity_noise_m_s: float = 0.1   # std of n_v per axis (eq. 14): white per frame, so that the spread after 1 s
                                       # matches the drift of a 0.02 m/s velocity error that persists that long
     yaw_rate_noise_rad_s: float = 0.02  # std of n_psi (eq. 14)
@@ -160,7 +168,11 @@ class ObstacleMap:
         p[1] -= s * d[0]
         p[2] = d[2]
         ages = self.ages_s + dt_s
-        keep = (ages <= cfg.max_age_s) & (np.einsum("ij,ij->j", d, d) <= cfg.radius_m**2)
+        keep = ages <= cfg.max_age_s
+        if cfg.near_field_max_age_s > cfg.max_age_s and not keep.all():
+            held = (ages <= cfg.near_field_max_age_s) & (p[0] * p[0] + p[1] * p[1] <= cfg.near_field_m**2)
+            keep |= held
+        keep &= np.einsum("ij,ij->j", d, d) <= cfg.radius_m**2
         if keep.all():
             self._set_particles(p, ages)
         else:

@@ -178,6 +178,31 @@ def test_particles_age_out_and_leave_the_radius(rng: np.random.Generator) -> Non
     assert math.isnan(m.sectors(3.1).distances_m[0])
 
 
+def test_near_field_is_remembered_longer_and_forgotten_when_left(rng: np.random.Generator) -> None:
+    """Issue 14's corner push: a wall beside the vehicle that the camera no longer sees is kept for
+    ``near_field_max_age_s`` within ``near_field_m``, not ``max_age_s``; once the vehicle leaves it, it goes."""
+    cfg = ObstacleMapConfig(velocity_noise_m_s=0.0, yaw_rate_noise_rad_s=0.0)   # max_age 8 s, near 0.9 m / 20 s
+    m = ObstacleMap(cfg)
+    _observe(m, 0.0, _wall_depth(1.6))
+    m.predict(1.0, np.array([1.0, 0, 0]), np.array([1.0, 0, 0]), 0.0, 0.0, rng)     # 1 m on: the wall 0.6 m ahead
+    near = np.hypot(m.points_h_m[:, 0], m.points_h_m[:, 1]) <= cfg.near_field_m
+    assert near.sum() > 0
+    for _ in range(11):                            # 12 s in all, not seen again
+        m.predict(1.0, np.zeros(3), np.zeros(3), 0.0, 0.0, rng)
+    assert len(m) == near.sum() > 0               # 12 s > max_age_s: held, being within the near field
+    assert np.min(m.points_h_m[:, 0]) == pytest.approx(0.6)
+    m.predict(0.5, np.array([-1.0, 0, 0]), np.array([-1.0, 0, 0]), 0.0, 0.0, rng)   # backing off: 1.1 m away
+    assert len(m) == 0                             # older than 8 s and out of the near field: gone at once
+    # held, they still expire at near_field_max_age_s
+    m = ObstacleMap(cfg)
+    _observe(m, 0.0, _wall_depth(0.6))
+    for _ in range(19):
+        m.predict(1.0, np.zeros(3), np.zeros(3), 0.0, 0.0, rng)
+    assert len(m) > 0
+    m.predict(1.5, np.zeros(3), np.zeros(3), 0.0, 0.0, rng)
+    assert len(m) == 0
+
+
 def test_obstacle_kept_while_out_of_view_during_a_yaw_sweep(rng: np.random.Generator) -> None:
     """Pan-scan: seen ahead, then the vehicle yaws 60° right; the particles stay, now at -60° azimuth."""
     cfg = ObstacleMapConfig(velocity_noise_m_s=0.0, yaw_rate_noise_rad_s=0.0)
