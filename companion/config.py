@@ -8,6 +8,7 @@ from pathlib import Path
 from typing import Literal
 
 from companion.arbiter import ArbiterParams
+from companion.landing_spot import LandingSpotParams
 from companion.modes import ModeParams
 from companion.pan_scan import PanScanParams
 from companion.reference_params import ReferenceParams
@@ -100,6 +101,7 @@ class CompanionConfig:
     modes: ModeParams = field(default_factory=ModeParams)
     obstacles: ObstacleConfig = field(default_factory=ObstacleConfig)
     arbiter: ArbiterParams = field(default_factory=ArbiterParams)   # sources of motion (companion.arbiter)
+    landing_spot: LandingSpotParams = field(default_factory=LandingSpotParams)   # commanded landings over objects
     # signing and the sender allowlist on the ground-station endpoint (the autopilot link is internal)
     security: SecurityConfig = field(default_factory=SecurityConfig)
     vehicle: str = "vehicle"  # vehicle config (camera mount R_qc, p_qc) by name or path

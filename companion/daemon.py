@@ -60,9 +60,11 @@ from companion.guard import ErrorCounter, non_finite_fields
 from companion.height import HeightParams
 from companion.imu_clock import ImuClock, imu_sample
 from companion.interfaces import ImageSink, MavLink, Pipeline, PipelineFactory, default_pipeline_factory
+from companion.landing_spot import clearing_velocity, object_below
 from companion.link_reader import CodecReader
 from companion.modes import AutopilotRequest, ModeMachine, StatusText
 from companion.motion import Motion
+from companion.operator_input import camera_yaw_rad
 from companion.outbound import AutopilotAck, GcsReply, Outbox, Output, ToAutopilot
 from companion.pan_scan import PanScanParams
 from companion.params import PARAM_NAMES, CompanionParams, ParamService
@@ -121,8 +123,9 @@ class Companion:
         self.gcs_sync, self.command_age = self.command_clock.sync, self.command_clock.age
         self.vehicle = VehicleState()
         self.arbiter = Arbiter(cfg.arbiter)
+        self.landing_spot = cfg.landing_spot
         self.gcs_commands = GcsCommands(self.modes, self.arbiter, self.param_service, clock, self.vehicle.status,
-                                        self._camera_fresh)
+                                        self._camera_fresh, self._land_refusal)
         self.autopilot_input = AutopilotInput(self.vehicle, self.commands, self.modes, self.timesync, clock)
         self.gcs_input = GcsInput(self.security, self.command_clock, self.gcs_commands, self.param_service,
                                   self.arbiter, self.modes, self.stats, self.compid, clock)
@@ -284,6 +287,24 @@ class Companion:
         last = self.time.frame_wall_s
         return last is not None and (self.clock() if now is None else now) - last <= self.cfg.timing.camera_timeout_s
 
+    def _height_above_floor_m(self) -> float | None:
+        h = self.state.height.height_m   # above the take-off pose, where the body centre is takeoff_height_m up
+        return None if h is None else h + self.ref_params.takeoff_height_m
+
+    def _land_refusal(self) -> str | None:
+        """Why the spot under the vehicle is no place to land (an object in the map below it), or None."""
+        out = self.state.last_output
+        below = object_below(None if out is None else out.obstacle_points_h_m, self._height_above_floor_m(),
+                             self.landing_spot, self.ref_params.floor_margin_m)
+        return None if below is None else below.refusal()
+
+    def _clearing_velocity(self, out: Any | None) -> NDArray[np.float64] | None:
+        """While a failsafe landing moves clear of an object below (companion.modes), the command that does."""
+        if not self.modes.clearing_spot:
+            return None
+        return clearing_velocity(None if out is None else out.obstacle_points_h_m, self._height_above_floor_m(),
+                                 self.landing_spot, self.ref_params.floor_margin_m, camera_yaw_rad(self.state.R_qc))
+
     # ------------------------------------------------------------------ the pipeline at camera rate
     def _process_frame(self, frame: RgbdFrame) -> None:
         t_in = self.clock()
@@ -294,22 +315,25 @@ class Companion:
         st.on_odometry(out, first_frame=self.stats.frames == 1)
         stamp = self.time.on_frame(frame.stamp_s, self.clock())
         st.on_mode(self.modes.mode, stamp)
-        self._emit(self.modes.update(self.clock(), self.vehicle.status(), st.odometry_ok))
         if out is not None:
             st.last_output = out
             self.stats.perception_s.append(float(out.processing_time_s))
         height = st.height.update(stamp, height_m(out), None if out is None else out.floor_height_m)
+        self._emit(self.modes.update(self.clock(), self.vehicle.status(), st.odometry_ok, self._land_refusal()))
         cmd = self.motion.command(self._pose())
         op = self.motion.operator_of(cmd)
         scripted = cmd.source == Source.SCRIPT
+        clearing = self._clearing_velocity(out)
+        v_command = clearing if clearing is not None else cmd.v_h_m_s if scripted else None
         ob = self.cfg.obstacles
         step = frame_step(out, op, st.R_qc, st.scan(self.modes.mode, stamp, self.scan_params), self.ref_params,
-                          self.modes.operator_enabled, ob.allow_unknown_when_fresh,
-                          v_command_h_m_s=cmd.v_h_m_s if scripted else None,
-                          command_yaw_rate_rad_s=cmd.yaw_rate_rad_s, height_above_takeoff_m=height,
+                          self.modes.operator_enabled or clearing is not None, ob.allow_unknown_when_fresh,
+                          v_command_h_m_s=v_command,
+                          command_yaw_rate_rad_s=0.0 if clearing is not None else cmd.yaw_rate_rad_s,
+                          height_above_takeoff_m=height,
                           height_verified=st.height.verified(stamp), command_into_unknown=ob.scripts_into_unknown)
         st.on_step(step)
-        a_ff = cmd.a_ff_h_m_s2 if scripted else None
+        a_ff = cmd.a_ff_h_m_s2 if scripted and clearing is None else None
         self._send_setpoint(stamp, step.ref,
                             feed_forward_after_safety(a_ff, step.ref.constrained, step.ref.v_repulsion_h_m_s))
         self.stats.latencies_s.append(self.clock() - t_in)
@@ -357,7 +381,7 @@ class Companion:
             # motion source is the arbiter's business (it holds), not a lost link
             self.modes.on_manual_control(now)
         self.modes.on_motion_command(self.arbiter.last_command_s)   # a live link alone keeps no vehicle flying
-        self._emit(self.modes.update(now, self.vehicle.status(), self.state.odometry_ok))
+        self._emit(self.modes.update(now, self.vehicle.status(), self.state.odometry_ok, self._land_refusal()))
         self._emit(self.autopilot_input.poll_commands(now, self.sysid, self.ap_compid))
         for task in self.tasks.due(now, camera_silent, ImuClock.silent(now, self.time.imu_wall_s)):
             self._run_task(task, now)

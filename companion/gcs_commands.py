@@ -3,8 +3,10 @@
 * COMMAND_LONG and COMMAND_INT for compid 191 (:meth:`GcsCommands.on_command_long`, ``on_command_int``):
   ``arm``, ``disarm``, ``takeoff`` and ``land`` go to the mode machine (a takeoff without camera frames is
   refused: perception is not running), MAV_CMD_DO_SET_PARAMETER to the parameter service; everything else
-  is UNSUPPORTED. Params are read through :mod:`quadlink.mavlink.command_params` (NaN = unused; a required
-  param NaN, infinite or out of range: DENIED). Every command is acked.
+  is UNSUPPORTED. A ``land`` over an object (:mod:`companion.landing_spot`) is DENIED, and so is a LAND sent to
+  the autopilot while the companion flies (:meth:`GcsCommands.on_autopilot_land`). Params are read through
+  :mod:`quadlink.mavlink.command_params` (NaN = unused; a required param NaN, infinite or out of range:
+  DENIED). Every command is acked.
 * Setpoints (:meth:`GcsCommands.on_setpoint`): SET_POSITION_TARGET_LOCAL_NED to the motion arbiter, which
   refuses what it cannot fly; a refusal is told by a STATUSTEXT once per distinct reason (a script streams
   at 20 Hz), as are the motion commands the companion does not take (:meth:`GcsCommands.refuse_motion`).
@@ -50,11 +52,13 @@ class GcsCommands:
     whether camera frames arrive (a takeoff needs perception)."""
 
     def __init__(self, modes: ModeMachine, arbiter: Arbiter, params: ParamService, clock: Callable[[], float],
-                 vehicle_status: Callable[[], VehicleStatus], camera_fresh: Callable[[], bool]) -> None:
+                 vehicle_status: Callable[[], VehicleStatus], camera_fresh: Callable[[], bool],
+                 land_refusal: Callable[[], str | None] = lambda: None) -> None:
         self.modes, self.arbiter, self.params = modes, arbiter, params
         self._clock = clock
         self._vehicle_status = vehicle_status
         self._camera_fresh = camera_fresh
+        self._land_refusal = land_refusal
         self._last_refusal = ""
 
     def on_command_long(self, msg: Any) -> list[Output]:
@@ -85,14 +89,29 @@ class GcsCommands:
                                   "companion: takeoff refused: no camera frames (perception not running)"))
             result = mavlink.MAV_RESULT_TEMPORARILY_REJECTED
         elif name is not None:
-            ok, actions = self.modes.request(name, self._clock(), self._vehicle_status())
+            refusal = self._land_refusal() if name == "land" else None
+            ok, actions = self.modes.request(name, self._clock(), self._vehicle_status(), refusal)
             out += actions
-            result = mavlink.MAV_RESULT_ACCEPTED if ok else mavlink.MAV_RESULT_TEMPORARILY_REJECTED
+            result = mavlink.MAV_RESULT_ACCEPTED if ok else \
+                mavlink.MAV_RESULT_DENIED if refusal is not None else mavlink.MAV_RESULT_TEMPORARILY_REJECTED
         elif cmd == mavlink.MAV_CMD_DO_SET_PARAMETER:
             changed, replies = self.params.set_by_index(int(p[0]), p[1])   # read_params: p[0] a finite whole number
             out += replies
             result = mavlink.MAV_RESULT_ACCEPTED if changed else mavlink.MAV_RESULT_DENIED
         return [*out, command_ack(msg, cmd, result)]
+
+    def on_autopilot_land(self, msg: Any) -> tuple[bool, list[Output]]:
+        """A LAND for the autopilot (MAV_CMD_NAV_LAND, as MAVSDK's ``action.land()`` sends it) while the companion
+        flies the vehicle: refused, answered as the autopilot, if the spot below is no place to land (handled,
+        outputs); else it goes on to the autopilot, which lands (and the mode machine follows it)."""
+        if not self.modes.in_control:
+            return False, []
+        refusal = self._land_refusal()
+        if refusal is None:
+            return False, []
+        return True, [StatusText(mavlink.MAV_SEVERITY_WARNING, f"companion: {refusal}"),
+                      AutopilotAck(mavlink.MAVLink_command_ack_message(
+                          msg.command, mavlink.MAV_RESULT_DENIED, 0, 0, msg.get_srcSystem(), msg.get_srcComponent()))]
 
     def refuse_motion(self, text: str) -> list[Output]:
         """A refused motion command: a STATUSTEXT if ``text`` is not the reason last told."""

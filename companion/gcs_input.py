@@ -71,6 +71,11 @@ class GcsInput:
             handled, out = self.gcs_commands.on_set_mode(msg, msg.param1, msg.param2, msg.param3)
             if handled:
                 return GcsHandled(out, forward=False)
+        elif kind in ("COMMAND_LONG", "COMMAND_INT") and msg.command == mavlink.MAV_CMD_NAV_LAND and \
+                target_system in (0, sysid) and msg.target_component in (0, ap_compid):
+            handled, out = self.gcs_commands.on_autopilot_land(msg)
+            if handled:
+                return GcsHandled(out, forward=False)
         route = route_from_gcs(kind, target_system, getattr(msg, "target_component", None), sysid, self.compid)
         forward = route.forward
         if route.consume:

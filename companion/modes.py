@@ -24,6 +24,11 @@ Modes (the dialect's QUADLINK_TELEOP_MODE, TELEOP_FEEDBACK.mode): IDLE, TAKEOFF,
   mode (MAVSDK's ``offboard.stop()``), the vehicle holds as PX4 does.
 * LAND: land command to the autopilot; -> IDLE when the autopilot reports landed or disarmed. The
   autopilot reporting that it lands (commanded by someone else, or its own failsafe) -> LAND.
+* Where it lands (:mod:`companion.landing_spot`): a ground station's ``land`` over an object the map holds
+  below the vehicle is refused. A failsafe landing (no fresh command, link lost) over one first moves clear
+  of it — HOLD with :attr:`ModeMachine.clearing_spot` set, the daemon flying away from the object through the
+  same safety pipeline — and lands once the spot below is clear, or after ``land_clear_timeout_s`` wherever
+  it is. With the odometry failed the vehicle cannot move safely: it lands where it is.
 
 Every transition returns a :class:`StatusText` action (the daemon logs it and sends STATUSTEXT) and
 the autopilot commands to send as :class:`AutopilotRequest` actions (the daemon sends them with acks
@@ -58,6 +63,7 @@ class ModeParams:
     takeoff_altitude_m: float = 1.0
     takeoff_timeout_s: float = 8.0
     takeoff_min_s: float = 1.0
+    land_clear_timeout_s: float = 15.0   # a failsafe landing moves clear of an object below this long at most
 
 
 @dataclass(frozen=True)
@@ -112,6 +118,7 @@ class ModeMachine:
         self.gcs_ok = False
         self.odometry_ok = False
         self._armed_in_takeoff = False
+        self._clearing_since_s: float | None = None   # a failsafe landing moving clear of an object below
 
     # --- inputs -----------------------------------------------------------------------------
     def on_manual_control(self, now_s: float) -> None:
@@ -131,19 +138,28 @@ class ModeMachine:
         """The companion streams meaningful setpoints (the autopilot is meant to follow them)."""
         return self.mode in (Mode.TELEOP, Mode.HOLD)
 
+    @property
+    def clearing_spot(self) -> bool:
+        """A failsafe landing is moving clear of an object below the vehicle (HOLD; the daemon flies it away)."""
+        return self._clearing_since_s is not None and self.mode == Mode.HOLD
+
     def time_in_mode_s(self, now_s: float) -> float:
         return now_s - self._entered_s
 
     def _go(self, mode: Mode, now_s: float, reason: str, severity: int = SEVERITY_INFO) -> list[Action]:
         old = self.mode
         self._armed_in_takeoff = False
+        self._clearing_since_s = None
         self.mode, self.reason, self._entered_s = mode, reason, now_s
         if mode == Mode.TAKEOFF:
             self._takeoff_s = now_s   # a flight's commands count from its take-off
         return [StatusText(severity, f"companion: {old.name} -> {mode.name} ({reason})")]
 
-    def request(self, name: str, now_s: float, status: VehicleStatus) -> tuple[bool, list[Action]]:
-        """A ground-station command (``arm``, ``disarm``, ``takeoff``, ``land``): accepted?, actions."""
+    def request(self, name: str, now_s: float, status: VehicleStatus,
+                land_refusal: str | None = None) -> tuple[bool, list[Action]]:
+        """A ground-station command (``arm``, ``disarm``, ``takeoff``, ``land``): accepted?, actions.
+        ``land_refusal``: why the spot under the vehicle is no place to land (companion.landing_spot), if it is
+        not: a commanded landing in flight is then refused (the failsafe landings are not asked)."""
         if name not in GCS_REQUESTS:
             return False, []
         if name == "arm":
@@ -163,6 +179,8 @@ class ModeMachine:
         # land
         if self.mode in (Mode.IDLE, Mode.LAND):
             return self.mode == Mode.LAND, []
+        if land_refusal is not None and self.mode in (Mode.TELEOP, Mode.HOLD):
+            return False, [StatusText(SEVERITY_WARNING, f"companion: {land_refusal}")]
         return True, [AutopilotRequest("land")] + self._go(Mode.LAND, now_s, "ground-station land")
 
     def on_request_failed(self, request: AutopilotRequest, now_s: float, detail: str) -> list[Action]:
@@ -177,7 +195,23 @@ class ModeMachine:
         return [text]
 
     # --- the periodic step ------------------------------------------------------------------
-    def update(self, now_s: float, status: VehicleStatus, odometry_ok: bool) -> list[Action]:
+    def _failsafe_land(self, now_s: float, reason: str, land_refusal: str | None, can_move: bool) -> list[Action]:
+        """A failsafe landing: at once, or first moving clear of an object below (``land_refusal``: why the
+        spot is no place to land) while ``can_move`` and for at most ``land_clear_timeout_s``."""
+        if land_refusal is not None and can_move:
+            if self._clearing_since_s is None:
+                actions = [] if self.mode == Mode.HOLD else self._go(Mode.HOLD, now_s, reason, SEVERITY_WARNING)
+                self._clearing_since_s = now_s
+                return actions + [StatusText(SEVERITY_WARNING, f"companion: {reason}: {land_refusal}, moving clear")]
+            if now_s - self._clearing_since_s < self.params.land_clear_timeout_s:
+                return []
+            reason += ", could not clear the object below"
+        return [AutopilotRequest("land")] + self._go(Mode.LAND, now_s, reason, SEVERITY_CRITICAL)
+
+    def update(self, now_s: float, status: VehicleStatus, odometry_ok: bool,
+               land_refusal: str | None = None) -> list[Action]:
+        """The periodic step; ``land_refusal``: why the spot below the vehicle is no place to land, if it is not
+        (a failsafe landing then moves clear first)."""
         p = self.params
         actions: list[Action] = []
         gcs_ok = self._last_manual_s is not None and now_s - self._last_manual_s <= p.gcs_timeout_s
@@ -220,9 +254,8 @@ class ModeMachine:
             if not status.armed:
                 actions += self._go(Mode.IDLE, now_s, "autopilot disarmed", SEVERITY_WARNING)
             elif silent_for is not None and silent_for >= p.gcs_land_timeout_s:
-                actions.append(AutopilotRequest("land"))
-                actions += self._go(Mode.LAND, now_s, f"no fresh command for {p.gcs_land_timeout_s:g} s",
-                                    SEVERITY_CRITICAL)
+                actions += self._failsafe_land(now_s, f"no fresh command for {p.gcs_land_timeout_s:g} s",
+                                               land_refusal, usable)
             elif self.mode == Mode.TELEOP and failed:
                 actions += self._go(Mode.HOLD, now_s, "odometry failed", SEVERITY_CRITICAL)
             elif self.mode == Mode.TELEOP and not gcs_ok:
@@ -231,8 +264,7 @@ class ModeMachine:
                 lost_for = now_s - self._last_manual_s if self._last_manual_s is not None else in_mode
                 bad_for = now_s - self._odometry_bad_since_s if self._odometry_bad_since_s is not None else 0.0
                 if not gcs_ok and lost_for >= p.gcs_land_timeout_s:
-                    actions.append(AutopilotRequest("land"))
-                    actions += self._go(Mode.LAND, now_s, "ground-station link lost too long", SEVERITY_CRITICAL)
+                    actions += self._failsafe_land(now_s, "ground-station link lost too long", land_refusal, usable)
                 elif failed and bad_for >= p.odometry_land_timeout_s:
                     actions.append(AutopilotRequest("land"))
                     actions += self._go(Mode.LAND, now_s, "odometry failed too long", SEVERITY_CRITICAL)

@@ -219,8 +219,9 @@ class Rig:
         self.arbiter = Arbiter(ArbiterParams())
         self.status = VehicleStatus()
         self.camera = True
+        self.land_refusal: str | None = None
         self.cmds = GcsCommands(self.modes, self.arbiter, params(), self.clock, lambda: self.status,
-                                lambda: self.camera)
+                                lambda: self.camera, lambda: self.land_refusal)
 
 
 def test_arm_and_takeoff_go_to_the_mode_machine_and_are_acked_after() -> None:
@@ -245,6 +246,34 @@ def test_takeoff_without_camera_frames_is_rejected_and_bad_params_denied() -> No
     assert not any(isinstance(o, AutopilotRequest) for o in out)
     assert acks(rig.cmds.on_command_long(command(mavlink.MAV_CMD_NAV_RETURN_TO_LAUNCH))) == \
         [(mavlink.MAV_CMD_NAV_RETURN_TO_LAUNCH, mavlink.MAV_RESULT_UNSUPPORTED, None)]
+
+
+def test_a_land_over_an_object_is_denied_whoever_it_is_sent_to_and_the_failsafe_still_lands() -> None:
+    """Issue 14 (campaign flights 21 and 39 landed on a desk's and a box's top): a commanded LAND in flight over
+    an object the map holds below is refused with its reason, to the companion or to the autopilot (MAVSDK's
+    ``action.land()``); over the floor it lands as before; the failsafe landings do not ask."""
+    rig = InputRig()
+    rig.modes.mode = Mode.TELEOP
+    rig.status = VehicleStatus(armed=True, in_air=True)
+    rig.land_refusal = "land refused: object below, 0.75 m tall"
+    land = mavlink.MAV_CMD_NAV_LAND
+    out, forward = rig.on(command(land, 0, 0, 0, math.nan, math.nan, math.nan, math.nan))
+    assert not forward and acks(out) == [(land, mavlink.MAV_RESULT_DENIED, None)]
+    assert texts(out) == ["companion: land refused: object below, 0.75 m tall"] and rig.modes.mode == Mode.TELEOP
+    out, forward = rig.on(command(land, 0, 0, 0, math.nan, math.nan, math.nan, math.nan, target_component=AP_COMPID))
+    (ack,) = [o.msg for o in out if isinstance(o, AutopilotAck)]
+    assert not forward and ack.command == land and ack.result == mavlink.MAV_RESULT_DENIED and texts(out)
+    rig.land_refusal = None     # moved clear: to the autopilot it goes on, to the companion it is accepted
+    assert rig.on(command(land, target_component=AP_COMPID)) == ([], True)
+    out, _ = rig.on(command(land, 0, 0, 0, math.nan, math.nan, math.nan, math.nan))
+    assert AutopilotRequest("land") in out and rig.modes.mode == Mode.LAND
+    # not flying it (IDLE): the autopilot's own business, whatever is below
+    rig.modes.mode, rig.land_refusal = Mode.IDLE, "land refused: object below, 0.75 m tall"
+    assert rig.on(command(land, target_component=AP_COMPID)) == ([], True)
+    # the failsafe landing (no fresh command for gcs_land_timeout_s) is not asked
+    rig.modes.mode = Mode.HOLD
+    actions = rig.modes.update(rig.clock() + 100.0, rig.status, True)
+    assert AutopilotRequest("land") in actions and rig.modes.mode == Mode.LAND
 
 
 def test_command_int_is_handled_and_acked_like_command_long() -> None:

@@ -214,3 +214,45 @@ def test_no_land_before_the_first_command_of_a_flight_or_after_a_hold_was_asked(
     m.on_motion_command(None)                    # the ground station switched to hold (offboard.stop())
     m.on_manual_control(t + 60.0)
     assert _requests(m.update(t + 60.0, FLYING, True)) == []
+
+
+def test_a_failsafe_landing_over_an_object_moves_clear_first_then_lands() -> None:
+    """Issue 14 (campaign flight 21: the script's LAND over a desk was refused, then its silence landed the
+    vehicle on the desk): the failsafe holds and flies clear (``clearing_spot``) while the spot is not clear,
+    lands as soon as it is, and lands anyway after ``land_clear_timeout_s``; with the odometry failed, at once."""
+    desk = "land refused: object below, 0.87 m tall"
+    params = ModeParams(gcs_timeout_s=0.5, gcs_land_timeout_s=4.0, land_clear_timeout_s=6.0)
+    m, t = _flying_machine(params)
+    m.on_motion_command(t)
+    m.on_manual_control(t + 4.0)                 # the link lives, the commands stopped at t
+    actions = m.update(t + 4.0, FLYING, True, desk)
+    assert _requests(actions) == [] and m.mode == Mode.HOLD and m.clearing_spot and m.in_control
+    assert any("no fresh command for 4 s: land refused: object below" in s for s in _texts(actions))
+    m.on_manual_control(t + 5.0)
+    assert _requests(m.update(t + 5.0, FLYING, True, desk)) == [] and m.clearing_spot
+    actions = m.update(t + 5.5, FLYING, True, None)          # moved clear: it lands
+    assert _requests(actions) == ["land"] and m.mode == Mode.LAND and not m.clearing_spot
+    # never clear: it lands after land_clear_timeout_s wherever it is
+    m, t = _flying_machine(params)
+    m.on_motion_command(t)
+    for dt in (4.0, 7.0, 9.9):
+        m.on_manual_control(t + dt)
+        assert _requests(m.update(t + dt, FLYING, True, desk)) == [] and m.clearing_spot
+    m.on_manual_control(t + 10.0)
+    actions = m.update(t + 10.0, FLYING, True, desk)
+    assert _requests(actions) == ["land"] and any("could not clear the object below" in s for s in _texts(actions))
+    # link lost too long, odometry failed: no safe motion, it lands where it is
+    m, t = _flying_machine(params)
+    m.update(t + 0.6, FLYING, True)
+    assert m.mode == Mode.HOLD
+    m.update(t + 3.0, FLYING, False)
+    actions = m.update(t + 4.1, FLYING, False, desk)
+    assert _requests(actions) == ["land"] and not m.clearing_spot
+    # link lost too long, odometry fine: clear first; the operator coming back ends the clearing
+    m, t = _flying_machine(params)
+    m.update(t + 0.6, FLYING, True)
+    assert _requests(m.update(t + 4.1, FLYING, True, desk)) == [] and m.clearing_spot
+    m.on_manual_control(t + 5.0)
+    m.on_motion_command(t + 5.0)
+    m.update(t + 5.0, FLYING, True, desk)
+    assert m.mode == Mode.TELEOP and not m.clearing_spot

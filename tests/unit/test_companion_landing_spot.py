@@ -1,0 +1,61 @@
+"""companion.landing_spot on its own: what counts as an object under the vehicle (issue 14)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from companion.landing_spot import LandingSpotParams, clearing_velocity, object_below
+
+pytestmark = pytest.mark.unit
+
+P = LandingSpotParams()
+FLOOR_MARGIN_M = 0.15
+
+
+def _top(x0: float, y0: float, size_m: float, z_m: float, n: int = 9) -> np.ndarray:
+    """Samples of a horizontal square (a box's top) centred at (x0, y0), ``z_m`` below the vehicle (H, z down)."""
+    g = np.linspace(-size_m / 2, size_m / 2, n)
+    xx, yy = np.meshgrid(x0 + g, y0 + g)
+    return np.column_stack([xx.ravel(), yy.ravel(), np.full(xx.size, z_m)])
+
+
+def test_a_desk_under_the_vehicle_is_found_and_the_floor_is_not() -> None:
+    height_m = 1.2                                 # the vehicle 1.2 m above the take-off floor
+    floor = _top(0.0, 0.0, 2.0, height_m)          # the floor right under it
+    assert object_below(floor, height_m, P, FLOOR_MARGIN_M) is None
+    desk = _top(0.2, 0.1, 0.8, height_m - 0.75)     # a desk's top 0.75 m high, under the vehicle
+    got = object_below(np.vstack([floor, desk]), height_m, P, FLOOR_MARGIN_M)
+    assert got is not None and got.top_height_m == pytest.approx(0.75) and got.offset_m <= P.footprint_radius_m
+    assert got.refusal() == "land refused: object below, 0.75 m tall"
+    assert len("companion: " + got.refusal()) <= 50    # one STATUSTEXT, not cut
+
+
+def test_beside_above_or_unknown_is_not_below() -> None:
+    height_m = 1.0
+    box_beside = _top(0.9, 0.0, 0.4, 0.5)          # a box top 0.5 m high, 0.7 m off to the side: not under it
+    assert object_below(box_beside, height_m, P, FLOOR_MARGIN_M) is None
+    beam = np.array([[0.0, 0.0, -0.5]])              # above the vehicle: not where it lands
+    assert object_below(beam, height_m, P, FLOOR_MARGIN_M) is None
+    box_under = _top(0.0, 0.0, 0.4, 0.5)
+    assert object_below(box_under, None, P, FLOOR_MARGIN_M) is None              # floor and box not told apart
+    assert object_below(box_under, math.nan, P, FLOOR_MARGIN_M) is None
+    assert object_below(box_under, height_m, LandingSpotParams(enabled=False), FLOOR_MARGIN_M) is None
+    assert object_below(np.full((3, 3), np.nan), height_m, P, FLOOR_MARGIN_M) is None
+    assert object_below(None, height_m, P, FLOOR_MARGIN_M) is None
+    with pytest.raises(ValueError):
+        LandingSpotParams(footprint_radius_m=math.nan)
+
+
+def test_the_clearing_velocity_points_away_from_the_object() -> None:
+    height_m = 1.0
+    desk = _top(0.5, 0.0, 0.8, height_m - 0.75)     # a desk's top ahead, under the front of the vehicle
+    v = clearing_velocity(desk, height_m, P, FLOOR_MARGIN_M, fallback_yaw_rad=1.0)
+    assert v == pytest.approx([-P.clearing_speed_m_s, 0.0, 0.0], abs=1e-9)   # backwards, off its near edge
+    wide = _top(0.0, 0.0, 2.0, height_m - 0.75)     # over the middle of a wide table: the camera's way
+    v = clearing_velocity(wide, height_m, P, FLOOR_MARGIN_M, fallback_yaw_rad=math.pi / 2)
+    assert v == pytest.approx([0.0, P.clearing_speed_m_s, 0.0], abs=1e-9)
+    floor = _top(0.3, 0.0, 1.0, height_m)
+    assert clearing_velocity(floor, height_m, P, FLOOR_MARGIN_M, 0.0) == pytest.approx([P.clearing_speed_m_s, 0, 0])
