@@ -130,14 +130,15 @@ class CommanderService:
                 s.event(mavlink.MAV_SEVERITY_WARNING,
                         f"Odometry lost at {s.height_m:.2f} m in takeoff: open loop until odometry")
                 stale_s = now_s - s.odom_time_s if s.odom_time_s is not None else 0.0
-                s.height_m -= s.vz_dead_reckoned * max(stale_s, 0.0)  # the climb since the last odometry
-                s.vertical.align(s.height_m, s.vz_dead_reckoned)
+                vz = float(s.v_h_dead_reckoned[2])
+                s.height_m -= vz * max(stale_s, 0.0)  # the climb since the last odometry
+                s.vertical.align(s.height_m, vz)
                 s.takeoff_phase = TakeoffPhase.OPEN_LOOP
                 s.blind = True
             elif s.in_air:
                 s.event(mavlink.MAV_SEVERITY_CRITICAL, "Odometry lost: level hold, descending")
                 s.failsafe_reason = "odometry lost"
-                s.vz_dead_reckoned = float(self.offboard.v_est_h(now_s)[2])
+                s.v_h_dead_reckoned[2] = float(self.offboard.v_est_h(now_s)[2])
                 s.odom_lost_s = now_s
                 self.set_mode(FlightMode.LAND, now_s, "odometry lost")
             else:

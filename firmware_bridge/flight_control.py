@@ -98,8 +98,9 @@ class FlightControlService:
             braking = s.odom_lost_s is not None and now_s - s.odom_lost_s < ODOM_LOST_BRAKE_S and not resting
             if resting:
                 s.odom_lost_s = None   # no brake later in this loss either
-            vxy = s.vxy_h_dead_reckoned if braking and np.all(np.isfinite(s.vxy_h_dead_reckoned)) else (0.0, 0.0)
-            v_est = np.array([vxy[0], vxy[1], s.vz_dead_reckoned])
+            v_est = s.v_h_dead_reckoned.copy()
+            if not (braking and np.all(np.isfinite(v_est[:2]))):
+                v_est[:2] = 0.0
             cmd = s.pid_tracker.update(dt, v_ref, 0.0, v_est, est.roll_rad, est.pitch_rad)
             if not braking:
                 cmd = AttitudeCommand(0.0, 0.0, 0.0, cmd.thrust_fraction, cmd.a_des_h_m_s2, cmd.saturated)
@@ -107,7 +108,7 @@ class FlightControlService:
                 roll = min(max(cmd.roll_rad, -ODOM_LOST_BRAKE_TILT_RAD), ODOM_LOST_BRAKE_TILT_RAD)
                 pitch = min(max(cmd.pitch_rad, -ODOM_LOST_BRAKE_TILT_RAD), ODOM_LOST_BRAKE_TILT_RAD)
                 cmd = AttitudeCommand(roll, pitch, 0.0, cmd.thrust_fraction, cmd.a_des_h_m_s2, cmd.saturated)
-            self._detect_touchdown(now_s, cmd, abs(s.vz_dead_reckoned))
+            self._detect_touchdown(now_s, cmd, abs(float(v_est[2])))
             return self._finish(cmd)
 
         if s.mode == FlightMode.OFFBOARD and s.att_sp is not None:

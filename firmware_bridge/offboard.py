@@ -44,7 +44,7 @@ ODOM_BODY_FRAMES = (mavlink.MAV_FRAME_BODY_FRD, mavlink.MAV_FRAME_BODY_NED)
 IMU_PREDICTION_HORIZON_S = 0.3
 TKO_REANCHOR_M = 0.3   # odometry back in an open-loop take-off: its height this far from the climb -> re-anchored
 POSITION_CORRECTION_MAX_M_S = 1.0  # a trajectory setpoint's position term, per axis (a far x_d is not a sprint)
-ODOM_LOST_VZ_LEAK_TAU_S = 3.0
+DEAD_RECKONING_LEAK_TAU_S = 3.0
 IMU_DT_MAX_S = 0.1  # a longer gap (or a step back) restarts the integration at the nominal sample period
 QUAT_NORM_TOLERANCE = 0.1
 YAW_TRACK_GAIN_1_S = 2.0  # an absolute yaw target is tracked through the yaw-rate command
@@ -75,8 +75,7 @@ class OffboardService:
         a_h = R_hq(est.roll_rad, est.pitch_rad) @ s.last_accel_q + np.array([0.0, 0.0, GRAVITY_M_S2])
         if s.in_air:
             s.dv_h_imu += a_h * dt
-            s.vz_dead_reckoned += a_h[2] * dt - s.vz_dead_reckoned * dt / ODOM_LOST_VZ_LEAK_TAU_S
-            s.vxy_h_dead_reckoned += a_h[:2] * dt - s.vxy_h_dead_reckoned * dt / ODOM_LOST_VZ_LEAK_TAU_S
+            s.v_h_dead_reckoned += a_h * dt - s.v_h_dead_reckoned * (dt / DEAD_RECKONING_LEAK_TAU_S)
         board = s.last_board_command
         s.vertical.update(dt, float(a_h[2]), board.thrust if board.armed else 0.0, on_ground=not s.in_air)
         return est
@@ -213,8 +212,7 @@ class OffboardService:
             v_h = Rz(-yaw) @ v  # local NED -> H
         s.v_h_odom = v_h
         s.dv_h_imu[:] = 0.0
-        s.vz_dead_reckoned = float(v_h[2])
-        s.vxy_h_dead_reckoned = np.array(v_h[:2], dtype=float)
+        s.v_h_dead_reckoned = np.array(v_h, dtype=float)
         z = float(msg.z) if math.isfinite(msg.z) else None
         reset = s.odom_reset_counter is not None and msg.reset_counter != s.odom_reset_counter
         s.odom_reset_counter = int(msg.reset_counter)

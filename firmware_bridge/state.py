@@ -157,10 +157,9 @@ class BridgeState:
         self.dv_h_imu = np.zeros(3)
         self.odom_z_m: float | None = None
         self.odom_ok = False
-        self.vz_dead_reckoned = 0.0
-        # the horizontal velocity in H from the last odometry on, integrated from the IMU (leaky): it brakes
-        # the slide when the odometry is lost in the air (firmware_bridge.flight_control)
-        self.vxy_h_dead_reckoned = np.zeros(2)
+        # the velocity in H from the last odometry on, integrated from the IMU (leaky): with the odometry lost
+        # in the air it brakes the slide (x, y) and paces the descent (z) (firmware_bridge.flight_control)
+        self.v_h_dead_reckoned = np.zeros(3)
         self.odom_lost_s: float | None = None   # when the odometry was lost in the air (None: not lost)
         self.odom_reset_counter: int | None = None
         self.odom_p_ned_m: np.ndarray | None = None  # the odometry's position (its local frame), if finite

@@ -402,7 +402,7 @@ def test_odometry_lost_while_resting_on_the_floor_does_not_brake():
     the thrust below the touchdown test's (LNDMC_THR_MAX x hover) it is resting: level, no brake."""
     sim = Sim()
     fly_to_hover(sim)
-    sim.ap.state.vxy_h_dead_reckoned[:] = (0.0, -0.35)        # the garbage velocity it last saw
+    sim.ap.state.v_h_dead_reckoned[:2] = (0.0, -0.35)        # the garbage velocity it last saw
     state = sim.ap.state
     resting = 0.5 * state.params["LNDMC_THR_MAX"] * state.tracker.hover_thrust_fraction
     sim.odom = False
