@@ -64,6 +64,8 @@ class ModeParams:
     takeoff_timeout_s: float = 8.0
     takeoff_min_s: float = 1.0
     land_clear_timeout_s: float = 15.0   # a failsafe landing moves clear of an object below this long at most
+    land_clear_hold_s: float = 1.0       # ... and lands once the spot has stayed clear this long (the map
+                                         # samples a desk's top sparsely: one clear look is not a clear spot)
 
 
 @dataclass(frozen=True)
@@ -119,6 +121,7 @@ class ModeMachine:
         self.odometry_ok = False
         self._armed_in_takeoff = False
         self._clearing_since_s: float | None = None   # a failsafe landing moving clear of an object below
+        self._clear_since_s: float | None = None      # ... and since when the spot below has looked clear
 
     # --- inputs -----------------------------------------------------------------------------
     def on_manual_control(self, now_s: float) -> None:
@@ -198,14 +201,21 @@ class ModeMachine:
     def _failsafe_land(self, now_s: float, reason: str, land_refusal: str | None, can_move: bool) -> list[Action]:
         """A failsafe landing: at once, or first moving clear of an object below (``land_refusal``: why the
         spot is no place to land) while ``can_move`` and for at most ``land_clear_timeout_s``."""
-        if land_refusal is not None and can_move:
-            if self._clearing_since_s is None:
-                actions = [] if self.mode == Mode.HOLD else self._go(Mode.HOLD, now_s, reason, SEVERITY_WARNING)
-                self._clearing_since_s = now_s
-                return actions + [StatusText(SEVERITY_WARNING, f"companion: {reason}: {land_refusal}, moving clear")]
-            if now_s - self._clearing_since_s < self.params.land_clear_timeout_s:
+        p = self.params
+        if land_refusal is not None and can_move and self._clearing_since_s is None:
+            actions = [] if self.mode == Mode.HOLD else self._go(Mode.HOLD, now_s, reason, SEVERITY_WARNING)
+            self._clearing_since_s, self._clear_since_s = now_s, None
+            return actions + [StatusText(SEVERITY_WARNING, f"companion: {reason}: {land_refusal}, moving clear")]
+        if self._clearing_since_s is not None and can_move:
+            if land_refusal is not None:
+                self._clear_since_s = None
+            elif self._clear_since_s is None:
+                self._clear_since_s = now_s
+            clear_long_enough = self._clear_since_s is not None and now_s - self._clear_since_s >= p.land_clear_hold_s
+            if not clear_long_enough and now_s - self._clearing_since_s < p.land_clear_timeout_s:
                 return []
-            reason += ", could not clear the object below"
+            if not clear_long_enough:
+                reason += ", could not clear the object below"
         return [AutopilotRequest("land")] + self._go(Mode.LAND, now_s, reason, SEVERITY_CRITICAL)
 
     def update(self, now_s: float, status: VehicleStatus, odometry_ok: bool,

@@ -218,8 +218,9 @@ def test_no_land_before_the_first_command_of_a_flight_or_after_a_hold_was_asked(
 
 def test_a_failsafe_landing_over_an_object_moves_clear_first_then_lands() -> None:
     """Issue 14 (campaign flight 21: the script's LAND over a desk was refused, then its silence landed the
-    vehicle on the desk): the failsafe holds and flies clear (``clearing_spot``) while the spot is not clear,
-    lands as soon as it is, and lands anyway after ``land_clear_timeout_s``; with the odometry failed, at once."""
+    vehicle on the desk): the failsafe holds and flies clear (``clearing_spot``) until the spot has looked clear
+    for ``land_clear_hold_s``, then lands; it lands anyway after ``land_clear_timeout_s``; with the odometry
+    failed, at once."""
     desk = "land refused: object below, 0.87 m tall"
     params = ModeParams(gcs_timeout_s=0.5, gcs_land_timeout_s=4.0, land_clear_timeout_s=6.0)
     m, t = _flying_machine(params)
@@ -230,7 +231,14 @@ def test_a_failsafe_landing_over_an_object_moves_clear_first_then_lands() -> Non
     assert any("no fresh command for 4 s: land refused: object below" in s for s in _texts(actions))
     m.on_manual_control(t + 5.0)
     assert _requests(m.update(t + 5.0, FLYING, True, desk)) == [] and m.clearing_spot
-    actions = m.update(t + 5.5, FLYING, True, None)          # moved clear: it lands
+    m.on_manual_control(t + 5.5)
+    assert _requests(m.update(t + 5.5, FLYING, True, None)) == [] and m.clearing_spot   # clear: keeps going ...
+    m.on_manual_control(t + 6.0)
+    assert _requests(m.update(t + 6.0, FLYING, True, desk)) == []    # ... a sparse sample says not yet
+    m.on_manual_control(t + 6.2)
+    assert _requests(m.update(t + 6.2, FLYING, True, None)) == [] and m.clearing_spot
+    m.on_manual_control(t + 7.3)
+    actions = m.update(t + 7.3, FLYING, True, None)          # clear for land_clear_hold_s: it lands
     assert _requests(actions) == ["land"] and m.mode == Mode.LAND and not m.clearing_spot
     # never clear: it lands after land_clear_timeout_s wherever it is
     m, t = _flying_machine(params)
