@@ -52,6 +52,11 @@ RAY_START_ATTEMPTS = 3
 #: clients connect, so the operator joins some seconds of simulated time after t = 0 (more on a loaded machine);
 #: a flight ends when its operator's session ends, this is only the bound
 STARTUP_ALLOWANCE_S = 45.0
+#: a session that ends with the vehicle still in the air (a refused landing, the operator gone) flies on this long
+#: without its operator, until the companion's failsafe has landed it (10 s without a command, up to 15 s to move
+#: clear of an object below, the descent): the envelope is that of a landing, not of a teardown in the air (the
+#: bridge then landed wherever the vehicle was, on top of the object the companion had refused to land on)
+LANDING_SETTLE_S = 45.0
 
 
 class CampaignCancelled(KeyboardInterrupt):
@@ -154,7 +159,8 @@ def fly(options: CampaignOptions, index: int, slot: int, attempt: int,
                           lockstep=True,
                           port_offset=offset, progress_every_s=30.0, sitl_config=str(files.sitl),
                           operator=draws.session.kind, should_stop=should_stop, view=options.view,
-                          plots=False, on_flight=lambda f: envelopes.append(envelope(truth_of_flight(f), scenario)))
+                          plots=False, on_flight=lambda f: envelopes.append(envelope(truth_of_flight(f), scenario)),
+                          settle_s=LANDING_SETTLE_S)
         result.report = report
         if report.get("interrupted"):
             result.status = "cancelled"

@@ -189,7 +189,8 @@ def run_demo(scenario: str, duration_s: float, out_dir: Path, script: Path, lock
              operator: str = "haptic", should_stop: Callable[[], bool] | None = None,
              view: bool = True, plots: bool = True,
              on_flight: Callable[[FlightLog], None] | None = None, link: LinkImpairment | None = None,
-             passivity: bool | None = None, signing_key: Path | None = None) -> dict[str, object]:
+             passivity: bool | None = None, signing_key: Path | None = None,
+             settle_s: float = 0.0) -> dict[str, object]:
     """Fly the demo; returns the report. Raises :class:`ProcessDied` if a part dies.
 
     Writes ``out_dir/flight.json`` (the :class:`FlightSpec`, what ``--replay`` re-flies) and
@@ -199,6 +200,9 @@ def run_demo(scenario: str, duration_s: float, out_dir: Path, script: Path, lock
     ``link``: the ground link goes through the netem proxies with this impairment (issue 18);
     ``passivity``: the force loop's passivity controller (default: on when ``link`` is given);
     ``signing_key``: sign the ground link with this key file and refuse unsigned packets at the companion.
+    ``settle_s``: when the operator's session or the duration ends with the vehicle still armed, the stack flies
+    on without the operator for up to this many simulated seconds, until the autopilot disarms: the companion's
+    failsafe lands it (a campaign's flight ends on the ground, not torn down in the air).
     """
     if signing_key is not None and not Path(signing_key).is_file():
         raise ConfigError(f"{signing_key}: signing key not found (create one with: quadlink keygen FILE)")
@@ -245,6 +249,7 @@ def run_demo(scenario: str, duration_s: float, out_dir: Path, script: Path, lock
         log.info("all parts running at %.1f s simulated; operator view at http://127.0.0.1:%d ; logs in %s",
                  t_sim0, ports.http, stack.log_dir)
         next_progress = 0.0
+        operator_done = False
         while not interrupted:
             time.sleep(0.2)
             if should_stop is not None and should_stop():
@@ -252,6 +257,7 @@ def run_demo(scenario: str, duration_s: float, out_dir: Path, script: Path, lock
                 break
             if operator_name in stack.check(may_finish=frozenset({operator_name})):
                 log.info("operator script finished")
+                operator_done = True
                 break
             t = recorder.truth
             if math.isfinite(t.sim_time_s) and t.sim_time_s >= t_sim0 + duration_s:
@@ -259,11 +265,9 @@ def run_demo(scenario: str, duration_s: float, out_dir: Path, script: Path, lock
                 break
             if time.monotonic() >= next_progress:
                 next_progress = time.monotonic() + progress_every_s
-                speed_m_s = math.hypot(*t.velocity_ned_m_s[:2]) if math.isfinite(t.velocity_ned_m_s[0]) else math.nan
-                log.info("t_sim %6.1f s  (wall %5.0f s)  altitude %5.2f m  speed %4.2f m/s  nearest obstacle "
-                         "%5.2f m  [truth %d msgs, bridge %d msgs]", t.sim_time_s, time.monotonic() - t_wall0,
-                         -t.position_ned_m[2], speed_m_s, t.nearest_obstacle_m, recorder.counts.get("truth", 0),
-                         recorder.counts.get("bridge", 0))
+                _log_progress(recorder, t_wall0)
+        if settle_s > 0.0 and operator_done and not interrupted and recorder.vehicle_armed:
+            interrupted = _settle(recorder, stack, operator_name, settle_s, should_stop, t_wall0, progress_every_s)
     except ProcessDied as exc:
         failure = exc
         log.error("stopping: %s", exc)
@@ -292,6 +296,37 @@ def run_demo(scenario: str, duration_s: float, out_dir: Path, script: Path, lock
     if failure:
         raise failure
     return report
+
+
+def _log_progress(recorder: Recorder, t_wall0: float) -> None:
+    t = recorder.truth
+    speed_m_s = math.hypot(*t.velocity_ned_m_s[:2]) if math.isfinite(t.velocity_ned_m_s[0]) else math.nan
+    log.info("t_sim %6.1f s  (wall %5.0f s)  altitude %5.2f m  speed %4.2f m/s  nearest obstacle "
+             "%5.2f m  [truth %d msgs, bridge %d msgs]", t.sim_time_s, time.monotonic() - t_wall0,
+             -t.position_ned_m[2], speed_m_s, t.nearest_obstacle_m, recorder.counts.get("truth", 0),
+             recorder.counts.get("bridge", 0))
+
+
+def _settle(recorder: Recorder, stack: Stack, operator_name: str, settle_s: float,
+            should_stop: Callable[[], bool] | None, t_wall0: float, progress_every_s: float) -> bool:
+    """With the operator gone, fly on until the autopilot disarms or ``settle_s`` simulated seconds pass;
+    interrupted? (A part that dies meanwhile raises :class:`ProcessDied`, as in the flight.)"""
+    t_end = recorder.truth.sim_time_s + settle_s
+    log.info("the vehicle is still armed: flying on for up to %.0f s simulated until it lands", settle_s)
+    next_progress = time.monotonic() + progress_every_s
+    while recorder.vehicle_armed:
+        time.sleep(0.2)
+        if should_stop is not None and should_stop():
+            return True
+        stack.check(may_finish=frozenset({operator_name}))
+        if not recorder.truth.sim_time_s < t_end:   # reached (or the truth stream went silent: NaN)
+            log.warning("still armed %.0f s after the session's end", settle_s)
+            return False
+        if time.monotonic() >= next_progress:
+            next_progress = time.monotonic() + progress_every_s
+            _log_progress(recorder, t_wall0)
+    log.info("disarmed at %.1f s simulated", recorder.truth.sim_time_s)
+    return False
 
 
 def replay_flight(flight_dir: Path, out_dir: Path | None = None, port_offset: int = 0,

@@ -12,6 +12,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from quadlink.mavlink import mavlink
 from quadlink.mavlink.connection import open_mavlink
 from quadlink.mavlink.tlog import TlogWriter
 
@@ -35,6 +36,7 @@ class Recorder:
         self._threads: list[threading.Thread] = []
         self._stop = threading.Event()
         self.truth = TruthState()
+        self.vehicle_armed: bool | None = None   # from the autopilot's HEARTBEAT on a non-truth stream
         self.counts: dict[str, int] = {}
         self._writers: list[TlogWriter] = []
 
@@ -59,6 +61,8 @@ class Recorder:
                 self.counts[name] += 1
                 if is_truth:
                     self._update_truth(msg)
+                elif msg.get_type() == "HEARTBEAT" and msg.get_srcComponent() == mavlink.MAV_COMP_ID_AUTOPILOT1:
+                    self.vehicle_armed = bool(msg.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED)
         finally:
             conn.close()
 

@@ -23,6 +23,8 @@ from quadlink.campaign.safety import envelope, read_truth
 from quadlink.config import load_config
 from quadlink.demo.cli import compare_reports, run_demo
 from quadlink.demo.report import compute_report, load_flight
+from quadlink.mavlink import mavlink
+from quadlink.mavlink.tlog import read_tlog
 from sim_sitl.config import ScenarioConfig, load_scenario
 from sim_sitl.scenario_gen import nearest_obstacle_2d
 
@@ -31,6 +33,15 @@ pytestmark = pytest.mark.sitl
 # the campaign helper's port lane (offsets 3000-3900), one slice per test process
 OFFSET = 3300 + (os.getpid() % 8) * 60
 COM_UP_M = 0.1  # the SITL's body rests with its centre 0.1 m above the floor
+
+
+def _last_armed(bridge_tlog: Path) -> bool | None:
+    """The armed flag of the autopilot's last HEARTBEAT in the bridge's log (None: none)."""
+    armed = None
+    for _, m in read_tlog(bridge_tlog):
+        if m.get_type() == "HEARTBEAT" and m.get_srcComponent() == mavlink.MAV_COMP_ID_AUTOPILOT1:
+            armed = bool(m.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED)
+    return armed
 
 
 def _start_distance(truth: Path) -> float:
@@ -64,6 +75,8 @@ def test_three_flight_campaign_on_local_ray(tmp_path: Path) -> None:
         assert r.envelope == pytest.approx({**r.envelope, **vars(envelope(read_truth(folder / "truth.tlog"),
                                                                           scenario))})
         assert r.report["flying_time_s"] > 3.0
+        # every flight ends on the ground: a session that ends in the air flies on until the failsafe lands it
+        assert _last_armed(folder / "bridge.tlog") is False
     assert len({round(s, 2) for s in starts}) == 3  # three arenas: a crossed log would not match its arena
     # two flew at once, on different port slots
     a, b = sorted(results, key=lambda r: r.t_start_unix_s)[:2]
