@@ -37,6 +37,7 @@ command acks), which are wall-time phenomena.
 from __future__ import annotations
 
 import logging
+import math
 import threading
 import time
 from collections.abc import Callable, Iterable
@@ -60,9 +61,9 @@ from companion.guard import ErrorCounter, non_finite_fields
 from companion.height import HeightParams
 from companion.imu_clock import ImuClock, imu_sample
 from companion.interfaces import ImageSink, MavLink, Pipeline, PipelineFactory, default_pipeline_factory
-from companion.landing_spot import clearing_velocity, object_below
+from companion.landing_spot import BelowMemory, clearing_velocity, object_below
 from companion.link_reader import CodecReader
-from companion.modes import AutopilotRequest, ModeMachine, StatusText
+from companion.modes import AutopilotRequest, Mode, ModeMachine, StatusText
 from companion.motion import Motion
 from companion.operator_input import camera_yaw_rad
 from companion.outbound import AutopilotAck, GcsReply, Outbox, Output, ToAutopilot
@@ -124,6 +125,7 @@ class Companion:
         self.vehicle = VehicleState()
         self.arbiter = Arbiter(cfg.arbiter)
         self.landing_spot = cfg.landing_spot
+        self.below = BelowMemory(cfg.landing_spot)   # objects seen under the vehicle, for its landings
         self.gcs_commands = GcsCommands(self.modes, self.arbiter, self.param_service, clock, self.vehicle.status,
                                         self._camera_fresh, self._land_refusal)
         self.autopilot_input = AutopilotInput(self.vehicle, self.commands, self.modes, self.timesync, clock)
@@ -291,19 +293,30 @@ class Companion:
         h = self.state.height.height_m   # above the take-off pose, where the body centre is takeoff_height_m up
         return None if h is None else h + self.ref_params.takeoff_height_m
 
-    def _land_refusal(self) -> str | None:
-        """Why the spot under the vehicle is no place to land (an object in the map below it), or None."""
+    def _points_below(self) -> NDArray[np.float64] | None:
+        """The map's points and the remembered tops of the objects under the vehicle (companion.landing_spot), in H."""
         out = self.state.last_output
-        below = object_below(None if out is None else out.obstacle_points_h_m, self._height_above_floor_m(),
-                             self.landing_spot, self.ref_params.floor_margin_m)
+        if out is None:
+            return None
+        if not out.odometry_ok:   # no pose to place the memory with: the map alone
+            return out.obstacle_points_h_m
+        remembered = self.below.points_h(out.position_m, out.yaw_rad, self._height_above_floor_m())
+        return np.vstack([np.asarray(out.obstacle_points_h_m, dtype=float).reshape(-1, 3), remembered])
+
+    def _land_refusal(self) -> str | None:
+        """Why the spot under the vehicle is no place to land (an object seen below it), or None."""
+        below = object_below(self._points_below(), self._height_above_floor_m(), self.landing_spot,
+                             self.ref_params.floor_margin_m)
         return None if below is None else below.refusal()
 
     def _clearing_velocity(self, out: Any | None) -> NDArray[np.float64] | None:
         """While a failsafe landing moves clear of an object below (companion.modes), the command that does."""
         if not self.modes.clearing_spot:
             return None
-        return clearing_velocity(None if out is None else out.obstacle_points_h_m, self._height_above_floor_m(),
-                                 self.landing_spot, self.ref_params.floor_margin_m, camera_yaw_rad(self.state.R_qc))
+        sectors, _, offset_deg = msgs.sector_arrays(None if out is None else out.sectors)
+        return clearing_velocity(self._points_below(), self._height_above_floor_m(),
+                                 self.landing_spot, self.ref_params.floor_margin_m, camera_yaw_rad(self.state.R_qc),
+                                 sectors, self.ref_params.unknown_sector_guard_rad, math.radians(offset_deg))
 
     # ------------------------------------------------------------------ the pipeline at camera rate
     def _process_frame(self, frame: RgbdFrame) -> None:
@@ -319,6 +332,11 @@ class Companion:
             st.last_output = out
             self.stats.perception_s.append(float(out.processing_time_s))
         height = st.height.update(stamp, height_m(out), None if out is None else out.floor_height_m)
+        if self.modes.mode == Mode.IDLE:
+            self.below.clear()   # a new flight, a new odometry world
+        elif out is not None and out.odometry_ok:
+            self.below.observe(out.obstacle_points_h_m, self._height_above_floor_m(), self.ref_params.floor_margin_m,
+                               out.position_m, out.yaw_rad)
         self._emit(self.modes.update(self.clock(), self.vehicle.status(), st.odometry_ok, self._land_refusal()))
         cmd = self.motion.command(self._pose())
         op = self.motion.operator_of(cmd)

@@ -2,16 +2,17 @@
 
 The autopilot's LAND descends vertically wherever the vehicle is: over a desk or a box it sets the vehicle down
 on the object's top, its props beside the edge (campaign 2026-12-05 flights 21 and 39: 0.10 m from a desk's
-top). The camera looks ahead and down, so what is under the vehicle now was seen on the way there; the obstacle
-map carries it (eq. 14) and holds it while it is within reach (``perception.obstacle_map``, near field).
+top). The camera looks ahead and down, so what is under the vehicle now was seen on the way there: the obstacle
+map carries it (eq. 14) for a while, and :class:`BelowMemory` keeps it for the rest of the flight.
 
-:func:`object_below` finds the highest map point under the vehicle's footprint that is not the floor: within
-``footprint_radius_m`` horizontally, below the vehicle, and more than the reference's ``floor_margin_m`` above
-the take-off floor. A commanded landing (a ground station's LAND) over one is refused (:mod:`companion.gcs_commands`). A
-failsafe landing (:mod:`companion.modes`) first moves clear: :func:`clearing_velocity` points away from the
-object (from the centroid of its points around the vehicle), and the reference pipeline flies it like a
-script's command (no motion toward unseen sectors, the safe distance, the closing-speed law).
-With the height above the floor unknown, the floor cannot be told from an object and nothing is reported.
+:func:`object_below` finds the highest point under the vehicle's footprint that is not the floor: within
+``footprint_radius_m`` horizontally, below the vehicle, and higher above the take-off floor than ``min_top_m``
+(and the reference's ``floor_margin_m``). A commanded landing (a ground station's LAND) over one is refused
+(:mod:`companion.gcs_commands`). A failsafe landing (:mod:`companion.modes`) first moves clear:
+:func:`clearing_velocity` points away from the object (from the centroid of its points around the vehicle), and
+the reference pipeline flies it like a script's command (no motion toward unseen sectors, the safe distance,
+the closing-speed law). With the height above the floor unknown, the floor cannot be told from an object and
+nothing is reported.
 """
 
 from __future__ import annotations
@@ -22,6 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from companion.avoidance import remove_toward_unknown
 from companion.obstacle_points import finite_rows
 
 
@@ -34,12 +36,16 @@ class LandingSpotParams:
     enabled: bool = True
     footprint_radius_m: float = 0.6   # arm + prop (0.3 m) + the spacing of the map's samples of a top (~0.3 m)
     clearing_speed_m_s: float = 0.25   # a failsafe landing moves clear of an object below at this speed
+    min_top_m: float = 0.25            # lower tops are landed on (the gear takes them; the floor's samples, with
+                                       # the height's error, must never read as an object)
 
     def __post_init__(self) -> None:
         if not self.footprint_radius_m > 0.0:
             raise ValueError(f"footprint_radius_m must be > 0, got {self.footprint_radius_m}")
         if not 0.0 < self.clearing_speed_m_s <= 1.0:
             raise ValueError(f"clearing_speed_m_s must be in (0, 1] m/s, got {self.clearing_speed_m_s}")
+        if not self.min_top_m >= 0.0:
+            raise ValueError(f"min_top_m must be >= 0, got {self.min_top_m}")
 
 
 @dataclass(frozen=True)
@@ -67,11 +73,14 @@ def _objects_below(points_h_m: ArrayLike | None, height_m: float | None, floor_m
 
 
 def clearing_velocity(points_h_m: ArrayLike | None, height_m: float | None, params: LandingSpotParams,
-                      floor_margin_m: float, fallback_yaw_rad: float) -> NDArray[np.float64]:
+                      floor_margin_m: float, fallback_yaw_rad: float, sectors_m: ArrayLike | None = None,
+                      guard_rad: float = 0.0, sector_offset_rad: float = 0.0) -> NDArray[np.float64]:
     """A horizontal velocity in H away from the object below: from the centroid of the object points within
-    ``footprint_radius_m + 0.5`` m toward the vehicle, at ``clearing_speed_m_s``; over the middle of a wide
-    object (the centroid under the vehicle) along ``fallback_yaw_rad`` (the camera's axis: the way it sees)."""
-    below = _objects_below(points_h_m, height_m, floor_margin_m)
+    ``footprint_radius_m + 0.5`` m toward the vehicle, at ``clearing_speed_m_s``; along ``fallback_yaw_rad``
+    (the camera's axis: the way it sees) over the middle of a wide object (the centroid under the vehicle), or
+    when the way off it leads into a sector of ``sectors_m`` the map has not looked at (within ``guard_rad``),
+    where the reference would not fly it (campaign flight 39 held 15 s over a box, its way off unseen)."""
+    below = _objects_below(points_h_m, height_m, max(floor_margin_m, params.min_top_m))
     direction = np.array([math.cos(fallback_yaw_rad), math.sin(fallback_yaw_rad)])
     if below is not None:
         p = below[0]
@@ -79,17 +88,19 @@ def clearing_velocity(points_h_m: ArrayLike | None, height_m: float | None, para
         if near.any():
             centroid = p[near, :2].mean(axis=0)
             r = float(np.hypot(*centroid))
-            if r > 0.05:
-                direction = -centroid / r
+            away = np.array([-centroid[0], -centroid[1], 0.0]) / max(r, 1e-9)
+            if r > 0.05 and not (sectors_m is not None and
+                                 remove_toward_unknown(away, sectors_m, guard_rad, sector_offset_rad)[1]):
+                direction = away[:2]
     return np.array([*(params.clearing_speed_m_s * direction), 0.0])
 
 
 def object_below(points_h_m: ArrayLike | None, height_m: float | None, params: LandingSpotParams,
                  floor_margin_m: float) -> ObjectBelow | None:
-    """The highest map point (H, vehicle at the origin, z down) under the footprint that is not the floor
-    (higher than ``floor_margin_m`` above the take-off floor, ``height_m`` below the vehicle); None if there is
-    none, or the check is off, or the height above the floor is unknown."""
-    below = _objects_below(points_h_m, height_m, floor_margin_m) if params.enabled else None
+    """The highest point (H, vehicle at the origin, z down) under the footprint that is not the floor (higher
+    than ``floor_margin_m`` and ``min_top_m`` above the take-off floor, ``height_m`` below the vehicle); None if
+    there is none, or the check is off, or the height above the floor is unknown."""
+    below = _objects_below(points_h_m, height_m, max(floor_margin_m, params.min_top_m)) if params.enabled else None
     if below is None:
         return None
     p, above_floor_m = below
@@ -99,3 +110,65 @@ def object_below(points_h_m: ArrayLike | None, height_m: float | None, params: L
         return None
     i = int(np.argmax(np.where(under, above_floor_m, -np.inf)))
     return ObjectBelow(float(above_floor_m[i]), float(math.sqrt(r2[i])))
+
+
+class BelowMemory:
+    """The tops of objects seen around and under the vehicle, kept in the odometry's world frame until it lands.
+
+    The obstacle map forgets what is under the vehicle (the camera never looks there again; its particles age
+    out, within 20 s near the vehicle), but a vehicle may hover over a desk for longer before it is asked to
+    land: a re-flown campaign flight whose refused landing was followed by a failsafe landing came down on the
+    desk the map had forgotten. Each frame :meth:`observe` keeps the non-floor points below the vehicle within
+    ``footprint_radius_m + 0.5`` m, thinned to one per ``grid_m`` cell with the highest top; :meth:`points_h`
+    gives them back in H for :func:`object_below` and :func:`clearing_velocity`. In the odometry's frame they
+    drift with the odometry (centimetres over a flight), not with the map's noise."""
+
+    def __init__(self, params: LandingSpotParams, grid_m: float = 0.1, max_cells: int = 2000) -> None:
+        self.params, self.grid_m, self.max_cells = params, grid_m, max_cells
+        self._tops: dict[tuple[int, int], float] = {}   # world cell -> highest top above the floor (m)
+
+    def __len__(self) -> int:
+        return len(self._tops)
+
+    def clear(self) -> None:
+        self._tops.clear()
+
+    def observe(self, points_h_m: ArrayLike | None, height_m: float | None, floor_margin_m: float,
+                position_w_m: ArrayLike | None, yaw_rad: float) -> None:
+        """Keep the objects below the vehicle at ``position_w_m`` (the odometry's world, NED) heading ``yaw_rad``."""
+        if not self.params.enabled or position_w_m is None or not math.isfinite(yaw_rad):
+            return
+        pos = np.asarray(position_w_m, dtype=float).ravel()
+        below = _objects_below(points_h_m, height_m, max(floor_margin_m, self.params.min_top_m))
+        if below is None or pos.size < 2 or not np.all(np.isfinite(pos[:2])):
+            return
+        p, top = below
+        near = p[:, 0] ** 2 + p[:, 1] ** 2 <= (self.params.footprint_radius_m + 0.5) ** 2
+        if not near.any():
+            return
+        c, s = math.cos(yaw_rad), math.sin(yaw_rad)
+        x = pos[0] + c * p[near, 0] - s * p[near, 1]
+        y = pos[1] + s * p[near, 0] + c * p[near, 1]
+        ix = np.floor(x / self.grid_m).astype(int).tolist()
+        iy = np.floor(y / self.grid_m).astype(int).tolist()
+        for i, j, t in zip(ix, iy, top[near].tolist(), strict=True):
+            if t > self._tops.get((i, j), -math.inf):
+                self._tops[(i, j)] = t
+        while len(self._tops) > self.max_cells:   # the oldest cells first (dicts keep insertion order)
+            del self._tops[next(iter(self._tops))]
+
+    def points_h(self, position_w_m: ArrayLike | None, yaw_rad: float, height_m: float | None) -> NDArray[np.float64]:
+        """The remembered tops as points in H (vehicle at ``position_w_m``, heading ``yaw_rad``, ``height_m`` above
+        the floor), N x 3; none if the pose or the height is unknown."""
+        if not self._tops or position_w_m is None or height_m is None or not math.isfinite(height_m) \
+                or not math.isfinite(yaw_rad):
+            return np.zeros((0, 3))
+        pos = np.asarray(position_w_m, dtype=float).ravel()
+        if pos.size < 2 or not np.all(np.isfinite(pos[:2])):
+            return np.zeros((0, 3))
+        cells = np.array(list(self._tops.keys()), dtype=float)
+        tops = np.array(list(self._tops.values()))
+        dx = (cells[:, 0] + 0.5) * self.grid_m - pos[0]
+        dy = (cells[:, 1] + 0.5) * self.grid_m - pos[1]
+        c, s = math.cos(yaw_rad), math.sin(yaw_rad)
+        return np.column_stack([c * dx + s * dy, -s * dx + c * dy, height_m - tops])

@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from companion.landing_spot import LandingSpotParams, clearing_velocity, object_below
+from companion.landing_spot import BelowMemory, LandingSpotParams, clearing_velocity, object_below
 
 pytestmark = pytest.mark.unit
 
@@ -57,5 +57,47 @@ def test_the_clearing_velocity_points_away_from_the_object() -> None:
     wide = _top(0.0, 0.0, 2.0, height_m - 0.75)     # over the middle of a wide table: the camera's way
     v = clearing_velocity(wide, height_m, P, FLOOR_MARGIN_M, fallback_yaw_rad=math.pi / 2)
     assert v == pytest.approx([0.0, P.clearing_speed_m_s, 0.0], abs=1e-9)
+    # the way off (backwards, azimuth 180 deg) leads where the map has not looked: along the camera's axis
+    sectors = np.full(72, np.inf)
+    sectors[30:43] = np.nan                         # 150-210 deg unseen
+    v = clearing_velocity(desk, height_m, P, FLOOR_MARGIN_M, fallback_yaw_rad=math.pi / 4, sectors_m=sectors,
+                          guard_rad=math.radians(15))
+    assert v == pytest.approx([P.clearing_speed_m_s / math.sqrt(2)] * 2 + [0.0], abs=1e-9)
+    sectors[30:43] = np.inf                         # seen: backwards it goes
+    v = clearing_velocity(desk, height_m, P, FLOOR_MARGIN_M, math.pi / 4, sectors, math.radians(15))
+    assert v == pytest.approx([-P.clearing_speed_m_s, 0.0, 0.0], abs=1e-9)
     floor = _top(0.3, 0.0, 1.0, height_m)
     assert clearing_velocity(floor, height_m, P, FLOOR_MARGIN_M, 0.0) == pytest.approx([P.clearing_speed_m_s, 0, 0])
+
+
+def test_the_memory_keeps_a_desk_the_map_forgot_in_the_world_frame() -> None:
+    """Hovering over a desk longer than the map remembers it: the memory still places it under the vehicle, and
+    after the vehicle has turned and moved off it by more than the footprint, the spot is clear."""
+    height_m = 1.8
+    mem = BelowMemory(P)
+    desk_h = _top(0.0, 0.0, 0.8, height_m - 0.75)          # under the vehicle at (2, 1), heading 30 deg
+    pos, yaw = np.array([2.0, 1.0, -1.7]), math.radians(30)
+    mem.observe(desk_h, height_m, FLOOR_MARGIN_M, pos, yaw)
+    assert len(mem) > 0
+    mem.observe(_top(0.0, 0.0, 2.0, height_m), height_m, FLOOR_MARGIN_M, pos, yaw)   # the floor adds nothing
+    n = len(mem)
+    # the map has forgotten the desk; the vehicle has yawed 90 deg in place
+    got = object_below(mem.points_h(pos, yaw + math.pi / 2, height_m), height_m, P, FLOOR_MARGIN_M)
+    assert got is not None and got.top_height_m == pytest.approx(0.75) and len(mem) == n
+    # moved 0.4 m + the desk's half width + the footprint away in the world: clear
+    away = pos + np.array([0.4 + 0.4 + P.footprint_radius_m + 0.1, 0.0, 0.0])
+    assert object_below(mem.points_h(away, yaw, height_m), height_m, P, FLOOR_MARGIN_M) is None
+    # and the way off points away from it
+    v = clearing_velocity(mem.points_h(pos + np.array([0.3, 0.0, 0.0]), 0.0, height_m), height_m, P,
+                          FLOOR_MARGIN_M, fallback_yaw_rad=math.pi)
+    assert v[0] > 0.9 * P.clearing_speed_m_s
+    assert mem.points_h(None, yaw, height_m).shape == (0, 3) and mem.points_h(pos, yaw, None).shape == (0, 3)
+    mem.clear()
+    assert len(mem) == 0
+
+
+def test_low_tops_are_landed_on() -> None:
+    height_m = 1.0
+    book = _top(0.0, 0.0, 0.3, height_m - 0.2)             # 0.2 m high: the gear takes it
+    assert object_below(book, height_m, P, FLOOR_MARGIN_M) is None
+    assert object_below(_top(0.0, 0.0, 0.3, height_m - 0.3), height_m, P, FLOOR_MARGIN_M) is not None
