@@ -30,11 +30,13 @@ from companion.obstacle_points import finite_rows
 @dataclass(frozen=True)
 class LandingSpotParams:
     """``enabled``: refuse commanded landings over an object; ``footprint_radius_m``: the vehicle's reach (arm +
-    prop, MK-Quadro ~0.3 m) plus the spacing of the map's samples of an object's top (one per image sector:
-    a failsafe landing that moved 0.25 m off a desk's sample at a 0.4 m footprint came down on the desk)."""
+    prop, MK-Quadro ~0.3 m) plus a margin, less than the safe distance (at 0.6 m a box-side wall the vehicle
+    rested beside counted as "below" and the failsafe never found a clear spot). The map samples a top once per
+    image sector; :class:`BelowMemory` gathers the samples of every frame."""
 
     enabled: bool = True
-    footprint_radius_m: float = 0.6   # arm + prop (0.3 m) + the spacing of the map's samples of a top (~0.3 m)
+    footprint_radius_m: float = 0.4   # arm + prop (0.3 m) + margin; under the safe distance, so a wall the
+                                       # vehicle rests beside (0.45 m) is not "below" it
     clearing_speed_m_s: float = 0.25   # a failsafe landing moves clear of an object below at this speed
     min_top_m: float = 0.25            # lower tops are landed on (the gear takes them; the floor's samples, with
                                        # the height's error, must never read as an object)
