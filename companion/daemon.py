@@ -61,7 +61,7 @@ from companion.guard import ErrorCounter, non_finite_fields
 from companion.height import HeightParams
 from companion.imu_clock import ImuClock, imu_sample
 from companion.interfaces import ImageSink, MavLink, Pipeline, PipelineFactory, default_pipeline_factory
-from companion.landing_spot import BelowMemory, clearing_velocity, object_below
+from companion.landing_spot import BelowMemory, clearing_azimuth_rad, clearing_velocity, object_below
 from companion.link_reader import CodecReader
 from companion.modes import AutopilotRequest, Mode, ModeMachine, StatusText
 from companion.motion import Motion
@@ -126,6 +126,7 @@ class Companion:
         self.arbiter = Arbiter(cfg.arbiter)
         self.landing_spot = cfg.landing_spot
         self.below = BelowMemory(cfg.landing_spot)   # objects seen under the vehicle, for its landings
+        self._clearing_world_az: float | None = None  # the way off an object below, kept in the odometry's world
         self.gcs_commands = GcsCommands(self.modes, self.arbiter, self.param_service, clock, self.vehicle.status,
                                         self._camera_fresh, self._land_refusal)
         self.autopilot_input = AutopilotInput(self.vehicle, self.commands, self.modes, self.timesync, clock)
@@ -310,13 +311,21 @@ class Companion:
         return None if below is None else below.refusal()
 
     def _clearing_velocity(self, out: Any | None) -> NDArray[np.float64] | None:
-        """While a failsafe landing moves clear of an object below (companion.modes), the command that does."""
+        """While a failsafe landing moves clear of an object below (companion.modes), the command that does: the
+        way off is chosen once and kept in the odometry's world (the vehicle may yaw meanwhile)."""
         if not self.modes.clearing_spot:
+            self._clearing_world_az = None
             return None
-        sectors, _, offset_deg = msgs.sector_arrays(None if out is None else out.sectors)
-        return clearing_velocity(self._points_below(), self._height_above_floor_m(),
-                                 self.landing_spot, self.ref_params.floor_margin_m, camera_yaw_rad(self.state.R_qc),
-                                 sectors, self.ref_params.unknown_sector_guard_rad, math.radians(offset_deg))
+        yaw = float(out.yaw_rad) if out is not None and out.odometry_ok and math.isfinite(out.yaw_rad) else None
+        if self._clearing_world_az is None or yaw is None:
+            sectors, _, offset_deg = msgs.sector_arrays(None if out is None else out.sectors)
+            az_h = clearing_azimuth_rad(self._points_below(), self._height_above_floor_m(), self.landing_spot,
+                                        self.ref_params.floor_margin_m, camera_yaw_rad(self.state.R_qc), sectors,
+                                        self.ref_params.unknown_sector_guard_rad, math.radians(offset_deg))
+            if yaw is None:
+                return clearing_velocity(az_h, self.landing_spot)
+            self._clearing_world_az = yaw + az_h
+        return clearing_velocity(self._clearing_world_az - yaw, self.landing_spot)
 
     # ------------------------------------------------------------------ the pipeline at camera rate
     def _process_frame(self, frame: RgbdFrame) -> None:

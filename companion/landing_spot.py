@@ -9,7 +9,7 @@ map carries it (eq. 14) for a while, and :class:`BelowMemory` keeps it for the r
 ``footprint_radius_m`` horizontally, below the vehicle, and higher above the take-off floor than ``min_top_m``
 (and the reference's ``floor_margin_m``). A commanded landing (a ground station's LAND) over one is refused
 (:mod:`companion.gcs_commands`). A failsafe landing (:mod:`companion.modes`) first moves clear:
-:func:`clearing_velocity` points away from the object (from the centroid of its points around the vehicle), and
+:func:`clearing_azimuth_rad` picks a seen way with free space, away from the object if it can, and
 the reference pipeline flies it like a script's command (no motion toward unseen sectors, the safe distance,
 the closing-speed law). With the height above the floor unknown, the floor cannot be told from an object and
 nothing is reported.
@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from companion.avoidance import remove_toward_unknown
+from companion.avoidance import remove_toward_unknown, sector_index
 from companion.obstacle_points import finite_rows
 
 
@@ -74,27 +74,53 @@ def _objects_below(points_h_m: ArrayLike | None, height_m: float | None, floor_m
     return p[keep], above_floor_m[keep]
 
 
-def clearing_velocity(points_h_m: ArrayLike | None, height_m: float | None, params: LandingSpotParams,
-                      floor_margin_m: float, fallback_yaw_rad: float, sectors_m: ArrayLike | None = None,
-                      guard_rad: float = 0.0, sector_offset_rad: float = 0.0) -> NDArray[np.float64]:
-    """A horizontal velocity in H away from the object below: from the centroid of the object points within
-    ``footprint_radius_m + 0.5`` m toward the vehicle, at ``clearing_speed_m_s``; along ``fallback_yaw_rad``
-    (the camera's axis: the way it sees) over the middle of a wide object (the centroid under the vehicle), or
-    when the way off it leads into a sector of ``sectors_m`` the map has not looked at (within ``guard_rad``),
-    where the reference would not fly it (campaign flight 39 held 15 s over a box, its way off unseen)."""
+CLEARING_CANDIDATES = 12      # directions tried for the way off, every 30 deg
+CLEARING_LOOKAHEAD_M = 3.0    # free space counted up to this far along a direction
+
+
+def clearing_azimuth_rad(points_h_m: ArrayLike | None, height_m: float | None, params: LandingSpotParams,
+                         floor_margin_m: float, fallback_yaw_rad: float, sectors_m: ArrayLike | None = None,
+                         guard_rad: float = 0.0, sector_offset_rad: float = 0.0) -> float:
+    """The way off the object below, an azimuth in H: of twelve directions, those the map has looked at (no
+    sector of ``sectors_m`` within ``guard_rad`` unknown: the reference would not fly the others), the one with
+    the most free space ahead (up to 3 m, from the sectors) plus half a metre for pointing straight away from
+    the object (from the centroid of its points within ``footprint_radius_m + 0.5`` m toward the vehicle).
+    ``fallback_yaw_rad`` (the camera's axis: the way it sees) when no sectors are known. Chosen once per
+    clearing (the daemon keeps it in the world): re-chosen every frame, the way off a desk flipped between
+    straight back and the camera's axis and went nowhere (a re-flown campaign flight)."""
+    away: NDArray[np.float64] | None = None
     below = _objects_below(points_h_m, height_m, max(floor_margin_m, params.min_top_m))
-    direction = np.array([math.cos(fallback_yaw_rad), math.sin(fallback_yaw_rad)])
     if below is not None:
         p = below[0]
         near = p[:, 0] ** 2 + p[:, 1] ** 2 <= (params.footprint_radius_m + 0.5) ** 2
         if near.any():
             centroid = p[near, :2].mean(axis=0)
             r = float(np.hypot(*centroid))
-            away = np.array([-centroid[0], -centroid[1], 0.0]) / max(r, 1e-9)
-            if r > 0.05 and not (sectors_m is not None and
-                                 remove_toward_unknown(away, sectors_m, guard_rad, sector_offset_rad)[1]):
-                direction = away[:2]
-    return np.array([*(params.clearing_speed_m_s * direction), 0.0])
+            if r > 0.05:
+                away = -centroid / r
+    if sectors_m is None:
+        return fallback_yaw_rad if away is None else math.atan2(away[1], away[0])
+    s = np.asarray(sectors_m, dtype=float).ravel()
+    n = s.size
+    best, best_score = fallback_yaw_rad, -math.inf
+    for k in range(CLEARING_CANDIDATES):
+        az = fallback_yaw_rad + k * 2.0 * math.pi / CLEARING_CANDIDATES
+        u = np.array([math.cos(az), math.sin(az), 0.0])
+        if n == 0 or remove_toward_unknown(u, s, guard_rad, sector_offset_rad)[1]:
+            continue
+        width = 2.0 * math.pi / n
+        steps = int(math.ceil(guard_rad / width))
+        free = min(float(s[sector_index(az + j * width, n, sector_offset_rad)]) for j in range(-steps, steps + 1))
+        score = min(free, CLEARING_LOOKAHEAD_M) + (0.5 * float(u[:2] @ away) if away is not None else 0.0)
+        if score > best_score:
+            best, best_score = az, score
+    return best
+
+
+def clearing_velocity(azimuth_rad: float, params: LandingSpotParams) -> NDArray[np.float64]:
+    """The clearing command in H along ``azimuth_rad`` at ``clearing_speed_m_s``."""
+    return np.array([params.clearing_speed_m_s * math.cos(azimuth_rad),
+                     params.clearing_speed_m_s * math.sin(azimuth_rad), 0.0])
 
 
 def object_below(points_h_m: ArrayLike | None, height_m: float | None, params: LandingSpotParams,
@@ -122,7 +148,7 @@ class BelowMemory:
     land: a re-flown campaign flight whose refused landing was followed by a failsafe landing came down on the
     desk the map had forgotten. Each frame :meth:`observe` keeps the non-floor points below the vehicle within
     ``footprint_radius_m + 0.5`` m, thinned to one per ``grid_m`` cell with the highest top; :meth:`points_h`
-    gives them back in H for :func:`object_below` and :func:`clearing_velocity`. In the odometry's frame they
+    gives them back in H for :func:`object_below` and :func:`clearing_azimuth_rad`. In the odometry's frame they
     drift with the odometry (centimetres over a flight), not with the map's noise."""
 
     def __init__(self, params: LandingSpotParams, grid_m: float = 0.1, max_cells: int = 2000) -> None:

@@ -7,7 +7,13 @@ import math
 import numpy as np
 import pytest
 
-from companion.landing_spot import BelowMemory, LandingSpotParams, clearing_velocity, object_below
+from companion.landing_spot import (
+    BelowMemory,
+    LandingSpotParams,
+    clearing_azimuth_rad,
+    clearing_velocity,
+    object_below,
+)
 
 pytestmark = pytest.mark.unit
 
@@ -49,25 +55,30 @@ def test_beside_above_or_unknown_is_not_below() -> None:
         LandingSpotParams(footprint_radius_m=math.nan)
 
 
-def test_the_clearing_velocity_points_away_from_the_object() -> None:
+def test_the_way_off_is_seen_free_space_away_from_the_object() -> None:
     height_m = 1.0
     desk = _top(0.5, 0.0, 0.8, height_m - 0.75)     # a desk's top ahead, under the front of the vehicle
-    v = clearing_velocity(desk, height_m, P, FLOOR_MARGIN_M, fallback_yaw_rad=1.0)
-    assert v == pytest.approx([-P.clearing_speed_m_s, 0.0, 0.0], abs=1e-9)   # backwards, off its near edge
+    az = clearing_azimuth_rad(desk, height_m, P, FLOOR_MARGIN_M, fallback_yaw_rad=1.0)   # no sectors known
+    assert az == pytest.approx(math.pi)              # straight back, off its near edge
+    assert clearing_velocity(az, P) == pytest.approx([-P.clearing_speed_m_s, 0.0, 0.0], abs=1e-9)
     wide = _top(0.0, 0.0, 2.0, height_m - 0.75)     # over the middle of a wide table: the camera's way
-    v = clearing_velocity(wide, height_m, P, FLOOR_MARGIN_M, fallback_yaw_rad=math.pi / 2)
-    assert v == pytest.approx([0.0, P.clearing_speed_m_s, 0.0], abs=1e-9)
-    # the way off (backwards, azimuth 180 deg) leads where the map has not looked: along the camera's axis
-    sectors = np.full(72, np.inf)
-    sectors[30:43] = np.nan                         # 150-210 deg unseen
-    v = clearing_velocity(desk, height_m, P, FLOOR_MARGIN_M, fallback_yaw_rad=math.pi / 4, sectors_m=sectors,
-                          guard_rad=math.radians(15))
-    assert v == pytest.approx([P.clearing_speed_m_s / math.sqrt(2)] * 2 + [0.0], abs=1e-9)
-    sectors[30:43] = np.inf                         # seen: backwards it goes
-    v = clearing_velocity(desk, height_m, P, FLOOR_MARGIN_M, math.pi / 4, sectors, math.radians(15))
-    assert v == pytest.approx([-P.clearing_speed_m_s, 0.0, 0.0], abs=1e-9)
-    floor = _top(0.3, 0.0, 1.0, height_m)
-    assert clearing_velocity(floor, height_m, P, FLOOR_MARGIN_M, 0.0) == pytest.approx([P.clearing_speed_m_s, 0, 0])
+    assert clearing_azimuth_rad(wide, height_m, P, FLOOR_MARGIN_M, math.pi / 2) == pytest.approx(math.pi / 2)
+    guard = math.radians(15)
+    # all seen and free: away from it wins
+    free = np.full(72, np.inf)
+    az = clearing_azimuth_rad(desk, height_m, P, FLOOR_MARGIN_M, 0.0, free, guard)
+    assert math.cos(az - math.pi) > 0.99
+    # behind unseen (150-210 deg): of the seen ways, the free one farthest from the desk (+-90 deg)
+    sectors = free.copy()
+    sectors[30:43] = np.nan
+    az = clearing_azimuth_rad(desk, height_m, P, FLOOR_MARGIN_M, 0.0, sectors, guard)
+    assert abs(math.cos(az)) < 0.6 and not 150 <= math.degrees(az) % 360 <= 210
+    # and a wall 0.5 m to the left (-90 deg): to the right
+    sectors[54:66] = 0.5
+    az = clearing_azimuth_rad(desk, height_m, P, FLOOR_MARGIN_M, 0.0, sectors, guard)
+    assert math.sin(az) > 0.7
+    # nothing seen at all: the camera's axis
+    assert clearing_azimuth_rad(desk, height_m, P, FLOOR_MARGIN_M, 0.3, np.full(72, np.nan), guard) == 0.3
 
 
 def test_the_memory_keeps_a_desk_the_map_forgot_in_the_world_frame() -> None:
@@ -88,9 +99,9 @@ def test_the_memory_keeps_a_desk_the_map_forgot_in_the_world_frame() -> None:
     away = pos + np.array([0.4 + 0.4 + P.footprint_radius_m + 0.1, 0.0, 0.0])
     assert object_below(mem.points_h(away, yaw, height_m), height_m, P, FLOOR_MARGIN_M) is None
     # and the way off points away from it
-    v = clearing_velocity(mem.points_h(pos + np.array([0.3, 0.0, 0.0]), 0.0, height_m), height_m, P,
-                          FLOOR_MARGIN_M, fallback_yaw_rad=math.pi)
-    assert v[0] > 0.9 * P.clearing_speed_m_s
+    az = clearing_azimuth_rad(mem.points_h(pos + np.array([0.3, 0.0, 0.0]), 0.0, height_m), height_m, P,
+                              FLOOR_MARGIN_M, fallback_yaw_rad=math.pi)
+    assert math.cos(az) > 0.9
     assert mem.points_h(None, yaw, height_m).shape == (0, 3) and mem.points_h(pos, yaw, None).shape == (0, 3)
     mem.clear()
     assert len(mem) == 0
