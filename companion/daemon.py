@@ -61,7 +61,7 @@ from companion.guard import ErrorCounter, non_finite_fields
 from companion.height import HeightParams
 from companion.imu_clock import ImuClock, imu_sample
 from companion.interfaces import ImageSink, MavLink, Pipeline, PipelineFactory, default_pipeline_factory
-from companion.landing_spot import BelowMemory, clearing_azimuth_rad, clearing_velocity, object_below
+from companion.landing_spot import BelowMemory, clearing_azimuth_rad, clearing_command, object_below
 from companion.link_reader import CodecReader
 from companion.modes import AutopilotRequest, Mode, ModeMachine, StatusText
 from companion.motion import Motion
@@ -310,22 +310,25 @@ class Companion:
                              self.ref_params.floor_margin_m)
         return None if below is None else below.refusal()
 
-    def _clearing_velocity(self, out: Any | None) -> NDArray[np.float64] | None:
-        """While a failsafe landing moves clear of an object below (companion.modes), the command that does: the
-        way off is chosen once and kept in the odometry's world (the vehicle may yaw meanwhile)."""
+    def _clearing_command(self, out: Any | None) -> tuple[NDArray[np.float64], float] | None:
+        """While a failsafe landing moves clear of an object below (companion.modes), the command that does it
+        (velocity in H, yaw rate): the way off is chosen once and kept in the odometry's world; the vehicle turns
+        its camera to it first and moves only while it looks that way (in HOLD nothing pan-scans, and a way the
+        camera does not look at becomes unseen, where the reference flies nothing: a re-flown campaign flight
+        held 15 s over a box)."""
         if not self.modes.clearing_spot:
             self._clearing_world_az = None
             return None
         yaw = float(out.yaw_rad) if out is not None and out.odometry_ok and math.isfinite(out.yaw_rad) else None
-        if self._clearing_world_az is None or yaw is None:
-            sectors, _, offset_deg = msgs.sector_arrays(None if out is None else out.sectors)
+        if out is None or yaw is None:   # no pose: hold (the failsafe lands after its timeout)
+            return np.zeros(3), 0.0
+        if self._clearing_world_az is None:
+            sectors, _, offset_deg = msgs.sector_arrays(out.sectors)
             az_h = clearing_azimuth_rad(self._points_below(), self._height_above_floor_m(), self.landing_spot,
                                         self.ref_params.floor_margin_m, camera_yaw_rad(self.state.R_qc), sectors,
                                         self.ref_params.unknown_sector_guard_rad, math.radians(offset_deg))
-            if yaw is None:
-                return clearing_velocity(az_h, self.landing_spot)
             self._clearing_world_az = yaw + az_h
-        return clearing_velocity(self._clearing_world_az - yaw, self.landing_spot)
+        return clearing_command(self._clearing_world_az - yaw, camera_yaw_rad(self.state.R_qc), self.landing_spot)
 
     # ------------------------------------------------------------------ the pipeline at camera rate
     def _process_frame(self, frame: RgbdFrame) -> None:
@@ -350,13 +353,13 @@ class Companion:
         cmd = self.motion.command(self._pose())
         op = self.motion.operator_of(cmd)
         scripted = cmd.source == Source.SCRIPT
-        clearing = self._clearing_velocity(out)
-        v_command = clearing if clearing is not None else cmd.v_h_m_s if scripted else None
+        clearing = self._clearing_command(out)
+        v_command = clearing[0] if clearing is not None else cmd.v_h_m_s if scripted else None
         ob = self.cfg.obstacles
         step = frame_step(out, op, st.R_qc, st.scan(self.modes.mode, stamp, self.scan_params), self.ref_params,
                           self.modes.operator_enabled or clearing is not None, ob.allow_unknown_when_fresh,
                           v_command_h_m_s=v_command,
-                          command_yaw_rate_rad_s=0.0 if clearing is not None else cmd.yaw_rate_rad_s,
+                          command_yaw_rate_rad_s=clearing[1] if clearing is not None else cmd.yaw_rate_rad_s,
                           height_above_takeoff_m=height,
                           height_verified=st.height.verified(stamp), command_into_unknown=ob.scripts_into_unknown)
         st.on_step(step)

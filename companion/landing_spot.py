@@ -117,10 +117,21 @@ def clearing_azimuth_rad(points_h_m: ArrayLike | None, height_m: float | None, p
     return best
 
 
-def clearing_velocity(azimuth_rad: float, params: LandingSpotParams) -> NDArray[np.float64]:
-    """The clearing command in H along ``azimuth_rad`` at ``clearing_speed_m_s``."""
+CLEARING_LOOK_RAD = math.radians(20.0)   # the camera this close to the way off: move
+CLEARING_YAW_GAIN_PER_S = 1.0
+CLEARING_MAX_YAW_RATE_RAD_S = 0.5
+
+
+def clearing_command(azimuth_rad: float, camera_yaw_rad: float, params: LandingSpotParams
+                     ) -> tuple[NDArray[np.float64], float]:
+    """The clearing command in H (velocity, yaw rate) along ``azimuth_rad``: turn the camera (at
+    ``camera_yaw_rad`` in H) toward it, and move at ``clearing_speed_m_s`` once it looks within 20 deg of it."""
+    error = (azimuth_rad - camera_yaw_rad + math.pi) % (2.0 * math.pi) - math.pi
+    yaw_rate = max(-CLEARING_MAX_YAW_RATE_RAD_S, min(CLEARING_MAX_YAW_RATE_RAD_S, CLEARING_YAW_GAIN_PER_S * error))
+    if abs(error) > CLEARING_LOOK_RAD:
+        return np.zeros(3), yaw_rate
     return np.array([params.clearing_speed_m_s * math.cos(azimuth_rad),
-                     params.clearing_speed_m_s * math.sin(azimuth_rad), 0.0])
+                     params.clearing_speed_m_s * math.sin(azimuth_rad), 0.0]), yaw_rate
 
 
 def object_below(points_h_m: ArrayLike | None, height_m: float | None, params: LandingSpotParams,

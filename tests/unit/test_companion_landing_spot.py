@@ -11,7 +11,7 @@ from companion.landing_spot import (
     BelowMemory,
     LandingSpotParams,
     clearing_azimuth_rad,
-    clearing_velocity,
+    clearing_command,
     object_below,
 )
 
@@ -60,7 +60,10 @@ def test_the_way_off_is_seen_free_space_away_from_the_object() -> None:
     desk = _top(0.5, 0.0, 0.8, height_m - 0.75)     # a desk's top ahead, under the front of the vehicle
     az = clearing_azimuth_rad(desk, height_m, P, FLOOR_MARGIN_M, fallback_yaw_rad=1.0)   # no sectors known
     assert az == pytest.approx(math.pi)              # straight back, off its near edge
-    assert clearing_velocity(az, P) == pytest.approx([-P.clearing_speed_m_s, 0.0, 0.0], abs=1e-9)
+    v, yaw_rate = clearing_command(az, camera_yaw_rad=math.pi / 4, params=P)   # the camera looks 45 deg right
+    assert v == pytest.approx([0.0, 0.0, 0.0]) and yaw_rate == pytest.approx(0.5)   # turns (135 deg right) first
+    v, yaw_rate = clearing_command(az, camera_yaw_rad=math.pi - 0.2, params=P)   # looking nearly that way
+    assert v == pytest.approx([-P.clearing_speed_m_s, 0.0, 0.0], abs=1e-9) and yaw_rate == pytest.approx(0.2)
     wide = _top(0.0, 0.0, 2.0, height_m - 0.75)     # over the middle of a wide table: the camera's way
     assert clearing_azimuth_rad(wide, height_m, P, FLOOR_MARGIN_M, math.pi / 2) == pytest.approx(math.pi / 2)
     guard = math.radians(15)
