@@ -138,7 +138,15 @@ class CommanderService:
             elif s.in_air:
                 s.event(mavlink.MAV_SEVERITY_CRITICAL, "Odometry lost: level hold, descending")
                 s.failsafe_reason = "odometry lost"
-                s.v_h_dead_reckoned[2] = float(self.offboard.v_est_h(now_s)[2])
+                vz = float(self.offboard.v_est_h(now_s)[2])
+                s.v_h_dead_reckoned[2] = vz
+                # after the brake, the descent is the blind one (firmware_bridge.flight_control._blind_step):
+                # thrust capped at the hover thrust, a probe, and the touchdown on ground contact. The leaky
+                # dead reckoning alone read an accelerometer bias of 0.2 m/s^2 as 0.6 m/s of descent, and the
+                # level descent on it climbed (a campaign flight, 2.4 m to 0.10 m of the ceiling)
+                s.vertical.align(s.height_m, vz)
+                s.blind = True
+                s.blind_descent = None
                 s.odom_lost_s = now_s
                 self.set_mode(FlightMode.LAND, now_s, "odometry lost")
             else:

@@ -84,12 +84,9 @@ class FlightControlService:
             return self._board(BoardCommand(0.0, 0.0, 0.0, 0.0, True))
         s.on_ground_armed_since_s = None
 
-        # ---- no odometry yet in this flight: take-off phase 1, or the landing that ends it
-        if s.blind and not s.odom_ok and not (s.mode == FlightMode.OFFBOARD and s.att_sp is not None):
-            return self._blind_step(now_s, dt, est)
-
-        # ---- odometry lost in the air: brake the slide on the IMU's dead reckoning for ODOM_LOST_BRAKE_S,
-        # then level attitude hold; descend on the IMU's vertical speed throughout
+        # ---- no odometry: take-off phase 1, or the landing that ends it (no odometry yet in this flight), or
+        # odometry lost in the air: first brake the slide on the IMU's dead reckoning for ODOM_LOST_BRAKE_S, then
+        # the same blind descent (level, thrust capped at hover, touchdown on ground contact)
         if not s.odom_ok and not (s.mode == FlightMode.OFFBOARD and s.att_sp is not None):
             v_ref = np.array([0.0, 0.0, s.params["MPC_LAND_SPEED"]])
             # not while resting on something: thrust below the touchdown test's (campaign 4, flight 14 sat in LAND
@@ -98,6 +95,8 @@ class FlightControlService:
             braking = s.odom_lost_s is not None and now_s - s.odom_lost_s < ODOM_LOST_BRAKE_S and not resting
             if resting:
                 s.odom_lost_s = None   # no brake later in this loss either
+            if s.blind and not braking:
+                return self._blind_step(now_s, dt, est)
             v_est = s.v_h_dead_reckoned.copy()
             if not (braking and np.all(np.isfinite(v_est[:2]))):
                 v_est[:2] = 0.0
