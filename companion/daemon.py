@@ -65,6 +65,7 @@ from companion.landing_spot import BelowMemory, clearing_azimuth_rad, clearing_c
 from companion.link_reader import CodecReader
 from companion.modes import AutopilotRequest, Mode, ModeMachine, StatusText
 from companion.motion import Motion
+from companion.obstacle_points import select_points
 from companion.operator_input import camera_yaw_rad
 from companion.outbound import AutopilotAck, GcsReply, Outbox, Output, ToAutopilot
 from companion.pan_scan import PanScanParams
@@ -304,6 +305,20 @@ class Companion:
         remembered = self.below.points_h(out.position_m, out.yaw_rad, self._height_above_floor_m())
         return np.vstack([np.asarray(out.obstacle_points_h_m, dtype=float).reshape(-1, 3), remembered])
 
+    def _failsafe_refusal(self) -> str | None:
+        """What keeps a failsafe landing from coming down here and moves it clear first (companion.modes): an
+        object below, while the vehicle has room to move — no map point at its height (the avoidance's band)
+        within the influence distance. With less room it lands where it is, on the object: a clearing move is
+        motion nobody commanded, and next to an obstacle the camera's blind zone can hide it (campaign 6, flight
+        6: a clearing move from 0.41 m of an obstacle the map read at 0.46 m came to 0.19 m of it)."""
+        out = self.state.last_output
+        ref = self.ref_params
+        beside = select_points(None if out is None else out.obstacle_points_h_m, ref, self._height_above_floor_m(),
+                               ref.influence_distance_m)
+        if out is None or beside.shape[0] > 0:
+            return None
+        return self._land_refusal()
+
     def _land_refusal(self) -> str | None:
         """Why the spot under the vehicle is no place to land (an object seen below it), or None."""
         below = object_below(self._points_below(), self._height_above_floor_m(), self.landing_spot,
@@ -349,7 +364,7 @@ class Companion:
         elif out is not None and out.odometry_ok:
             self.below.observe(out.obstacle_points_h_m, self._height_above_floor_m(), self.ref_params.floor_margin_m,
                                out.position_m, out.yaw_rad)
-        self._emit(self.modes.update(self.clock(), self.vehicle.status(), st.odometry_ok, self._land_refusal()))
+        self._emit(self.modes.update(self.clock(), self.vehicle.status(), st.odometry_ok, self._failsafe_refusal()))
         cmd = self.motion.command(self._pose())
         op = self.motion.operator_of(cmd)
         scripted = cmd.source == Source.SCRIPT
@@ -411,7 +426,7 @@ class Companion:
             # motion source is the arbiter's business (it holds), not a lost link
             self.modes.on_manual_control(now)
         self.modes.on_motion_command(self.arbiter.last_command_s)   # a live link alone keeps no vehicle flying
-        self._emit(self.modes.update(now, self.vehicle.status(), self.state.odometry_ok, self._land_refusal()))
+        self._emit(self.modes.update(now, self.vehicle.status(), self.state.odometry_ok, self._failsafe_refusal()))
         self._emit(self.autopilot_input.poll_commands(now, self.sysid, self.ap_compid))
         for task in self.tasks.due(now, camera_silent, ImuClock.silent(now, self.time.imu_wall_s)):
             self._run_task(task, now)
