@@ -228,3 +228,28 @@ def test_an_unverified_height_never_climbs_toward_a_ceiling_but_still_descends()
     assert changed and v[2] == 0.0
     # no ceiling configured: nothing to verify against
     assert vertical_limits(1.2, 0.0, VerticalParams(), height_verified=False).max_climb_m_s == float("inf")
+
+
+def test_the_slide_a_push_makes_along_a_wall_never_goes_where_the_map_has_not_looked() -> None:
+    """CI's corner push: the projection turned the operator's push into a slide along the wall, toward where the
+    camera (45 deg right of the nose) had not looked for 20 s, and the wall there, forgotten, came to 0.39 m. The
+    slide is held back from unseen sectors (the forward push itself keeps allow_unknown_when_fresh)."""
+    params = ReferenceParams(repulsion_gain_m3_s=0.0, stopping_time_s=0.0)
+    s = np.linspace(-2.0, 2.0, 81)
+    wall = np.column_stack([0.6 + 0.5 * s, s, np.zeros_like(s)])       # oblique, 0.51 m from the vehicle
+    op = OperatorInput(qx=1.0)
+    free = np.full(72, np.inf)
+    out = reference_velocity(op, R_QC_FORWARD, NO_SCAN, wall, params, sectors_m=free)
+    v = out.v_ref_h_m_s
+    slide_deg = math.degrees(math.atan2(v[1], v[0]))
+    assert np.hypot(v[0], v[1]) > 0.05 and out.constrained       # slid along the wall, toward -y (left)
+    unseen = free.copy()
+    k = int(round((slide_deg % 360) / 5.0))
+    unseen[[(k + j) % 72 for j in range(-4, 5)]] = np.nan         # the slide's direction never looked at
+    v = reference_velocity(op, R_QC_FORWARD, NO_SCAN, wall, params, sectors_m=unseen).v_ref_h_m_s
+    assert np.hypot(v[0], v[1]) < 1e-9
+    # inside the safe distance the back-out is never held back
+    near = wall - np.array([0.2, 0.0, 0.0])                          # 0.31 m away
+    v = reference_velocity(OperatorInput(), R_QC_FORWARD, NO_SCAN, near, params,
+                           sectors_m=np.full(72, np.nan)).v_ref_h_m_s
+    assert v[0] < -0.05
