@@ -364,7 +364,7 @@ class Companion:
         elif out is not None and out.odometry_ok:
             self.below.observe(out.obstacle_points_h_m, self._height_above_floor_m(), self.ref_params.floor_margin_m,
                                out.position_m, out.yaw_rad)
-        self._emit(self.modes.update(self.clock(), self.vehicle.status(), st.odometry_ok, self._failsafe_refusal()))
+        self._emit(self.modes.update(self.clock(), self.vehicle.status(), st.odometry_ok, self._failsafe_refusal))
         cmd = self.motion.command(self._pose())
         op = self.motion.operator_of(cmd)
         scripted = cmd.source == Source.SCRIPT
@@ -426,7 +426,7 @@ class Companion:
             # motion source is the arbiter's business (it holds), not a lost link
             self.modes.on_manual_control(now)
         self.modes.on_motion_command(self.arbiter.last_command_s)   # a live link alone keeps no vehicle flying
-        self._emit(self.modes.update(now, self.vehicle.status(), self.state.odometry_ok, self._failsafe_refusal()))
+        self._emit(self.modes.update(now, self.vehicle.status(), self.state.odometry_ok, self._failsafe_refusal))
         self._emit(self.autopilot_input.poll_commands(now, self.sysid, self.ap_compid))
         for task in self.tasks.due(now, camera_silent, ImuClock.silent(now, self.time.imu_wall_s)):
             self._run_task(task, now)

@@ -37,6 +37,7 @@ and reports failures back with :meth:`ModeMachine.on_request_failed`).
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from enum import IntEnum
 
@@ -101,6 +102,7 @@ SEVERITY_NOTICE = 5
 SEVERITY_INFO = 6
 
 Action = AutopilotRequest | StatusText
+LandRefusal = str | None | Callable[[], str | None]
 GCS_REQUESTS = ("arm", "disarm", "takeoff", "land")
 
 
@@ -198,10 +200,12 @@ class ModeMachine:
         return [text]
 
     # --- the periodic step ------------------------------------------------------------------
-    def _failsafe_land(self, now_s: float, reason: str, land_refusal: str | None, can_move: bool) -> list[Action]:
+    def _failsafe_land(self, now_s: float, reason: str, land_refusal: LandRefusal, can_move: bool) -> list[Action]:
         """A failsafe landing: at once, or first moving clear of an object below (``land_refusal``: why the
         spot is no place to land) while ``can_move`` and for at most ``land_clear_timeout_s``."""
         p = self.params
+        if callable(land_refusal):
+            land_refusal = land_refusal()
         if land_refusal is not None and can_move and self._clearing_since_s is None:
             actions = [] if self.mode == Mode.HOLD else self._go(Mode.HOLD, now_s, reason, SEVERITY_WARNING)
             self._clearing_since_s, self._clear_since_s = now_s, None
@@ -219,9 +223,10 @@ class ModeMachine:
         return [AutopilotRequest("land")] + self._go(Mode.LAND, now_s, reason, SEVERITY_CRITICAL)
 
     def update(self, now_s: float, status: VehicleStatus, odometry_ok: bool,
-               land_refusal: str | None = None) -> list[Action]:
+               land_refusal: LandRefusal = None) -> list[Action]:
         """The periodic step; ``land_refusal``: why the spot below the vehicle is no place to land, if it is not
-        (a failsafe landing then moves clear first)."""
+        (a failsafe landing then moves clear first), or a function giving it, asked only when a failsafe landing
+        is due (the daemon's looks at the whole map: not on every frame)."""
         p = self.params
         actions: list[Action] = []
         gcs_ok = self._last_manual_s is not None and now_s - self._last_manual_s <= p.gcs_timeout_s
