@@ -33,6 +33,7 @@ from companion.interfaces import MavLink
 from companion.modes import AutopilotRequest, StatusText
 from companion.stats import Stats
 from quadlink.mavlink import mavlink
+from quadlink.mavlink.statustext import ChunkIds, statustext_messages
 
 log = logging.getLogger("companion.daemon")
 
@@ -75,6 +76,7 @@ class Outbox:
         self.codec.robust_parsing = True
         self.gcs_codec = mavlink.MAVLink(None, sysid, compid)   # packs (and signs) for ground stations
         self._ap_codec = mavlink.MAVLink(None, sysid, ap_compid)   # replies made for the autopilot
+        self.statustext_ids = ChunkIds()
 
     def set_system_id(self, sysid: int) -> None:
         """The vehicle's system id, learned from the autopilot's heartbeat."""
@@ -110,10 +112,12 @@ class Outbox:
         self._send(self.autopilot, msg, self.codec)
 
     def status_text(self, st: StatusText) -> None:
-        """``st`` logged and sent to the ground stations as STATUSTEXT (its text cut to the field's 50 bytes)."""
+        """``st`` logged and sent to the ground stations as STATUSTEXT (a text over the field's 50 bytes in
+        MAVLink 2 chunks)."""
         level = logging.WARNING if st.severity <= mavlink.MAV_SEVERITY_WARNING else logging.INFO
         log.log(level, "%s", st.text)
-        self.to_gcs(mavlink.MAVLink_statustext_message(st.severity, st.text.encode()[:50]))
+        for msg in statustext_messages(st.severity, st.text, self.statustext_ids.next()):
+            self.to_gcs(msg)
 
     def to_gcs(self, msg: Any, src_component: int | None = None) -> None:
         """Pack (signed when configured) and send to the ground stations; ``src_component`` answers for another

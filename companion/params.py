@@ -140,13 +140,12 @@ def _param_id(msg: Any) -> str:
     return raw.split("\x00", 1)[0] if isinstance(raw, str) else ""
 
 
-def refusal_text(name: str, why: str) -> Any:
-    """The STATUSTEXT (warning) that goes with a refused parameter change."""
-    return mavlink.MAVLink_statustext_message(mavlink.MAV_SEVERITY_WARNING,
-                                              f"companion: {name} refused: {why}".encode()[:50])
+def refusal_text(name: str, why: str) -> StatusText:
+    """The STATUSTEXT (warning) that goes with a refused parameter change (sent whole, in chunks if long)."""
+    return StatusText(mavlink.MAV_SEVERITY_WARNING, f"companion: {name} refused: {why}")
 
 
-def handle_param_message(store: ParamStore, msg: Any) -> tuple[list[Any], str | None]:
+def handle_param_message(store: ParamStore, msg: Any) -> tuple[list[Any | StatusText], str | None]:
     """A PARAM_REQUEST_LIST / PARAM_REQUEST_READ / PARAM_SET for this component: (the replies, the name of
     the parameter it changed or None). A PARAM_SET with a bad value or ``param_type`` (not REAL32) is
     answered with the unchanged PARAM_VALUE and a STATUSTEXT; unknown names get no reply (a broadcast
@@ -195,7 +194,7 @@ class ParamService:
         before = self.store.values()
         replies, changed = handle_param_message(self.store, msg)
         out: list[StatusText | GcsReply] = [] if changed is None else [self._changed(changed, before[changed])]
-        return out + [GcsReply(r) for r in replies]
+        return out + [r if isinstance(r, StatusText) else GcsReply(r) for r in replies]
 
     def set(self, name: str, value: float) -> tuple[bool, list[StatusText | GcsReply]]:
         """Set ``name`` by name (not from a ground station): changed?, and the change notice."""

@@ -29,6 +29,7 @@ from firmware_bridge.velocity_tracker import AttitudeCommand, VelocityTracker
 from firmware_bridge.vertical_estimator import VerticalEstimator
 from quadlink.frames import GRAVITY_M_S2
 from quadlink.mavlink import mavlink
+from quadlink.mavlink.statustext import ChunkIds, statustext_messages
 from quadlink.vehicle import VehicleConfig
 
 log = logging.getLogger("firmware_bridge.autopilot")
@@ -137,6 +138,7 @@ class BridgeState:
         self.in_air = False
         self.failsafe_reason: str | None = None
         self.events: list[tuple[int, str]] = []  # (MAV_SEVERITY, text), flushed by tick()/control_step()
+        self.statustext_ids = ChunkIds()         # a text over 50 bytes goes out in chunks
         # board
         self.board_status: BoardStatusLike | None = None
         self.board_status_time_s: float | None = None
@@ -230,10 +232,11 @@ class BridgeState:
 
     def event(self, severity: int, text: str) -> None:
         log.log(logging.WARNING if severity <= mavlink.MAV_SEVERITY_WARNING else logging.INFO, "%s", text)
-        self.events.append((severity, text[:50]))
+        self.events.append((severity, text))
 
     def flush_events(self) -> list[Outbound]:
-        out = [Outbound(self.mav.statustext_encode(sev, text.encode("ascii", "replace"))) for sev, text in self.events]
+        out = [Outbound(m) for sev, text in self.events
+               for m in statustext_messages(sev, text, self.statustext_ids.next())]
         self.events.clear()
         return out
 

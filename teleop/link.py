@@ -10,11 +10,13 @@ from __future__ import annotations
 
 import logging
 import queue
+from dataclasses import replace
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from quadlink.mavlink import mavlink
+from quadlink.mavlink.statustext import StatusTextAssembler
 from quadlink.mavlink.timesync import NS, TimesyncConfig, TimesyncEstimator, answer_fields, is_request, request_fields
 from teleop.commands import OutgoingCommand
 from teleop.delay import link_delay
@@ -53,6 +55,7 @@ class VehicleLink:
         self.cfg = station.cfg
         self.estimator = make_estimator(station.cfg)
         self.sync = TimesyncEstimator(TimesyncConfig(max_rtt_s=TIMESYNC_MAX_RTT_S))
+        self.statustexts = StatusTextAssembler()   # the vehicle's long texts come in chunks
 
     def run(self) -> None:
         st, cfg = self.station, self.cfg
@@ -113,6 +116,14 @@ class VehicleLink:
             if mtype == "TIMESYNC":
                 self._on_timesync(conn, msg)
                 continue
+            if mtype == "STATUSTEXT":
+                text = self.statustexts.add(msg)
+                if text is None:   # a chunk of a longer text
+                    continue
+                tel = replace(tel, last_statustext=text, statustext_t_s=t)
+                if msg.severity <= mavlink.MAV_SEVERITY_WARNING:
+                    log.warning("vehicle says: %s", text)
+                continue
             tel = apply_message(tel, msg, t, ap, cfg.commands.companion_component)
             if mtype == "TELEOP_FEEDBACK" and tel.feedback is not None:
                 self._on_feedback(tel.feedback, t)
@@ -121,8 +132,6 @@ class VehicleLink:
             elif mtype == "PARAM_VALUE":
                 pid = msg.param_id if isinstance(msg.param_id, str) else msg.param_id.decode(errors="ignore")
                 self.station._ack(self.station.commands.on_param_value(pid.rstrip("\x00"), msg.param_value, t))
-            elif mtype == "STATUSTEXT" and msg.severity <= mavlink.MAV_SEVERITY_WARNING:
-                log.warning("vehicle says: %s", tel.last_statustext)
         return tel
 
     def _on_timesync(self, conn: Any, msg: Any) -> None:

@@ -30,6 +30,7 @@ from numpy.typing import NDArray
 
 from quadlink.frames import euler_from_quat_wxyz
 from quadlink.mavlink import mavlink
+from quadlink.mavlink.statustext import StatusTextAssembler
 
 COMPANION_COMPID = 191
 # A process starved for 0.5 s on a loaded 2-core machine reads as a lost operator or ground station (wall
@@ -128,6 +129,7 @@ class FlightLog:
     samples: list[TruthSample] = field(default_factory=list)
     modes: list[tuple[float, int]] = field(default_factory=list)
     statustexts: list[str] = field(default_factory=list)
+    acks: list[tuple[int, int, int]] = field(default_factory=list)   # (command, result, source compid)
 
     def flying(self, min_height_m: float = 0.3) -> list[TruthSample]:
         return [s for s in self.samples if s.clearance.floor_m > min_height_m]
@@ -186,6 +188,7 @@ class Flight:
         self.truth = open_mavlink(f"udpin:127.0.0.1:{p.truth}", 255, 0)
         self.gcs = open_mavlink(f"udpout:127.0.0.1:{p.vehicle}", 255, 190)
         self.log = FlightLog()
+        self._statustexts = StatusTextAssembler()
         self.t_s = 0.0
         self.p_arena = self.geometry.start_ned_m.copy()
         self.yaw_rad = math.radians(self.geometry.scenario.start.yaw_deg)
@@ -246,8 +249,10 @@ class Flight:
                 self.mode, self.flags = m.mode, m.flags
             elif kind == "HEARTBEAT" and m.get_srcComponent() == 1:
                 self.armed = bool(m.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED)
-            elif kind == "STATUSTEXT":
-                self.log.statustexts.append(f"{self.t_s:.1f} {m.text}")
+            elif kind == "STATUSTEXT" and (text := self._statustexts.add(m)) is not None:
+                self.log.statustexts.append(f"{self.t_s:.1f} {text}")
+            elif kind == "COMMAND_ACK":
+                self.log.acks.append((m.command, m.result, m.get_srcComponent()))
 
 
     def heartbeat(self) -> None:

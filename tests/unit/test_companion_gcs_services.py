@@ -29,6 +29,7 @@ from companion.stats import Stats
 from quadlink.errors import QuadlinkError
 from quadlink.mavlink import mavlink
 from quadlink.mavlink.security import SecurityConfig, write_key
+from quadlink.mavlink.statustext import StatusTextAssembler
 from quadlink.px4_modes import AUTO_LOITER, OFFBOARD, POSCTL, Px4MainMode
 
 pytestmark = pytest.mark.unit
@@ -194,9 +195,9 @@ def test_a_parameter_change_is_announced_then_echoed() -> None:
 def test_a_refused_parameter_change_is_echoed_unchanged_without_a_change_notice() -> None:
     svc = params()
     out = svc.on_message(param_set("CMP_K_V", math.nan))
-    assert texts(out) == []
-    value, why = (o.msg for o in out if isinstance(o, GcsReply))
-    assert value.param_value == pytest.approx(0.6) and b"refused" in why.text.encode()
+    (value,) = (o.msg for o in out if isinstance(o, GcsReply))
+    (why,) = texts(out)     # a warning saying why (not a change notice)
+    assert value.param_value == pytest.approx(0.6) and why.startswith("companion: CMP_K_V refused: ")
     assert len(svc.on_message(wire(mavlink.MAVLink_param_request_list_message(SYSID, COMPID)))) == len(PARAM_NAMES)
 
 
@@ -411,12 +412,19 @@ def test_the_operator_input_reaches_the_reference_only_while_its_command_is_fres
     assert all(t.text.startswith("companion: ") for t in told)
 
 
-def test_a_status_text_is_sent_cut_to_its_field() -> None:
+def test_a_long_status_text_is_sent_in_chunks_a_ground_station_reassembles() -> None:
     gcs = MemLink()
-    Outbox(MemLink(), gcs, SYSID, COMPID, AP_COMPID, ErrorCounter(Clock()), Stats(), None, lambda: 0.0).status_text(
-        StatusText(mavlink.MAV_SEVERITY_WARNING, "companion: " + "x" * 60))
-    (msg,) = map(parsed, gcs.sent)
-    assert msg.get_type() == "STATUSTEXT" and msg.severity == mavlink.MAV_SEVERITY_WARNING and len(msg.text) == 50
+    box = Outbox(MemLink(), gcs, SYSID, COMPID, AP_COMPID, ErrorCounter(Clock()), Stats(), None, lambda: 0.0)
+    text = "companion: " + "x" * 60
+    box.status_text(StatusText(mavlink.MAV_SEVERITY_WARNING, text))
+    box.status_text(StatusText(mavlink.MAV_SEVERITY_INFO, "companion: short"))
+    msgs = list(map(parsed, gcs.sent))
+    assert [m.get_type() for m in msgs] == ["STATUSTEXT"] * 3
+    assert [(m.chunk_seq, m.severity) for m in msgs[:2]] == [(0, mavlink.MAV_SEVERITY_WARNING),
+                                                             (1, mavlink.MAV_SEVERITY_WARNING)]
+    assert msgs[0].id == msgs[1].id != 0 and msgs[2].id == 0
+    asm = StatusTextAssembler()
+    assert [asm.add(m) for m in msgs] == [None, text, "companion: short"]
 
 
 # ---- companion.outbound ------------------------------------------------------------------------------------

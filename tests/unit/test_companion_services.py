@@ -9,6 +9,7 @@ from typing import Any
 import pytest
 
 from companion.config import PanScanConfig
+from companion.modes import StatusText
 from companion.params import PARAM_NAMES, CompanionParams, handle_param_message, set_by_index
 from companion.recording import FrameRecording
 from companion.reference_params import ReferenceParams
@@ -97,8 +98,9 @@ def test_params_validate_and_the_protocol_answers() -> None:
         p, mavlink.MAVLink_param_set_message(1, ME, b"CMP_K_PSI", -2.0, mavlink.MAV_PARAM_TYPE_REAL32))
     # refused: the unchanged value goes back (the sender's retries end) with a STATUSTEXT saying why
     assert changed is None and p.reference.k_psi_rad_s == pytest.approx(0.5)
-    assert [r.get_type() for r in replies] == ["PARAM_VALUE", "STATUSTEXT"]
+    assert replies[0].get_type() == "PARAM_VALUE" and isinstance(replies[1], StatusText) and len(replies) == 2
     assert replies[0].param_id == "CMP_K_PSI" and replies[0].param_value == pytest.approx(0.5)
+    assert replies[1].text.startswith("companion: CMP_K_PSI refused: ") and len(replies[1].text) > 35
 
 
 def test_periodic_tasks_run_in_order_and_the_conditional_ones_only_while_their_condition_holds() -> None:
