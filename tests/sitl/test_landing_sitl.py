@@ -1,0 +1,178 @@
+"""Issue 14 in the SITL: where the vehicle lands. A low box (0.4 m tall, textured) stands in an open room; the
+vehicle flies over it at its take-off height (0.7 m above the box top: outside the safe distance, so it passes
+over) and is told to land there.
+
+* A ground station's LAND over the box is refused (COMMAND_ACK DENIED and a STATUSTEXT), sent to the companion
+  (pymavlink, compid 191) and sent to the autopilot by MAVSDK's ``action.land()`` (both APIs, unmodified), which
+  the companion intercepts while it flies the vehicle. The vehicle stays in the air. Moved off the box, the same
+  LAND is accepted and the vehicle lands on the floor.
+* A failsafe landing over the box (the operator's MANUAL_CONTROL stops; heartbeats go on) first moves clear of
+  it and lands on the floor.
+
+Where the vehicle ends up is judged from the SITL's truth and the scenario's geometry, not from the companion.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import os
+import threading
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+import yaml
+from flight_harness import MODE_TELEOP, Flight, flight
+
+from quadlink.mavlink import mavlink
+
+pytestmark = [pytest.mark.sitl, pytest.mark.timeout(900)]
+
+OFFSET = 5000 + (os.getpid() % 20) * 20
+BOX_CENTRE_XY_M = np.array([1.4, 0.0])
+BOX_HALF_M = 0.4          # 0.8 m x 0.8 m, 0.4 m tall
+MIN_CLEARANCE_M = 0.40
+LANDED_ABOVE_FLOOR_M = 0.15   # the body centre rests 0.1 m above the floor on its gear; on the box: 0.5 m
+
+
+def _scenario(tmp_path: Path) -> str:
+    """An 8 m x 8 m room, the start 2.4 m south of the box, the camera facing it."""
+    scenario = {
+        "name": "low-box", "description": "a low box in an open room (tests/sitl/test_landing_sitl.py)",
+        "room": {"size_m": [8.0, 8.0], "height_m": 3.0, "floor_texture": "carpet", "wall_texture": "concrete"},
+        # the operator's forward (the pan-scan's mean camera axis, 67.5 deg right of the start yaw) at the box
+        "start": {"position_m": [-1.0, 0.0], "yaw_deg": -67.5},
+        "objects": [{"kind": "box", "name": "low-box", "position_m": [float(BOX_CENTRE_XY_M[0]), 0.0, -0.2],
+                     "size_m": [2 * BOX_HALF_M, 2 * BOX_HALF_M, 0.4], "texture": "checker",
+                     "color": [0.85, 0.75, 0.4]}],
+    }
+    path = tmp_path / "low-box.yaml"
+    path.write_text(yaml.safe_dump(scenario))
+    return str(path)
+
+
+def _over_box(p_arena_ned_m: np.ndarray) -> bool:
+    return bool(np.all(np.abs(p_arena_ned_m[:2] - BOX_CENTRE_XY_M) <= BOX_HALF_M))
+
+
+def _fly_over_the_box(f: Flight) -> None:
+    f.take_off()
+    f.run_for(2.0, lambda: f.manual(0))
+    f.run_for(30.0, lambda: f.manual(400), until=lambda: f.p_arena[0] >= BOX_CENTRE_XY_M[0] - 0.1)
+    f.run_for(4.0, lambda: f.manual(0))
+    assert _over_box(f.p_arena), f"not over the box: at {f.p_arena.round(2)}"
+    assert -f.p_arena[2] > 0.9, f"flying at {-f.p_arena[2]:.2f} m"
+
+
+def _land_ack(f: Flight, target_compid: int, timeout_s: float = 5.0) -> int:
+    """NAV_LAND from the harness's ground station; the result of its COMMAND_ACK."""
+    n = len(f.log.acks)
+    f.gcs.mav.command_long_send(1, target_compid, mavlink.MAV_CMD_NAV_LAND, 0, 0, 0, 0, 0, 0, 0, 0)
+    f.run_for(timeout_s, lambda: f.manual(0),
+              until=lambda: any(a[0] == mavlink.MAV_CMD_NAV_LAND for a in f.log.acks[n:]))
+    acks = [a for a in f.log.acks[n:] if a[0] == mavlink.MAV_CMD_NAV_LAND]
+    assert acks, f"no COMMAND_ACK for NAV_LAND to compid {target_compid}"
+    return acks[0][1]
+
+
+def _mavsdk_land(f: Flight, api: str) -> str:
+    """MAVSDK's ``action.land()`` (a LAND to the autopilot) from a second ground station: its result's name."""
+    url = f"udpout://127.0.0.1:{f.ports.vehicle}"
+    seen: dict[str, Any] = {}
+
+    async def native() -> str:
+        from mavsdk.asyncio import ComponentType, Configuration, Mavsdk
+        from mavsdk.asyncio.plugins.action.action import ActionAsync, ActionError
+
+        async with Mavsdk(Configuration.create_with_component_type(ComponentType.GROUND_STATION)) as m:
+            await m.add_any_connection(url)
+            system = await m.first_autopilot(timeout_s=30.0)
+            assert system is not None, "MAVSDK did not find the vehicle behind the companion"
+            try:
+                await ActionAsync(system).land()
+            except ActionError as exc:
+                return str(exc)
+            return "SUCCESS"
+
+    async def classic() -> str:
+        from mavsdk_grpc import System
+        from mavsdk_grpc.action import ActionError
+
+        drone = System(port=31000 + os.getpid() % 400)
+        await drone.connect(system_address=url)
+        async for state in drone.core.connection_state():
+            if state.is_connected:
+                break
+        try:
+            await drone.action.land()
+        except ActionError as exc:
+            return str(exc)
+        return "SUCCESS"
+
+    def target() -> None:
+        try:
+            seen["result"] = asyncio.run(asyncio.wait_for(native() if api == "native" else classic(), 120.0))
+        except BaseException as exc:  # reported to the test thread
+            seen["error"] = exc
+
+    thread = threading.Thread(target=target, daemon=True)
+    thread.start()
+    while thread.is_alive():   # the harness's operator holds the vehicle meanwhile
+        f.run_for(0.5, lambda: f.manual(0), wall_s=1.0)
+    if "error" in seen:
+        raise seen["error"]
+    return str(seen["result"])
+
+
+def _assert_landed_on_the_floor(f: Flight, since_s: float) -> None:
+    f.run_for(60.0, None, until=lambda: not f.armed and -f.p_arena[2] < LANDED_ABOVE_FLOOR_M)
+    f.run_for(1.0, None)
+    print(f"landed at {f.p_arena.round(2)}; {f.log.summary(since_s)}; status: {f.log.statustexts[-6:]}")
+    assert not f.armed, f"not disarmed; at {f.p_arena.round(2)}"
+    assert -f.p_arena[2] < LANDED_ABOVE_FLOOR_M, f"rests {-f.p_arena[2]:.2f} m up, at {f.p_arena.round(2)}"
+    assert not _over_box(f.p_arena)
+    s = f.log.min_surface(since_s)
+    assert s is not None and s.clearance.surface_m >= MIN_CLEARANCE_M, f.log.summary(since_s)
+
+
+def test_a_ground_station_land_over_a_box_is_refused_and_accepted_beside_it(tmp_path: Path) -> None:
+    with flight(tmp_path, scenario=_scenario(tmp_path), offset=OFFSET) as f:
+        _fly_over_the_box(f)
+        t0 = f.t_s
+        assert _land_ack(f, 191) == mavlink.MAV_RESULT_DENIED
+        assert any("land refused: object below" in t for t in f.log.statustexts), f.log.statustexts[-5:]
+        results = {}
+        if _has("mavsdk.asyncio"):
+            results["native"] = _mavsdk_land(f, "native")
+        if _has("mavsdk_grpc"):
+            results["classic"] = _mavsdk_land(f, "classic")
+        print(f"MAVSDK action.land() over the box: {results}")
+        assert results, "no MAVSDK API installed"
+        assert all("DENIED" in r.upper() for r in results.values()), results
+        f.run_for(3.0, lambda: f.manual(0))
+        assert f.armed and -f.p_arena[2] > 0.9 and _over_box(f.p_arena), f"did not stay up: {f.p_arena.round(2)}"
+        assert f.mode == MODE_TELEOP
+        # off the box (its far edge at x = 1.8 m; the footprint 0.4 m): the same landing is accepted
+        f.run_for(30.0, lambda: f.manual(400), until=lambda: f.p_arena[0] >= 2.6)
+        f.run_for(3.0, lambda: f.manual(0))
+        assert _land_ack(f, 191) == mavlink.MAV_RESULT_ACCEPTED
+        _assert_landed_on_the_floor(f, t0)
+
+
+def test_a_failsafe_landing_over_a_box_moves_clear_first(tmp_path: Path) -> None:
+    with flight(tmp_path, scenario=_scenario(tmp_path), offset=OFFSET + 10) as f:
+        _fly_over_the_box(f)
+        t0 = f.t_s
+        f.run_for(120.0, None, until=lambda: not f.armed)   # the operator stops; heartbeats go on
+        _assert_landed_on_the_floor(f, t0)
+        assert any("clear" in t.lower() for t in f.log.statustexts), f.log.statustexts[-8:]
+
+
+def _has(module: str) -> bool:
+    import importlib.util
+
+    try:
+        return importlib.util.find_spec(module) is not None
+    except ModuleNotFoundError:
+        return False
