@@ -61,7 +61,7 @@ from companion.guard import ErrorCounter, non_finite_fields
 from companion.height import HeightParams
 from companion.imu_clock import ImuClock, imu_sample
 from companion.interfaces import ImageSink, MavLink, Pipeline, PipelineFactory, default_pipeline_factory
-from companion.landing_spot import BelowMemory, clearing_azimuth_rad, clearing_command, object_below
+from companion.landing_spot import BelowMemory, clearing_azimuth_rad, clearing_command, object_below, room_to_clear
 from companion.link_reader import CodecReader
 from companion.modes import AutopilotRequest, Mode, ModeMachine, StatusText
 from companion.motion import Motion
@@ -307,17 +307,36 @@ class Companion:
 
     def _failsafe_refusal(self) -> str | None:
         """What keeps a failsafe landing from coming down here and moves it clear first (companion.modes): an
-        object below, while the vehicle has room to move — no map point at its height (the avoidance's band)
-        within the influence distance. With less room it lands where it is, on the object: a clearing move is
-        motion nobody commanded, and next to an obstacle the camera's blind zone can hide it (campaign 6, flight
-        6: a clearing move from 0.41 m of an obstacle the map read at 0.46 m came to 0.19 m of it)."""
+        object below, while the vehicle has room to move along the way off it would take
+        (:func:`companion.landing_spot.room_to_clear`: nothing of the avoidance's band within the influence
+        distance ahead of it, nothing inside the safe distance anywhere). With less room it lands where it is, on
+        the object: a clearing move is motion nobody commanded. The way off is chosen here, once, and flown by
+        :meth:`_clearing_command`."""
         out = self.state.last_output
-        ref = self.ref_params
-        beside = select_points(None if out is None else out.obstacle_points_h_m, ref, self._height_above_floor_m(),
-                               ref.influence_distance_m)
-        if out is None or beside.shape[0] > 0:
+        if out is None:
             return None
-        return self._land_refusal()
+        refusal = self._land_refusal()
+        if refusal is None:
+            return None
+        az_h = self._clearing_azimuth_h(out)
+        if az_h is None:
+            return None
+        ref = self.ref_params
+        band = select_points(out.obstacle_points_h_m, ref, self._height_above_floor_m(), ref.influence_distance_m)
+        return refusal if room_to_clear(band, az_h, ref.influence_distance_m, ref.safe_distance_m - 0.05) else None
+
+    def _clearing_azimuth_h(self, out: Any) -> float | None:
+        """The way off an object below, in H now (chosen once, kept in the odometry's world); None without a pose."""
+        if not out.odometry_ok or not math.isfinite(out.yaw_rad):
+            return None
+        yaw = float(out.yaw_rad)
+        if self._clearing_world_az is None:
+            sectors, _, offset_deg = msgs.sector_arrays(out.sectors)
+            az_h = clearing_azimuth_rad(self._points_below(), self._height_above_floor_m(), self.landing_spot,
+                                        self.ref_params.floor_margin_m, camera_yaw_rad(self.state.R_qc), sectors,
+                                        self.ref_params.unknown_sector_guard_rad, math.radians(offset_deg))
+            self._clearing_world_az = yaw + az_h
+        return self._clearing_world_az - yaw
 
     def _land_refusal(self) -> str | None:
         """Why the spot under the vehicle is no place to land (an object seen below it), or None."""
@@ -335,15 +354,10 @@ class Companion:
             self._clearing_world_az = None
             return None
         yaw = float(out.yaw_rad) if out is not None and out.odometry_ok and math.isfinite(out.yaw_rad) else None
-        if out is None or yaw is None:   # no pose: hold (the failsafe lands after its timeout)
+        az_h = None if out is None or yaw is None else self._clearing_azimuth_h(out)
+        if az_h is None:   # no pose: hold (the failsafe lands after its timeout)
             return np.zeros(3), 0.0
-        if self._clearing_world_az is None:
-            sectors, _, offset_deg = msgs.sector_arrays(out.sectors)
-            az_h = clearing_azimuth_rad(self._points_below(), self._height_above_floor_m(), self.landing_spot,
-                                        self.ref_params.floor_margin_m, camera_yaw_rad(self.state.R_qc), sectors,
-                                        self.ref_params.unknown_sector_guard_rad, math.radians(offset_deg))
-            self._clearing_world_az = yaw + az_h
-        return clearing_command(self._clearing_world_az - yaw, camera_yaw_rad(self.state.R_qc), self.landing_spot)
+        return clearing_command(az_h, camera_yaw_rad(self.state.R_qc), self.landing_spot)
 
     # ------------------------------------------------------------------ the pipeline at camera rate
     def _process_frame(self, frame: RgbdFrame) -> None:

@@ -13,6 +13,7 @@ from companion.landing_spot import (
     clearing_azimuth_rad,
     clearing_command,
     object_below,
+    room_to_clear,
 )
 
 pytestmark = pytest.mark.unit
@@ -115,3 +116,28 @@ def test_low_tops_are_landed_on() -> None:
     book = _top(0.0, 0.0, 0.3, height_m - 0.2)             # 0.2 m high: the gear takes it
     assert object_below(book, height_m, P, FLOOR_MARGIN_M) is None
     assert object_below(_top(0.0, 0.0, 0.3, height_m - 0.3), height_m, P, FLOOR_MARGIN_M) is not None
+
+
+def _wall_h(x_m: float, y_from_m: float = -1.0, y_to_m: float = 1.0) -> np.ndarray:
+    """A wall's band points (H, projected to z = 0) along x = ``x_m``, every 5 cm."""
+    y = np.arange(y_from_m, y_to_m + 1e-9, 0.05)
+    return np.column_stack([np.full(y.size, x_m), y, np.zeros(y.size)])
+
+
+def test_room_to_clear_counts_only_what_lies_ahead_of_the_way_off() -> None:
+    """Campaign 7, flight 8: left by its operator at the safe distance from a wall (the map read 0.44-0.46 m),
+    over a box's edge, the failsafe landing came down beside the box at 0.27 m of it: any band point within
+    reach counted as "no room". Moving away from the wall is room; toward it or along it is not."""
+    wall_behind = _wall_h(-0.46)
+    assert room_to_clear(wall_behind, 0.0, 0.9, 0.40)                        # away from the wall
+    assert not room_to_clear(wall_behind, math.pi, 0.9, 0.40)                # into it
+    assert not room_to_clear(wall_behind, math.pi / 2, 0.9, 0.40)            # along it: its points beside
+    assert room_to_clear(_wall_h(-0.46, -0.2, 0.2), math.radians(45), 0.9, 0.40)   # a short stub behind
+    # inside the safe distance anywhere: the blind zone may hide the rest (campaign 6, flight 6)
+    assert not room_to_clear(_wall_h(-0.38), 0.0, 0.9, 0.40)
+    # nothing near, or nothing within reach ahead
+    assert room_to_clear(np.zeros((0, 3)), 1.0, 0.9, 0.40)
+    assert room_to_clear(_wall_h(1.2), 0.0, 0.9, 0.40)
+    assert not room_to_clear(_wall_h(0.8), 0.0, 0.9, 0.40)
+    # NaN rows (a corrupt map sample) are ignored, not read as room or as an obstacle
+    assert room_to_clear(np.vstack([wall_behind, [math.nan, 0.0, 0.0]]), 0.0, 0.9, 0.40)
