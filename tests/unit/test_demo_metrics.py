@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 
 from quadlink.demo import metrics
-from quadlink.demo.report import FlightLog, check_targets, compute_report
+from quadlink.demo.report import FlightLog, check_targets, compute_report, setpoints_in_control
+from quadlink.mavlink import mavlink
 
 
 def test_velocity_into_h_uses_yaw_only() -> None:
@@ -86,3 +87,18 @@ def test_report_on_synthetic_flight(rng: np.random.Generator) -> None:
     assert all(t["pass"] for t in report["targets"].values())
     bad = check_targets({**report, "min_true_obstacle_distance_m": 0.3})
     assert not bad["min_true_obstacle_distance_m"]["pass"]
+
+
+def test_setpoint_gaps_count_only_while_the_companion_is_in_control() -> None:
+    """Campaign 7: a companion that connected late sent a setpoint on the SITL's first buffered frame (0.006 s)
+    and the next 29 s of sim time later, on the ground; a gap in flight still counts."""
+    flight = FlightLog()
+    flight.t_setpoint = np.concatenate([[0.006], np.arange(29.134, 50.0, 1 / 30), np.arange(50.3, 80.0, 1 / 30)])
+    flight.t_fb = np.arange(25.0, 85.0, 0.02)
+    flight.mode = np.where((flight.t_fb >= 30.0) & (flight.t_fb < 75.0), mavlink.QUADLINK_TELEOP_MODE_TELEOP,
+                           mavlink.QUADLINK_TELEOP_MODE_IDLE).astype(float)
+    t = setpoints_in_control(flight)
+    assert t[0] >= 30.0 and t[-1] < 75.0
+    gaps = metrics.stream_gaps(t, 0.1)
+    assert gaps.count_over == 1 and gaps.max_gap_s == pytest.approx(0.3, abs=0.04)   # the one in flight
+    assert metrics.stream_gaps(flight.t_setpoint, 0.1).max_gap_s > 29.0              # all of them: the ground's
