@@ -61,7 +61,15 @@ from companion.guard import ErrorCounter, non_finite_fields
 from companion.height import HeightParams
 from companion.imu_clock import ImuClock, imu_sample
 from companion.interfaces import ImageSink, MavLink, Pipeline, PipelineFactory, default_pipeline_factory
-from companion.landing_spot import BelowMemory, clearing_azimuth_rad, clearing_command, object_below, room_to_clear
+from companion.landing_spot import (
+    SURVEY_YAW_RATE_RAD_S,
+    BelowMemory,
+    ClearingSurvey,
+    clearing_azimuth_rad,
+    clearing_command,
+    object_below,
+    room_to_clear,
+)
 from companion.link_reader import CodecReader
 from companion.modes import AutopilotRequest, Mode, ModeMachine, StatusText
 from companion.motion import Motion
@@ -128,6 +136,7 @@ class Companion:
         self.landing_spot = cfg.landing_spot
         self.below = BelowMemory(cfg.landing_spot)   # objects seen under the vehicle, for its landings
         self._clearing_world_az: float | None = None  # the way off an object below, kept in the odometry's world
+        self._survey: ClearingSurvey | None = None      # the look round before it is chosen
         self.gcs_commands = GcsCommands(self.modes, self.arbiter, self.param_service, clock, self.vehicle.status,
                                         self._camera_fresh, self._land_refusal)
         self.autopilot_input = AutopilotInput(self.vehicle, self.commands, self.modes, self.timesync, clock)
@@ -307,36 +316,37 @@ class Companion:
 
     def _failsafe_refusal(self) -> str | None:
         """What keeps a failsafe landing from coming down here and moves it clear first (companion.modes): an
-        object below, while the vehicle has room to move along the way off it would take
+        object below, while the vehicle can move clear. It first turns on the spot to look every way
+        (:class:`companion.landing_spot.ClearingSurvey`), then takes a way off with room
         (:func:`companion.landing_spot.room_to_clear`: nothing of the avoidance's band within the influence
-        distance ahead of it, nothing inside the safe distance anywhere). With less room it lands where it is, on
-        the object: a clearing move is motion nobody commanded. The way off is chosen here, once, and flown by
-        :meth:`_clearing_command`."""
+        distance ahead of it); with none, or with anything inside the safe distance, or without a pose, it lands
+        where it is, on the object: a clearing move is motion nobody commanded. The way off is chosen once."""
         out = self.state.last_output
-        if out is None:
+        if out is None or not out.odometry_ok or not math.isfinite(out.yaw_rad):
             return None
         refusal = self._land_refusal()
         if refusal is None:
             return None
-        az_h = self._clearing_azimuth_h(out)
-        if az_h is None:
-            return None
         ref = self.ref_params
         band = select_points(out.obstacle_points_h_m, ref, self._height_above_floor_m(), ref.influence_distance_m)
-        return refusal if room_to_clear(band, az_h, ref.influence_distance_m, ref.safe_distance_m - 0.05) else None
+        room_m = ref.safe_distance_m - 0.05
 
-    def _clearing_azimuth_h(self, out: Any) -> float | None:
-        """The way off an object below, in H now (chosen once, kept in the odometry's world); None without a pose."""
-        if not out.odometry_ok or not math.isfinite(out.yaw_rad):
+        def room(az_h: float) -> bool:
+            return room_to_clear(band, az_h, ref.influence_distance_m, room_m)
+
+        if not room_to_clear(band, 0.0, 0.0, room_m):    # inside the safe distance of something: no room anywhere
             return None
-        yaw = float(out.yaw_rad)
         if self._clearing_world_az is None:
+            if self._survey is None or not self._survey.done:
+                return refusal    # look round first (_clearing_command turns the vehicle)
             sectors, _, offset_deg = msgs.sector_arrays(out.sectors)
             az_h = clearing_azimuth_rad(self._points_below(), self._height_above_floor_m(), self.landing_spot,
-                                        self.ref_params.floor_margin_m, camera_yaw_rad(self.state.R_qc), sectors,
-                                        self.ref_params.unknown_sector_guard_rad, math.radians(offset_deg))
-            self._clearing_world_az = yaw + az_h
-        return self._clearing_world_az - yaw
+                                        ref.floor_margin_m, camera_yaw_rad(self.state.R_qc), sectors,
+                                        ref.unknown_sector_guard_rad, math.radians(offset_deg), room=room)
+            if az_h is None:
+                return None
+            self._clearing_world_az = float(out.yaw_rad) + az_h
+        return refusal if room(self._clearing_world_az - float(out.yaw_rad)) else None
 
     def _land_refusal(self) -> str | None:
         """Why the spot under the vehicle is no place to land (an object seen below it), or None."""
@@ -351,13 +361,17 @@ class Companion:
         camera does not look at becomes unseen, where the reference flies nothing: a re-flown campaign flight
         held 15 s over a box)."""
         if not self.modes.clearing_spot:
-            self._clearing_world_az = None
+            self._clearing_world_az, self._survey = None, None
             return None
         yaw = float(out.yaw_rad) if out is not None and out.odometry_ok and math.isfinite(out.yaw_rad) else None
-        az_h = None if out is None or yaw is None else self._clearing_azimuth_h(out)
-        if az_h is None:   # no pose: hold (the failsafe lands after its timeout)
+        if yaw is None:   # no pose: hold (the failsafe lands after its timeout)
             return np.zeros(3), 0.0
-        return clearing_command(az_h, camera_yaw_rad(self.state.R_qc), self.landing_spot)
+        if self._clearing_world_az is None:   # looking round before the way off is chosen
+            if self._survey is None:
+                self._survey = ClearingSurvey()
+            self._survey.observe(yaw)
+            return np.zeros(3), (0.0 if self._survey.done else SURVEY_YAW_RATE_RAD_S)
+        return clearing_command(self._clearing_world_az - yaw, camera_yaw_rad(self.state.R_qc), self.landing_spot)
 
     # ------------------------------------------------------------------ the pipeline at camera rate
     def _process_frame(self, frame: RgbdFrame) -> None:

@@ -18,6 +18,7 @@ nothing is reported.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -86,14 +87,16 @@ CLEARING_LOOKAHEAD_M = 3.0    # free space counted up to this far along a direct
 
 def clearing_azimuth_rad(points_h_m: ArrayLike | None, height_m: float | None, params: LandingSpotParams,
                          floor_margin_m: float, fallback_yaw_rad: float, sectors_m: ArrayLike | None = None,
-                         guard_rad: float = 0.0, sector_offset_rad: float = 0.0) -> float:
+                         guard_rad: float = 0.0, sector_offset_rad: float = 0.0,
+                         room: Callable[[float], bool] | None = None) -> float | None:
     """The way off the object below, an azimuth in H: of twelve directions, those the map has looked at (no
     sector of ``sectors_m`` within ``guard_rad`` unknown: the reference would not fly the others), the one with
     the most free space ahead (up to 3 m, from the sectors) plus half a metre for pointing straight away from
     the object (from the centroid of its points within ``footprint_radius_m + 0.5`` m toward the vehicle).
     ``fallback_yaw_rad`` (the camera's axis: the way it sees) when no sectors are known. Chosen once per
     clearing (the daemon keeps it in the world): re-chosen every frame, the way off a desk flipped between
-    straight back and the camera's axis and went nowhere (a re-flown campaign flight)."""
+    straight back and the camera's axis and went nowhere (a re-flown campaign flight). With ``room`` (a predicate
+    on an azimuth in H: :func:`room_to_clear`) only the directions it allows are taken; None if none is."""
     away: NDArray[np.float64] | None = None
     below = _objects_below(points_h_m, height_m, max(floor_margin_m, params.min_top_m),
                            within_m=params.footprint_radius_m + 0.5)
@@ -105,14 +108,18 @@ def clearing_azimuth_rad(points_h_m: ArrayLike | None, height_m: float | None, p
             if r > 0.05:
                 away = -centroid / r
     if sectors_m is None:
-        return fallback_yaw_rad if away is None else math.atan2(away[1], away[0])
+        az0 = fallback_yaw_rad if away is None else math.atan2(away[1], away[0])
+        return az0 if room is None or room(az0) else None
     s = np.asarray(sectors_m, dtype=float).ravel()
     n = s.size
-    best, best_score = fallback_yaw_rad, -math.inf
+    best: float | None = fallback_yaw_rad if room is None else None
+    best_score = -math.inf
     for k in range(CLEARING_CANDIDATES):
         az = fallback_yaw_rad + k * 2.0 * math.pi / CLEARING_CANDIDATES
         u = np.array([math.cos(az), math.sin(az), 0.0])
         if n == 0 or remove_toward_unknown(u, s, guard_rad, sector_offset_rad)[1]:
+            continue
+        if room is not None and not room(az):
             continue
         width = 2.0 * math.pi / n
         steps = int(math.ceil(guard_rad / width))
@@ -145,6 +152,34 @@ def room_to_clear(band_points_h_m: ArrayLike, azimuth_rad: float, reach_m: float
     u = np.array([math.cos(azimuth_rad), math.sin(azimuth_rad)])
     cos_angle = (p[near, :2] @ u) / np.maximum(r[near], 1e-9)
     return not bool((cos_angle > math.cos(ROOM_CONE_RAD)).any())
+
+
+SURVEY_TURN_RAD = math.radians(300.0)   # a full turn less the camera's width: every way has been looked at
+SURVEY_YAW_RATE_RAD_S = 0.7
+
+
+class ClearingSurvey:
+    """Before a failsafe landing picks its way off an object, the vehicle turns on the spot (about 7 s) so that
+    the camera, which looks one way, has looked every way: in HOLD nothing pan-scans, and the ways the map had
+    not looked at (behind the camera, often the open room) could not be chosen, so a vehicle over a box by a
+    wall could only slide along the wall, had no room, and landed on the box (campaign 7, flight 8, re-flown)."""
+
+    def __init__(self, turn_rad: float = SURVEY_TURN_RAD) -> None:
+        self.turn_rad = turn_rad
+        self.turned_rad = 0.0
+        self._last_yaw_rad: float | None = None
+
+    @property
+    def done(self) -> bool:
+        return self.turned_rad >= self.turn_rad
+
+    def observe(self, yaw_rad: float) -> None:
+        """The vehicle's heading now (any frame fixed to the world); counts the turn made since the last call."""
+        if not math.isfinite(yaw_rad):
+            return
+        if self._last_yaw_rad is not None:
+            self.turned_rad += abs((yaw_rad - self._last_yaw_rad + math.pi) % (2.0 * math.pi) - math.pi)
+        self._last_yaw_rad = yaw_rad
 
 
 CLEARING_LOOK_RAD = math.radians(20.0)   # the camera this close to the way off: move

@@ -64,7 +64,7 @@ class ModeParams:
     takeoff_altitude_m: float = 1.0
     takeoff_timeout_s: float = 8.0
     takeoff_min_s: float = 1.0
-    land_clear_timeout_s: float = 20.0   # a failsafe landing moves clear of an object below this long at most
+    land_clear_timeout_s: float = 30.0   # a failsafe landing moves clear of an object below this long at most
     land_clear_hold_s: float = 1.0       # ... and lands once the spot has stayed clear this long (the map
                                          # samples a desk's top sparsely: one clear look is not a clear spot)
 

@@ -9,6 +9,7 @@ import pytest
 
 from companion.landing_spot import (
     BelowMemory,
+    ClearingSurvey,
     LandingSpotParams,
     clearing_azimuth_rad,
     clearing_command,
@@ -141,3 +142,44 @@ def test_room_to_clear_counts_only_what_lies_ahead_of_the_way_off() -> None:
     assert not room_to_clear(_wall_h(0.8), 0.0, 0.9, 0.40)
     # NaN rows (a corrupt map sample) are ignored, not read as room or as an obstacle
     assert room_to_clear(np.vstack([wall_behind, [math.nan, 0.0, 0.0]]), 0.0, 0.9, 0.40)
+
+
+def test_the_way_off_takes_only_directions_with_room() -> None:
+    """Campaign 7, flight 8 re-flown: over a box by a wall, the seen ways ran along the wall and had no room. With
+    every way seen (after the look round) the one into the room is taken; with no way that has room, none."""
+    height_m = 1.9
+    box = _top(0.2, 0.0, 0.8, height_m - 0.57)        # a box's top under the vehicle
+    wall_behind = _wall_h(-0.5, -1.0, 1.0)             # a wall 0.5 m behind (H: -x)
+    free = np.full(72, np.inf)
+    free[33:40] = 0.5                                  # the wall in the sectors behind
+    guard = math.radians(15)
+
+    def room(az: float) -> bool:
+        return room_to_clear(wall_behind, az, 0.9, 0.40)
+
+    az = clearing_azimuth_rad(box, height_m, P, FLOOR_MARGIN_M, 0.0, free, guard, room=room)
+    assert az is not None and math.cos(az) > 0.4       # into the room, away from the wall
+    boxed_in = np.vstack([wall_behind, _wall_h(0.6, -1.0, 1.0)])   # walls in front and behind
+    assert clearing_azimuth_rad(box, height_m, P, FLOOR_MARGIN_M, 0.0, free, guard,
+                                room=lambda az: room_to_clear(boxed_in, az, 0.9, 0.40)) is None
+    # no sectors known: the direct way off, if it has room
+    assert clearing_azimuth_rad(box, height_m, P, FLOOR_MARGIN_M, 0.0, None, room=lambda az: False) is None
+
+
+def test_the_look_round_counts_the_turn_made_whatever_the_wrap() -> None:
+    survey = ClearingSurvey()
+    assert not survey.done
+    yaw = 3.0
+    for _ in range(400):                                # 0.7 rad/s at 30 frames/s, through +-pi
+        survey.observe((yaw + math.pi) % (2 * math.pi) - math.pi)
+        yaw += 0.7 / 30
+        if survey.done:
+            break
+    assert survey.done and survey.turned_rad == pytest.approx(math.radians(300), abs=0.03)
+    turned = survey.turned_rad
+    survey.observe(math.nan)                            # a bad heading is skipped, not counted
+    assert survey.turned_rad == turned
+    back_and_forth = ClearingSurvey()
+    for yaw in [0.0, 0.1, 0.0, 0.1, 0.0]:
+        back_and_forth.observe(yaw)
+    assert back_and_forth.turned_rad == pytest.approx(0.4) and not back_and_forth.done
