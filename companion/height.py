@@ -10,6 +10,12 @@ CI: a full climb in paper-arena came within 0.24 m of the ceiling the same way).
 image where the floor is in view. This estimator keeps the odometry's smooth, fast height and learns the
 offset between it and the floor's (a first-order filter, ``time_constant_s``); without a floor in view the
 offset is kept. With the odometry lost, the floor of the current frame alone gives the height (or nothing).
+
+The floor is the lowest surface: once the offset is learnt, a "floor" more than ``max_rise_m`` above the one
+tracked is the top of something the camera sees without the floor (a box, a desk) and is not taken; a deeper
+one is (the tracked one was a top, or the odometry drifted). A vehicle turning on the spot over a 1.37 m box
+saw only its top for a second, its height fell 1.3 m within 0.5 s, the autopilot declared its odometry lost and
+landed on the box (campaign 7, flight 8, re-flown with the failsafe's look round).
 """
 
 from __future__ import annotations
@@ -28,6 +34,8 @@ class HeightParams:
     takeoff_height_m: float = 0.1
     time_constant_s: float = 0.5
     fix_max_age_s: float = 4.0
+    max_rise_m: float = 0.25   # a surface this much above the tracked floor is an object's top (the landing
+                               # check's min_top_m: lower tops are landed on, and count as floor here too)
 
 
 class HeightEstimator:
@@ -53,9 +61,14 @@ class HeightEstimator:
         if p.time_constant_s > 0.0 and floor_height_m is not None and math.isfinite(floor_height_m):
             floor_m = floor_height_m - p.takeoff_height_m
         odo_m = odometry_height_m if odometry_height_m is not None and math.isfinite(odometry_height_m) else None
+        if odo_m is not None and floor_m is not None and self.offset_m is not None \
+                and floor_m - odo_m < self.offset_m - p.max_rise_m:
+            floor_m = None   # higher than the floor tracked: an object's top, not the floor (see the module doc)
         if odo_m is not None and floor_m is not None:
             innovation = floor_m - odo_m
-            if self.offset_m is None or self._last_floor_s is None:
+            if self.offset_m is not None and innovation > self.offset_m + p.max_rise_m:
+                self.offset_m = innovation   # deeper than the floor tracked: that was a top, this is the floor
+            elif self.offset_m is None or self._last_floor_s is None:
                 self.offset_m = innovation
             else:
                 dt = max(stamp_s - self._last_floor_s, 0.0)
