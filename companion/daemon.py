@@ -319,8 +319,9 @@ class Companion:
         object below, while the vehicle can move clear. It first turns on the spot to look every way
         (:class:`companion.landing_spot.ClearingSurvey`), then takes a way off with room
         (:func:`companion.landing_spot.room_to_clear`: nothing of the avoidance's band within the influence
-        distance ahead of it); with none, or with anything inside the safe distance, or without a pose, it lands
-        where it is, on the object: a clearing move is motion nobody commanded. The way off is chosen once."""
+        distance ahead of it), chosen again if it loses its room on the way; with none, or with anything inside the
+        safe distance, or without a pose, it lands where it is, on the object: a clearing move is motion nobody
+        commanded."""
         out = self.state.last_output
         if out is None or not out.odometry_ok or not math.isfinite(out.yaw_rad):
             return None
@@ -336,17 +337,20 @@ class Companion:
 
         if not room_to_clear(band, 0.0, 0.0, room_m):    # inside the safe distance of something: no room anywhere
             return None
-        if self._clearing_world_az is None:
-            if self._survey is None or not self._survey.done:
-                return refusal    # look round first (_clearing_command turns the vehicle)
-            sectors, _, offset_deg = msgs.sector_arrays(out.sectors)
-            az_h = clearing_azimuth_rad(self._points_below(), self._height_above_floor_m(), self.landing_spot,
-                                        ref.floor_margin_m, camera_yaw_rad(self.state.R_qc), sectors,
-                                        ref.unknown_sector_guard_rad, math.radians(offset_deg), room=room)
-            if az_h is None:
-                return None
-            self._clearing_world_az = float(out.yaw_rad) + az_h
-        return refusal if room(self._clearing_world_az - float(out.yaw_rad)) else None
+        yaw = float(out.yaw_rad)
+        if self._clearing_world_az is not None and room(self._clearing_world_az - yaw):
+            return refusal
+        if self._clearing_world_az is None and (self._survey is None or not self._survey.done):
+            return refusal    # look round first (_clearing_command turns the vehicle)
+        # the way off, chosen after the look round, or again when the one taken has no room any more
+        sectors, _, offset_deg = msgs.sector_arrays(out.sectors)
+        az_h = clearing_azimuth_rad(self._points_below(), self._height_above_floor_m(), self.landing_spot,
+                                    ref.floor_margin_m, camera_yaw_rad(self.state.R_qc), sectors,
+                                    ref.unknown_sector_guard_rad, math.radians(offset_deg), room=room)
+        if az_h is None:
+            return None
+        self._clearing_world_az = yaw + az_h
+        return refusal
 
     def _land_refusal(self) -> str | None:
         """Why the spot under the vehicle is no place to land (an object seen below it), or None."""

@@ -98,6 +98,9 @@ def clearing_azimuth_rad(points_h_m: ArrayLike | None, height_m: float | None, p
     straight back and the camera's axis and went nowhere (a re-flown campaign flight). With ``room`` (a predicate
     on an azimuth in H: :func:`room_to_clear`) only the directions it allows are taken; None if none is."""
     away: NDArray[np.float64] | None = None
+    tops = _objects_below(points_h_m, height_m, max(floor_margin_m, params.min_top_m),
+                          within_m=CLEARING_LOOKAHEAD_M + params.footprint_radius_m)
+    tops_xy = np.zeros((0, 2)) if tops is None else tops[0][:, :2]
     below = _objects_below(points_h_m, height_m, max(floor_margin_m, params.min_top_m),
                            within_m=params.footprint_radius_m + 0.5)
     if below is not None:
@@ -124,10 +127,26 @@ def clearing_azimuth_rad(points_h_m: ArrayLike | None, height_m: float | None, p
         width = 2.0 * math.pi / n
         steps = int(math.ceil(guard_rad / width))
         free = min(float(s[sector_index(az + j * width, n, sector_offset_rad)]) for j in range(-steps, steps + 1))
-        score = min(free, CLEARING_LOOKAHEAD_M) + (0.5 * float(u[:2] @ away) if away is not None else 0.0)
+        score = min(free, CLEARING_LOOKAHEAD_M) + (0.5 * float(u[:2] @ away) if away is not None else 0.0) \
+            - distance_to_clear_m(tops_xy, az, params.footprint_radius_m)
         if score > best_score:
             best, best_score = az, score
     return best
+
+
+def distance_to_clear_m(tops_xy_m: NDArray[np.float64], azimuth_rad: float, footprint_radius_m: float,
+                        step_m: float = 0.1) -> float:
+    """How far along ``azimuth_rad`` (H) the vehicle must move until no top of ``tops_xy_m`` (N x 2, H) is within
+    its footprint: the way off one box should not lead over the next (campaign 7, flight 8, re-flown: the way
+    off a box led 2.5 m on over another and the landing came down on its edge). ``CLEARING_LOOKAHEAD_M`` + 1 if
+    there is no clear spot within the look-ahead."""
+    if not tops_xy_m.shape[0]:
+        return 0.0
+    u = np.array([math.cos(azimuth_rad), math.sin(azimuth_rad)])
+    along = np.arange(0.0, CLEARING_LOOKAHEAD_M + 1e-9, step_m)
+    d2 = ((tops_xy_m[None, :, :] - along[:, None, None] * u[None, None, :]) ** 2).sum(axis=2)
+    clear = ~(d2 <= footprint_radius_m**2).any(axis=1)
+    return float(along[int(np.argmax(clear))]) if clear.any() else CLEARING_LOOKAHEAD_M + 1.0
 
 
 ROOM_CONE_RAD = math.radians(100.0)   # a clearing move must have nothing within reach this close to its way

@@ -13,6 +13,7 @@ from companion.landing_spot import (
     LandingSpotParams,
     clearing_azimuth_rad,
     clearing_command,
+    distance_to_clear_m,
     object_below,
     room_to_clear,
 )
@@ -183,3 +184,18 @@ def test_the_look_round_counts_the_turn_made_whatever_the_wrap() -> None:
     for yaw in [0.0, 0.1, 0.0, 0.1, 0.0]:
         back_and_forth.observe(yaw)
     assert back_and_forth.turned_rad == pytest.approx(0.4) and not back_and_forth.done
+
+
+def test_the_way_off_does_not_lead_over_the_next_box() -> None:
+    """Campaign 7, flight 8, re-flown: the way off one box led on over another, 2.5 m, and the landing came down
+    on its edge. Of two free ways, the one whose floor comes first is taken."""
+    height_m = 1.9
+    under = _top(0.0, 0.0, 0.8, height_m - 0.57)                    # the box under the vehicle
+    ahead = _top(1.0, 0.0, 0.6, height_m - 0.7)                     # the next one, 1 m ahead (H +x)
+    tops = np.vstack([under, ahead])
+    assert distance_to_clear_m(tops[:, :2], 0.0, P.footprint_radius_m) > 1.5          # over both
+    assert distance_to_clear_m(tops[:, :2], math.pi / 2, P.footprint_radius_m) == pytest.approx(0.9, abs=0.11)
+    assert distance_to_clear_m(np.zeros((0, 2)), 0.0, P.footprint_radius_m) == 0.0
+    free = np.full(72, np.inf)
+    az = clearing_azimuth_rad(tops, height_m, P, FLOOR_MARGIN_M, 0.0, free, math.radians(15))
+    assert az is not None and math.cos(az) < 0.5    # not on over the next box
