@@ -123,6 +123,9 @@ def companion_config_for_room(out_dir: Path, scenario: str) -> Path:
     return write_companion_config(out_dir, reference={"room_height_m": round(room_height_m, 3)})
 
 
+LOCKSTEP_ODOM_LOSS_T_S = 1.0   # the bridge's odometry-loss timeout in lock-step flights (sim seconds)
+
+
 def build_specs(scenario: str, script: Path, out_dir: Path, ports: Ports, lockstep: bool, speed: float,
                 duration_s: float, record_frames: bool = False, sitl_config: str | None = None,
                 operator: str = "haptic", view: bool = True, via_netem: bool = False,
@@ -138,6 +141,13 @@ def build_specs(scenario: str, script: Path, out_dir: Path, ports: Ports, lockst
     signed = ("--signing-key", str(signing_key)) if signing_key is not None else ()
     if companion_config is None:
         companion_config = companion_config_for_room(out_dir, scenario)
+    params = out_dir / "bridge_params.yaml"
+    if lockstep and not params.exists():
+        # Lock-step runs the SITL up to ~2x real time and the bridge counts its timeouts in sim time, while the
+        # companion's ODOMETRY reaches it over UDP with wall-clock jitter: on a loaded 2-core machine 0.3 s of
+        # wall time (0.5 s of sim) passed without one and the bridge landed in flight (campaign 7, flight 8
+        # re-flown). Lock-step flights give it the wall-clock margin of a real-time flight; real time keeps 0.5 s.
+        params.write_text(f"BRG_ODOM_LOSS_T: {LOCKSTEP_ODOM_LOSS_T_S}\n")
     vehicle_port, image_port = (ports.vehicle_netem, ports.image_netem) if via_netem else (ports.vehicle, ports.image)
     sitl = ["sitl", "--scenario", scenario, "--port1", str(ports.mk1), "--port2", str(ports.mk2),
             "--camera-port", str(ports.camera), "--truth", f"udpout:127.0.0.1:{ports.truth}",
