@@ -58,7 +58,10 @@ class CameraConfig:
 
     def __post_init__(self) -> None:
         R = np.asarray(self.R_qc, dtype=float)
-        if not np.allclose(R @ R.T, np.eye(3), atol=1e-4) or np.linalg.det(R) < 0:
+        # entries of a rotation lie in [-1, 1]: checked first, so a huge one is refused without overflowing R R^T
+        # (the config fuzz soak: 1.3e154 in R_qc raised numpy's overflow warning instead of the config error)
+        if not np.all(np.abs(R) <= 1.0 + 1e-4) or not np.allclose(R @ R.T, np.eye(3), atol=1e-4) \
+                or np.linalg.det(R) < 0:
             raise ValueError("R_qc is not a rotation matrix (orthonormal, det +1)")
 
     @property

@@ -126,3 +126,12 @@ def test_truncated_or_non_utf8_config_bytes_fail_with_one_clear_error(tmp_path: 
     cfg = _load(name, path)
     if cfg is not None:
         assert not any(math.isnan(x) for x in _numbers(to_dict(cfg)))
+
+
+@pytest.mark.parametrize("entry", [1.3407807929942597e+154, 1e308, -1e200])
+def test_a_huge_rotation_entry_is_a_config_error_not_an_overflow(tmp_path: Path, entry: float) -> None:
+    """Found by the soak: 1.3e154 in vehicle.yaml's camera.R_qc overflowed R R^T (a RuntimeWarning escaped)."""
+    path = tmp_path / "vehicle.yaml"
+    path.write_text(_dump(_replace(SHIPPED["vehicle.yaml"], ("camera", "R_qc", 0, 0), entry, "replace")))
+    with pytest.raises(ConfigError, match="R_qc"):
+        load_vehicle(path)
