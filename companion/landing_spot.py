@@ -101,10 +101,9 @@ def clearing_azimuth_rad(points_h_m: ArrayLike | None, height_m: float | None, p
     tops = _objects_below(points_h_m, height_m, max(floor_margin_m, params.min_top_m),
                           within_m=CLEARING_LOOKAHEAD_M + params.footprint_radius_m)
     tops_xy = np.zeros((0, 2)) if tops is None else tops[0][:, :2]
-    below = _objects_below(points_h_m, height_m, max(floor_margin_m, params.min_top_m),
-                           within_m=params.footprint_radius_m + 0.5)
-    if below is not None:
-        p = below[0]
+    if tops is not None:
+        # the object's own points: those of the tops within reach of the footprint
+        p = tops_xy[np.hypot(tops_xy[:, 0], tops_xy[:, 1]) <= params.footprint_radius_m + 0.5]
         if p.shape[0]:
             centroid = p[:, :2].mean(axis=0)
             r = float(np.hypot(*centroid))

@@ -140,7 +140,7 @@ def setpoints_in_control(flight: FlightLog) -> np.ndarray:
     one setpoint on the SITL's first, buffered camera frame and the next on a frame 29 s of sim time later, a
     "gap" on the ground that no flight ever had (campaign 7: 12 of 30 flights)."""
     t = flight.t_setpoint
-    active = flight.t_fb[flight.mode != mavlink.QUADLINK_TELEOP_MODE_IDLE] if flight.t_fb.size else flight.t_fb
+    active = flight.t_fb[flight.mode != mavlink.QUADLINK_TELEOP_MODE_IDLE]
     if not active.size:
         return t
     return t[(t >= active[0]) & (t <= active[-1])]
