@@ -201,29 +201,34 @@ class Flight:
         # z starts there (the start is on the floor in the scenarios used here)
         from sim_sitl.config import load_sitl_config
         self._rest_z = -load_sitl_config().physics.body_size_m[2] / 2.0
-        sitl = ["sitl", "--scenario", scenario, "--port1", str(p.mk1), "--port2", str(p.mk2), "--camera-port",
-                str(p.camera), "--truth", f"udpout:127.0.0.1:{p.truth}", "--duration", f"{sitl_duration_s:.0f}"]
-        if lockstep:
-            sitl.append("--lockstep")
-        self.stack.start(ProcessSpec("sitl", tuple(sitl), ready_after_s=2.0))
-        # as tests/test_companion_sitl.py: a loaded machine can stall the lock-step IMU stream longer than
-        # the bridge's 0.5 s board-loss timeout; these flights are about the companion
-        # (likewise its odometry-loss timeout: a starved companion stalls the odometry stream)
-        (out_dir / "bridge_params.yaml").write_text("BRG_BOARD_LOSS_T: 3.0\nBRG_ODOM_LOSS_T: 2.0\n")
-        _wait_tcp(p.mk1, self.stack.check, 120.0)
-        _wait_tcp(p.camera, self.stack.check, 60.0)
-        self.stack.start(ProcessSpec("bridge", ("bridge", "--mk-cmd", f"socket://127.0.0.1:{p.mk1}",
-                                                "--mk-imu", f"socket://127.0.0.1:{p.mk2}",
-                                                "--mavlink", f"udpout:127.0.0.1:{p.autopilot}",
-                                                "--mavlink", f"udpout:127.0.0.1:{p.gcs_bridge}",
-                                                "--params", str(out_dir / "bridge_params.yaml")), ready_after_s=1.0))
-        comp = ["companion", "--autopilot", f"udpin:127.0.0.1:{p.autopilot}", "--gcs", f"udpin:127.0.0.1:{p.vehicle}",
-                "--camera", camera.format(port=p.camera), "--image-port", "0",
-                "--tlog", str(out_dir / "companion.tlog")]
-        if companion_config is None:
-            companion_config = companion_config_with(out_dir, **LOADED_MACHINE)
-        comp += ["--config", str(companion_config)]
-        self.stack.start(ProcessSpec("companion", tuple(comp), ready_after_s=1.0))
+        try:   # a part that fails to start must not leave the others running or the sockets open
+            sitl = ["sitl", "--scenario", scenario, "--port1", str(p.mk1), "--port2", str(p.mk2), "--camera-port",
+                    str(p.camera), "--truth", f"udpout:127.0.0.1:{p.truth}", "--duration", f"{sitl_duration_s:.0f}"]
+            if lockstep:
+                sitl.append("--lockstep")
+            self.stack.start(ProcessSpec("sitl", tuple(sitl), ready_after_s=2.0))
+            # as tests/test_companion_sitl.py: a loaded machine can stall the lock-step IMU stream longer than
+            # the bridge's 0.5 s board-loss timeout; these flights are about the companion
+            # (likewise its odometry-loss timeout: a starved companion stalls the odometry stream)
+            (out_dir / "bridge_params.yaml").write_text("BRG_BOARD_LOSS_T: 3.0\nBRG_ODOM_LOSS_T: 2.0\n")
+            _wait_tcp(p.mk1, self.stack.check, 120.0)
+            _wait_tcp(p.camera, self.stack.check, 60.0)
+            self.stack.start(ProcessSpec("bridge", ("bridge", "--mk-cmd", f"socket://127.0.0.1:{p.mk1}",
+                                                    "--mk-imu", f"socket://127.0.0.1:{p.mk2}",
+                                                    "--mavlink", f"udpout:127.0.0.1:{p.autopilot}",
+                                                    "--mavlink", f"udpout:127.0.0.1:{p.gcs_bridge}",
+                                                    "--params", str(out_dir / "bridge_params.yaml")),
+                                         ready_after_s=1.0))
+            comp = ["companion", "--autopilot", f"udpin:127.0.0.1:{p.autopilot}",
+                    "--gcs", f"udpin:127.0.0.1:{p.vehicle}", "--camera", camera.format(port=p.camera),
+                    "--image-port", "0", "--tlog", str(out_dir / "companion.tlog")]
+            if companion_config is None:
+                companion_config = companion_config_with(out_dir, **LOADED_MACHINE)
+            comp += ["--config", str(companion_config)]
+            self.stack.start(ProcessSpec("companion", tuple(comp), ready_after_s=1.0))
+        except BaseException:
+            self.close()
+            raise
 
     # --- I/O
     def pump(self) -> None:

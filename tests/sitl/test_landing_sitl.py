@@ -29,7 +29,7 @@ from quadlink.mavlink import mavlink
 
 pytestmark = [pytest.mark.sitl, pytest.mark.timeout(900)]
 
-OFFSET = 5000 + (os.getpid() % 20) * 20
+OFFSET = 7000 + (os.getpid() % 20) * 20   # 7000-7390: no other SITL test's ports (paper003's are 5100-5700)
 BOX_CENTRE_XY_M = np.array([1.4, 0.0])
 BOX_HALF_M = 0.4          # 0.8 m x 0.8 m, 0.4 m tall
 MIN_CLEARANCE_M = 0.40
