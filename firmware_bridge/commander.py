@@ -16,7 +16,7 @@ from typing import Any
 
 from firmware_bridge.connect import ConnectService
 from firmware_bridge.modes import HOLD_MODES, FlightMode, TakeoffPhase, decode_set_mode
-from firmware_bridge.offboard import OffboardService
+from firmware_bridge.offboard import IMU_PREDICTION_HORIZON_S, OffboardService
 from firmware_bridge.state import BoardStatusLike, BridgeState, Outbound
 from quadlink.mavlink import mavlink
 from quadlink.mk.flags import BoardFlightState
@@ -53,15 +53,18 @@ class CommanderService:
         s = self.state
         was_in_air, s.in_air = s.in_air, True
         s.takeoff_start_s = now_s   # BRG_TKO_OL_T counts from here (a loss in the climb re-enters phase 1)
+        s.tko_ramp_start_s = None if was_in_air else now_s
         s.tko_climbed_m = s.height_m if was_in_air else 0.0
         s.tko_disagree_told = False
-        if s.odom_ok:
+        if s.odom_ok and s.fresh(s.odom_time_s, now_s, IMU_PREDICTION_HORIZON_S):
             s.takeoff_phase = TakeoffPhase.CLOSED_LOOP
             if s.z_ground_m is None:
                 s.z_ground_m = s.odom_z_m
             s.event(mavlink.MAV_SEVERITY_INFO, f"Takeoff to {s.takeoff_target_m:.1f} m")
             return
-        # phase 1: the camera cannot see yet; climb level on the accelerometer until odometry arrives
+        # phase 1: the camera cannot see yet; climb level on the accelerometer until odometry arrives (odometry
+        # not yet timed out but older than the IMU's prediction horizon counts as none: see check_links)
+        s.odom_ok = False
         s.takeoff_phase = TakeoffPhase.OPEN_LOOP
         s.blind = True
         s.hover_thrust_learned = None
@@ -122,6 +125,12 @@ class CommanderService:
             s.event(mavlink.MAV_SEVERITY_CRITICAL, "Board link lost")
             s.failsafe_reason = "board link lost"
         odom_fresh = s.fresh(s.odom_time_s, now_s, p["BRG_ODOM_LOSS_T"])
+        if s.in_air and s.mode == FlightMode.TAKEOFF and s.height_m < p["BRG_TKO_OL_ALT"]:
+            # the climb's tracker flies the odometry's velocity, and past the IMU's prediction horizon that velocity
+            # is frozen: with BRG_ODOM_LOSS_T at 2 s, a take-off begun on odometry that had just stopped wound its
+            # integral up on a vehicle it thought still, and climbed 0.33 m past its height at 0.8 m/s (a RealSense
+            # SITL flight in CI). Low in the climb, odometry that old is lost: the open-loop climb measures it.
+            odom_fresh = odom_fresh and s.fresh(s.odom_time_s, now_s, IMU_PREDICTION_HORIZON_S)
         if s.odom_ok and not odom_fresh:
             s.odom_ok = False
             if s.in_air and s.mode == FlightMode.TAKEOFF and s.height_m < p["BRG_TKO_OL_ALT"]:
@@ -135,6 +144,8 @@ class CommanderService:
                 s.vertical.align(s.height_m, vz)
                 s.takeoff_phase = TakeoffPhase.OPEN_LOOP
                 s.blind = True
+                # the thrust is up already: ramping it again from idle dropped a vehicle 5 cm up back on its gear
+                s.tko_ramp_start_s = None
             elif s.in_air:
                 s.event(mavlink.MAV_SEVERITY_CRITICAL, "Odometry lost: level hold, descending")
                 s.failsafe_reason = "odometry lost"

@@ -191,8 +191,8 @@ class FlightControlService:
             vz_ref = -min(p["BRG_TKO_OL_SPD"], max(remaining, 0.0))  # slows into the target, then holds
             ceiling = hover_prior * (1.0 + margin)
             ramp_s = p["BRG_TKO_RAMP_T"]
-            if ramp_s > 0:
-                ceiling *= min(1.0, elapsed / ramp_s)
+            if ramp_s > 0 and s.tko_ramp_start_s is not None:
+                ceiling *= min(1.0, (now_s - s.tko_ramp_start_s) / ramp_s)
         probing = False
         if s.mode != FlightMode.TAKEOFF:
             vz_ref = p["BRG_OL_LAND_SPD"]

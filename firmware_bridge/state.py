@@ -171,6 +171,7 @@ class BridgeState:
         self.blind = False  # in the air and no odometry acquired yet in this flight
         self.takeoff_phase: TakeoffPhase | None = None
         self.takeoff_start_s: float | None = None
+        self.tko_ramp_start_s: float | None = None   # the open-loop climb's thrust ramp from idle (None: no ramp)
         self.tko_climbed_m = 0.0           # the take-off's climb, integrated from the velocity estimate
         self.tko_disagree_told = False
         self.hover_thrust_learned: float | None = None

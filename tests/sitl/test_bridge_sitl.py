@@ -399,19 +399,24 @@ def test_mavsdk_arm_takeoff_offboard_velocity_square_land(stack):
 class GatedOdometry(Odometry):
     """The companion on the ground: ODOMETRY flagged failed (quality 0, zero velocity) while the camera sees
     the floor closer than its minimum range; valid odometry from the truth once the truth height exceeds
-    ``valid_above_m`` (latched), or never (``valid_above_m`` None)."""
+    ``valid_above_m`` (latched), or never (``valid_above_m`` None). With ``lost_from``, valid until that event
+    is set (odometry that fails as the vehicle lifts off), then gated as above."""
 
-    def __init__(self, stack: Stack, gcs: Gcs, valid_above_m: float | None) -> None:
+    def __init__(self, stack: Stack, gcs: Gcs, valid_above_m: float | None,
+                 lost_from: threading.Event | None = None) -> None:
         super().__init__(stack, gcs)
         self.valid_above_m = valid_above_m
         self.valid_since_height_m: float | None = None
+        self.lost_from = lost_from
 
     def run(self) -> None:
         while not self.stop.wait(1.0 / 30.0):
             p, v, q = self.stack.state()
-            if self.valid_since_height_m is None and self.valid_above_m is not None and -p[2] > self.valid_above_m:
+            before_loss = self.lost_from is not None and not self.lost_from.is_set()
+            if self.valid_since_height_m is None and self.valid_above_m is not None and -p[2] > self.valid_above_m \
+                    and not before_loss:
                 self.valid_since_height_m = float(-p[2])
-            if self.valid_since_height_m is None:
+            if self.valid_since_height_m is None and not before_loss:
                 self.gcs.send(self.gcs.encoder.odometry_encode(
                     int(time.monotonic() * 1e6), mavlink.MAV_FRAME_LOCAL_FRD, mavlink.MAV_FRAME_BODY_FRD,
                     0, 0, 0, [1, 0, 0, 0], 0, 0, 0, 0, 0, 0, [math.nan] * 21, [math.nan] * 21, 0, 0, 0))
@@ -462,6 +467,58 @@ def test_takeoff_without_odometry_on_the_ground_climbs_open_loop_then_closed_loo
             is not None
     finally:
         odom.stop.set()
+        gcs.close()
+
+
+def test_odometry_lost_at_lift_off_does_not_carry_the_climb_past_the_takeoff_height(stack):
+    """The RealSense SITL flight's case (CI): BRG_ODOM_LOSS_T 2 s (as the flight harness sets it), odometry that
+    stopped 1 s before the take-off (stale, not yet lost) and is back 0.2 m up. The take-off must end near its
+    height and stay there: a closed loop on the stale odometry's frozen velocity once climbed 0.33 m past it at
+    0.8 m/s."""
+    gcs = Gcs(stack.gcs_port)
+    lost = threading.Event()
+    odom = GatedOdometry(stack, gcs, valid_above_m=0.2, lost_from=lost)
+    top = [-math.inf]
+    stop = threading.Event()
+
+    def watch(p_ground_z: float) -> None:
+        while not stop.wait(0.01):
+            top[0] = max(top[0], p_ground_z - float(stack.state()[0][2]))
+
+    try:
+        assert gcs.recv("HEARTBEAT", 20.0) is not None
+        gcs.send(gcs.encoder.param_set_encode(1, 1, b"BRG_ODOM_LOSS_T", 2.0, mavlink.MAV_PARAM_TYPE_REAL32))
+        assert gcs.recv("PARAM_VALUE", 5.0, lambda m: m.param_id == "BRG_ODOM_LOSS_T" and m.param_value == 2.0)
+        wait_for(lambda: stack.truth_count > 10, 10.0, "truth")
+        odom.start()
+        time.sleep(1.0)
+        p_ground, _, _ = stack.state()
+        watcher = threading.Thread(target=watch, args=(float(p_ground[2]),), daemon=True)
+        watcher.start()
+        assert gcs.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1) == mavlink.MAV_RESULT_ACCEPTED
+        assert gcs.recv("HEARTBEAT", 15.0, lambda m: m.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED) is not None
+        lost.set()   # 1 s before the take-off: not yet lost (BRG_ODOM_LOSS_T 2 s), but stale
+        time.sleep(1.0)
+        assert gcs.command(mavlink.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, math.nan, math.nan, math.nan, 1.0) \
+            == mavlink.MAV_RESULT_ACCEPTED
+        assert gcs.recv("HEARTBEAT", 25.0, lambda m: m.custom_mode == PX4_LOITER) is not None
+        time.sleep(4.0)
+        p, _, _ = stack.state()
+        height = float(p_ground[2] - p[2])
+        texts = _statustexts(gcs)
+        print(f"odometry lost at lift-off, back at {odom.valid_since_height_m}: top {top[0]:.2f} m, "
+              f"{height:.2f} m 4 s after LOITER, for 1.0 m; {texts}")
+        assert any("open loop" in t for t in texts) and any("closed loop" in t for t in texts), texts
+        assert top[0] < 1.0 + 0.15, f"climbed to {top[0]:.2f} m for a 1.0 m take-off"
+        assert height == pytest.approx(1.0, abs=0.15)
+        assert gcs.command(mavlink.MAV_CMD_NAV_LAND) == mavlink.MAV_RESULT_ACCEPTED
+        assert gcs.recv("HEARTBEAT", 25.0, lambda m: not m.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED) \
+            is not None
+    finally:
+        stop.set()
+        odom.stop.set()
+        gcs.send(gcs.encoder.param_set_encode(1, 1, b"BRG_ODOM_LOSS_T", 0.5, mavlink.MAV_PARAM_TYPE_REAL32))
+        gcs.recv("PARAM_VALUE", 5.0, lambda m: m.param_id == "BRG_ODOM_LOSS_T")
         gcs.close()
 
 

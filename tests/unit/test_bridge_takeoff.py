@@ -253,3 +253,63 @@ def test_odometry_back_in_the_climb_far_from_the_measured_climb_is_re_anchored()
     assert any("Odometry height" in t for t in sim.statustext), sim.statustext
     assert sim.ap.mode == FlightMode.LOITER and sim.ap.failsafe_reason is None
     assert height(sim) == pytest.approx(1.0, abs=0.1)
+
+
+@pytest.mark.parametrize("stopped_before_s", [0.4, 1.5])
+def test_takeoff_on_odometry_that_just_stopped_climbs_open_loop_not_on_a_frozen_velocity(stopped_before_s):
+    """With a long BRG_ODOM_LOSS_T (2 s, as flights on a loaded machine set it) odometry that stopped 0.4-1.5 s
+    before the take-off is not yet lost, but older than the IMU's prediction horizon its velocity is frozen at 0:
+    a closed loop on it winds the integral up on a vehicle it thinks still (a RealSense SITL flight climbed 0.33 m
+    past its height at 0.8 m/s). The take-off climbs open loop, closes the loop when odometry returns, and ends
+    at its height."""
+    params = ParamTable()
+    params.set("BRG_ODOM_LOSS_T", 2.0)
+    sim = blind_sim(params=params)
+    sim.odom = True
+    arm_and_sit(sim)
+    sim.odom = False
+    sim.step(stopped_before_s)
+    assert sim.ap.odom_ok   # not yet timed out
+    assert sim.command(mavlink.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, math.nan, math.nan, math.nan, 1.0)[0] == \
+        mavlink.MAV_RESULT_ACCEPTED
+    assert sim.ap.takeoff_phase == TakeoffPhase.OPEN_LOOP, sim.statustext
+    top = v_up_max = 0.0
+    while height(sim) < 0.25:
+        sim.step(0.02)
+        v_up_max = max(v_up_max, -sim.v[2])
+        assert sim.t < 30.0
+    sim.odom = True
+    for _ in range(300):
+        sim.step(0.02)
+        top, v_up_max = max(top, height(sim)), max(v_up_max, -sim.v[2])
+    assert sim.ap.mode == FlightMode.LOITER and sim.ap.failsafe_reason is None, sim.statustext
+    assert v_up_max < 0.5 + 0.1   # MPC_TKO_SPEED, the open loop's BRG_TKO_OL_SPD below it
+    assert top < 1.0 + 0.1 and height(sim) == pytest.approx(1.0, abs=0.1)
+
+
+def test_odometry_stale_in_the_closed_loop_climb_goes_open_loop_before_the_loss_timeout():
+    """The same in the climb: odometry that stops at 0.15 m (BRG_ODOM_LOSS_T 2 s) is treated as lost after the IMU's
+    prediction horizon, not flown frozen for 2 s."""
+    params = ParamTable()
+    params.set("BRG_ODOM_LOSS_T", 2.0)
+    sim = blind_sim(params=params)
+    sim.odom = True
+    arm_and_sit(sim)
+    assert sim.command(mavlink.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, math.nan, math.nan, math.nan, 1.0)[0] == \
+        mavlink.MAV_RESULT_ACCEPTED
+    assert sim.ap.takeoff_phase == TakeoffPhase.CLOSED_LOOP
+    while height(sim) < 0.15:
+        sim.step(0.02)
+    sim.odom = False
+    sim.step(0.5)
+    assert sim.ap.takeoff_phase == TakeoffPhase.OPEN_LOOP and not sim.ap.odom_ok, sim.statustext
+    top = 0.0
+    while height(sim) < 0.4:
+        sim.step(0.02)
+        top = max(top, height(sim))
+    sim.odom = True
+    for _ in range(300):
+        sim.step(0.02)
+        top = max(top, height(sim))
+    assert sim.ap.mode == FlightMode.LOITER and sim.ap.failsafe_reason is None, sim.statustext
+    assert top < 1.0 + 0.1 and height(sim) == pytest.approx(1.0, abs=0.1)
