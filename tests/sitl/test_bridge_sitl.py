@@ -432,6 +432,25 @@ def _statustexts(gcs: Gcs) -> list[str]:
     return list(gcs.texts)
 
 
+class PeakHeight(threading.Thread):
+    """The truth's highest point above ``p_ground_z`` (NED), sampled every 10 ms (wall) until stopped."""
+
+    def __init__(self, stack: Stack, p_ground_z: float) -> None:
+        super().__init__(daemon=True)
+        self.stack, self.p_ground_z = stack, p_ground_z
+        self.top_m = -math.inf
+        self.stop = threading.Event()
+
+    def run(self) -> None:
+        while not self.stop.wait(0.01):
+            self.top_m = max(self.top_m, self.p_ground_z - float(self.stack.state()[0][2]))
+
+
+def _land(gcs: Gcs) -> None:
+    assert gcs.command(mavlink.MAV_CMD_NAV_LAND) == mavlink.MAV_RESULT_ACCEPTED
+    assert gcs.recv("HEARTBEAT", 25.0, lambda m: not m.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED) is not None
+
+
 def test_takeoff_without_odometry_on_the_ground_climbs_open_loop_then_closed_loop(stack):
     """Odometry only once the truth is 0.4 m up: phase 1 on the accelerometer, phase 2 to the take-off height."""
     gcs = Gcs(stack.gcs_port)
@@ -462,9 +481,7 @@ def test_takeoff_without_odometry_on_the_ground_climbs_open_loop_then_closed_loo
         assert odom.valid_since_height_m is not None
         assert height == pytest.approx(1.2, abs=0.2)
         assert not any("Odometry lost" in t or "No odometry" in t for t in texts), texts
-        assert gcs.command(mavlink.MAV_CMD_NAV_LAND) == mavlink.MAV_RESULT_ACCEPTED
-        assert gcs.recv("HEARTBEAT", 25.0, lambda m: not m.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED) \
-            is not None
+        _land(gcs)
     finally:
         odom.stop.set()
         gcs.close()
@@ -478,13 +495,7 @@ def test_odometry_lost_at_lift_off_does_not_carry_the_climb_past_the_takeoff_hei
     gcs = Gcs(stack.gcs_port)
     lost = threading.Event()
     odom = GatedOdometry(stack, gcs, valid_above_m=0.2, lost_from=lost)
-    top = [-math.inf]
-    stop = threading.Event()
-
-    def watch(p_ground_z: float) -> None:
-        while not stop.wait(0.01):
-            top[0] = max(top[0], p_ground_z - float(stack.state()[0][2]))
-
+    peak: PeakHeight | None = None
     try:
         assert gcs.recv("HEARTBEAT", 20.0) is not None
         gcs.send(gcs.encoder.param_set_encode(1, 1, b"BRG_ODOM_LOSS_T", 2.0, mavlink.MAV_PARAM_TYPE_REAL32))
@@ -493,8 +504,8 @@ def test_odometry_lost_at_lift_off_does_not_carry_the_climb_past_the_takeoff_hei
         odom.start()
         time.sleep(1.0)
         p_ground, _, _ = stack.state()
-        watcher = threading.Thread(target=watch, args=(float(p_ground[2]),), daemon=True)
-        watcher.start()
+        peak = PeakHeight(stack, float(p_ground[2]))
+        peak.start()
         assert gcs.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1) == mavlink.MAV_RESULT_ACCEPTED
         assert gcs.recv("HEARTBEAT", 15.0, lambda m: m.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED) is not None
         lost.set()   # 1 s before the take-off: not yet lost (BRG_ODOM_LOSS_T 2 s), but stale
@@ -506,16 +517,15 @@ def test_odometry_lost_at_lift_off_does_not_carry_the_climb_past_the_takeoff_hei
         p, _, _ = stack.state()
         height = float(p_ground[2] - p[2])
         texts = _statustexts(gcs)
-        print(f"odometry lost at lift-off, back at {odom.valid_since_height_m}: top {top[0]:.2f} m, "
+        print(f"odometry lost at lift-off, back at {odom.valid_since_height_m}: top {peak.top_m:.2f} m, "
               f"{height:.2f} m 4 s after LOITER, for 1.0 m; {texts}")
         assert any("open loop" in t for t in texts) and any("closed loop" in t for t in texts), texts
-        assert top[0] < 1.0 + 0.15, f"climbed to {top[0]:.2f} m for a 1.0 m take-off"
+        assert peak.top_m < 1.0 + 0.15, f"climbed to {peak.top_m:.2f} m for a 1.0 m take-off"
         assert height == pytest.approx(1.0, abs=0.15)
-        assert gcs.command(mavlink.MAV_CMD_NAV_LAND) == mavlink.MAV_RESULT_ACCEPTED
-        assert gcs.recv("HEARTBEAT", 25.0, lambda m: not m.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED) \
-            is not None
+        _land(gcs)
     finally:
-        stop.set()
+        if peak is not None:
+            peak.stop.set()
         odom.stop.set()
         gcs.send(gcs.encoder.param_set_encode(1, 1, b"BRG_ODOM_LOSS_T", 0.5, mavlink.MAV_PARAM_TYPE_REAL32))
         gcs.recv("PARAM_VALUE", 5.0, lambda m: m.param_id == "BRG_ODOM_LOSS_T")
@@ -526,21 +536,15 @@ def test_takeoff_with_no_odometry_at_all_is_bounded_and_lands(stack):
     """The companion never gets odometry: the blind climb stops at BRG_TKO_OL_ALT (1.5 m estimated) and lands."""
     gcs = Gcs(stack.gcs_port)
     odom = GatedOdometry(stack, gcs, valid_above_m=None)
-    top = [0.0]
-    stop = threading.Event()
-
-    def watch(p_ground_z: float) -> None:
-        while not stop.wait(0.02):
-            top[0] = max(top[0], p_ground_z - float(stack.state()[0][2]))
-
+    peak: PeakHeight | None = None
     try:
         assert gcs.recv("HEARTBEAT", 20.0) is not None
         wait_for(lambda: stack.truth_count > 10, 10.0, "truth")
         odom.start()
         time.sleep(1.0)
         p_ground, _, _ = stack.state()
-        watcher = threading.Thread(target=watch, args=(float(p_ground[2]),), daemon=True)
-        watcher.start()
+        peak = PeakHeight(stack, float(p_ground[2]))
+        peak.start()
         assert gcs.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1) == mavlink.MAV_RESULT_ACCEPTED
         # wait for the armed heartbeat (board time may run slower than the wall clock), so a heartbeat from
         # before the arm cannot pass for the landing below
@@ -555,17 +559,18 @@ def test_takeoff_with_no_odometry_at_all_is_bounded_and_lands(stack):
             if m is not None and not m.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED:
                 disarmed = m
         texts = _statustexts(gcs)
-        stop.set()
-        watcher.join(timeout=2.0)
+        peak.stop.set()
+        peak.join(timeout=2.0)
         p, _, _ = stack.state()
-        print(f"no odometry: top {top[0]:.2f} m (bound 1.5 m estimated), landed at {p_ground[2] - p[2]:+.2f} m; "
+        print(f"no odometry: top {peak.top_m:.2f} m (bound 1.5 m estimated), landed at {p_ground[2] - p[2]:+.2f} m; "
               f"{texts}")
         assert disarmed is not None, "still armed after 60 s"
         assert any("No odometry in takeoff" in t for t in texts), texts
-        assert 1.0 < top[0] <= 1.5 + 0.25
+        assert 1.0 < peak.top_m <= 1.5 + 0.25
         assert abs(p[2] - p_ground[2]) < 0.15
     finally:
-        stop.set()
+        if peak is not None:
+            peak.stop.set()
         odom.stop.set()
         gcs.close()
 
