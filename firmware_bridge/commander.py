@@ -125,7 +125,8 @@ class CommanderService:
             s.event(mavlink.MAV_SEVERITY_CRITICAL, "Board link lost")
             s.failsafe_reason = "board link lost"
         odom_fresh = s.fresh(s.odom_time_s, now_s, p["BRG_ODOM_LOSS_T"])
-        if s.in_air and s.mode == FlightMode.TAKEOFF and s.height_m < p["BRG_TKO_OL_ALT"]:
+        low_in_climb = s.in_air and s.mode == FlightMode.TAKEOFF and s.height_m < p["BRG_TKO_OL_ALT"]
+        if low_in_climb:
             # the climb's tracker flies the odometry's velocity, and past the IMU's prediction horizon that velocity
             # is frozen: with BRG_ODOM_LOSS_T at 2 s, a take-off begun on odometry that had just stopped wound its
             # integral up on a vehicle it thought still, and climbed 0.33 m past its height at 0.8 m/s (a RealSense
@@ -133,7 +134,7 @@ class CommanderService:
             odom_fresh = odom_fresh and s.fresh(s.odom_time_s, now_s, IMU_PREDICTION_HORIZON_S)
         if s.odom_ok and not odom_fresh:
             s.odom_ok = False
-            if s.in_air and s.mode == FlightMode.TAKEOFF and s.height_m < p["BRG_TKO_OL_ALT"]:
+            if low_in_climb:
                 # low in the climb the camera may lose the floor (too near, too fast): as if it had never
                 # seen it, climb open loop until odometry returns, within BRG_TKO_OL_ALT / BRG_TKO_OL_T
                 s.event(mavlink.MAV_SEVERITY_WARNING,
