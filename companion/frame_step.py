@@ -18,7 +18,7 @@ from numpy.typing import NDArray
 
 from companion import messages as msgs
 from companion.modes import Mode
-from companion.obstacle_points import avoidance_points, nearest_obstacle
+from companion.obstacle_points import avoidance_points, drifted_toward, nearest_obstacle
 from companion.operator_input import OperatorInput, camera_yaw_rad
 from companion.pan_scan import PanScanParams, PanScanState
 from companion.reference import ReferenceOutput, reference_velocity
@@ -62,6 +62,14 @@ def height_m(out: Any) -> float | None:
     return -z if math.isfinite(z) else None
 
 
+def map_points_h_m(out: Any | None, params: ReferenceParams) -> NDArray[np.float64] | None:
+    """Perception's map points as the avoidance takes them: each moved toward the vehicle by the odometry's drift
+    since it was seen (``params.map_drift_m_s``, :func:`companion.obstacle_points.drifted_toward`)."""
+    if out is None:
+        return None
+    return drifted_toward(out.obstacle_points_h_m, getattr(out, "obstacle_ages_s", None), params.map_drift_m_s)
+
+
 def frame_step(out: Any | None, op: OperatorInput, R_qc: NDArray[np.float64], scan: PanScanState,
                params: ReferenceParams, operator_enabled: bool, allow_unknown_when_fresh: bool,
                v_command_h_m_s: NDArray[np.float64] | None = None, command_yaw_rate_rad_s: float = 0.0,
@@ -73,7 +81,7 @@ def frame_step(out: Any | None, op: OperatorInput, R_qc: NDArray[np.float64], sc
     ``height_above_takeoff_m``: the vehicle's height (None = unknown; default: the odometry's);
     ``height_verified``: checked against the floor lately (otherwise no climb toward a configured ceiling)."""
     h = height_m(out) if isinstance(height_above_takeoff_m, HeightFrom) else height_above_takeoff_m
-    points = None if out is None else out.obstacle_points_h_m
+    points = map_points_h_m(out, params)
     sectors, _, offset_deg = msgs.sector_arrays(None if out is None else out.sectors)
     # the operator pushing forward moves along the camera's axis (eq. 2), which is always in view; a script
     # commands any direction, and an operator pulling the handle back reverses away from the camera: neither
@@ -99,7 +107,7 @@ def fallback_step(last_out: Any | None, op: OperatorInput, R_qc: NDArray[np.floa
                   height_verified: bool = True) -> ReferenceOutput:
     """No camera: obstacle data stale -> no motion toward unknown (= all) sectors, repulsion from the last
     map kept (conservative), no pan-scan; the operator is zeroed by HOLD (``operator_enabled``)."""
-    points = None if last_out is None else last_out.obstacle_points_h_m
+    points = map_points_h_m(last_out, params)
     # the last velocity estimate is stale: the stopping distance uses none (the hold is the vehicle's)
     return reference_velocity(op, R_qc, NO_SCAN, points, params, sectors_m=None, block_unknown=True,
                               operator_enabled=operator_enabled, height_verified=height_verified,

@@ -27,6 +27,34 @@ def finite_rows(points_h_m: ArrayLike) -> NDArray[np.float64]:
     return p if np.isfinite(p).all() else p[np.isfinite(p).all(axis=1)]
 
 
+def drifted_toward(points_h_m: ArrayLike | None, ages_s: ArrayLike | None,
+                   drift_m_s: float) -> NDArray[np.float64] | None:
+    """The map's points moved toward the vehicle, horizontally, by the distance the odometry may have drifted
+    since each was last seen: ``drift_m_s`` x its age, at most half its horizontal distance (the direction is
+    kept, so it still stands for the same surface).
+
+    A particle is carried with the estimated velocity (eq. 14); a velocity error that persists (a bias of
+    1-2 cm/s, the campaigns' velocity-estimate RMSE) moves the real vehicle toward a surface the camera no
+    longer sees while the particle stays where it was: resting in a corner with the pan-scan on, the truth
+    crept from 0.53 to 0.45 m in 5 s while the map kept reading 0.45 m (issue 14, the real-time corner push).
+    What the camera sees again is measured afresh (age 0) and carries no margin. None or mismatched ages:
+    the points unchanged."""
+    if points_h_m is None or ages_s is None or not drift_m_s > 0.0:
+        return None if points_h_m is None else np.asarray(points_h_m, dtype=float)
+    p = np.asarray(points_h_m, dtype=float).reshape(-1, 3)
+    age = np.asarray(ages_s, dtype=float).reshape(-1)
+    if age.shape[0] != p.shape[0] or not p.shape[0]:
+        return p
+    horiz = np.hypot(p[:, 0], p[:, 1])
+    margin = drift_m_s * np.where(np.isfinite(age) & (age > 0.0), age, 0.0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        scale = np.where(horiz > 0.0, np.maximum(1.0 - margin / horiz, 0.5), 1.0)
+    out = p.copy()
+    out[:, 0] *= scale
+    out[:, 1] *= scale
+    return out
+
+
 def avoidance_mask(p: NDArray[np.float64], params: ReferenceParams | None, height_m: float | None,
                    reach_m: float) -> NDArray[np.bool_] | None:
     """Which of the finite points ``p`` the avoidance acts on (None: all of them); see :func:`select_points`."""

@@ -57,7 +57,9 @@ class ReferenceParams:
     :func:`companion.reference.reference_velocity`'s ``height_m`` is the odometry's, counted from the
     take-off pose, held to the floor the camera sees with ``floor_height_time_constant_s``
     (:mod:`companion.height`; 0: the odometry's alone); without a floor seen for ``height_fix_max_age_s`` the
-    height is not verified and the vehicle does not climb toward a configured ceiling.
+    height is not verified and the vehicle does not climb toward a configured ceiling. ``map_drift_m_s``: the
+    velocity error the odometry may keep up; every map point counts as this much nearer per second since the
+    camera last saw it (:func:`companion.obstacle_points.drifted_toward`; 0: off).
     """
 
     k_v_m_s: float = 0.6
@@ -84,6 +86,7 @@ class ReferenceParams:
     takeoff_height_m: float = 0.0
     floor_height_time_constant_s: float = 0.5
     height_fix_max_age_s: float = 4.0
+    map_drift_m_s: float = 0.01
 
     def vertical(self) -> VerticalParams:
         """The vertical limits' parameters (:mod:`companion.vertical_limits`), sharing the safe distance and

@@ -253,3 +253,22 @@ def test_the_slide_a_push_makes_along_a_wall_never_goes_where_the_map_has_not_lo
     v = reference_velocity(OperatorInput(), R_QC_FORWARD, NO_SCAN, near, params,
                            sectors_m=np.full(72, np.nan)).v_ref_h_m_s
     assert v[0] < -0.05
+
+
+def test_drifted_toward_moves_each_point_in_by_its_age_horizontally_and_at_most_halfway() -> None:
+    from companion.obstacle_points import drifted_toward
+    points = np.array([[0.6, 0.8, 0.3],      # 1.0 m away horizontally, 10 s old: 0.1 m nearer
+                       [0.5, 0.0, -0.2],     # seen just now: unchanged
+                       [0.0, 0.2, 0.1],      # 0.2 m, 30 s old: 0.3 m would cross the vehicle, halved instead
+                       [0.0, 0.0, 1.0],      # straight below: no horizontal direction, unchanged
+                       [0.3, 0.4, 0.0]])     # age NaN (bad data): no margin
+    ages = np.array([10.0, 0.0, 30.0, 50.0, np.nan])
+    moved = drifted_toward(points, ages, 0.01)
+    assert moved is not None
+    np.testing.assert_allclose(np.hypot(moved[:, 0], moved[:, 1]), [0.9, 0.5, 0.1, 0.0, 0.5], atol=1e-12)
+    np.testing.assert_allclose(moved[:, 2], points[:, 2])                      # heights untouched
+    np.testing.assert_allclose(np.arctan2(moved[0, 1], moved[0, 0]), np.arctan2(0.8, 0.6))   # direction kept
+    assert drifted_toward(points, ages[:3], 0.01) is not None
+    np.testing.assert_array_equal(drifted_toward(points, ages[:3], 0.01), points)   # mismatched ages: unchanged
+    np.testing.assert_array_equal(drifted_toward(points, ages, 0.0), points)       # off
+    assert drifted_toward(None, ages, 0.01) is None

@@ -73,3 +73,31 @@ def test_the_operator_backing_up_goes_only_where_the_map_has_looked() -> None:
     seen_behind = frame_step(_Out(np.full(72, np.inf)), OperatorInput(qx=-0.8), R_QC_FORWARD, NO_SCAN, params,
                              True, True)
     assert seen_behind.ref.v_ref_h_m_s[0] < -0.4     # where the map has looked (all free), it reverses
+
+
+def _wall_ahead(distance_m: float, age_s: float) -> _Out:
+    """A wall across +x at ``distance_m``, sampled every 0.1 m at the vehicle's height band, all seen ``age_s``
+    ago; every sector seen and free elsewhere."""
+    y = np.arange(-1.0, 1.01, 0.1)
+    points = np.column_stack([np.full_like(y, distance_m), y, np.full_like(y, 0.2)])
+    out = _Out(np.full(72, np.inf), points)
+    out.obstacle_ages_s = np.full(len(y), age_s)    # type: ignore[attr-defined]
+    return out
+
+
+def test_a_wall_remembered_long_counts_as_nearer_by_the_odometrys_drift() -> None:
+    """Issue 14 (the real-time corner push): the vehicle rests by a wall the camera no longer sees while a velocity
+    bias carries it on; a point seen 10 s ago counts as map_drift_m_s x 10 s nearer. Pushed at a wall 0.5 m
+    ahead (outside the 0.45 m safe distance), seen just now, the vehicle still closes in; seen 10 s ago, the wall
+    counts as 0.40 m: no push toward it gets through, and it backs away."""
+    params = ReferenceParams()
+    assert params.map_drift_m_s == 0.01
+    push = OperatorInput(qx=1.0)
+    fresh = frame_step(_wall_ahead(0.5, 0.0), push, R_QC_FORWARD, NO_SCAN, params, True, True)
+    old = frame_step(_wall_ahead(0.5, 10.0), push, R_QC_FORWARD, NO_SCAN, params, True, True)
+    assert fresh.ref.v_ref_h_m_s[0] > 0.0
+    assert old.ref.v_ref_h_m_s[0] < 0.0
+    assert old.nearest is not None and math.isclose(old.nearest[1], 0.5 - 0.1, abs_tol=0.03)
+    off = frame_step(_wall_ahead(0.5, 10.0), push, R_QC_FORWARD, NO_SCAN,
+                     ReferenceParams(map_drift_m_s=0.0), True, True)
+    np.testing.assert_allclose(off.ref.v_ref_h_m_s, fresh.ref.v_ref_h_m_s)
