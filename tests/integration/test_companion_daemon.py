@@ -56,6 +56,7 @@ class FakeOutput:
     yaw_rate_rad_s: float = 0.0
     estimator: str = "filters"
     floor_height_m: float | None = None
+    obstacle_ages_s: np.ndarray | None = None   # None: ages unknown, no drift margin (the map always gives them)
 
 
 def test_the_fake_output_has_the_fields_of_perceptions_output() -> None:
