@@ -25,6 +25,7 @@ class _Out:
     odometry_ok: bool = True
     position_m: NDArray[np.float64] = field(default_factory=lambda: np.array([0.0, 0.0, -1.0]))
     v_h_m_s: NDArray[np.float64] = field(default_factory=lambda: np.zeros(3))
+    obstacle_ages_s: NDArray[np.float64] | None = None
 
 
 def _front_seen_only() -> _Out:
@@ -80,9 +81,7 @@ def _wall_ahead(distance_m: float, age_s: float) -> _Out:
     ago; every sector seen and free elsewhere."""
     y = np.arange(-1.0, 1.01, 0.1)
     points = np.column_stack([np.full_like(y, distance_m), y, np.full_like(y, 0.2)])
-    out = _Out(np.full(72, np.inf), points)
-    out.obstacle_ages_s = np.full(len(y), age_s)    # type: ignore[attr-defined]
-    return out
+    return _Out(np.full(72, np.inf), points, obstacle_ages_s=np.full(len(y), age_s))
 
 
 def test_a_wall_remembered_long_counts_as_nearer_by_the_odometrys_drift() -> None:
