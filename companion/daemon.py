@@ -54,7 +54,7 @@ from companion.command_clock import GcsCommandClock
 from companion.commands import CommandQueue
 from companion.config import CompanionConfig
 from companion.frame_state import FrameState
-from companion.frame_step import frame_step, height_m, setpoint_velocity
+from companion.frame_step import frame_step, height_m, map_points_h_m, setpoint_velocity
 from companion.gcs_commands import GcsCommands
 from companion.gcs_input import GcsInput
 from companion.guard import ErrorCounter, non_finite_fields
@@ -305,27 +305,32 @@ class Companion:
         return None if h is None else h + self.ref_params.takeoff_height_m
 
     def _points_below(self) -> NDArray[np.float64] | None:
-        """The map's points and the remembered tops of the objects under the vehicle (companion.landing_spot), in H."""
+        """The map's points (moved in by the odometry's drift since each was seen, as the avoidance takes them) and
+        the remembered tops of the objects under the vehicle (companion.landing_spot), in H."""
         out = self.state.last_output
-        if out is None:
+        points = map_points_h_m(out, self.ref_params)
+        if out is None or points is None:
             return None
         if not out.odometry_ok:   # no pose to place the memory with: the map alone
-            return out.obstacle_points_h_m
+            return points
         remembered = self.below.points_h(out.position_m, out.yaw_rad, self._height_above_floor_m())
-        return np.vstack([np.asarray(out.obstacle_points_h_m, dtype=float).reshape(-1, 3), remembered])
+        return np.vstack([np.asarray(points, dtype=float).reshape(-1, 3), remembered])
 
     def _failsafe_refusal(self) -> str | None:
         """What keeps a failsafe landing from coming down here and moves it clear first (companion.modes): an
         object below, while the vehicle can move clear. It first turns on the spot to look every way
         (:class:`companion.landing_spot.ClearingSurvey`), then takes a way off with room
-        (:func:`companion.landing_spot.room_to_clear`: nothing of the avoidance's band within the influence
-        distance ahead of it), chosen again if it loses its room on the way; with none, or with anything inside the
+        (:func:`companion.landing_spot.room_to_clear`: nothing of the avoidance's band in the path it sweeps over
+        the influence distance), chosen again if it loses its room on the way; with none, or with anything inside the
         safe distance, or without a pose, it lands where it is, on the object: a clearing move is motion nobody
         commanded."""
         out = self.state.last_output
         if out is None or not out.odometry_ok or not math.isfinite(out.yaw_rad):
             return None
-        refusal = self._land_refusal()
+        # once moving clear, the spot must be clear by a margin (hysteresis): the map's tops read a few cm
+        # optimistic, and a landing that stopped just past the footprint came down beside the box inside the safe
+        # distance (campaign 9, flight 2); before, a wall the vehicle rests beside must not count as "below"
+        refusal = self._land_refusal(self.landing_spot.clear_margin_m if self.modes.clearing_spot else 0.0)
         if refusal is None:
             return None
         ref = self.ref_params
@@ -352,10 +357,11 @@ class Companion:
         self._clearing_world_az = yaw + az_h
         return refusal
 
-    def _land_refusal(self) -> str | None:
-        """Why the spot under the vehicle is no place to land (an object seen below it), or None."""
+    def _land_refusal(self, extra_radius_m: float = 0.0) -> str | None:
+        """Why the spot under the vehicle is no place to land (an object seen below it, within the footprint
+        widened by ``extra_radius_m``), or None."""
         below = object_below(self._points_below(), self._height_above_floor_m(), self.landing_spot,
-                             self.ref_params.floor_margin_m)
+                             self.ref_params.floor_margin_m, extra_radius_m)
         return None if below is None else below.refusal()
 
     def _clearing_command(self, out: Any | None) -> tuple[NDArray[np.float64], float] | None:

@@ -41,6 +41,10 @@ class LandingSpotParams:
     clearing_speed_m_s: float = 0.25   # a failsafe landing moves clear of an object below at this speed
     min_top_m: float = 0.25            # lower tops are landed on (the gear takes them; the floor's samples, with
                                        # the height's error, must never read as an object)
+    clear_margin_m: float = 0.15       # once a failsafe landing moves clear, the spot counts as clear only with
+                                       # nothing within footprint + this: the map's tops can read a few cm
+                                       # optimistic, and a landing that stopped just past the footprint came
+                                       # down 0.33 m from the box (campaign 9, flight 2)
 
     def __post_init__(self) -> None:
         if not self.footprint_radius_m > 0.0:
@@ -49,6 +53,8 @@ class LandingSpotParams:
             raise ValueError(f"clearing_speed_m_s must be in (0, 1] m/s, got {self.clearing_speed_m_s}")
         if not self.min_top_m >= 0.0:
             raise ValueError(f"min_top_m must be >= 0, got {self.min_top_m}")
+        if not 0.0 <= self.clear_margin_m <= 1.0:
+            raise ValueError(f"clear_margin_m must be in [0, 1] m, got {self.clear_margin_m}")
 
 
 @dataclass(frozen=True)
@@ -148,28 +154,30 @@ def distance_to_clear_m(tops_xy_m: NDArray[np.float64], azimuth_rad: float, foot
     return float(along[int(np.argmax(clear))]) if clear.any() else CLEARING_LOOKAHEAD_M + 1.0
 
 
-ROOM_CONE_RAD = math.radians(100.0)   # a clearing move must have nothing within reach this close to its way
+ROOM_LATERAL_MARGIN_M = 0.15   # a clearing move passes nothing closer than min_distance_m + this to its side
 
 
 def room_to_clear(band_points_h_m: ArrayLike, azimuth_rad: float, reach_m: float, min_distance_m: float) -> bool:
     """Whether a failsafe landing may move clear along ``azimuth_rad`` (H): no obstacle point of the avoidance's
-    height band (N x 3 in H, vehicle at the origin) within ``reach_m`` within 100 deg of the way off, and none
-    anywhere nearer than ``min_distance_m`` (inside the safe distance the camera's blind zone can hide the
-    obstacle: campaign 6's flight 6 moved from 0.41 m of one to 0.19 m). What lies behind the way off does not
-    count: a vehicle that an operator left resting at the safe distance from a wall, over the edge of a box,
-    landed beside the box at 0.27 m of it when any point within reach counted (campaign 7, flight 8)."""
+    height band (N x 3 in H, vehicle at the origin) in the path the move sweeps (ahead, within ``reach_m`` along
+    the way and ``min_distance_m + ROOM_LATERAL_MARGIN_M`` to either side of it), and none anywhere nearer than
+    ``min_distance_m`` (inside the safe distance the camera's blind zone can hide the obstacle: campaign 6's
+    flight 6 moved from 0.41 m of one to 0.19 m). What lies behind the way off does not count: a vehicle that an
+    operator left resting at the safe distance from a wall, over the edge of a box, landed beside the box at
+    0.27 m of it when any point within reach counted (campaign 7, flight 8). Nor do walls the move runs past
+    beyond the margin: in a 1.7 m corridor a cone of 100 deg either side of the way found every way blocked by
+    the walls alongside, and the failsafe landed on the box (campaign 9, flight 2, re-flown: 0.14-0.29 m)."""
     p = finite_rows(band_points_h_m)
     if not p.shape[0]:
         return True
     r = np.hypot(p[:, 0], p[:, 1])
     if bool((r < min_distance_m).any()):
         return False
-    near = r <= reach_m
-    if not near.any():
-        return True
     u = np.array([math.cos(azimuth_rad), math.sin(azimuth_rad)])
-    cos_angle = (p[near, :2] @ u) / np.maximum(r[near], 1e-9)
-    return not bool((cos_angle > math.cos(ROOM_CONE_RAD)).any())
+    along = p[:, :2] @ u
+    beside = np.abs(p[:, 0] * u[1] - p[:, 1] * u[0])
+    in_path = (along > 0.0) & (along <= reach_m) & (beside < min_distance_m + ROOM_LATERAL_MARGIN_M)
+    return not bool(in_path.any())
 
 
 SURVEY_TURN_RAD = math.radians(300.0)   # a full turn less the camera's width: every way has been looked at
@@ -218,12 +226,12 @@ def clearing_command(azimuth_rad: float, camera_yaw_rad: float, params: LandingS
 
 
 def object_below(points_h_m: ArrayLike | None, height_m: float | None, params: LandingSpotParams,
-                 floor_margin_m: float) -> ObjectBelow | None:
-    """The highest point (H, vehicle at the origin, z down) under the footprint that is not the floor (higher
-    than ``floor_margin_m`` and ``min_top_m`` above the take-off floor, ``height_m`` below the vehicle); None if
-    there is none, or the check is off, or the height above the floor is unknown."""
+                 floor_margin_m: float, extra_radius_m: float = 0.0) -> ObjectBelow | None:
+    """The highest point (H, vehicle at the origin, z down) under the footprint (widened by ``extra_radius_m``)
+    that is not the floor (higher than ``floor_margin_m`` and ``min_top_m`` above the take-off floor, ``height_m``
+    below the vehicle); None if there is none, or the check is off, or the height above the floor is unknown."""
     below = _objects_below(points_h_m, height_m, max(floor_margin_m, params.min_top_m),
-                           within_m=params.footprint_radius_m) if params.enabled else None
+                           within_m=params.footprint_radius_m + max(0.0, extra_radius_m)) if params.enabled else None
     if below is None or not below[1].size:
         return None
     p, above_floor_m = below

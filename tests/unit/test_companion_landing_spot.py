@@ -42,6 +42,24 @@ def test_a_desk_under_the_vehicle_is_found_and_the_floor_is_not() -> None:
     assert len("companion: " + got.refusal()) <= 50    # one STATUSTEXT, not cut
 
 
+def test_once_moving_clear_the_spot_must_be_clear_by_the_margin() -> None:
+    """Hysteresis (campaign 9, flight 2): a failsafe landing that stopped as soon as the box's edge left the
+    footprint came down 0.33 m from it; with the map's tops a few cm optimistic, the clear check after a refusal
+    looks ``clear_margin_m`` further out."""
+    height_m = 1.2
+    edge_m = P.footprint_radius_m + 0.5 * P.clear_margin_m      # the box's near edge just past the footprint
+    box = _top(edge_m + 0.3, 0.0, 0.6, height_m - 0.6)
+    assert object_below(box, height_m, P, FLOOR_MARGIN_M) is None                       # the first check: clear
+    got = object_below(box, height_m, P, FLOOR_MARGIN_M, extra_radius_m=P.clear_margin_m)
+    assert got is not None and got.top_height_m == pytest.approx(0.6)                   # moving clear: not yet
+    far = _top(P.footprint_radius_m + P.clear_margin_m + 0.05 + 0.3, 0.0, 0.6, height_m - 0.6)
+    assert object_below(far, height_m, P, FLOOR_MARGIN_M, extra_radius_m=P.clear_margin_m) is None
+    with pytest.raises(ValueError):
+        LandingSpotParams(clear_margin_m=-0.1)
+    with pytest.raises(ValueError):
+        LandingSpotParams(clear_margin_m=math.nan)
+
+
 def test_beside_above_or_unknown_is_not_below() -> None:
     height_m = 1.0
     box_beside = _top(0.9, 0.0, 0.4, 0.5)          # a box top 0.5 m high, 0.7 m off to the side: not under it
@@ -143,6 +161,24 @@ def test_room_to_clear_counts_only_what_lies_ahead_of_the_way_off() -> None:
     assert not room_to_clear(_wall_h(0.8), 0.0, 0.9, 0.40)
     # NaN rows (a corrupt map sample) are ignored, not read as room or as an obstacle
     assert room_to_clear(np.vstack([wall_behind, [math.nan, 0.0, 0.0]]), 0.0, 0.9, 0.40)
+
+
+def test_a_corridor_has_room_along_it() -> None:
+    """Campaign 9, flight 2, re-flown: over a box in a 1.7 m corridor (walls 0.81 and 0.89 m to either side) the
+    walls alongside blocked every way, and the failsafe landed on the box's edge (0.14-0.29 m). Along the
+    corridor is room; across it is not; a wall the move would pass closer than the margin blocks it."""
+    def wall_y(y_m: float) -> np.ndarray:     # a wall along x at y = y_m
+        x = np.arange(-2.0, 2.0 + 1e-9, 0.05)
+        return np.column_stack([x, np.full(x.size, y_m), np.zeros(x.size)])
+
+    corridor = np.vstack([wall_y(-0.81), wall_y(0.89)])
+    assert room_to_clear(corridor, 0.0, 0.9, 0.40) and room_to_clear(corridor, math.pi, 0.9, 0.40)
+    assert not room_to_clear(corridor, math.pi / 2, 0.9, 0.40)
+    assert not room_to_clear(corridor, math.radians(-60), 0.9, 0.40)     # slanting into the near wall
+    narrow = np.vstack([wall_y(-0.5), wall_y(0.6)])
+    assert not room_to_clear(narrow, 0.0, 0.9, 0.40)                     # passing a wall at 0.5 m: no room
+    ahead = np.array([[0.85, 0.3, 0.0]])                                  # a column just off the way, in reach
+    assert not room_to_clear(ahead, 0.0, 0.9, 0.40) and room_to_clear(ahead, 0.0, 0.8, 0.40)
 
 
 def test_the_way_off_takes_only_directions_with_room() -> None:
