@@ -308,9 +308,9 @@ class Companion:
         """The map's points (moved in by the odometry's drift since each was seen, as the avoidance takes them) and
         the remembered tops of the objects under the vehicle (companion.landing_spot), in H."""
         out = self.state.last_output
-        points = map_points_h_m(out, self.ref_params)
-        if out is None or points is None:
+        if out is None:
             return None
+        points = map_points_h_m(out, self.ref_params)
         if not out.odometry_ok:   # no pose to place the memory with: the map alone
             return points
         remembered = self.below.points_h(out.position_m, out.yaw_rad, self._height_above_floor_m())
