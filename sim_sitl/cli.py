@@ -9,6 +9,7 @@ import signal
 import click
 
 from quadlink.errors import ConfigError, LinkError
+from quadlink.lockstep import PARTICIPANTS
 from sim_sitl.config import RendererName, known_scenarios, load_sitl_config
 
 log = logging.getLogger(__name__)
@@ -18,6 +19,14 @@ log = logging.getLogger(__name__)
 @click.option("--scenario", default=None, help=f"scenario name ({', '.join(known_scenarios())}) or YAML path")
 @click.option("--config", "config_path", default=None, help="SITL config YAML (default configs/sitl.yaml)")
 @click.option("--lockstep", is_flag=True, help="advance in 10 ms chunks gated by setpoints and camera acks")
+@click.option("--lockstep-port", type=int, default=None,
+              help="deterministic lock-step (quadlink/lockstep.py): serve its coordinator on this TCP port and step "
+                   "only with every participant (no simulated time passes before they all registered)")
+@click.option("--lockstep-participants", default=",".join(PARTICIPANTS), show_default=True,
+              help="with --lockstep-port: the participants' names, comma-separated")
+@click.option("--end-after-operator", "end_after_operator_s", type=float, default=None,
+              help="with --lockstep-port: once the operator has left, end after 2 s disarmed on the ground, or this "
+                   "many simulated seconds after it left (default: run to --duration)")
 @click.option("--speed", type=float, default=None,
               help="sim speed factor vs wall clock (default 1.0; 0 = as fast as possible)")
 @click.option("--camera-res", default=None, help="320x240 (default) or 640x480")
@@ -31,7 +40,8 @@ log = logging.getLogger(__name__)
 @click.option("--truth", default="udpout:127.0.0.1:14560", show_default=True,
               help="ground-truth MAVLink endpoint (udpout:HOST:PORT, 'none' to disable)")
 @click.option("--duration", type=float, default=None, help="stop after this many simulated seconds")
-def command(scenario: str | None, config_path: str | None, lockstep: bool, speed: float | None,
+def command(scenario: str | None, config_path: str | None, lockstep: bool, lockstep_port: int | None,
+            lockstep_participants: str, end_after_operator_s: float | None, speed: float | None,
             camera_res: str | None, no_camera: bool, renderer: RendererName | None, pty: bool, port1: int, port2: int,
             camera_port: int, truth: str, duration: float | None) -> None:
     from sim_sitl.runner import Sitl, SitlOptions, parse_resolution
@@ -49,7 +59,9 @@ def command(scenario: str | None, config_path: str | None, lockstep: bool, speed
             raise ConfigError(f"--camera-res: {exc}") from exc
     opts = SitlOptions(config=cfg, scenario=scenario, port1=port1, port2=port2, camera_port=camera_port,
                        camera=not no_camera, camera_res=res, truth_url=None if truth == "none" else truth, pty=pty,
-                       lockstep=lockstep, speed=speed, duration_s=duration)
+                       lockstep=lockstep or lockstep_port is not None, speed=speed, duration_s=duration,
+                       lockstep_port=lockstep_port, end_after_operator_s=end_after_operator_s,
+                       lockstep_participants=tuple(p.strip() for p in lockstep_participants.split(",") if p.strip()))
     try:
         sitl = Sitl(opts)
     except OSError as exc:

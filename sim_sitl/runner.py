@@ -22,6 +22,7 @@ import numpy as np
 
 from quadlink.camera import CameraStreamServer
 from quadlink.frames import euler_from_R
+from quadlink.lockstep import DEFAULT_DONE_TIMEOUT_S, PARTICIPANTS, Coordinator, LockstepError, wait_for_units
 from quadlink.mk.flags import BoardError
 from quadlink.mk.messages import ImuSample, encode_message
 from quadlink.vehicle import load_vehicle
@@ -35,6 +36,8 @@ from sim_sitl.vehicle_sim import SimVehicle, TickResult
 from sim_sitl.world import RigidState
 
 log = logging.getLogger(__name__)
+
+DISARMED_END_S = 2.0  # deterministic lock-step: simulated seconds on the ground, disarmed, before the run ends
 
 
 @dataclass(frozen=True)
@@ -53,6 +56,15 @@ class SitlOptions:
     speed: float | None = None  # None: real time (1.0), or unpaced while lock-step consumers gate; 0: unpaced
     duration_s: float | None = None  # sim seconds
     progress_every_s: float = 5.0
+    # the deterministic lock-step (quadlink.lockstep): serve the coordinator on this port (0 = ephemeral) and
+    # step only with every one of these participants; None: the plain lock-step or real time
+    lockstep_port: int | None = None
+    lockstep_participants: tuple[str, ...] = PARTICIPANTS
+    lockstep_done_timeout_s: float = DEFAULT_DONE_TIMEOUT_S
+    # deterministic lock-step: once the operator has left, end after DISARMED_END_S disarmed or this many simulated
+    # seconds after it left (the flight's end is then simulated time, not when a supervisor noticed); None: at
+    # duration_s
+    end_after_operator_s: float | None = None
 
 @dataclass
 class SitlStats:
@@ -66,6 +78,7 @@ class SitlStats:
     camera_render_s: float = 0.0  # wall time in render + noise model
     camera_render_cpu_s: float = 0.0  # process CPU time in render + noise model (time.process_time)
     setpoints: int = 0
+    steps: int = 0  # deterministic lock-step steps answered by every participant
     lockstep_timeouts: int = 0
     camera_ack_timeouts: int = 0
 
@@ -118,6 +131,19 @@ class Sitl:
         self._last_imu_counts = (512,) * 6
         self.gate = SetpointGate()
         self._reported_drops = (0, 0)
+        self.coordinator: Coordinator | None = None
+        self._port1_in = bytearray()   # deterministic lock-step: port-1 bytes read, not yet applied
+        self._port1_in_total = 0       # ... and how many were ever read
+        self._port1_applied = 0
+        self._bytes_out = [0, 0]       # bytes written to port 1 and port 2
+        self._operator_left_s: float | None = None
+        self._disarmed_since_s: float | None = None
+        if opts.lockstep_port is not None:
+            try:
+                self.coordinator = Coordinator(opts.host, opts.lockstep_port, opts.lockstep_participants)
+            except OSError:
+                self.close()
+                raise
 
     # ------------------------------------------------------------------ endpoints
     @property
@@ -138,13 +164,17 @@ class Sitl:
 
     @property
     def endpoints(self) -> dict[str, str]:
-        return self.ports.endpoints
+        ep = dict(self.ports.endpoints)
+        if self.coordinator is not None:
+            ep["lock-step"] = self.coordinator.url
+        return ep
 
     def log_endpoints(self) -> None:
         o = self.options
         log.info("SITL scenario %s, vehicle %s (%s frame, %.2f kg), %s", self.scenario.name, self.vehicle.name,
                  self.vehicle.frame, self.vehicle.mass_kg,
-                 "lock-step" if o.lockstep else ("as fast as possible" if o.speed is not None and o.speed <= 0
+                 f"deterministic lock-step with {', '.join(o.lockstep_participants)}" if self.coordinator
+                 else "lock-step" if o.lockstep else ("as fast as possible" if o.speed is not None and o.speed <= 0
                                                   else f"real time x{o.speed or 1.0:g}"))
         for name, url in self.endpoints.items():
             log.info("  %-10s %s", name, url)
@@ -180,6 +210,8 @@ class Sitl:
     def close(self) -> None:
         if hasattr(self, "ports"):
             self.ports.close()
+        if getattr(self, "coordinator", None) is not None:
+            self.coordinator.close()  # type: ignore[union-attr]
         if self._thread is None or not self._thread.is_alive():
             self.sim.close()
 
@@ -193,6 +225,9 @@ class Sitl:
     # ------------------------------------------------------------------ loop
     def run(self) -> None:
         """Run until ``stop()`` or the duration (blocking)."""
+        if self.coordinator is not None:
+            self._run_deterministic(self.coordinator)
+            return
         o = self.options
         cfg = self.options.config
         clock = self._clock
@@ -237,6 +272,114 @@ class Sitl:
         log.info("SITL stopped at sim time %.2f s (real-time factor %.2f)", self.sim.t_s,
                  self.stats.real_time_factor)
 
+    def _run_deterministic(self, coord: Coordinator) -> None:
+        """The deterministic lock-step (:mod:`quadlink.lockstep`): no simulated time passes until every participant
+        has registered; then per chunk: the bridge's bytes of the previous step, the chunk, STEP to everyone, and
+        every participant's DONE before the next chunk. A participant too slow (``lockstep_done_timeout_s`` of
+        wall time) ends the run with :class:`LockstepError`: a flight that is no longer deterministic must fail,
+        not go on as another flight."""
+        o, cfg, clock = self.options, self.options.config, self._clock
+        chunk_ticks = max(1, round(cfg.lockstep_chunk_s / self.sim.tick_s))
+        start_wall = last_progress = clock()
+        last_progress_stats = (0.0, 0, 0)
+        log.info("lock-step: waiting for %s to register on %s", ", ".join(o.lockstep_participants), coord.url)
+        while not self._stop.is_set() and not coord.all_registered():
+            coord.poll(0.02)
+            self._poll_port1()
+        index = 0
+        reason: str | None = None
+        while not self._stop.is_set():
+            reason = self._end_reason(coord)
+            if reason is not None:
+                break
+            self._apply_port1(coord.sent.get("bridge>sitl"))
+            for _ in range(chunk_ticks):
+                self._step(self.sim.tick())
+            camera = self.ports.camera
+            coord.sent.update({"sitl>bridge.cmd": self._bytes_out[0], "sitl>bridge.imu": self._bytes_out[1],
+                               "sitl>companion.camera": camera.frames_published if camera is not None else 0})
+            coord.send_step(index, self.sim.t_s)
+            self._await_done(coord, index)
+            self.stats.steps = index = index + 1
+            now = clock()
+            self.stats.sim_time_s, self.stats.wall_time_s = self.sim.t_s, now - start_wall
+            if now - last_progress >= o.progress_every_s:
+                self._progress(now - last_progress, last_progress_stats)
+                last_progress = now
+                last_progress_stats = (self.sim.t_s, self.stats.imu_frames_offered, self.stats.camera_frames)
+        self.stats.wall_time_s = clock() - start_wall
+        log.info("SITL stopped at sim time %.2f s after %d lock-step steps (%s; real-time factor %.2f)",
+                 self.sim.t_s, self.stats.steps, reason or "stopped", self.stats.real_time_factor)
+        coord.close(reason or "stopped")
+
+    def _end_reason(self, coord: Coordinator) -> str | None:
+        """Why the deterministic run ends now (None: it goes on); decided on simulated time and state only."""
+        o, t = self.options, self.sim.t_s
+        if o.end_after_operator_s is not None and "operator" in coord.left:
+            if self._operator_left_s is None:
+                self._operator_left_s = t
+                log.info("the operator left at sim time %.2f s", t)
+            if not self.sim.firmware.armed:
+                if self._disarmed_since_s is None:
+                    self._disarmed_since_s = t
+                if t >= self._disarmed_since_s + DISARMED_END_S - 1e-9:
+                    # a little on the ground: the bridge's 1 Hz heartbeat and the logs show the landing too
+                    return f"the operator left and the vehicle has been disarmed since {self._disarmed_since_s:.2f} s"
+                return None
+            self._disarmed_since_s = None
+            if t >= self._operator_left_s + o.end_after_operator_s - 1e-9:
+                return f"still armed {o.end_after_operator_s:g} s after the operator left"
+            return None
+        if o.duration_s is not None and t >= o.duration_s - 1e-9:
+            return f"duration {o.duration_s:.1f} s"
+        return None
+
+    def _await_done(self, coord: Coordinator, index: int) -> None:
+        """Every participant's DONE of step ``index`` (serving the serial ports: slow clients' backlogs, input
+        kept for the next chunk)."""
+        deadline = self._clock() + self.options.lockstep_done_timeout_s
+        while not coord.all_done(index):
+            if self._stop.is_set():
+                return
+            if self._clock() >= deadline:
+                raise LockstepError(f"lock-step: step {index} (sim time {self.sim.t_s:.2f} s) not answered within "
+                                    f"{self.options.lockstep_done_timeout_s:.0f} s by "
+                                    f"{', '.join(coord.waiting_for(index))}")
+            coord.poll(0.001)
+            self._poll_port1()
+
+    def _poll_port1(self, timeout_s: float = 0.0) -> None:
+        """Read the serial ports' input into the port-1 buffer (applied at the next chunk, not now)."""
+        data = self.ports.poll(timeout_s).port1
+        if data:
+            self._port1_in += data
+            self._port1_in_total += len(data)
+
+    def _apply_port1(self, expected_total: int | None) -> None:
+        """Apply exactly the port-1 bytes the bridge had sent by its last DONE, waiting for any still in flight;
+        bytes that came early wait for their step. In this mode port 1 is the bridge's alone (another client's
+        bytes would count as the bridge's)."""
+        what = "MK port-1 bytes from the bridge"
+        wait_for_units(lambda: self._port1_in_total, expected_total, self._poll_port1, what,
+                       self.options.lockstep_done_timeout_s, self._clock)
+        n = len(self._port1_in) if expected_total is None else expected_total - self._port1_applied
+        data, self._port1_in = bytes(self._port1_in[:n]), self._port1_in[n:]
+        self._port1_applied += len(data)
+        if data:
+            self._on_port1(data)
+
+    def _on_port1(self, data: bytes) -> int:
+        """Port 1's bytes at the current sim time: requests answered on the simulated wire, setpoints to the
+        firmware. Returns the number of setpoints."""
+        t = self.sim.t_s
+        commands, replies = self.protocol.on_bytes(data, t)
+        for frame in replies:
+            self.line1.offer(frame, t)
+        for cmd in commands:
+            self.sim.on_setpoint(cmd)
+        self.stats.setpoints += len(commands)
+        return len(commands)
+
     def _progress(self, wall_dt: float, prev: tuple[float, int, int]) -> None:
         sim_dt = self.sim.t_s - prev[0]
         rtf = sim_dt / wall_dt if wall_dt > 0 else 0.0
@@ -280,7 +423,10 @@ class Sitl:
             self._next_truth_s += self._truth_period_s
             self._send_truth(res.state, t)
         t_end = t + self.sim.tick_s
-        self.ports.write_serial(self.line1.drain(t_end), self.line2.drain(t_end))
+        out1, out2 = self.line1.drain(t_end), self.line2.drain(t_end)
+        self._bytes_out[0] += len(out1)
+        self._bytes_out[1] += len(out2)
+        self.ports.write_serial(out1, out2)
         return pending
 
     def _telemetry(self, res: TickResult) -> BoardTelemetry:
@@ -317,7 +463,8 @@ class Sitl:
         self.stats.camera_frames += 1
         seq = self._camera_seq
         self._camera_seq += 1
-        return seq if self.options.lockstep and server.client_count > 0 else None
+        gated = self.options.lockstep and self.coordinator is None  # the deterministic steps wait for more than acks
+        return seq if gated and server.client_count > 0 else None
 
     def _send_truth(self, state: RigidState, t_s: float) -> None:
         assert self.truth is not None
@@ -337,18 +484,11 @@ class Sitl:
         data = self.ports.poll(timeout_s).port1
         if not data:
             return 0
-        t = self.sim.t_s
-        commands, replies = self.protocol.on_bytes(data, t)
-        for frame in replies:
-            self.line1.offer(frame, t)
-        for cmd in commands:
-            self.sim.on_setpoint(cmd)
-        if commands:
-            self.stats.setpoints += len(commands)
-            if self.options.lockstep and self.gate.on_setpoints(len(commands)):
-                log.info("lock-step: port-1 client is sending setpoints; waiting for one per %.0f ms chunk",
-                         self.options.config.lockstep_chunk_s * 1000)
-        return len(commands)
+        n = self._on_port1(data)
+        if self.options.lockstep and self.gate.on_setpoints(n):
+            log.info("lock-step: port-1 client is sending setpoints; waiting for one per %.0f ms chunk",
+                     self.options.config.lockstep_chunk_s * 1000)
+        return n
 
     def _serve_for(self, wait_s: float) -> None:
         """Serve the serial ports now and keep serving them for ``wait_s`` seconds (real-time pacing)."""
