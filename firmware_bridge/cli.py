@@ -12,6 +12,7 @@ import click
 
 from quadlink.config import find_config, load_config
 from quadlink.errors import ConfigError
+from quadlink.lockstep import LockstepError
 from quadlink.realtime import MAX_PRIORITY, set_realtime_priority
 from quadlink.signals import STOP_SIGNALS
 from quadlink.vehicle import load_vehicle
@@ -35,7 +36,8 @@ SWITCH_INTERVAL_S = 0.0005
 @click.option("--rt-priority", "rt_priority", type=click.IntRange(0, MAX_PRIORITY), default=None,
               help="SCHED_FIFO priority 1-99 for the IMU path (needs CAP_SYS_NICE), 0 = normal "
               "[config realtime_priority: 0]")
-@click.option("--duration", type=float, default=None, help="stop after this many seconds (tests, benchmarks)")
+@click.option("--duration", type=float, default=None, help="stop after this many seconds (tests, benchmarks; "
+              "with --lockstep, simulated seconds)")
 @click.option("--signing-key", "signing_key", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="MAVLink 2 signing key for the ground-station links (quadlink keygen FILE) "
               "[config security.signing_key_file]")
@@ -44,9 +46,15 @@ SWITCH_INTERVAL_S = 0.0005
 @click.option("--gcs-link", "gcs_links", type=int, multiple=True,
               help="index of a --mavlink endpoint that faces ground stations (signed); repeatable "
               "[config ground_station_links: 1; link 0 is the companion's, internal]")
+@click.option("--lockstep", "lockstep_url", default=None, metavar="tcp://HOST:PORT",
+              help="deterministic lock-step (quadlink/lockstep.py): join the SITL's coordinator as participant "
+              "'bridge'; the bridge then runs on the simulated time, handles exactly what each step announces "
+              "(companion datagrams on --mavlink endpoint 0, MK bytes); exits with status 0 when the "
+              "simulation ends, 1 when the coordinator is lost [config lockstep_url: off]")
 def command(mk_cmd: str | None, mk_imu: str | None, mavlink_urls: tuple[str, ...], sysid: int | None,
             config_name: str, params_path: Path | None, rt_priority: int | None, duration: float | None,
-            signing_key: Path | None, require_signing: bool | None, gcs_links: tuple[int, ...]) -> None:
+            signing_key: Path | None, require_signing: bool | None, gcs_links: tuple[int, ...],
+            lockstep_url: str | None) -> None:
     from firmware_bridge.daemon import BridgeConfig, BridgeDaemon
 
     try:
@@ -68,6 +76,8 @@ def command(mk_cmd: str | None, mk_imu: str | None, mavlink_urls: tuple[str, ...
         overrides["realtime_priority"] = rt_priority
     if gcs_links:
         overrides["ground_station_links"] = tuple(gcs_links)
+    if lockstep_url:
+        overrides["lockstep_url"] = lockstep_url
     sec = config.security
     overrides["security"] = dataclasses.replace(
         sec, signing_key_file=str(signing_key) if signing_key else sec.signing_key_file,
@@ -80,13 +90,16 @@ def command(mk_cmd: str | None, mk_imu: str | None, mavlink_urls: tuple[str, ...
     sys.setswitchinterval(SWITCH_INTERVAL_S)
     set_realtime_priority(config.realtime_priority)   # before open() starts the reader threads: they inherit it
     daemon = BridgeDaemon(config, vehicle, params_path)
-    daemon.open()  # LinkError -> one-line error, exit 2 (quadlink.cli)
+    daemon.open()  # LinkError (a lock-step coordinator that never answers too) -> one-line error, exit 2
     previous = {sig: signal.signal(sig, lambda *_: daemon.stop()) for sig in STOP_SIGNALS}   # quadlink.signals
     log.info("bridge running (Ctrl-C to stop)")
+    lockstep_end: LockstepError | None = None
     try:
         daemon.run(duration)
     except KeyboardInterrupt:
         log.info("Ctrl-C: stopping")
+    except LockstepError as exc:  # the coordinator was lost or an input never came (a normal end returns)
+        lockstep_end = exc
     finally:
         daemon.close()
         for sig, handler in previous.items():
@@ -94,3 +107,7 @@ def command(mk_cmd: str | None, mk_imu: str | None, mavlink_urls: tuple[str, ...
         s = daemon.stats
         log.info("bridge stopped: %d IMU samples, %d setpoints, %d MAVLink in / %d out", s.imu_samples,
                  s.setpoints_sent, s.mavlink_in, s.mavlink_out)
+    if lockstep_end is not None:
+        # not a bad invocation (exit 2): the simulation the bridge was stepped by went away without ending
+        click.echo(f"quadlink bridge: {lockstep_end}", err=True)
+        raise SystemExit(1) from lockstep_end

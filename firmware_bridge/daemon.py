@@ -10,11 +10,25 @@ time k * 2 ms (the 12-bit counter is unwrapped, and aligned with ``BoardStatus.i
 the 100 Hz control step runs on every 5th sample, so in lock-step SITL the bridge answers each 10 ms
 chunk with exactly one setpoint. Only while the IMU stream is silent does a wall-clock fallback
 advance time and clock the control step (failsafes must still run).
+
+Deterministic lock-step (``--lockstep tcp://HOST:PORT``, :mod:`quadlink.lockstep`): the bridge joins the
+SITL's coordinator as participant ``"bridge"`` and its main thread runs steps instead of the free-running
+queue loop. On ``STEP k`` it waits (bounded) until the readers have delivered what the step announces
+(companion datagrams on MAVLink endpoint 0, MK port-1 and port-2 bytes), holds back companion datagrams
+that came early, handles the step's inputs in a fixed order (endpoint 0, the other endpoints, MK port 1,
+MK port 2, whose IMU samples clock the control step: one setpoint per chunk), runs the housekeeping once
+and answers ``DONE k`` with what it has sent (MK port-1 bytes, endpoint-0 datagrams). Its clock is the
+step's simulated time, not the wall clock: the board-time fallback, the telemetry streams, the refusal and
+version-request timers and the parameter saving all run on it, the IMU never goes stale, and SYSTEM_TIME
+carries no Unix time (0, "unknown"), so the same inputs give the same bytes on any machine. Nothing is
+written on MK port 1 or endpoint 0 outside a step (only the main thread writes). The reader threads still
+stamp their reads with the wall clock, which only feeds the in-process latency statistic.
 """
 
 from __future__ import annotations
 
 import collections
+import functools
 import logging
 import math
 import queue
@@ -28,11 +42,29 @@ from typing import Any
 import numpy as np
 
 from firmware_bridge.autopilot import Autopilot, BoardCommand, Outbound
-from firmware_bridge.links import LinkReaders, StreamHolder
+from firmware_bridge.links import LinkReaders, SentDatagrams, StreamHolder
 from firmware_bridge.params import DEFAULT_PARAMS_PATH, ParamTable, load_param_file, save_param_file
+from firmware_bridge.step_inputs import (
+    COMPANION_ENDPOINT,
+    LINK_COMPANION_IN,
+    LINK_COMPANION_OUT,
+    LINK_MK_CMD_IN,
+    LINK_MK_IMU_IN,
+    LINK_MK_OUT,
+    LOCKSTEP_NAME,
+    StepInputs,
+)
 from firmware_bridge.telemetry import encode_sw_version
 from quadlink.errors import ConfigError, LinkError, ProtocolError
 from quadlink.links import ByteStream, open_stream
+from quadlink.lockstep import (
+    DEFAULT_INPUT_TIMEOUT_S,
+    LockstepClient,
+    LockstepEnded,
+    LockstepError,
+    Step,
+    wait_for_units,
+)
 from quadlink.mavlink import mavlink
 from quadlink.mavlink.connection import open_mavlink
 from quadlink.mavlink.security import SecurityConfig, enable_signing
@@ -46,6 +78,10 @@ log = logging.getLogger(__name__)
 IMU_PERIOD_S = 0.002
 CONTROL_DECIMATION = 5  # 500 Hz IMU / 5 = 100 Hz setpoints
 COUNTER_MODULO = 4096
+TICK_S = 0.01  # autopilot.tick period (telemetry streams, failsafes, version requests, parameter saving)
+# lock-step: steps are 10 ms of simulated time apart, but t_k - t_(k-1) in floating point may be a hair under
+# 0.01 s; without this slack the tick would skip steps (deterministically, but irregularly)
+LOCKSTEP_TICK_SLACK_S = 1e-6
 
 
 @dataclass(frozen=True)
@@ -69,6 +105,8 @@ class BridgeConfig:
     # the sender allowlist applies on every link (the companion forwards ground stations' commands)
     security: SecurityConfig = field(default_factory=SecurityConfig)
     ground_station_links: tuple[int, ...] = (1,)
+    # the deterministic lock-step (quadlink.lockstep): the SITL's coordinator, tcp://HOST:PORT; None: free-running
+    lockstep_url: str | None = None
 
     def __post_init__(self) -> None:
         if not 1 <= self.sysid <= 255 or not 1 <= self.compid <= 255:
@@ -89,17 +127,30 @@ class BridgeStats:
     refused_senders: int = 0  # state-changing messages from system ids not on the allowlist
 
 
+class _Stopped(Exception):
+    """:meth:`BridgeDaemon.stop` was called while a lock-step step waited for its inputs."""
+
+
 class BridgeDaemon:
+    """The bridge process. ``clock`` is the wall clock (seconds, monotonic): the daemon's time source when
+    free-running; in lock-step mode (``config.lockstep_url``) the daemon's :attr:`clock` is the current step's
+    simulated time instead, and the wall clock only bounds waits and stamps reads for the latency statistic."""
+
     def __init__(self, config: BridgeConfig, vehicle: VehicleConfig, params_path: Path | None = None,
                  clock: Callable[[], float] = time.monotonic, unix_clock: Callable[[], float] = time.time,
                  stream_opener: Callable[[str], ByteStream] = open_stream,
                  mavlink_opener: Callable[..., Any] = open_mavlink) -> None:
         self.config = config
         self.vehicle = vehicle
-        self.clock = clock
+        self.lockstep_mode = config.lockstep_url is not None
+        self._wall_clock = clock
+        self._step_t_s = 0.0  # lock-step: the current step's simulated time
+        self.clock: Callable[[], float] = self._step_clock if self.lockstep_mode else clock
         self.params_path = (params_path or Path(config.params_file)).expanduser()
         self.params = ParamTable(load_param_file(self.params_path))
-        self.autopilot = Autopilot(vehicle, self.params, config.sysid, config.compid, unix_clock=unix_clock)
+        # lock-step: no wall-clock Unix time in SYSTEM_TIME (0 is MAVLink's "unknown"), or flights would differ
+        self.autopilot = Autopilot(vehicle, self.params, config.sysid, config.compid,
+                                   unix_clock=None if self.lockstep_mode else unix_clock)
         self._stream_opener = stream_opener
         self._mavlink_opener = mavlink_opener
         self.stats = BridgeStats()
@@ -111,6 +162,11 @@ class BridgeDaemon:
         self.cmd: StreamHolder | None = None
         self.imu: StreamHolder | None = None
         self.mavlinks: list[Any] = []
+        # lock-step
+        self.lockstep: LockstepClient | None = None
+        self._step_inputs = StepInputs()
+        self._companion_sent: SentDatagrams | None = None
+        self._tick_slack_s = LOCKSTEP_TICK_SLACK_S if self.lockstep_mode else 0.0
         self._cmd_decoder = FrameDecoder()
         self._imu_decoder = FrameDecoder()
         self._mk_dropped_seen = 0
@@ -119,14 +175,14 @@ class BridgeDaemon:
         self._last_imu_wall: float | None = None
         self._now_s = 0.0
         self._time_offset_s = 0.0
-        self._wall_origin = clock()
+        self._wall_origin = self.clock()
         self._last_control_wall = -1.0
         self._last_tick_wall = -1.0
         self._control_block = -1
         self._seq = 0
         self._version_requests = 0
         self._last_version_request = -1e9
-        self._last_status_log = clock()
+        self._last_status_log = self.clock()
         self._last_param_save = -1e9
         self.allowlist = config.security.allowlist(config.sysid)
         self._refusal_next_s: dict[tuple[int, str], float] = {}
@@ -152,8 +208,22 @@ class BridgeDaemon:
             raise
         log.info("MAVLink endpoints: %s (sysid %d compid %d)", ", ".join(c.mavlink_urls), c.sysid, c.compid)
         log.info("parameters: %s (%d)", self.params_path, len(self.params))
-        readers = LinkReaders(self._put, self._stop, self.clock, c.reconnect_interval_s)
+        if c.lockstep_url is not None:
+            self._join_lockstep(c.lockstep_url)
+        readers = LinkReaders(self._put, self._stop, self._wall_clock, c.reconnect_interval_s)
         self._threads = readers.start(self.cmd, self.imu, self.mavlinks)
+
+    def _join_lockstep(self, url: str) -> None:
+        """Register with the coordinator before anything is sent (the counts start at what was sent: zero)."""
+        if len(self.mavlinks) > COMPANION_ENDPOINT:
+            self._companion_sent = SentDatagrams(self.mavlinks[COMPANION_ENDPOINT])
+        try:
+            self.lockstep = LockstepClient(url, LOCKSTEP_NAME)
+            self.lockstep.hello(self.lockstep_sent())
+        except LinkError:  # LockstepError, or a bad URL
+            self.close()
+            raise
+        log.info("deterministic lock-step: joined %s as %r; the clock is the simulated time", url, LOCKSTEP_NAME)
 
     def enable_signing(self) -> None:
         """MAVLink 2 signing (pymavlink's, on each link's own codec: what it sends is signed, what it receives
@@ -175,6 +245,8 @@ class BridgeDaemon:
 
     def close(self) -> None:
         self._stop.set()
+        if self.lockstep is not None:
+            self.lockstep.close()
         for t in self._threads:
             t.join(timeout=1.0)
         # a last disarmed setpoint is not sent on purpose: the board's own link-loss failsafe handles a
@@ -198,7 +270,12 @@ class BridgeDaemon:
 
     # ------------------------------------------------------------------ main loop
     def run(self, duration_s: float | None = None) -> None:
-        """Process inputs until :meth:`stop` (or ``duration_s`` of wall time)."""
+        """Process inputs until :meth:`stop` (or ``duration_s`` of wall time; in lock-step mode, of simulated
+        time, or until the simulation ends). Lock-step: :class:`LockstepError` when the coordinator is lost
+        (closed without an end message) or an announced input did not come."""
+        if self.lockstep is not None:
+            self._run_lockstep(self.lockstep, duration_s)
+            return
         end = None if duration_s is None else self.clock() + duration_s
         while not self._stop.is_set():
             if end is not None and self.clock() >= end:
@@ -211,6 +288,72 @@ class BridgeDaemon:
                 self._dispatch(item)
             self._housekeeping()
 
+    # ------------------------------------------------------------------ the deterministic lock-step
+    def _step_clock(self) -> float:
+        """The lock-step clock: the current step's simulated time (0 before the first step)."""
+        return self._step_t_s
+
+    def lockstep_sent(self) -> dict[str, int]:
+        """Units sent so far on the bridge's lock-step output links (cumulative; see :mod:`quadlink.lockstep`)."""
+        return {LINK_MK_OUT: self.cmd.bytes_written if self.cmd is not None else 0,
+                LINK_COMPANION_OUT: self._companion_sent.count if self._companion_sent is not None else 0}
+
+    def _run_lockstep(self, client: LockstepClient, duration_s: float | None) -> None:
+        """Answer the coordinator's steps until :meth:`stop`, ``duration_s`` of simulated time, or the
+        simulation's end (a normal end returns; a coordinator lost or an input that never came raises
+        :class:`LockstepError` after the client is closed)."""
+        try:
+            while not self._stop.is_set():
+                step = client.next_step()  # None after STEP_WAIT_SLICE_S: look at the stop flag again
+                if step is None:
+                    continue
+                self._run_step(step)
+                client.done(self.lockstep_sent())
+                if duration_s is not None and step.t_s >= duration_s:
+                    break
+        except _Stopped:
+            pass
+        except LockstepEnded as exc:
+            log.info("lock-step: %s", exc)
+        except LockstepError as exc:
+            log.warning("lock-step ended at step %s: %s",
+                        client.step.index if client.step is not None else "(none)", exc)
+            raise
+        finally:
+            client.close()
+
+    def _run_step(self, step: Step) -> None:
+        """One step: its inputs up to the announced counts, in the canonical order, then the housekeeping."""
+        self._step_t_s = step.t_s
+        inputs = self._step_inputs
+        wait = functools.partial(wait_for_units, pump=self._pump, timeout_s=DEFAULT_INPUT_TIMEOUT_S,
+                                 clock=self._wall_clock)
+        for link, what in ((LINK_COMPANION_IN, "datagrams on MAVLink endpoint 0"),
+                           (LINK_MK_CMD_IN, "bytes on MK port 1"), (LINK_MK_IMU_IN, "bytes on MK port 2")):
+            wait(functools.partial(inputs.received, link), step.count(link), what=f"step {step.index}: {link} {what}")
+        self._pump(0.0)  # what else has arrived (the endpoints outside the lock-step)
+        for item in inputs.take(step):
+            self._dispatch(item)
+        self._housekeeping()
+
+    def _pump(self, block_s: float) -> None:
+        """Sort what the readers queued into the step inputs, waiting up to ``block_s`` for the first item;
+        errors (``link``, ``mavbad``) are handled as they come."""
+        if self._stop.is_set():
+            raise _Stopped
+        try:
+            item = self._queue.get(timeout=block_s) if block_s > 0 else self._queue.get_nowait()
+        except queue.Empty:
+            return
+        while True:
+            if not self._step_inputs.add(item):
+                self._dispatch(item)
+            try:
+                item = self._queue.get_nowait()
+            except queue.Empty:
+                return
+
+    # ------------------------------------------------------------------ handling
     def _dispatch(self, item: tuple[Any, ...]) -> None:
         kind = item[0]
         if kind == "imu":
@@ -277,7 +420,7 @@ class BridgeDaemon:
         else:
             now = self._imu_index * IMU_PERIOD_S + self._time_offset_s
             assert self._last_imu_wall is not None
-            if wall - self._last_imu_wall > self.config.imu_stale_s:
+            if not self.lockstep_mode and wall - self._last_imu_wall > self.config.imu_stale_s:
                 now += wall - self._last_imu_wall
         if now < self._now_s:
             self._time_offset_s += self._now_s - now
@@ -312,7 +455,7 @@ class BridgeDaemon:
                                     sample.gyro_rad_s(imu_cfg))
         self._send(out)
         if out:
-            self._imu_latency_s.append(self.clock() - read_wall)
+            self._imu_latency_s.append(self._wall_clock() - read_wall)
         block = self._imu_index // CONTROL_DECIMATION
         if block != self._control_block:
             self._control_block = block
@@ -358,14 +501,18 @@ class BridgeDaemon:
         wall = self.clock()
         # wall-clock fallback: the IMU went silent (or never spoke while we are armed); failsafes must run.
         # Not before the first sample otherwise, so a lock-step SITL gets exactly one setpoint per chunk.
-        if self._last_imu_wall is None:
+        # Never in the deterministic lock-step: simulated time only passes with the SITL's chunks, and their
+        # IMU samples clock the control step.
+        if self.lockstep_mode:
+            imu_silent = False
+        elif self._last_imu_wall is None:
             imu_silent = self.autopilot.armed_cmd
         else:
             imu_silent = wall - self._last_imu_wall > self.config.imu_stale_s
         if imu_silent and wall - self._last_control_wall >= 0.01:
             self.stats.wall_clock_steps += 1
             self._control(self.now_s())
-        if wall - self._last_tick_wall >= 0.01:
+        if wall - self._last_tick_wall >= TICK_S - self._tick_slack_s:
             self._last_tick_wall = wall
             self._send(self.autopilot.tick(self.now_s()))
             self._request_version(wall)

@@ -5,6 +5,10 @@ to the current stream. :class:`LinkReaders` runs one thread per link (MK port 1,
 endpoint): each only reads, with a timeout, and puts what it got on the daemon's queue, so the daemon's main
 thread does all decoding, control and writing (:mod:`firmware_bridge.daemon`). Every wait has a timeout and
 ends when the daemon's stop event is set.
+
+What leaves is counted for the deterministic lock-step (:mod:`quadlink.lockstep`), whose participants report
+how many units they have sent on each link: :attr:`StreamHolder.bytes_written` (MK port 1) and
+:class:`SentDatagrams` (a MAVLink endpoint).
 """
 
 from __future__ import annotations
@@ -32,6 +36,9 @@ class StreamHolder:
         self._opener = opener
         self._lock = threading.Lock()
         self.stream: ByteStream | None = opener(url)
+        # bytes handed to a stream whose write succeeded, over every (re)opened stream: the lock-step's count
+        # of what this process sent on the link (only the daemon's main thread writes)
+        self.bytes_written = 0
 
     def write(self, data: bytes) -> bool:
         with self._lock:
@@ -40,10 +47,11 @@ class StreamHolder:
             return False
         try:
             stream.write(data)
-            return True
         except LinkError as exc:
             log.warning("%s", exc)
             return False
+        self.bytes_written += len(data)
+        return True
 
     def reopen(self) -> bool:
         try:
@@ -120,3 +128,29 @@ class LinkReaders:
                 continue
             if data:
                 self._put(("mav", index, bytes(data)))
+
+
+class SentDatagrams:
+    """Counts the datagrams a pymavlink endpoint sends (the lock-step's ``bridge>companion``).
+
+    Only ``write`` is wrapped: the endpoint's reader thread calls ``recv``, and the datagrams received are
+    counted off the daemon's queue by the main thread instead (:class:`firmware_bridge.step_inputs.StepInputs`).
+    One ``write`` is one datagram (``mav.send`` writes a packet at a time), unless nothing leaves: a ``udpin``
+    endpoint that has no client yet sends nothing. pymavlink 2.4's ``mavudp`` keeps a ``udpin``'s peers in
+    ``clients`` (``last_address`` stays None on a server socket).
+    """
+
+    def __init__(self, conn: Any) -> None:
+        self.conn = conn
+        self.count = 0
+        self._write = conn.write
+        conn.write = self.write
+
+    def write(self, buf: bytes) -> Any:
+        conn = self.conn
+        has_peer = not getattr(conn, "udp_server", False) or bool(getattr(conn, "clients", None)) \
+            or getattr(conn, "last_address", None) is not None
+        result = self._write(buf)
+        if has_peer:
+            self.count += 1
+        return result
