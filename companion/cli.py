@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import logging
 import signal
+import sys
 import threading
 from pathlib import Path
 
@@ -52,10 +53,16 @@ def _math_threads() -> int:
 @click.option("--record-frames", "frames_path", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="Record every camera frame received to this file (camera-stream records, ~380 kB per QVGA "
                    "frame; replay with quadlink.camera.read_frame_recording).")
-@click.option("--duration", type=float, default=None, help="Stop after this many seconds (wall).")
+@click.option("--duration", type=float, default=None,
+              help="Stop after this many seconds (wall; simulated seconds with --lockstep).")
+@click.option("--lockstep", "lockstep_url", default=None, metavar="tcp://HOST:PORT",
+              help="Join the SITL's deterministic lock-step (quadlink.lockstep) as \"companion\": every input read "
+                   "up to the counts of each simulation step, the step's simulated time as the clock. Needs the "
+                   "SITL camera stream (--camera tcp://...). Exit status 1 when the coordinator goes away.")
 def command(config_path: str, autopilot: str | None, gcs: str | None, camera: str | None, image_port: int | None,
             image_host: str | None, signing_key: Path | None, require_signing: bool | None,
-            tlog_path: Path | None, frames_path: Path | None, duration: float | None) -> None:
+            tlog_path: Path | None, frames_path: Path | None, duration: float | None,
+            lockstep_url: str | None) -> None:
     """Start the companion daemon: perception, reference velocity, MAVLink to autopilot and ground station."""
     stop = threading.Event()
 
@@ -68,17 +75,23 @@ def command(config_path: str, autopilot: str | None, gcs: str | None, camera: st
     # during it stops the command as well (quadlink.signals; a SIGINT 3 s in was lost at load 6)
     previous = {sig: signal.signal(sig, on_stop_signal) for sig in STOP_SIGNALS}
     try:
-        _start_and_run(stop, config_path, autopilot, gcs, camera, image_port, image_host, signing_key,
-                       require_signing, tlog_path, frames_path, duration)
+        failure = _start_and_run(stop, config_path, autopilot, gcs, camera, image_port, image_host, signing_key,
+                                 require_signing, tlog_path, frames_path, duration, lockstep_url)
     finally:
         for sig, handler in previous.items():
             signal.signal(sig, handler)
+    if failure is not None:
+        # the flight ended under us (the SITL is gone): not bad input (status 2), a failed run
+        click.echo(f"quadlink companion: {failure}", err=True)
+        sys.exit(1)
 
 
 def _start_and_run(stop: threading.Event, config_path: str, autopilot: str | None, gcs: str | None,
                    camera: str | None, image_port: int | None, image_host: str | None, signing_key: Path | None,
                    require_signing: bool | None, tlog_path: Path | None, frames_path: Path | None,
-                   duration: float | None) -> None:
+                   duration: float | None, lockstep_url: str | None) -> Exception | None:
+    """Open everything, run until stopped; the lock-step's end (:class:`~quadlink.lockstep.LockstepError`)
+    is returned, for the command's exit status."""
     threads = _math_threads()
     import dataclasses
 
@@ -86,8 +99,10 @@ def _start_and_run(stop: threading.Event, config_path: str, autopilot: str | Non
     from companion.config import load_companion_config
     from companion.daemon import Companion, default_pipeline_factory
     from companion.image_publisher import OperatorImagePublisher
+    from companion.lockstep_links import join_lockstep
     from quadlink.camera import FrameRecordWriter
     from quadlink.errors import LinkError
+    from quadlink.lockstep import LockstepError
     from quadlink.mavlink.connection import open_mavlink
     from quadlink.mavlink.tlog import TlogWriter
     from quadlink.vehicle import load_vehicle
@@ -102,6 +117,9 @@ def _start_and_run(stop: threading.Event, config_path: str, autopilot: str | Non
                               require_signing=sec.require_signing if require_signing is None else require_signing)
     sec.key()   # a missing or bad key file: one clear error before any link opens
     cfg = dataclasses.replace(cfg, links=links, security=sec)
+    if lockstep_url is not None and not links.camera.startswith("tcp://"):
+        # a replayed folder or a live sensor has its own pace: no step counts its frames
+        raise LinkError(f"--lockstep needs the SITL camera stream (--camera tcp://HOST:PORT), not {links.camera}")
     if is_device_url(links.camera) and cfg.timing.camera_stamps != "local":
         # a live sensor's stamps are its own clock, never the autopilot's: map them to ours (TIMESYNC does the rest)
         log.warning("camera %s: timing.camera_stamps 'local' (the config says %r)", links.camera,
@@ -125,6 +143,8 @@ def _start_and_run(stop: threading.Event, config_path: str, autopilot: str | Non
             images = OperatorImagePublisher(links.image_host, links.image_port) if links.image_port else None
         except OSError as exc:
             raise LinkError(f"operator image stream tcp://{links.image_host}:{links.image_port}: {exc}") from exc
+        if images is not None:
+            opened.append(images)
         tlog = TlogWriter(tlog_path) if tlog_path else None
         if tlog is not None:
             opened.append(tlog)
@@ -132,27 +152,39 @@ def _start_and_run(stop: threading.Event, config_path: str, autopilot: str | Non
             frames = FrameRecordWriter(frames_path) if frames_path else None
         except OSError as exc:
             raise LinkError(f"frame recording {frames_path}: {exc}") from exc
+        if frames is not None:
+            opened.append(frames)
+        # the last: from the hello on, the coordinator waits for our steps
+        lockstep = join_lockstep(lockstep_url, ap, ground, cam, stop) if lockstep_url is not None else None
     except BaseException:
         for link in opened:
             link.close()
         raise
     log.info("autopilot %s, ground station %s (signing %s, state changes from sysids %s), camera %s, "
-             "operator images %s, tlog %s, math threads %d", links.autopilot, links.gcs,
+             "operator images %s, tlog %s, math threads %d, %s", links.autopilot, links.gcs,
              "required" if sec.require_signing else ("optional" if sec.signing_key_file else "off"),
              "any" if sec.allowed_sender_sysids is None else f"{list(sec.allowed_sender_sysids)} + own",
              links.camera, f"tcp://{links.image_host}:{links.image_port}" if images else "off", tlog_path or "off",
-             threads)
+             threads, f"deterministic lock-step at {lockstep_url}" if lockstep else "wall clock")
     if frames is not None:
         log.info("recording camera frames to %s", frames_path)
-    daemon = Companion(cfg, ap, ground, cam, factory, image_server=images, tlog=tlog, frame_recorder=frames)
+    if lockstep is None:
+        daemon = Companion(cfg, ap, ground, cam, factory, image_server=images, tlog=tlog, frame_recorder=frames)
+    else:
+        daemon = Companion(cfg, ap, ground, cam, factory, image_server=images, tlog=tlog, frame_recorder=frames,
+                           clock=lockstep.client.clock, lockstep=lockstep)
+    failure: Exception | None = None
     try:
         daemon.run(stop, duration)
     except KeyboardInterrupt:
         log.info("interrupted")
+    except LockstepError as exc:   # logged by the daemon
+        failure = exc
     finally:
         stop.set()
         daemon.close()
         s = daemon.stats
         log.info("stopped: %d frames, %d setpoints, %d feedback, routed %d to GCS / %d to autopilot",
                  s.frames, s.setpoints, s.feedback, s.routed_to_gcs, s.routed_to_autopilot)
+    return failure
 

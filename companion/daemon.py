@@ -32,10 +32,25 @@ Clocks: the camera stamps (SITL: simulated time, = the autopilot's board time;
 :class:`companion.timesync.AutopilotTime`) stamp everything that describes the vehicle (setpoints, odometry,
 feedback); the injected ``clock`` (monotonic wall time) times the links (ground-station loss, camera silence,
 command acks), which are wall-time phenomena.
+
+**Deterministic lock-step** (``--lockstep tcp://HOST:PORT``, :mod:`quadlink.lockstep`,
+:mod:`companion.lockstep_links`): the daemon is the participant ``"companion"`` of the SITL's coordinator, and
+the loop becomes a step loop (:meth:`Companion.run` -> :meth:`Companion.lockstep_step`): per STEP, the
+autopilot's datagrams, then the ground station's, exactly up to the counts the step announces (waiting for
+those in flight, holding back later ones for their step; every one handled, not ``MAX_ROUTED_PER_STEP``), then the
+camera frames the *previous* step announced (by then the IMU has reached them: no wait for it), then the
+periodic tasks once, and DONE with the datagrams sent. The clock is the step's simulated time, so every
+timer (heartbeat, TIMESYNC, link and camera timeouts, command acks, the mode machine) runs on simulated time
+and the daemon is a function of what it received and when it was simulated, not of the machine's load. Wall
+time is left only in bounded waits (a missing unit ends the flight with
+:class:`~quadlink.lockstep.LockstepError`), in statistics and logs (latency, the tlog's stamps), in the
+signing timestamps' epoch and in pymavlink's pruning of silent ground-station clients: none of them changes
+what is sent to the autopilot.
 """
 
 from __future__ import annotations
 
+import itertools
 import logging
 import math
 import threading
@@ -71,6 +86,7 @@ from companion.landing_spot import (
     room_to_clear,
 )
 from companion.link_reader import CodecReader
+from companion.lockstep_links import AUTOPILOT_IN, CAMERA_IN, GCS_IN, LockstepLinks
 from companion.modes import AutopilotRequest, Mode, ModeMachine, StatusText
 from companion.motion import Motion
 from companion.obstacle_points import select_points
@@ -90,6 +106,7 @@ from companion.timesync import AutopilotTime, TimeSync
 from companion.trajectory_follow import feed_forward_after_safety
 from companion.vehicle_state import VehicleState
 from quadlink.camera import RgbdFrame
+from quadlink.lockstep import CountedMavlink, LockstepEnded, LockstepError, Step, wait_for_units
 from quadlink.mavlink import mavlink
 from quadlink.mavlink.timesync import NS
 
@@ -100,13 +117,29 @@ __all__ = ["PARAM_NAMES", "Companion", "ImageSink", "MavLink", "Pipeline", "Stat
 MAX_ROUTED_PER_STEP = 2000
 
 
+class _Stopped(Exception):
+    """The stop flag was set while a lock-step step waited for a unit: the loop ends without its DONE."""
+
+
 class Companion:
-    """The daemon's state and its single loop. Links are injected (tests use ephemeral UDP ports)."""
+    """The daemon's state and its single loop. Links are injected (tests use ephemeral UDP ports).
+
+    ``lockstep``: the daemon is a deterministic lock-step participant (:mod:`companion.lockstep_links`, joined
+    on ``autopilot`` and ``gcs``); its ``clock`` must then be the coordinator's step clock
+    (``lockstep.client.clock``)."""
 
     def __init__(self, cfg: CompanionConfig, autopilot: MavLink, gcs: MavLink, camera: CameraInput,
                  pipeline_factory: PipelineFactory, image_server: ImageSink | None = None, tlog: Any | None = None,
                  clock: Callable[[], float] = time.monotonic, wall: Callable[[], float] = time.time,
-                 frame_recorder: Any | None = None) -> None:
+                 frame_recorder: Any | None = None, lockstep: LockstepLinks | None = None) -> None:
+        if lockstep is not None and (clock != lockstep.client.clock or lockstep.autopilot.conn is not autopilot
+                                     or lockstep.gcs.conn is not gcs):
+            raise ValueError("a lock-step daemon runs on the step clock (clock=lockstep.client.clock) and on the "
+                             "links the lock-step counts")
+        self.lockstep = lockstep
+        self._stop: threading.Event | None = None
+        # times the frame-to-setpoint latency (a statistic): the step clock stands still during a step
+        self._stopwatch = clock if lockstep is None else time.monotonic
         self.cfg = cfg
         # the autopilot link (500 Hz HIGHRES_IMU) is decoded by the dialect's codec, not mavutil's recv_msg
         self.autopilot: MavLink = CodecReader(autopilot) if hasattr(autopilot, "recv") else autopilot
@@ -190,6 +223,12 @@ class Companion:
 
     # ------------------------------------------------------------------ the loop
     def run(self, stop: threading.Event, duration_s: float | None = None) -> None:
+        """Step until ``stop`` is set or ``duration_s`` of the clock have passed (in lock-step: simulated seconds,
+        or the simulation's end; :class:`~quadlink.lockstep.LockstepError` when the coordinator is lost or a
+        unit does not come)."""
+        if self.lockstep is not None:
+            self._run_lockstep(stop, duration_s, self.lockstep)
+            return
         end = None if duration_s is None else self.clock() + duration_s
         while not stop.is_set() and (end is None or self.clock() < end):
             self.step()
@@ -213,16 +252,88 @@ class Companion:
             self.stats.handler_errors += 1
             self.errors.record(where, exc)
 
-    def _drain_autopilot(self) -> None:
-        for _ in range(MAX_ROUTED_PER_STEP):
+    # ------------------------------------------------------------------ the lock-step loop (quadlink.lockstep)
+    def _run_lockstep(self, stop: threading.Event, duration_s: float | None, ls: LockstepLinks) -> None:
+        """The step loop: one :meth:`lockstep_step` per STEP; the stop flag is looked at between steps and while a
+        step waits for a unit (every wait is sliced at 0.1 s at most). The lock-step is left at the end."""
+        self._stop = stop
+        end = None if duration_s is None else self.clock() + duration_s
+        try:
+            while not stop.is_set() and (end is None or self.clock() < end):
+                step = ls.client.next_step()
+                if step is not None:
+                    self.lockstep_step(step)
+        except _Stopped:
+            pass
+        except LockstepEnded as exc:   # the simulation's normal end: ours too
+            log.info("lock-step: %s", exc)
+        except LockstepError as exc:
+            log.error("lock-step ended: %s", exc)
+            raise
+        finally:
+            ls.close()
+
+    def lockstep_step(self, step: Step) -> None:
+        """One STEP: the inputs in their fixed order, each exactly up to its count, the periodic tasks, DONE.
+
+        The camera's frames are those the previous step announced (:attr:`LockstepLinks.frames_due`); this step's
+        wait in the socket for the next one."""
+        ls = self.lockstep
+        assert ls is not None, "lockstep_step without a lock-step"
+        self._read_counted(ls.autopilot, step.count(AUTOPILOT_IN), self._drain_autopilot, AUTOPILOT_IN)
+        self._read_counted(ls.gcs, step.count(GCS_IN), self._drain_gcs, GCS_IN)
+        self._read_frames(ls, ls.frames_due)
+        ls.frames_due = step.count(CAMERA_IN)
+        self._guarded("periodic tasks", self._periodic)
+        ls.client.done(ls.sent())
+
+    def _check_stop(self) -> None:
+        if self._stop is not None and self._stop.is_set():
+            raise _Stopped
+
+    def _read_counted(self, link: CountedMavlink, expected: int | None, drain: Callable[[int | None], None],
+                      name: str) -> None:
+        """Handle every message of the first ``expected`` datagrams of ``link``, waiting (bounded) for those still
+        in flight; later ones wait for their step. ``expected`` None (a link without a lock-step sender): what
+        is there, as the wall-clock loop does, not deterministically."""
+        link.allow = expected
+        limit = None if expected is not None else MAX_ROUTED_PER_STEP
+
+        def pump(block_s: float) -> None:
+            self._check_stop()
+            link.wait_readable(block_s)
+            drain(limit)
+
+        drain(limit)
+        wait_for_units(lambda: link.received, expected, pump, name)
+        drain(limit)   # what pymavlink still holds of the last datagram (the cap keeps later ones out)
+        while expected is not None and link.handed < min(expected, link.received):
+            drain(limit)   # a datagram that parsed to nothing (a frame split over datagrams) ends a drain early
+
+    def _read_frames(self, ls: LockstepLinks, due: int | None) -> None:
+        """Process the camera's frames until ``due`` have been handed over (waiting, bounded, for those in flight);
+        no more are read in this step. No wait for the IMU: it has reached these frames by construction."""
+        def pump(block_s: float) -> None:
+            self._check_stop()
+            frame = ls.camera.take(block_s)
+            if frame is not None:
+                self._guarded("frame", self._process_frame, frame)
+
+        wait_for_units(lambda: ls.camera.received, due, pump, CAMERA_IN)
+
+    # ------------------------------------------------------------------ the links' messages
+    def _drain_autopilot(self, limit: int | None = MAX_ROUTED_PER_STEP) -> None:
+        """Handle what the autopilot link has now: at most ``limit`` messages (None: until it has nothing)."""
+        for _ in itertools.repeat(None) if limit is None else range(limit):
             msg = self.autopilot.recv_msg()
             if msg is None:
                 return
             if msg.get_type() != "BAD_DATA":
                 self._guarded(f"autopilot {msg.get_type()}", self._on_autopilot, msg)
 
-    def _drain_gcs(self) -> None:
-        for _ in range(MAX_ROUTED_PER_STEP):
+    def _drain_gcs(self, limit: int | None = MAX_ROUTED_PER_STEP) -> None:
+        """Handle what the ground-station link has now: at most ``limit`` messages (None: until it has nothing)."""
+        for _ in itertools.repeat(None) if limit is None else range(limit):
             msg = self.gcs.recv_msg()
             if msg is None:
                 return
@@ -233,9 +344,11 @@ class Companion:
 
     def _wait_for_imu(self, stamp_s: float) -> None:
         """Let the IMU stream catch up with the frame (bounded), if it is flowing at all (the policy:
-        :class:`companion.imu_clock.ImuClock`); the autopilot link is drained meanwhile."""
+        :class:`companion.imu_clock.ImuClock`); the autopilot link is drained meanwhile. Never in lock-step:
+        there the frame is handled a step after its own, when the IMU has reached it, and the step clock stands
+        still (a deadline on it would never pass) and the link must not be read past its count."""
         imu = self.imu_clock
-        if not imu.should_wait(stamp_s, self.time.imu_stamp_s):
+        if self.lockstep is not None or not imu.should_wait(stamp_s, self.time.imu_stamp_s):
             return
         deadline = self.clock() + imu.imu_wait_s
         while not imu.caught_up(stamp_s, self.time.imu_stamp_s):
@@ -385,7 +498,7 @@ class Companion:
 
     # ------------------------------------------------------------------ the pipeline at camera rate
     def _process_frame(self, frame: RgbdFrame) -> None:
-        t_in = self.clock()
+        t_in = self._stopwatch()
         self.stats.frames += 1
         st = self.state
         st.R_qc = np.asarray(frame.R_qc, dtype=float)
@@ -419,7 +532,7 @@ class Companion:
         a_ff = cmd.a_ff_h_m_s2 if scripted and clearing is None else None
         self._send_setpoint(stamp, step.ref,
                             feed_forward_after_safety(a_ff, step.ref.constrained, step.ref.v_repulsion_h_m_s))
-        self.stats.latencies_s.append(self.clock() - t_in)
+        self.stats.latencies_s.append(self._stopwatch() - t_in)
         if out is not None:
             odometry = st.odometry_message(stamp, out)
             self.out.to_autopilot(odometry)
@@ -494,7 +607,8 @@ class Companion:
             self.stats.trim()
 
     def close(self) -> None:
-        for name, closer in (("camera", self.camera.close), ("autopilot", self.autopilot.close),
+        for name, closer in (("lock-step", self.lockstep.close if self.lockstep else None),
+                             ("camera", self.camera.close), ("autopilot", self.autopilot.close),
                              ("gcs", self.gcs.close),
                              ("image stream", self.image_server.close if self.image_server else None),
                              ("tlog", self.tlog.close if self.tlog else None),
