@@ -5,11 +5,13 @@ from __future__ import annotations
 import dataclasses
 import logging
 import signal
+import sys
 from types import FrameType
 
 import click
 
 from quadlink.errors import ConfigError
+from quadlink.lockstep import LockstepError
 from quadlink.mavlink.security import read_key
 from quadlink.signals import STOP_SIGNALS
 from teleop.config import load_teleop_config
@@ -42,10 +44,16 @@ log = logging.getLogger(__name__)
               help="With --script: stop when the script has played.")
 @click.option("--script-clock", type=click.Choice(["wall", "vehicle"]), default="wall", show_default=True,
               help="Time the script follows: wall clock, or the vehicle's (TELEOP_FEEDBACK; for a lock-stepped "
-                   "SITL slower than real time; the script waits for the first feedback).")
+                   "SITL slower than real time; the script waits for the first feedback). With --lockstep, "
+                   "'wall' is the simulated time of the steps.")
+@click.option("--lockstep", "lockstep_url", default=None, metavar="tcp://HOST:PORT",
+              help="Join the SITL's deterministic lock-step as the 'operator' participant: single-threaded, every "
+                   "timer on simulated time, no operator view; --duration counts simulated seconds. Virtual "
+                   "device only.")
 def command(device_name: str, script: str | None, vehicle: str | None, image_stream: str | None,
             http_port: int | None, record: str | None, config_name: str, log_csv: str | None,
-            duration: float | None, exit_at_script_end: bool, script_clock: str, signing_key: str | None) -> None:
+            duration: float | None, exit_at_script_end: bool, script_clock: str, signing_key: str | None,
+            lockstep_url: str | None) -> None:
     """Start the ground station: haptic device, force feedback, commands, operator view (issue 7)."""
     cfg = load_teleop_config(config_name)
     if signing_key is not None:
@@ -57,13 +65,23 @@ def command(device_name: str, script: str | None, vehicle: str | None, image_str
     vehicle_url = vehicle or cfg.network.vehicle_url
     image_url = image_stream or cfg.network.image_stream_url
     port = cfg.network.http_port if http_port is None else http_port
+    if lockstep_url is not None:
+        if device_name != "virtual":   # a person's hand (or keys) cannot be replayed step for step
+            raise ConfigError(f"--lockstep drives the virtual device only (got --device {device_name})")
+        view = [name for name, on in (("--image-stream", image_url != "none"), ("--http-port", port >= 0),
+                                      ("--record", bool(record))) if on]
+        if view:   # the view reads wall-clock image streams and serves a page: off in a lock-stepped station
+            log.warning("--lockstep: no operator view; ignoring %s", ", ".join(view))
+        image_url, port, record = "none", -1, None
     stations: list[Station] = []
 
     def vehicle_clock() -> float | None:
         return stations[0].vehicle_time_s() if stations else None
 
     device: HapticDevice | DeviceSpec
-    if device_name == "keyboard":   # reads this terminal: the force loop runs in a thread of this process
+    if lockstep_url is not None:    # single-threaded: the device runs in the step loop of this process
+        device = open_device(device_name, cfg.device, script, vehicle_clock if script_clock == "vehicle" else None)
+    elif device_name == "keyboard":   # reads this terminal: the force loop runs in a thread of this process
         device = open_device(device_name, cfg.device, script, vehicle_clock if script_clock == "vehicle" else None)
     else:                           # the force loop runs in its own process (force_loop.py: why)
         if script is not None:
@@ -78,16 +96,27 @@ def command(device_name: str, script: str | None, vehicle: str | None, image_str
         raise KeyboardInterrupt   # SIGTERM stops as cleanly as Ctrl-C (force off, CSV and video closed)
 
     previous = {sig: signal.signal(sig, on_sigterm) for sig in STOP_SIGNALS}   # Ctrl-C too (quadlink.signals)
+    lockstep_error: LockstepError | None = None
     try:
-        station.start()   # opens the device (its own process) first: a missing backend is a one-line error
-        if station.server is not None:
-            log.info("open %s in a browser", station.server.url)
-        station.run(duration)
+        if lockstep_url is not None:
+            station.start_lockstep(lockstep_url)
+            station.run_lockstep(duration)
+        else:
+            station.start()   # opens the device (its own process) first: a missing backend is a one-line error
+            if station.server is not None:
+                log.info("open %s in a browser", station.server.url)
+            station.run(duration)
     except KeyboardInterrupt:
         log.info("interrupted; stopping")
+    except LockstepError as exc:   # the coordinator is gone (the SITL ended or died) or a datagram never came
+        log.error("lock-step: %s", exc)
+        lockstep_error = exc
     finally:
         for sig, handler in previous.items():
             signal.signal(sig, handler)
         station.close()
         log.info("ground station stopped (%d MANUAL_CONTROL sent, %d view frames)", station.manual_control_sent,
                  station.view_frames)
+    if lockstep_error is not None:
+        click.echo(f"quadlink: error: lock-step: {str(lockstep_error).removeprefix('lock-step: ')}", err=True)
+        sys.exit(1)

@@ -97,6 +97,43 @@ def try_realtime(priority: int) -> None:
                     "(allow it with 'ulimit -r %d' or CAP_SYS_NICE)", exc, priority)
 
 
+class ForceLoop:
+    """One tick of the force loop at a given time (eq. (15), link and cue fades, passivity), whatever drives it:
+    :func:`run_force_loop` on the wall clock, or the ground station's lock-step loop on simulated time
+    (``force_rate_hz`` ticks per simulated second, :mod:`teleop.station`)."""
+
+    def __init__(self, device: HapticDevice, cfg: TeleopConfig, io: ForceLoopIO) -> None:
+        self.device, self.cfg, self.io = device, cfg, io
+        self.gains = mapping_gains(cfg.mapping, cfg.device)
+        self.period = 1.0 / cfg.device.force_rate_hz
+        self.fade = LinkFade(cfg.force.fade_time_s)
+        self.cue_fade = LinkFade(cfg.force.fade_time_s)
+        self.pc = PassivityController(cfg.passivity, cfg.device.mass_kg)
+        self.next_energy_log: float | None = None   # None: a log period after the first tick
+
+    def tick(self, t: float) -> None:
+        cfg, io, device = self.cfg, self.io, self.device
+        if self.next_energy_log is None:
+            self.next_energy_log = t + cfg.passivity.log_period_s
+        io.record_period(t)
+        state = device.poll(t)
+        m = io.motion()
+        ok = m is not None and link_ok(m.t_recv_s, t, cfg.force.link_timeout_s)
+        gain = self.fade.update(ok, t)
+        cue = self.cue_fade.update(ok and m is not None and m.cue_wanted, t)
+        qt = q_tilde(m.motion, self.gains, state.q_m) if m is not None else None
+        tau_law = force_law(state.q_m, state.qdot_m_s, qt, cfg.force, cfg.device.force_limit_n, gain, cue)
+        tau = tau_passive(self.pc, t, state, tau_law, self.period, cfg.device.force_limit_n)
+        device.set_force(tau)
+        report = self.pc.report()
+        io.publish(ForceSnapshot(state, tau, qt, gain, cue, report))
+        if t >= self.next_energy_log:
+            self.next_energy_log = t + cfg.passivity.log_period_s
+            log_energy(report, cfg.passivity.enabled)
+        for button in state.buttons:
+            io.button(button)
+
+
 def run_force_loop(device: HapticDevice, cfg: TeleopConfig, io: ForceLoopIO,
                    clock: Callable[[], float] = time.perf_counter) -> None:
     """Until ``io.stop_requested()``: one tick per 1/force_rate_hz (eq. (15), link and cue fades).
@@ -106,33 +143,13 @@ def run_force_loop(device: HapticDevice, cfg: TeleopConfig, io: ForceLoopIO,
     eq. (15), before the device's force limit.
     """
     try_realtime(cfg.device.realtime_priority)
-    gains = mapping_gains(cfg.mapping, cfg.device)
-    period = 1.0 / cfg.device.force_rate_hz
-    fade = LinkFade(cfg.force.fade_time_s)
-    cue_fade = LinkFade(cfg.force.fade_time_s)
-    pc = PassivityController(cfg.passivity, cfg.device.mass_kg)
+    loop = ForceLoop(device, cfg, io)
+    period = loop.period
     spin = cfg.device.spin_s
     next_t = clock()
-    next_energy_log = next_t + cfg.passivity.log_period_s
+    loop.next_energy_log = next_t + cfg.passivity.log_period_s
     while not io.stop_requested():
-        t = clock()
-        io.record_period(t)
-        state = device.poll(t)
-        m = io.motion()
-        ok = m is not None and link_ok(m.t_recv_s, t, cfg.force.link_timeout_s)
-        gain = fade.update(ok, t)
-        cue = cue_fade.update(ok and m is not None and m.cue_wanted, t)
-        qt = q_tilde(m.motion, gains, state.q_m) if m is not None else None
-        tau_law = force_law(state.q_m, state.qdot_m_s, qt, cfg.force, cfg.device.force_limit_n, gain, cue)
-        tau = tau_passive(pc, t, state, tau_law, period, cfg.device.force_limit_n)
-        device.set_force(tau)
-        report = pc.report()
-        io.publish(ForceSnapshot(state, tau, qt, gain, cue, report))
-        if t >= next_energy_log:
-            next_energy_log = t + cfg.passivity.log_period_s
-            log_energy(report, cfg.passivity.enabled)
-        for button in state.buttons:
-            io.button(button)
+        loop.tick(clock())
         next_t += period
         if clock() - next_t > 50 * period:   # fell far behind (suspended?): resynchronise
             next_t = clock()

@@ -9,6 +9,7 @@ the pan-scan rate removed in eq. (17): estimated from the gyro or the commanded 
 from __future__ import annotations
 
 import logging
+import math
 import queue
 from dataclasses import replace
 from typing import TYPE_CHECKING, Any
@@ -48,7 +49,9 @@ def send_command(conn: Any, out: OutgoingCommand) -> None:
 
 
 class VehicleLink:
-    """The network loop of a :class:`teleop.station.Station` (runs in its own thread)."""
+    """The network loop of a :class:`teleop.station.Station`: :meth:`run` in its own thread on the wall clock,
+    or, in the deterministic lock-step, :meth:`_receive` and :meth:`tick` called from the station's step loop
+    on simulated time (:meth:`teleop.station.Station.run_lockstep`)."""
 
     def __init__(self, station: Station) -> None:
         self.station = station
@@ -56,41 +59,23 @@ class VehicleLink:
         self.estimator = make_estimator(station.cfg)
         self.sync = TimesyncEstimator(TimesyncConfig(max_rtt_s=TIMESYNC_MAX_RTT_S))
         self.statustexts = StatusTextAssembler()   # the vehicle's long texts come in chunks
+        self.next_heartbeat = -math.inf            # on the station's clock (the first tick sends)
+        self.next_timesync = -math.inf
+        self.receive_limited = False               # the last _receive stopped at its message limit
 
     def run(self) -> None:
+        """The wall-clock loop (its own thread): receive, then one :meth:`tick`, every 1/rate_hz."""
         st, cfg = self.station, self.cfg
         period = 1.0 / cfg.mapping.rate_hz
         conn = st._conn
         csv_log = CsvLog(st.log_csv) if st.log_csv else None
         t0 = st.clock()
         next_t = t0
-        next_heartbeat = t0
-        next_timesync = t0
         try:
             while not st.stop_event.is_set():
                 t = st.clock()
                 tel = self._receive(conn, st.telemetry, t)
-                self._buttons(conn, tel, t)
-                # operator command, eqs. (2)-(3)
-                force = st.force
-                q = force.device.q_m if force else np.zeros(3)
-                cmd = map_device_to_command(q, cfg.mapping, cfg.device)
-                # its send time first (COMMAND_STAMP, issue 18: the very next packet is the command it stamps)
-                conn.mav.command_stamp_send(int(st.clock() * 1e6), mavlink.MAVLINK_MSG_ID_MANUAL_CONTROL,
-                                            cfg.mapping.target_system, cfg.commands.companion_component)
-                conn.mav.manual_control_send(cfg.mapping.target_system, cmd.x, cmd.y, cmd.z, cmd.r, cmd.buttons)
-                st.manual_control_sent += 1
-                if t >= next_heartbeat:
-                    next_heartbeat = t + 1.0
-                    conn.mav.heartbeat_send(mavlink.MAV_TYPE_GCS, mavlink.MAV_AUTOPILOT_INVALID, 0, 0,
-                                            mavlink.MAV_STATE_ACTIVE)
-                if t >= next_timesync:
-                    next_timesync = t + TIMESYNC_PERIOD_S
-                    conn.mav.timesync_send(*request_fields(int(st.clock() * NS)))
-                delay = link_delay(self.sync)
-                st._set_link_state(tel, cmd, t, delay)
-                if csv_log is not None:
-                    csv_log.write(csv_row(t - t0, force, cmd, tel, st._motion, delay))
+                self.tick(conn, t, tel, csv_log, t0)
                 next_t += period
                 if st.clock() - next_t > 10 * period:
                     next_t = st.clock()
@@ -99,16 +84,46 @@ class VehicleLink:
             if csv_log is not None:
                 csv_log.close()
 
+    def tick(self, conn: Any, t: float, tel: Telemetry, csv_log: CsvLog | None, t0: float) -> None:
+        """One tick of the link at time ``t`` (the station's clock): buttons -> commands, MANUAL_CONTROL (with its
+        COMMAND_STAMP), the 1 Hz HEARTBEAT, the TIMESYNC request, the published state and the CSV row."""
+        st, cfg = self.station, self.cfg
+        self._buttons(conn, tel, t)
+        # operator command, eqs. (2)-(3)
+        force = st.force
+        q = force.device.q_m if force else np.zeros(3)
+        cmd = map_device_to_command(q, cfg.mapping, cfg.device)
+        # its send time first (COMMAND_STAMP, issue 18: the very next packet is the command it stamps)
+        conn.mav.command_stamp_send(int(st.clock() * 1e6), mavlink.MAVLINK_MSG_ID_MANUAL_CONTROL,
+                                    cfg.mapping.target_system, cfg.commands.companion_component)
+        conn.mav.manual_control_send(cfg.mapping.target_system, cmd.x, cmd.y, cmd.z, cmd.r, cmd.buttons)
+        st.manual_control_sent += 1
+        if t >= self.next_heartbeat:
+            self.next_heartbeat = t + 1.0
+            conn.mav.heartbeat_send(mavlink.MAV_TYPE_GCS, mavlink.MAV_AUTOPILOT_INVALID, 0, 0,
+                                    mavlink.MAV_STATE_ACTIVE)
+        if t >= self.next_timesync:
+            self.next_timesync = t + TIMESYNC_PERIOD_S
+            conn.mav.timesync_send(*request_fields(int(st.clock() * NS)))
+        delay = link_delay(self.sync)
+        st._set_link_state(tel, cmd, t, delay)
+        if csv_log is not None:
+            csv_log.write(csv_row(t - t0, force, cmd, tel, st._motion, delay))
+
     def _receive(self, conn: Any, tel: Telemetry, t: float) -> Telemetry:
+        """Handle the messages readable now (at most MAX_MESSAGES_PER_TICK), received at ``t``."""
         cfg = self.cfg
         ap = (cfg.commands.autopilot_system, cfg.commands.autopilot_component)
+        self.receive_limited = True
         for _ in range(MAX_MESSAGES_PER_TICK):
             try:
                 msg = conn.recv_match(blocking=False)
             except (OSError, ValueError) as exc:   # a bad datagram or a transient socket error
                 log.debug("MAVLink receive: %s", exc)
+                self.receive_limited = False
                 break
             if msg is None:
+                self.receive_limited = False
                 break
             mtype = msg.get_type()
             if mtype == "BAD_DATA":

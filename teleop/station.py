@@ -12,6 +12,14 @@ under one lock), a queue for button presses, one stop event; every wait has a ti
 * view loop, camera rate (:meth:`Station._view_loop` over :mod:`teleop.view_loop`): the companion's
   operator images and their :class:`quadlink.operator_image.OperatorImageMeta` -> pan-scan compensation
   -> rendered view -> web page (:mod:`teleop.view.server`) and optional video.
+
+Deterministic lock-step (``quadlink teleop --lockstep tcp://HOST:PORT``, :mod:`quadlink.lockstep`): the station
+is the ``operator`` participant and runs single-threaded (:meth:`Station.start_lockstep`,
+:meth:`Station.run_lockstep`): no thread, no force process, no view. Per STEP of the SITL, on its simulated
+time ``t``: the force loop's ticks up to ``t`` at ``force_rate_hz`` of simulated time (the device, eq. (15),
+the script), then exactly the companion datagrams the step announces, then the link's ticks due at
+``mapping.rate_hz`` of simulated time (MANUAL_CONTROL, commands, HEARTBEAT, TIMESYNC), then DONE. The
+station's clock is the step's time, so nothing it sends depends on the wall clock or on scheduling.
 """
 
 from __future__ import annotations
@@ -32,7 +40,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from quadlink.camera import CameraStreamClient
-from quadlink.errors import ProtocolError, QuadlinkError
+from quadlink.errors import ConfigError, ProtocolError, QuadlinkError
+from quadlink.lockstep import DEFAULT_INPUT_TIMEOUT_S, CountedMavlink, LockstepClient, wait_for_units
 from quadlink.mavlink.connection import open_mavlink
 from quadlink.mavlink.security import enable_signing, read_key
 from teleop.commands import CommandResult, CommandTracker
@@ -40,15 +49,28 @@ from teleop.config import TeleopConfig
 from teleop.delay import LinkDelay
 from teleop.devices.base import HapticDevice
 from teleop.force import link_ok
-from teleop.force_loop import DeviceSpec, ForceProcess, ForceSnapshot, MotionInput, PeriodRecorder, run_force_loop
+from teleop.force_loop import (
+    DeviceSpec,
+    ForceLoop,
+    ForceProcess,
+    ForceSnapshot,
+    MotionInput,
+    PeriodRecorder,
+    run_force_loop,
+)
 from teleop.link import VehicleLink
 from teleop.mapping import ManualControl
-from teleop.recording import open_video
+from teleop.recording import CsvLog, open_video
 from teleop.telemetry import FLAG_GCS_LINK_OK, FLAG_ODOMETRY_OK, MODE_NAMES, Telemetry, min_obstacle_m
 from teleop.view.server import ViewHub, ViewServer
 from teleop.view_loop import OperatorView, image_meta
 
 log = logging.getLogger(__name__)
+
+LOCKSTEP_NAME = "operator"
+LINK_IN = "companion>operator"     # the companion's datagrams to us (lock-step input link)
+LINK_OUT = "operator>companion"    # ours to the companion (lock-step output link)
+_EPS_S = 1e-9                      # simulated-time comparisons of tick schedules
 
 
 def warnings_for(tel: Telemetry, link_is_ok: bool, t_s: float, cfg: TeleopConfig) -> list[str]:
@@ -109,18 +131,15 @@ class Station:
         self.view_frames = 0
         self.bad_image_meta = 0   # operator images whose metadata did not decode
         self.error: BaseException | None = None
+        self._lockstep: LockstepClient | None = None
+        self._counted: CountedMavlink | None = None
+        self.lockstep_steps = 0   # STEPs answered
 
     # ---- lifecycle -------------------------------------------------------------------------
     def start(self) -> None:
         if isinstance(self.device, DeviceSpec):   # before any thread: the force loop in its own process
             self._force_proc = ForceProcess(self.device, self.cfg)
-        self._conn = open_mavlink(self.vehicle_url, self.cfg.network.source_system, self.cfg.network.source_component)
-        net = self.cfg.network
-        if net.signing_key_file is not None:   # everything this station sends is signed; what it gets may not be
-            enable_signing(self._conn.mav, read_key(net.signing_key_file), require=False, link_id=net.signing_link_id)
-            log.info("vehicle link signed (key %s, link id %d)", net.signing_key_file, net.signing_link_id)
-        log.info("vehicle link %s (MANUAL_CONTROL at %.0f Hz to sysid %d)", self.vehicle_url, self.cfg.mapping.rate_hz,
-                 self.cfg.mapping.target_system)
+        self._open_link()
         if self.http_port is not None:
             period_ms = max(int(1000 / 30), 20)
             self.server = ViewServer(self.hub, self.cfg.network.http_host, self.http_port, period_ms)
@@ -130,6 +149,117 @@ class Station:
         self._spawn("network-loop", self._network_loop)
         if self.image_stream_url is not None or self.server is not None or self.record_path:
             self._spawn("view-loop", self._view_loop)
+
+    def _open_link(self) -> None:
+        self._conn = open_mavlink(self.vehicle_url, self.cfg.network.source_system, self.cfg.network.source_component)
+        net = self.cfg.network
+        if net.signing_key_file is not None:   # everything this station sends is signed; what it gets may not be
+            enable_signing(self._conn.mav, read_key(net.signing_key_file), require=False, link_id=net.signing_link_id)
+            log.info("vehicle link signed (key %s, link id %d)", net.signing_key_file, net.signing_link_id)
+        log.info("vehicle link %s (MANUAL_CONTROL at %.0f Hz to sysid %d)", self.vehicle_url, self.cfg.mapping.rate_hz,
+                 self.cfg.mapping.target_system)
+
+    def start_lockstep(self, url: str) -> None:
+        """Join the SITL's deterministic lock-step as ``operator`` (instead of :meth:`start`): the vehicle link
+        opened and counted, the coordinator greeted; nothing is sent before the first STEP, no thread started.
+        The station's clock becomes the step's simulated time."""
+        if not isinstance(self.device, HapticDevice):
+            raise ConfigError("lock-step: the device must run in the station's process (a HapticDevice)")
+        if self.image_stream_url is not None or self.http_port is not None or self.record_path:
+            raise ConfigError("lock-step: no operator view (image stream, web page, video) in a lock-stepped station")
+        self._open_link()
+        self._counted = CountedMavlink(self._conn)
+        self._lockstep = LockstepClient(url, LOCKSTEP_NAME)
+        self.clock = self._lockstep.clock
+        self._lockstep.hello({LINK_OUT: self._counted.sent})
+
+    def run_lockstep(self, duration_s: float | None = None, status_period_s: float = 2.0,
+                     input_timeout_s: float = DEFAULT_INPUT_TIMEOUT_S) -> None:
+        """Answer STEPs until stopped (Ctrl-C, quit button, script end, ``duration_s`` of simulated time); the
+        last step is answered before returning. :class:`quadlink.lockstep.LockstepError`: the coordinator is
+        gone or an announced datagram did not come."""
+        client, counted, conn = self._lockstep, self._counted, self._conn
+        assert client is not None and counted is not None and isinstance(self.device, HapticDevice), \
+            "start_lockstep() first"
+        force = ForceLoop(self.device, self.cfg, _ThreadIO(self))
+        link = VehicleLink(self)
+        csv_log = CsvLog(self.log_csv) if self.log_csv else None
+        force_rate = self.cfg.device.force_rate_hz
+        link_period = 1.0 / self.cfg.mapping.rate_hz
+        t_first: float | None = None
+        n_force = n_link = 0                 # ticks run so far: tick i is due at t_first + i / rate
+        next_status = math.inf
+        shown_warnings: set[str] = set()
+        tel = self.telemetry
+        try:
+            while not self.stop_event.is_set():
+                step = client.next_step()
+                if step is None:
+                    continue
+                t = step.t_s
+                if t_first is None:
+                    t_first, next_status = t, t + status_period_s
+                # the device and the force law up to t, on what was received up to the last step
+                while t_first + n_force / force_rate <= t + _EPS_S:
+                    force.tick(t_first + n_force / force_rate)
+                    n_force += 1
+                played = self.exit_at_script_end and self.device_finished   # as far as the device has played
+                # exactly this step's datagrams
+                tel = self._receive_step(link, tel, t, step.count(LINK_IN), f"{LINK_IN} at step {step.index}",
+                                         input_timeout_s)
+                # the link's ticks due at t (MANUAL_CONTROL, commands, HEARTBEAT, TIMESYNC)
+                while t_first + n_link * link_period <= t + _EPS_S:
+                    link.tick(conn, t, tel, csv_log, t_first)
+                    n_link += 1
+                # the script's end once its last presses went out (they wait for the link's next tick)
+                finished = ((duration_s is not None and t - t_first >= duration_s)
+                            or (played and self._buttons.empty()))
+                client.done({LINK_OUT: counted.sent})
+                self.lockstep_steps += 1
+                shown_warnings = self._log_warnings(shown_warnings)
+                if t >= next_status:
+                    next_status = t + status_period_s
+                    log.info("%s", self.status_line())
+                if finished:
+                    log.info("%s at step %d (simulated %.2f s); leaving the lock-step",
+                             "script finished" if self.device_finished else "duration reached", step.index, t)
+                    break
+        finally:
+            if csv_log is not None:
+                csv_log.close()
+        if self.error is not None:
+            raise QuadlinkError(f"ground station stopped: {self.error}")
+
+    def _receive_step(self, link: VehicleLink, tel: Telemetry, t: float, allow: int | None, what: str,
+                      input_timeout_s: float) -> Telemetry:
+        """Handle the companion's datagrams up to the step's count ``allow`` (None: what is there), at ``t``."""
+        counted = self._counted
+        assert counted is not None
+        counted.allow = allow
+        state = [tel]
+
+        def receive() -> None:
+            state[0] = link._receive(self._conn, state[0], t)
+            while link.receive_limited:
+                state[0] = link._receive(self._conn, state[0], t)
+
+        def pump(block_s: float) -> None:
+            counted.wait_readable(block_s)
+            receive()
+
+        receive()
+        wait_for_units(lambda: counted.received, allow, pump, what, input_timeout_s)
+        receive()   # the last datagram's further messages (pymavlink parses one message per call)
+        with self._lock:
+            self._telemetry = state[0]
+        return state[0]
+
+    def _log_warnings(self, shown: set[str]) -> set[str]:
+        with self._lock:   # STATUSTEXTs are logged when they arrive; the others when they appear
+            warnings = {_warning_kind(w): w for w in self._warnings if not w.startswith("vehicle: ")}
+        for kind in set(warnings) - shown:
+            log.warning("%s", warnings[kind])
+        return set(warnings)
 
     def _spawn(self, name: str, target: Callable[[], None]) -> None:
         def guarded() -> None:
@@ -158,11 +288,7 @@ class Station:
             if self.exit_at_script_end and self.device_finished:
                 log.info("script finished")
                 break
-            with self._lock:   # STATUSTEXTs are logged when they arrive; the others when they appear
-                warnings = {_warning_kind(w): w for w in self._warnings if not w.startswith("vehicle: ")}
-            for kind in set(warnings) - shown_warnings:
-                log.warning("%s", warnings[kind])
-            shown_warnings = set(warnings)
+            shown_warnings = self._log_warnings(shown_warnings)
             if t >= next_status:
                 next_status = t + status_period_s
                 log.info("%s", self.status_line())
@@ -183,6 +309,8 @@ class Station:
                 self.device.close()
         if self.server is not None:
             self.server.close()
+        if self._lockstep is not None:   # after the last DONE: the coordinator sees the operator leave
+            self._lockstep.close()
         if self._conn is not None:
             self._conn.close()
 

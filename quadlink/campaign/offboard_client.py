@@ -23,6 +23,14 @@ The plan (written by :func:`quadlink.campaign.sessions.generate_session`)::
 
 Whether the companion shapes these setpoints with its safety layer is the companion's business (issue
 14); this client only speaks the protocol.
+
+With ``--lockstep tcp://HOST:PORT`` the client is the ``operator`` participant of the SITL's deterministic
+lock-step (:mod:`quadlink.lockstep`): it sends nothing until the coordinator's first STEP, then, per step,
+handles exactly the companion datagrams the step announces (``companion>operator``), runs its heartbeat on the
+step's simulated time and its plan on the vehicle time those messages carry, sends, and answers DONE with the
+datagrams it has sent (``operator>companion``). Nothing it sends depends on the wall clock or on scheduling,
+so two flights of the same draws see the same datagrams at the same steps. At the plan's end it answers the
+step and leaves the lock-step (the flight goes on without it).
 """
 
 from __future__ import annotations
@@ -31,6 +39,7 @@ import logging
 import math
 import sys
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -38,7 +47,8 @@ from typing import Any
 import click
 import yaml
 
-from quadlink.errors import ConfigError
+from quadlink.errors import ConfigError, QuadlinkError
+from quadlink.lockstep import DEFAULT_INPUT_TIMEOUT_S, CountedMavlink, LockstepClient, LockstepError, wait_for_units
 from quadlink.mavlink import mavlink
 from quadlink.px4_modes import Px4MainMode, encode_custom_mode
 
@@ -47,6 +57,11 @@ log = logging.getLogger("quadlink.campaign.offboard")
 SETPOINT_PERIOD_S = 0.05  # MAVSDK streams offboard setpoints at 20 Hz
 COMPANION_COMPONENT = 191
 VEHICLE_SYSTEM = 1
+HEARTBEAT_PERIOD_S = 1.0
+LOCKSTEP_NAME = "operator"
+LINK_IN = "companion>operator"     # datagrams the companion sends us (lock-step input link)
+LINK_OUT = "operator>companion"    # datagrams we send the companion (lock-step output link)
+MAX_MESSAGES_PER_DRAIN = 100_000   # a runaway parse cannot hang a step
 # type_mask (POSITION_TARGET_TYPEMASK): velocity only, with the yaw or the yaw rate
 _M = mavlink
 _IGNORE_POS = _M.POSITION_TARGET_TYPEMASK_X_IGNORE | _M.POSITION_TARGET_TYPEMASK_Y_IGNORE | \
@@ -108,15 +123,23 @@ def load_plan(path: Path) -> dict[str, Any]:
 
 
 class OffboardClient:
-    """The I/O side: one pymavlink connection, driven by :meth:`run`."""
+    """The I/O side: one pymavlink connection, driven by :meth:`run` (wall clock) or :meth:`run_lockstep`.
+
+    The timers are split from the I/O so that both modes share them: :meth:`handle` takes one received
+    message, :meth:`heartbeat` runs the 1 Hz GCS heartbeat on a given clock (wall or simulated) and
+    :meth:`plan_tick` sends what the plan asks at the vehicle time received so far.
+    """
 
     def __init__(self, conn: Any, plan: dict[str, Any]) -> None:
         self.conn = conn
         self.plan = plan
         self.vehicle_t_s: float | None = None
         self.origin_s: float | None = None  # vehicle time when the plan started
-        self._last_hb_wall = -math.inf
+        self._last_hb_s = -math.inf          # on the heartbeat's clock (wall, or the step's simulated time)
         self._done: set[str] = set()
+        self._next_sp_s = 0.0                # plan time of the next setpoint
+        self.end_s = plan_end_s(plan)
+        self.total_s = float(plan.get("duration_s", self.end_s + plan.get("landing_s", 8.0)))
 
     def _command(self, command: int, params: tuple[float, ...]) -> None:
         self.conn.mav.command_long_send(VEHICLE_SYSTEM, COMPANION_COMPONENT, command, 0, *params)
@@ -127,14 +150,36 @@ class OffboardClient:
             ms, VEHICLE_SYSTEM, COMPANION_COMPONENT, sp.frame, sp.type_mask, 0.0, 0.0, 0.0, sp.vx_m_s, sp.vy_m_s,
             sp.vz_m_s, 0.0, 0.0, 0.0, sp.yaw_rad, sp.yaw_rate_rad_s)
 
+    def handle(self, msg: Any) -> None:
+        """One received message (the plan's clock is the vehicle time of the latest TELEOP_FEEDBACK)."""
+        if msg.get_type() == "TELEOP_FEEDBACK":
+            self.vehicle_t_s = msg.time_usec * 1e-6
+        elif msg.get_type() == "STATUSTEXT":
+            log.info("vehicle: %s", msg.text)
+
     def _pump(self, timeout_s: float) -> None:
         msg = self.conn.recv_match(blocking=True, timeout=timeout_s)
         while msg is not None:
-            if msg.get_type() == "TELEOP_FEEDBACK":
-                self.vehicle_t_s = msg.time_usec * 1e-6
-            elif msg.get_type() == "STATUSTEXT":
-                log.info("vehicle: %s", msg.text)
+            self.handle(msg)
             msg = self.conn.recv_match(blocking=False)
+
+    def drain(self) -> int:
+        """Handle every message readable now (in lock-step: up to the step's allowance); how many."""
+        n = 0
+        while n < MAX_MESSAGES_PER_DRAIN:
+            msg = self.conn.recv_match(blocking=False)
+            if msg is None:
+                break
+            self.handle(msg)
+            n += 1
+        return n
+
+    def heartbeat(self, now_s: float) -> None:
+        """The 1 Hz GCS heartbeat, on the caller's clock (the first call sends)."""
+        if now_s - self._last_hb_s >= HEARTBEAT_PERIOD_S:
+            self._last_hb_s = now_s
+            self.conn.mav.heartbeat_send(mavlink.MAV_TYPE_GCS, mavlink.MAV_AUTOPILOT_INVALID, 0, 0,
+                                         mavlink.MAV_STATE_ACTIVE)
 
     def _once(self, name: str, due: bool) -> bool:
         if due and name not in self._done:
@@ -142,60 +187,125 @@ class OffboardClient:
             return True
         return False
 
+    def plan_time_s(self) -> float | None:
+        """Seconds into the plan (vehicle time since the first TELEOP_FEEDBACK), None before any."""
+        if self.vehicle_t_s is None:
+            return None
+        if self.origin_s is None:
+            self.origin_s = self.vehicle_t_s
+        return self.vehicle_t_s - self.origin_s
+
+    def plan_tick(self) -> bool:
+        """Send what the plan asks at the vehicle time received so far; True once the plan is over."""
+        t = self.plan_time_s()
+        if t is None:
+            return False
+        if self._once("arm", t >= 2.0):
+            self._command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, (1.0, 0, 0, 0, 0, 0, 0))
+        if self._once("takeoff", t >= 3.0):
+            self._command(mavlink.MAV_CMD_NAV_TAKEOFF, (0, 0, 0, math.nan, math.nan, math.nan, 1.0))
+        sp = setpoint_at(self.plan, t)
+        if sp is not None and t >= self._next_sp_s:
+            self._next_sp_s = t + SETPOINT_PERIOD_S
+            self._send_setpoint(sp)
+            # PX4 wants setpoints streaming before the switch (MAVSDK offboard.start() sends one first)
+            if self._once("offboard", True):
+                self._command(mavlink.MAV_CMD_DO_SET_MODE,
+                              (mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED,
+                               float(encode_custom_mode(Px4MainMode.OFFBOARD)), 0, 0, 0, 0, 0))
+        if self._once("land", t >= self.end_s):
+            self._command(mavlink.MAV_CMD_NAV_LAND, (0, 0, 0, math.nan, math.nan, math.nan, 0.0))
+        return t >= self.total_s
+
     def run(self, wall_timeout_s: float) -> int:
+        """Without lock-step: heartbeat on the wall clock, plan on the vehicle time as it arrives."""
         deadline = time.monotonic() + wall_timeout_s
-        next_sp_s = 0.0
-        end_s = plan_end_s(self.plan)
-        total_s = float(self.plan.get("duration_s", end_s + self.plan.get("landing_s", 8.0)))
         while time.monotonic() < deadline:
-            now = time.monotonic()
-            if now - self._last_hb_wall >= 1.0:
-                self._last_hb_wall = now
-                self.conn.mav.heartbeat_send(mavlink.MAV_TYPE_GCS, mavlink.MAV_AUTOPILOT_INVALID, 0, 0,
-                                             mavlink.MAV_STATE_ACTIVE)
+            self.heartbeat(time.monotonic())
             self._pump(0.01)
-            if self.vehicle_t_s is None:
-                continue
-            if self.origin_s is None:
-                self.origin_s = self.vehicle_t_s
-            t = self.vehicle_t_s - self.origin_s
-            if self._once("arm", t >= 2.0):
-                self._command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, (1.0, 0, 0, 0, 0, 0, 0))
-            if self._once("takeoff", t >= 3.0):
-                self._command(mavlink.MAV_CMD_NAV_TAKEOFF, (0, 0, 0, math.nan, math.nan, math.nan, 1.0))
-            sp = setpoint_at(self.plan, t)
-            if sp is not None and t >= next_sp_s:
-                next_sp_s = t + SETPOINT_PERIOD_S
-                self._send_setpoint(sp)
-                # PX4 wants setpoints streaming before the switch (MAVSDK offboard.start() sends one first)
-                if self._once("offboard", True):
-                    self._command(mavlink.MAV_CMD_DO_SET_MODE,
-                                  (mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED,
-                                   float(encode_custom_mode(Px4MainMode.OFFBOARD)), 0, 0, 0, 0, 0))
-            if self._once("land", t >= end_s):
-                self._command(mavlink.MAV_CMD_NAV_LAND, (0, 0, 0, math.nan, math.nan, math.nan, 0.0))
-            if t >= total_s:
+            if self.plan_tick():
                 return 0
-        log.error("vehicle time did not reach %.1f s within %.0f s of wall time", total_s, wall_timeout_s)
+        log.error("vehicle time did not reach %.1f s within %.0f s of wall time", self.total_s, wall_timeout_s)
         return 1
+
+    def run_lockstep(self, client: LockstepClient, counted: CountedMavlink,
+                     stop: Callable[[], bool] = lambda: False,
+                     input_timeout_s: float = DEFAULT_INPUT_TIMEOUT_S) -> int:
+        """The lock-step participant's loop (``hello`` already sent); 0 at the plan's end.
+
+        Per STEP: read and handle the companion's datagrams up to the announced count (never one more: a
+        datagram that came early waits for its step), heartbeat on the step's simulated time, the plan on
+        the vehicle time received, then DONE with our datagrams sent so far. Raises :class:`LockstepError`
+        when the coordinator is gone or an announced datagram does not come.
+        """
+        while not stop():
+            step = client.next_step()
+            if step is None:
+                continue
+            allow = step.count(LINK_IN)
+            counted.allow = allow
+
+            def pump(block_s: float) -> None:
+                counted.wait_readable(block_s)
+                self.drain()
+
+            self.drain()
+            wait_for_units(lambda: counted.received, allow, pump, f"{LINK_IN} at step {step.index}",
+                           input_timeout_s)
+            self.drain()   # the last datagram's further messages (pymavlink parses one per call)
+            self.heartbeat(step.t_s)
+            finished = self.plan_tick()
+            client.done({LINK_OUT: counted.sent})
+            if finished:
+                log.info("plan finished at step %d (simulated %.2f s, vehicle %.2f s); leaving the lock-step",
+                         step.index, step.t_s, self.vehicle_t_s or 0.0)
+                return 0
+        return 0
+
+
+def open_lockstep(conn: Any, url: str) -> tuple[LockstepClient, CountedMavlink]:
+    """Count the link's datagrams, join the coordinator as ``operator`` and say hello (nothing sent yet)."""
+    counted = CountedMavlink(conn)
+    client = LockstepClient(url, LOCKSTEP_NAME)
+    client.hello({LINK_OUT: counted.sent})
+    return client, counted
 
 
 @click.command()
 @click.option("--vehicle", required=True, help="companion ground-station endpoint, e.g. udpout:127.0.0.1:14555")
 @click.option("--plan", "plan_path", required=True, type=click.Path(exists=True, dir_okay=False, path_type=Path))
-@click.option("--wall-timeout", default=900.0, show_default=True, help="give up after this many wall seconds")
-def main(vehicle: str, plan_path: Path, wall_timeout: float) -> None:
+@click.option("--wall-timeout", default=900.0, show_default=True,
+              help="give up after this many wall seconds (not with --lockstep: the coordinator's timeouts apply)")
+@click.option("--lockstep", "lockstep_url", default=None, metavar="tcp://HOST:PORT",
+              help="join the SITL's deterministic lock-step as the 'operator' participant (quadlink.lockstep)")
+def main(vehicle: str, plan_path: Path, wall_timeout: float, lockstep_url: str | None) -> None:
     """Fly an offboard velocity plan through the companion (pymavlink, MAVSDK-style setpoints)."""
     from quadlink.mavlink.connection import open_mavlink
 
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname).1s %(name)s: %(message)s")
-    plan = load_plan(plan_path)
-    conn = open_mavlink(vehicle, source_system=255, source_component=190)
     try:
-        code = OffboardClient(conn, plan).run(wall_timeout)
+        plan = load_plan(plan_path)
+        conn = open_mavlink(vehicle, source_system=255, source_component=190)
+    except QuadlinkError as exc:
+        click.echo(f"offboard_client: error: {exc}", err=True)
+        sys.exit(2)
+    client: LockstepClient | None = None
+    try:
+        offboard = OffboardClient(conn, plan)
+        if lockstep_url is None:
+            code = offboard.run(wall_timeout)
+        else:
+            client, counted = open_lockstep(conn, lockstep_url)
+            code = offboard.run_lockstep(client, counted)
+    except LockstepError as exc:   # the coordinator is gone (the SITL ended or died) or a datagram never came
+        log.error("lock-step: %s", exc)
+        click.echo(f"offboard_client: error: {exc}", err=True)
+        code = 1
     except KeyboardInterrupt:  # the orchestrator stops its parts with SIGINT
         code = 0
     finally:
+        if client is not None:
+            client.close()
         conn.close()
     sys.exit(code)
 
