@@ -32,7 +32,10 @@ log = logging.getLogger("quadlink.campaign")
                    "the companion) instead of the haptic operator's MANUAL_CONTROL.")
 @click.option("--fixed-share", default=0.2, show_default=True, help="Share of flights in paper-arena or office.")
 @click.option("--view/--no-view", default=False, show_default=True,
-              help="Run each flight's operator image view (no effect on the flight; costs CPU).")
+              help="Run each flight's operator image view (no effect on the flight; costs CPU; not deterministic).")
+@click.option("--deterministic/--no-deterministic", default=True, show_default=True,
+              help="Fly in the deterministic lock-step (quadlink/lockstep.py): the same seed and index re-fly the "
+                   "same flight, bit for bit; --no-deterministic: the plain lock-step of earlier campaigns.")
 @click.option("--report-only", is_flag=True,
               help="Fly nothing: rebuild campaign.json and the summary from OUT's finished flights (wall time "
                    "estimated from the flights' wall times and --parallel).")
@@ -44,14 +47,14 @@ log = logging.getLogger("quadlink.campaign")
                    "do not apply).")
 def command(n_flights: int, seed: int, out_dir: Path, parallel: int, address: str | None, duration_s: float,
             cpus_per_flight: float, port_offset: int, offboard_share: float, fixed_share: float,
-            view: bool, report_only: bool, first_index: int, experiment: str) -> None:
+            view: bool, deterministic: bool, report_only: bool, first_index: int, experiment: str) -> None:
     """Fly N randomized flights (arena, start, operator, vehicle and sensors) and report the safety envelope, or
     N flights of one of paper 003's experiments and report its figures."""
     from quadlink.campaign.experiment_report import experiment_summary_text, write_experiment_campaign
     from quadlink.campaign.report import summary_text, write_campaign
 
     options = CampaignOptions(n_flights, seed, out_dir, duration_s, parallel, address, cpus_per_flight, port_offset,
-                              offboard_share, fixed_share, first_index, view, experiment)
+                              offboard_share, fixed_share, first_index, view, experiment, deterministic)
     t0 = time.monotonic()
     cancelled = False
     if report_only:

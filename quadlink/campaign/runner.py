@@ -48,9 +48,10 @@ log = logging.getLogger("quadlink.campaign")
 
 PORT_SLOT_STRIDE = 25  # offsets between slots: every demo port group spans < 25 ports
 RAY_START_ATTEMPTS = 3
-#: simulated time a flight may take beyond its session: the SITL's clock runs in real time until its lock-step
-#: clients connect, so the operator joins some seconds of simulated time after t = 0 (more on a loaded machine);
-#: a flight ends when its operator's session ends, this is only the bound
+#: simulated time a flight may take beyond its session: in the plain lock-step (--no-deterministic) the SITL's
+#: clock runs in real time until its lock-step clients connect, so the operator joins some seconds of simulated
+#: time after t = 0 (more on a loaded machine); in the deterministic one it joins at t = 0. A flight ends when its
+#: operator's session ends (and the vehicle has landed): this is only the bound
 STARTUP_ALLOWANCE_S = 45.0
 #: a session that ends with the vehicle still in the air (a refused landing, the operator gone) flies on this long
 #: without its operator, until the companion's failsafe has landed it (10 s without a command, up to 15 s to move
@@ -91,6 +92,7 @@ class CampaignOptions:
     first_index: int = 0
     view: bool = False  # the operator image view in each flight (costs CPU, changes nothing in the flight)
     experiment: str = "teleop"  # or one of quadlink.campaign.experiments.EXPERIMENTS (paper003-oval, -hover)
+    deterministic: bool = True  # the deterministic lock-step (quadlink.lockstep): a flight re-flies bit for bit
 
 
 @dataclass
@@ -160,7 +162,7 @@ def fly(options: CampaignOptions, index: int, slot: int, attempt: int,
                           port_offset=offset, progress_every_s=30.0, sitl_config=str(files.sitl),
                           operator=draws.session.kind, should_stop=should_stop, view=options.view,
                           plots=False, on_flight=lambda f: envelopes.append(envelope(truth_of_flight(f), scenario)),
-                          settle_s=LANDING_SETTLE_S)
+                          settle_s=LANDING_SETTLE_S, deterministic=options.deterministic and not options.view)
         result.report = report
         if report.get("interrupted"):
             result.status = "cancelled"

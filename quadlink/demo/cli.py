@@ -40,10 +40,11 @@ SITL_DURATION_MARGIN_S = 300.0
 
 
 PORT_NAMES = ("mk1", "mk2", "camera", "image", "autopilot", "gcs_bridge", "vehicle", "truth", "http",
-              "vehicle_netem", "image_netem")
+              "vehicle_netem", "image_netem", "lockstep")
 #: ``vehicle_netem`` / ``image_netem``: the impaired ground link's ends (quadlink.demo.link)
 DEFAULT_PORTS = {"mk1": 5760, "mk2": 5761, "camera": 5762, "image": 5770, "autopilot": 14540, "gcs_bridge": 14551,
-                 "vehicle": 14555, "truth": 14560, "http": 8080, "vehicle_netem": 14557, "image_netem": 5771}
+                 "vehicle": 14555, "truth": 14560, "http": 8080, "vehicle_netem": 14557, "image_netem": 5771,
+                 "lockstep": 5763}
 PORT_BLOCK_SIZE = len(PORT_NAMES)  # ports per flight with ``base``
 
 
@@ -83,6 +84,8 @@ class FlightSpec:
     lockstep: bool = True
     speed: float = 1.0
     view: bool = True  # the operator's image view (no effect on the flight; headless saves CPU)
+    deterministic: bool = False  # the deterministic lock-step (quadlink.lockstep): the same spec flies the same bytes
+    settle_s: float = 0.0  # run_demo's settle_s: how long the vehicle may fly on after the operator's session
 
     def resolve(self, folder: Path) -> FlightSpec:
         def r(p: str | None) -> str | None:
@@ -95,7 +98,8 @@ class FlightSpec:
             return str(q) if q.exists() or not (folder / q.name).exists() else str(folder / q.name)
 
         return FlightSpec(r(self.scenario) or self.scenario, r(self.script) or self.script, self.duration_s,
-                          self.operator, r(self.sitl_config), self.lockstep, self.speed, self.view)
+                          self.operator, r(self.sitl_config), self.lockstep, self.speed, self.view,
+                          self.deterministic, self.settle_s)
 
 
 def write_companion_config(out_dir: Path, **sections: object) -> Path:
@@ -130,14 +134,20 @@ def build_specs(scenario: str, script: Path, out_dir: Path, ports: Ports, lockst
                 duration_s: float, record_frames: bool = False, sitl_config: str | None = None,
                 operator: str = "haptic", view: bool = True, via_netem: bool = False,
                 teleop_config: Path | None = None, signing_key: Path | None = None,
-                companion_config: Path | None = None) -> list[ProcessSpec]:
+                companion_config: Path | None = None, deterministic: bool = False,
+                settle_s: float = 0.0) -> list[ProcessSpec]:
     """The parts of a flight in start order. ``view=False`` runs headless: no operator image stream from the
     companion, no view or web page in the ground station (neither feeds back into the flight: the haptic
     cue's pan-scan estimate comes from TELEOP_FEEDBACK, not from the images), which saves their CPU.
     ``via_netem``: the ground station talks to the netem proxies' ports (quadlink.demo.link). ``signing_key``:
     the ground link is MAVLink 2 signed with this key (quadlink keygen), and the companion refuses unsigned
     ground-station packets (issue 16). ``companion_config``: the companion's YAML (default: configs/companion.yaml
-    with the room's height, :func:`companion_config_for_room`)."""
+    with the room's height, :func:`companion_config_for_room`). ``deterministic``: the SITL serves the
+    deterministic lock-step (:mod:`quadlink.lockstep`) and ends the flight itself on simulated time
+    (``duration_s`` from the operator's start, or, once the operator has left, at the disarm or ``settle_s``
+    later); the bridge, the companion and the operator step with it."""
+    if deterministic and (not lockstep or via_netem or view):
+        raise ConfigError("a deterministic flight is in lock-step, headless (--no-view) and without netem")
     signed = ("--signing-key", str(signing_key)) if signing_key is not None else ()
     if companion_config is None:
         companion_config = companion_config_for_room(out_dir, scenario)
@@ -151,16 +161,20 @@ def build_specs(scenario: str, script: Path, out_dir: Path, ports: Ports, lockst
     vehicle_port, image_port = (ports.vehicle_netem, ports.image_netem) if via_netem else (ports.vehicle, ports.image)
     sitl = ["sitl", "--scenario", scenario, "--port1", str(ports.mk1), "--port2", str(ports.mk2),
             "--camera-port", str(ports.camera), "--truth", f"udpout:127.0.0.1:{ports.truth}",
-            "--duration", f"{duration_s + SITL_DURATION_MARGIN_S:.0f}"]
+            "--duration", f"{duration_s:g}" if deterministic else f"{duration_s + SITL_DURATION_MARGIN_S:.0f}"]
     if sitl_config is not None:
         sitl += ["--config", sitl_config]
-    if lockstep:
+    stepped: tuple[str, ...] = ()
+    if deterministic:
+        sitl += ["--lockstep-port", str(ports.lockstep), "--end-after-operator", f"{settle_s:g}"]
+        stepped = ("--lockstep", f"tcp://127.0.0.1:{ports.lockstep}")
+    elif lockstep:
         sitl.append("--lockstep")
     if speed != 1.0:
         sitl += ["--speed", str(speed)]
     if operator == "offboard":
         operator_spec = ProcessSpec("operator", ("--vehicle", f"udpout:127.0.0.1:{ports.vehicle}",
-                                                 "--plan", str(script)),
+                                                 "--plan", str(script), *stepped),
                                     ready_after_s=0.5, module="quadlink.campaign.offboard_client")
     elif operator == "haptic":
         operator_spec = ProcessSpec(
@@ -169,7 +183,8 @@ def build_specs(scenario: str, script: Path, out_dir: Path, ports: Ports, lockst
                        "--image-stream", f"tcp://127.0.0.1:{image_port}" if view else "none",
                        *(("--config", str(teleop_config)) if teleop_config else ()),
                        "--http-port", str(ports.http) if view else "-1", "--log-csv", str(out_dir / "teleop.csv"),
-                       "--exit-at-script-end", "--script-clock", "vehicle" if lockstep else "wall", *signed),
+                       "--exit-at-script-end", "--script-clock", "vehicle" if lockstep else "wall", *signed,
+                       *stepped),
             ready_after_s=0.5)
     else:
         raise ConfigError(f"unknown operator {operator!r} (haptic or offboard)")
@@ -179,7 +194,7 @@ def build_specs(scenario: str, script: Path, out_dir: Path, ports: Ports, lockst
                                "--mk-imu", f"socket://127.0.0.1:{ports.mk2}",
                                "--mavlink", f"udpout:127.0.0.1:{ports.autopilot}",
                                "--mavlink", f"udpout:127.0.0.1:{ports.gcs_bridge}",
-                               "--params", str(out_dir / "bridge_params.yaml")), ready_after_s=2.0),
+                               "--params", str(out_dir / "bridge_params.yaml"), *stepped), ready_after_s=2.0),
         ProcessSpec("companion", ("companion", "--config", str(companion_config),
                                   "--autopilot", f"udpin:127.0.0.1:{ports.autopilot}",
                                   "--gcs", f"udpin:127.0.0.1:{ports.vehicle}",
@@ -187,7 +202,8 @@ def build_specs(scenario: str, script: Path, out_dir: Path, ports: Ports, lockst
                                   "--image-port", str(ports.image) if view else "0",
                                   "--tlog", str(out_dir / "companion.tlog"),
                                   *((*signed, "--require-signing") if signed else ()),
-                                  *(("--record-frames", str(out_dir / "frames.qlcf")) if record_frames else ())),
+                                  *(("--record-frames", str(out_dir / "frames.qlcf")) if record_frames else ()),
+                                  *stepped),
                     ready_after_s=3.0),
         operator_spec,
     ]
@@ -200,7 +216,7 @@ def run_demo(scenario: str, duration_s: float, out_dir: Path, script: Path, lock
              view: bool = True, plots: bool = True,
              on_flight: Callable[[FlightLog], None] | None = None, link: LinkImpairment | None = None,
              passivity: bool | None = None, signing_key: Path | None = None,
-             settle_s: float = 0.0) -> dict[str, object]:
+             settle_s: float = 0.0, deterministic: bool = False) -> dict[str, object]:
     """Fly the demo; returns the report. Raises :class:`ProcessDied` if a part dies.
 
     Writes ``out_dir/flight.json`` (the :class:`FlightSpec`, what ``--replay`` re-flies) and
@@ -213,13 +229,16 @@ def run_demo(scenario: str, duration_s: float, out_dir: Path, script: Path, lock
     ``settle_s``: when the operator's session or the duration ends with the vehicle still armed, the stack flies
     on without the operator for up to this many simulated seconds, until the autopilot disarms: the companion's
     failsafe lands it (a campaign's flight ends on the ground, not torn down in the air).
+    ``deterministic``: the deterministic lock-step (:func:`build_specs`): the SITL ends the flight on simulated
+    time, and the same arguments fly the same flight, bit for bit.
     """
     if signing_key is not None and not Path(signing_key).is_file():
         raise ConfigError(f"{signing_key}: signing key not found (create one with: quadlink keygen FILE)")
     if not Path(script).is_file():
         raise ConfigError(f"{script}: operator script not found")
     out_dir.mkdir(parents=True, exist_ok=True)
-    spec = FlightSpec(str(scenario), str(script), float(duration_s), operator, sitl_config, lockstep, speed, view)
+    spec = FlightSpec(str(scenario), str(script), float(duration_s), operator, sitl_config, lockstep, speed, view,
+                      deterministic, settle_s)
     (out_dir / "flight.json").write_text(json.dumps(dataclasses.asdict(spec), indent=2) + "\n")
     ports = Ports(port_offset, port_base)
     stack = Stack(out_dir / "logs")
@@ -242,7 +261,7 @@ def run_demo(scenario: str, duration_s: float, out_dir: Path, script: Path, lock
     t_wall0 = time.monotonic()
     specs = build_specs(scenario, Path(script), out_dir, ports, lockstep, speed, duration_s, record_frames,
                         sitl_config, operator, view, via_netem=link is not None, teleop_config=teleop_config,
-                        signing_key=signing_key)
+                        signing_key=signing_key, deterministic=deterministic, settle_s=settle_s)
     operator_name = specs[-1].name
     try:
         for part in specs:
@@ -260,7 +279,9 @@ def run_demo(scenario: str, duration_s: float, out_dir: Path, script: Path, lock
                  t_sim0, ports.http, stack.log_dir)
         next_progress = 0.0
         operator_done = False
-        while not interrupted:
+        if deterministic:
+            interrupted = interrupted or _await_sitl_end(recorder, stack, should_stop, t_wall0, progress_every_s)
+        while not interrupted and not deterministic:
             time.sleep(0.2)
             if should_stop is not None and should_stop():
                 interrupted = True
@@ -317,6 +338,25 @@ def _log_progress(recorder: Recorder, t_wall0: float) -> None:
              recorder.counts.get("bridge", 0))
 
 
+def _await_sitl_end(recorder: Recorder, stack: Stack, should_stop: Callable[[], bool] | None, t_wall0: float,
+                    progress_every_s: float) -> bool:
+    """A deterministic flight: the SITL ends it (on simulated time); wait for that. Interrupted? Any part that
+    exits with a non-zero status raises :class:`ProcessDied`; parts that end cleanly (the operator at the end of
+    its session, the others when the simulation has ended) are fine."""
+    names = frozenset(r.spec.name for r in stack.running)
+    next_progress = time.monotonic() + progress_every_s
+    while True:
+        time.sleep(0.2)
+        if should_stop is not None and should_stop():
+            return True
+        if "sitl" in stack.check(may_finish=names):
+            log.info("the simulation ended the flight at %.1f s simulated", recorder.truth.sim_time_s)
+            return False
+        if time.monotonic() >= next_progress:
+            next_progress = time.monotonic() + progress_every_s
+            _log_progress(recorder, t_wall0)
+
+
 def _settle(recorder: Recorder, stack: Stack, operator_name: str, settle_s: float,
             should_stop: Callable[[], bool] | None, t_wall0: float, progress_every_s: float) -> bool:
     """With the operator gone, fly on until the autopilot disarms or ``settle_s`` simulated seconds pass;
@@ -352,7 +392,7 @@ def replay_flight(flight_dir: Path, out_dir: Path | None = None, port_offset: in
     out = out_dir or flight_dir / "replay"
     report = run_demo(spec.scenario, spec.duration_s, out, Path(spec.script), spec.lockstep, spec.speed, port_offset,
                       progress_every_s, port_base=port_base, sitl_config=spec.sitl_config, operator=spec.operator,
-                      view=spec.view)
+                      view=spec.view, settle_s=spec.settle_s, deterministic=spec.deterministic)
     return report, out
 
 
@@ -406,10 +446,13 @@ def compare_reports(original: dict[str, Any], replay: dict[str, Any]) -> list[tu
 @click.option("--signing-key", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="Sign the ground link with this MAVLink 2 key (quadlink keygen FILE); the companion then "
                    "refuses unsigned ground-station packets.")
+@click.option("--deterministic", is_flag=True,
+              help="The deterministic lock-step (quadlink/lockstep.py; needs --no-view, no --link-*): every part steps "
+                   "with the SITL and the SITL ends the flight, so the same flight re-flies bit for bit (--replay).")
 def command(scenario: str, duration_s: float, out_dir: Path | None, script: Path, lockstep: bool, speed: float,
             port_offset: int, port_base: int | None, replay_dir: Path | None, view: bool, record_frames: bool,
             link_delay_ms: float | None, link_jitter_ms: float | None, link_loss: float | None, link_seed: int,
-            passivity: bool | None, signing_key: Path | None) -> None:
+            passivity: bool | None, signing_key: Path | None, deterministic: bool) -> None:
     """Fly the paper's experiment in the SITL (take off, drive, rotate, approach and push the obstacle, land)."""
     try:
         impaired = any(v is not None for v in (link_delay_ms, link_jitter_ms, link_loss))
@@ -423,7 +466,7 @@ def command(scenario: str, duration_s: float, out_dir: Path | None, script: Path
             out_dir = out_dir or Path("flight-report")
             report = run_demo(scenario, duration_s, out_dir, script, lockstep, speed, port_offset,
                               record_frames=record_frames, port_base=port_base, view=view, link=link,
-                              passivity=passivity, signing_key=signing_key)
+                              passivity=passivity, signing_key=signing_key, deterministic=deterministic)
     except ProcessDied as exc:
         click.echo(f"quadlink demo: {exc}", err=True)
         raise SystemExit(1) from exc

@@ -54,17 +54,23 @@ class Recorder:
     def _loop(self, name: str, conn: Any, writer: TlogWriter, is_truth: bool) -> None:
         try:
             while not self._stop.is_set():
-                msg = conn.recv_match(blocking=True, timeout=0.2)
-                if msg is None or msg.get_type() == "BAD_DATA":
-                    continue
-                writer.write(msg.get_msgbuf(), time.time())
-                self.counts[name] += 1
-                if is_truth:
-                    self._update_truth(msg)
-                elif msg.get_type() == "HEARTBEAT" and msg.get_srcComponent() == mavlink.MAV_COMP_ID_AUTOPILOT1:
-                    self.vehicle_armed = bool(msg.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED)
+                self._on_message(name, conn.recv_match(blocking=True, timeout=0.2), writer, is_truth)
+            # what the senders sent before they stopped is still in the socket: a log cut short at a moment of
+            # the wall clock would make two identical flights' logs differ (issue 15)
+            while (msg := conn.recv_match(blocking=False)) is not None:
+                self._on_message(name, msg, writer, is_truth)
         finally:
             conn.close()
+
+    def _on_message(self, name: str, msg: Any, writer: TlogWriter, is_truth: bool) -> None:
+        if msg is None or msg.get_type() == "BAD_DATA":
+            return
+        writer.write(msg.get_msgbuf(), time.time())
+        self.counts[name] += 1
+        if is_truth:
+            self._update_truth(msg)
+        elif msg.get_type() == "HEARTBEAT" and msg.get_srcComponent() == mavlink.MAV_COMP_ID_AUTOPILOT1:
+            self.vehicle_armed = bool(msg.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED)
 
     def _update_truth(self, msg: Any) -> None:
         kind = msg.get_type()
