@@ -286,6 +286,7 @@ class Sitl:
         while not self._stop.is_set() and not coord.all_registered():
             coord.poll(0.02)
             self._poll_port1()
+        last_progress = clock()   # the first progress line five seconds into the steps, not at the first step
         index = 0
         reason: str | None = None
         while not self._stop.is_set():
