@@ -9,9 +9,10 @@ the real-time factor. For one flight it prints the CPU core-seconds per simulate
 simulated duration) and in total. Target (issue 15): a 60 s flight in <= 60 s of wall time.
 
 The figures depend on the load: on a shared machine (other jobs on the same cores) the lock-step flights
-slow down, so also note the load average printed first. The CPU figures are robust to load except for the
-parts paced by the wall clock (the ground station's 1 kHz force loop, see below), whose CPU per simulated
-second grows as the simulation slows down.
+slow down, so also note the load average printed first. The flights are the campaign's default, the
+deterministic lock-step (quadlink/lockstep.py): every part runs on simulated time, so the CPU figures are
+robust to load (in the plain lock-step the ground station's 1 kHz force loop ran on the wall clock, and its
+CPU per simulated second grew as the simulation slowed down).
 """
 
 from __future__ import annotations
