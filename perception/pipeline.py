@@ -32,6 +32,10 @@ from quadlink.frames import R_hq, Rz, euler_from_R, euler_yaw_rate_rad_s
 
 log = logging.getLogger(__name__)
 
+#: the floor seen within this long still tells the obstacle summary which particles are floor (the vehicle
+#: climbs or descends at most ~0.5 m/s: 0.5 m of error at worst, against the summary's 1 m height band)
+FLOOR_FRESH_S = 1.0
+
 __all__ = ["PerceptionConfig", "PerceptionOutput", "PerceptionPipeline", "ObstacleSectors"]
 
 
@@ -91,6 +95,7 @@ class PerceptionPipeline:
         self._ukf = Ukf(config.ukf) if config.estimator == "ukf" else None
         self._map = ObstacleMap(config.obstacle_map)
         self._level = OdometryLevel(config.level)
+        self._floor_seen: tuple[float, float] | None = None   # (stamp, floor depth below the body) last seen
         self._last_imu_stamp: float | None = None
         self._prev_R_wq: NDArray[np.float64] | None = None  # attitude at the previous frame
         self._imu_since_frame = False
@@ -191,7 +196,10 @@ class PerceptionPipeline:
         else:
             points_c = np.zeros((0, 3))
             floor = None
-        sectors = self._map.sectors(frame.stamp_s)
+        if floor is not None:
+            self._floor_seen = (frame.stamp_s, floor.height_m)
+        recent_floor = self._floor_seen is not None and 0.0 <= frame.stamp_s - self._floor_seen[0] <= FLOOR_FRESH_S
+        sectors = self._map.sectors(frame.stamp_s, self._floor_seen[1] if recent_floor else None)  # type: ignore[index]
         self.frames += 1
         return PerceptionOutput(
             stamp_s=frame.stamp_s, roll_rad=roll, pitch_rad=pitch, yaw_rad=yaw, omega_q_rad_s=omega,

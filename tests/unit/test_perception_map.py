@@ -322,3 +322,30 @@ def test_particles_just_beyond_the_minimum_range_are_not_carved_by_a_farther_rea
     m.predict(1.0, np.array([-0.5, 0, 0]), np.array([-0.5, 0, 0]), 0.0, 0.0, rng)   # back to 1.15 m
     _observe(m, 2.0, _wall_depth(6.0))
     assert len(m) == 0
+
+
+def test_the_floor_does_not_make_a_sector_known() -> None:
+    """A camera 0.8 m up, pitched 35 deg down, sees only floor; the vehicle flies 2.5 m forward (no noise) and
+    that floor lies 0.6-2 m behind it, within the summary's height band. With the floor's depth given, those
+    particles are floor, not obstacles: the sectors behind stay unknown (a script may not back into them)."""
+    height_m, pitch_rad = 0.8, math.radians(-35.0)
+    u, v = np.meshgrid(np.arange(K.width, dtype=float), np.arange(K.height, dtype=float))
+    rays_c = np.stack([(u - K.cx) / K.fx, (v - K.cy) / K.fy, np.ones_like(u)], axis=-1)
+    d_h = rays_c @ (R_hq(0.0, pitch_rad) @ R_QC_FWD).T
+    with np.errstate(divide="ignore"):
+        t = np.where(d_h[..., 2] > 0, height_m / d_h[..., 2], np.inf)   # optical z = 1: t is the depth
+    depth = np.where(t <= 3.5, t, np.inf).astype(np.float32)
+    m = ObstacleMap(ObstacleMapConfig(copies=1, velocity_noise_m_s=0.0, yaw_rate_noise_rad_s=0.0,
+                                      measurement_noise_per_m=0.0))
+    m.measure(0.0, extract_obstacles(depth, K, R_QC_FWD, np.zeros(3), 0.0, pitch_rad, ObstacleConfig(rows=4, cols=8)))
+    assert len(m) > 0 and np.all(np.abs(m.points_h_m[:, 2] - height_m) < 1e-6)   # floor points, in the band
+    v = np.array([0.5, 0.0, 0.0])
+    for _ in range(50):
+        m.predict(0.1, v, v, 0.0, 0.0, np.random.default_rng(0))
+    assert np.all(m.points_h_m[:, 0] < -0.5)   # all behind now
+    behind = [35, 36, 37]
+    assert np.all(np.isfinite(m.sectors(5.0).distances_m[behind]))          # the floor taken for obstacles
+    assert np.all(np.isnan(m.sectors(5.0, floor_drop_m=height_m).distances_m[behind]))
+    # the margin: 0.1 m above the floor is floor, 0.2 m above it is an obstacle
+    assert np.all(np.isnan(m.sectors(5.0, floor_drop_m=height_m + 0.1).distances_m[behind]))
+    assert np.all(np.isfinite(m.sectors(5.0, floor_drop_m=height_m + 0.2).distances_m[behind]))
