@@ -249,8 +249,8 @@ def _check_mavsdk(f: Flight, seen: dict[str, Any]) -> None:
     gap = float(seen["p_wall1"][0] - POSTER_FACE_X_M)
     print(f"offboard into the wall: moved {seen['p_wall0'][0] - seen['p_wall1'][0]:.2f} m, rests {gap:.2f} m "
           f"from the poster; free leg {np.linalg.norm(seen['p_free1'][:2] - seen['p_free0'][:2]):.2f} m of 2.0 m")
-    # at rest 0.49-0.58 m from the poster (nine runs, idle and with both cores busy; CI once 0.60 m under load:
-    # the map's drift margin grows on points the pan-scan has not revisited): a stalled approach still fails
+    # at rest 0.49-0.58 m from the poster (nine runs, idle and with both cores busy; CI once 0.60 m under load,
+    # cause not isolated): a stalled approach still fails
     assert gap <= 0.65, f"stopped {gap:.2f} m from the wall"
     # backward, where the camera has not looked: refused (PX4's CP_GO_NO_DATA = 0 for scripts)
     blind = float(np.linalg.norm(seen["p_blind"][:2] - seen["p_wall1"][:2]))
