@@ -198,8 +198,10 @@ class PerceptionPipeline:
             floor = None
         if floor is not None:
             self._floor_seen = (frame.stamp_s, floor.height_m)
-        recent_floor = self._floor_seen is not None and 0.0 <= frame.stamp_s - self._floor_seen[0] <= FLOOR_FRESH_S
-        sectors = self._map.sectors(frame.stamp_s, self._floor_seen[1] if recent_floor else None)  # type: ignore[index]
+        floor_drop_m = None
+        if self._floor_seen is not None and 0.0 <= frame.stamp_s - self._floor_seen[0] <= FLOOR_FRESH_S:
+            floor_drop_m = self._floor_seen[1]
+        sectors = self._map.sectors(frame.stamp_s, floor_drop_m)
         self.frames += 1
         return PerceptionOutput(
             stamp_s=frame.stamp_s, roll_rad=roll, pitch_rad=pitch, yaw_rad=yaw, omega_q_rad_s=omega,
