@@ -24,7 +24,7 @@ import statistics
 import time
 from pathlib import Path
 
-from quadlink.campaign.runner import CampaignOptions, run_campaign
+from harness.campaign.runner import CampaignOptions, run_campaign
 
 
 def main() -> int:

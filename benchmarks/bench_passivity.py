@@ -21,7 +21,7 @@ from teleop.passivity_sim import DelayedLoop, LoopRun, simulate_release
 
 ONE_WAY_MS = (0.0, 100.0, 150.0, 300.0)
 SETTLE_S = 1.0        # RMS velocity from this long after the release (the release transient itself excluded)
-EPSILON_J = 1e-3     # quadlink/demo/report.py TARGETS["passivity_epsilon_j"]
+EPSILON_J = 1e-3     # harness/demo/report.py TARGETS["passivity_epsilon_j"]
 LONG_TICKS = {"long_tick_probability": 0.05, "long_tick_max_s": 0.02}
 
 

@@ -43,7 +43,6 @@ import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from perception.attitude import AttitudeFilter  # noqa: E402
 from perception.cli import HEADER, SequenceRun, evaluate, ground_truth_at, load_frames, run_sequence, table_row  # noqa: E402,E501
 from perception.obstacle_map import ObstacleMap  # noqa: E402
 from perception.obstacles import extract_obstacles  # noqa: E402
@@ -51,6 +50,7 @@ from perception.odometry import RgbdOdometry, prepare_frame  # noqa: E402
 from perception.pipeline import PerceptionConfig, PerceptionPipeline  # noqa: E402
 from perception.synthetic import SyntheticFlight, pose, qvga_intrinsics, render  # noqa: E402
 from perception.ukf import Ukf  # noqa: E402
+from quadlink.attitude import AttitudeFilter  # noqa: E402
 from quadlink.camera import RgbdFrame  # noqa: E402
 from quadlink.frames import R_from_euler  # noqa: E402
 from quadlink.lie import inv_T  # noqa: E402
@@ -354,9 +354,9 @@ def sitl_oval(window: bool, seed: int = 0, **odometry: Any) -> dict[str, Any]:
     :class:`OdometryConfig` fields."""
     from dataclasses import replace
 
+    from harness.trajectory_cli import load_trajectory_file
     from quadlink import CONFIG_DIR
     from quadlink.frames import Rz, euler_from_R
-    from quadlink.trajectory.cli import load_trajectory_file
     from quadlink.trajectory.minsnap import minimum_snap
     from sim_sitl.firmware import AttitudeCommand
 

@@ -1,4 +1,4 @@
-"""The bridge's attitude estimate: ``perception.attitude.AttitudeFilter`` (Mahony, with gyro-bias
+"""The bridge's attitude estimate: ``quadlink.attitude.AttitudeFilter`` (Mahony, with gyro-bias
 estimation) on the board's 500 Hz IMU, plus a heading offset.
 
 One implementation of the filter math lives in ``perception`` (STYLE.md: no copies across packages);
@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from perception.attitude import AttitudeConfig, AttitudeFilter
+from quadlink.attitude import AttitudeConfig, AttitudeFilter
 from quadlink.frames import wrap_pi
 
 

@@ -1,6 +1,6 @@
 """Roll and pitch for levelling a depth image: the odometry's attitude, its world held to gravity slowly (pure).
 
-The attitude filter (:mod:`perception.attitude`) corrects the gyro toward the accelerometer with a 1 s time
+The attitude filter (:mod:`quadlink.attitude`) corrects the gyro toward the accelerometer with a 1 s time
 constant (``kp_rad_s`` 1), so a manoeuvre's horizontal acceleration leaks into its roll and pitch: on paper 003's
 oval (up to ~1 m/s² for a second at a time) it is off by 1-4 deg, and a floor seen 2 m ahead then reads 3-10 cm
 higher or lower (``perception.floor``). The odometry's attitude has no such error: its rotation between frames

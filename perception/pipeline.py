@@ -19,7 +19,6 @@ from typing import Literal
 import numpy as np
 from numpy.typing import NDArray
 
-from perception.attitude import AttitudeConfig, AttitudeFilter, orthonormalise
 from perception.floor import FloorConfig, measure_floor
 from perception.level import LevelConfig, OdometryLevel
 from perception.obstacle_map import ObstacleMap, ObstacleMapConfig, ObstacleSectors
@@ -27,7 +26,8 @@ from perception.obstacles import ObstacleConfig, extract_obstacles
 from perception.odometry import OdometryConfig, RgbdOdometry
 from perception.ukf import Ukf, UkfConfig
 from perception.velocity import VelocityConfig, VelocityEstimator, body_pose_in_world
-from quadlink.camera import CameraIntrinsics, RgbdFrame
+from quadlink.attitude import AttitudeConfig, AttitudeFilter, orthonormalise
+from quadlink.camera_frame import CameraIntrinsics, RgbdFrame
 from quadlink.frames import R_hq, Rz, euler_from_R, euler_yaw_rate_rad_s
 
 log = logging.getLogger(__name__)

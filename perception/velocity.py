@@ -18,8 +18,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from perception.attitude import qmul
 from perception.one_euro import OneEuroConfig, OneEuroFilter, OneEuroQuaternion
+from quadlink.attitude import qmul
 from quadlink.frames import R_hq, euler_from_R, quat_wxyz_from_R
 
 Vec3 = NDArray[np.float64]

@@ -22,14 +22,14 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "bridge": ("firmware_bridge.cli", "Start the firmware bridge: MK board ports <-> MAVLink autopilot."),
     "companion": ("companion.cli", "Start the companion daemon (perception, reference velocity, routing)."),
     "teleop": ("teleop.cli", "Start the ground station: haptic device, force feedback, operator view."),
-    "demo": ("quadlink.demo", "Fly the paper's experiment in the SITL and write a flight report."),
-    "campaign": ("quadlink.campaign", "Fly N randomized flights of the stack on Ray; report the safety envelope."),
+    "demo": ("harness.demo", "Fly the paper's experiment in the SITL and write a flight report."),
+    "campaign": ("harness.campaign", "Fly N randomized flights of the stack on Ray; report the safety envelope."),
     "vo-eval": ("perception.cli", "Run the RGB-D odometry on a TUM-format sequence and print RPE/ATE."),
     "identify-yaw": ("companion.identify_cli", "Identify the yaw response to the pan-scan (eq. 5) from a flight log."),
     "keygen": ("quadlink.keygen_cli", "Create a MAVLink 2 signing key file for signed ground-station links."),
-    "netem": ("quadlink.netem.cli", "A UDP/TCP link with delay, jitter, loss, reordering and a rate limit."),
-    "trajectory": ("quadlink.trajectory.cli", "Stream a minimum-snap trajectory (YAML) as MAVLink setpoints."),
-    "paper003": ("quadlink.demo.paper003_cli", "Fly paper 003's hover or oval through the whole stack; its tables."),
+    "netem": ("harness.netem.cli", "A UDP/TCP link with delay, jitter, loss, reordering and a rate limit."),
+    "trajectory": ("harness.trajectory_cli", "Stream a minimum-snap trajectory (YAML) as MAVLink setpoints."),
+    "paper003": ("harness.demo.paper003_cli", "Fly paper 003's hover or oval through the whole stack; its tables."),
 }
 
 

@@ -19,8 +19,8 @@ Conventions:
 * **Letters.** Standard MK commands keep their meaning (``v/V`` version, ``d/D`` debug, ``a/A`` debug labels,
   ``c/C`` 3D data, ``b/B`` ExternControl, ``t`` motor test). The stack's firmware adds ``I`` IMU sample
   (port 2, board -> companion), ``s`` attitude/thrust setpoint (port 1, companion -> board), ``S`` board
-  status and ``Z`` barometric altitude (port 1, board -> companion). Every letter means one message in both directions and on both ports,
-  so :func:`decode_message` dispatches on the letter alone.
+  status and ``Z`` barometric altitude (port 1, board -> companion). Every letter means one message in both
+  directions and on both ports, so :func:`decode_message` dispatches on the letter alone.
 """
 
 from __future__ import annotations

@@ -16,9 +16,9 @@ from test_companion_daemon import Rig  # the daemon rig on loopback (real links,
 
 from companion.config import CompanionConfig, LinksConfig, ModeParams, PanScanConfig, TimingConfig
 from companion.modes import Mode
+from harness.netem import Impairment, UdpProxy
 from quadlink.mavlink import mavlink
 from quadlink.mavlink.timesync import NS, answer_fields, is_request
-from quadlink.netem import Impairment, UdpProxy
 
 pytestmark = pytest.mark.integration
 

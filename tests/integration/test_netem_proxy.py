@@ -11,8 +11,8 @@ import time
 import numpy as np
 import pytest
 
+from harness.netem import Impairment, start_proxy
 from quadlink.mavlink import mavlink
-from quadlink.netem import Impairment, start_proxy
 
 pytestmark = pytest.mark.integration
 

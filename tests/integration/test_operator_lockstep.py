@@ -1,5 +1,5 @@
 """The two scripted operators as participants of the deterministic lock-step (quadlink.lockstep): the offboard
-client (``python -m quadlink.campaign.offboard_client --lockstep``) and the ground station (``quadlink teleop
+client (``python -m harness.campaign.offboard_client --lockstep``) and the ground station (``quadlink teleop
 --lockstep``), each a real subprocess, against the real :class:`Coordinator` driven from the test thread and a
 fake companion on a plain UDP socket that plays the SITL-side part of the protocol: per step it reads exactly the
 datagrams the operator's last DONE announced, answers (feedback, acks, TIMESYNC), and announces its own count.
@@ -247,7 +247,7 @@ def fly(argv: Callable[[str, int], list[str]], feedback: Feedback = steady_feedb
 # ------------------------------------------------------------------------------------------------ offboard (A)
 def offboard_argv(plan_path: Path) -> Callable[[str, int], list[str]]:
     def argv(url: str, port: int) -> list[str]:
-        return [sys.executable, "-m", "quadlink.campaign.offboard_client", "--vehicle", f"udpout:127.0.0.1:{port}",
+        return [sys.executable, "-m", "harness.campaign.offboard_client", "--vehicle", f"udpout:127.0.0.1:{port}",
                 "--plan", str(plan_path), "--lockstep", url]
     return argv
 
@@ -344,7 +344,7 @@ def test_offboard_exits_1_when_the_coordinator_goes(plan_path: Path) -> None:
 def test_offboard_without_lockstep_is_unchanged(plan_path: Path) -> None:
     """No --lockstep: today's client (heartbeat at once, plan on the first feedback's clock)."""
     companion = Companion()
-    proc = subprocess.Popen([sys.executable, "-m", "quadlink.campaign.offboard_client", "--vehicle",
+    proc = subprocess.Popen([sys.executable, "-m", "harness.campaign.offboard_client", "--vehicle",
                              f"udpout:127.0.0.1:{companion.port}", "--plan", str(plan_path)], cwd=REPO,
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     try:

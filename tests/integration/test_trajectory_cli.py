@@ -10,11 +10,11 @@ import numpy as np
 import pytest
 
 from firmware_bridge.geometric_tracker import decode_trajectory_setpoint
+from harness.trajectory_cli import load_trajectory_file, schedule, stream
 from quadlink import CONFIG_DIR
 from quadlink.errors import ConfigError
 from quadlink.mavlink.connection import open_mavlink
 from quadlink.trajectory import minimum_snap
-from quadlink.trajectory.cli import load_trajectory_file, schedule, stream
 
 OVAL_YAML = Path(CONFIG_DIR) / "trajectories" / "oval.yaml"
 

@@ -16,6 +16,7 @@ from quadlink.mk.fields import CENTIDEG_RAD, DECIDEG_RAD, DECIDEG_S_RAD_S
 from quadlink.mk.messages import (
     MESSAGE_TYPES,
     AttitudeSetpoint,
+    BaroAltitude,
     BoardStatus,
     Data3D,
     Data3DRequest,
@@ -280,7 +281,7 @@ def test_imu_from_si_quantises_within_half_lsb(accel: list[float], gyro: list[fl
 
 
 def test_dispatch_covers_every_letter_once() -> None:
-    assert set(MESSAGE_TYPES) == set("vVdDaAcCbBtIsS")
+    assert set(MESSAGE_TYPES) == set("vVdDaAcCbBtIsSZ")
     for letter, cls in MESSAGE_TYPES.items():
         assert cls.COMMAND == letter
 
@@ -305,3 +306,23 @@ def test_messages_are_frozen() -> None:
     msg = AttitudeSetpoint(0.0, 0.0, 0.0, 0.5, True, 1)
     with pytest.raises(AttributeError):
         msg.thrust = 1.0  # type: ignore[misc]
+
+
+# --- 'Z' barometric altitude
+
+
+def test_baro_altitude_golden_payload_and_wire_size() -> None:
+    msg = BaroAltitude(altitude_m=1.23, climb_m_s=-0.45, pressure_pa=101325.0, valid=True, saturated=True, seq=300)
+    # altitude 123 cm int32, climb -45 cm/s int16, 101325 Pa uint32, flags valid|saturated, seq 300 mod 256
+    assert msg.pack() == bytes([123, 0, 0, 0, 0xD3, 0xFF, 0xCD, 0x8B, 0x01, 0x00, 0x03, 44])
+    assert len(encode_message(msg)) == 22  # 12 bytes -> 16 characters + 6 framing: 50 Hz is 9.5 % of port 1
+    back = BaroAltitude.unpack(msg.pack())
+    assert (back.altitude_m, back.climb_m_s, back.pressure_pa, back.valid, back.saturated, back.seq) == (
+        1.23, -0.45, 101325.0, True, True, 44)
+
+
+def test_baro_altitude_saturates_and_refuses_nan() -> None:
+    far = BaroAltitude.unpack(BaroAltitude(1e9, -1e6, -5.0).pack())
+    assert far.altitude_m == (2**31 - 1) * 0.01 and far.climb_m_s == -327.68 and far.pressure_pa == 0.0
+    with pytest.raises(ProtocolError):
+        BaroAltitude(float("nan"), 0.0, 101325.0).pack()

@@ -175,8 +175,8 @@ class Flight:
 
     def __init__(self, out_dir: Path, scenario: str, offset: int, lockstep: bool,
                  companion_config: Path | None, sitl_duration_s: float, camera: str = "tcp://127.0.0.1:{port}") -> None:
-        from quadlink.demo.cli import Ports
-        from quadlink.demo.orchestrator import ProcessSpec, Stack
+        from harness.demo.cli import Ports
+        from harness.demo.orchestrator import ProcessSpec, Stack
         from quadlink.mavlink.connection import open_mavlink
 
         self.out_dir = out_dir
@@ -323,7 +323,7 @@ def flight(out_dir: Path, scenario: str = "paper-arena", offset: int = 4000, loc
 
 def companion_config_with(out_dir: Path, **sections: dict[str, object]) -> Path:
     """configs/companion.yaml with some keys replaced, in ``out_dir`` (the demo's writer)."""
-    from quadlink.demo.cli import write_companion_config
+    from harness.demo.cli import write_companion_config
 
     return write_companion_config(out_dir, **sections)
 

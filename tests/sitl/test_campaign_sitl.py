@@ -15,13 +15,13 @@ from pathlib import Path
 
 import pytest
 
+from harness.campaign.draws import draw_flight
+from harness.campaign.runner import CampaignOptions, fly, run_campaign
+from harness.campaign.safety import envelope, read_truth
+from harness.demo.cli import PORT_BLOCK_SIZE, compare_reports, run_demo
+from harness.demo.report import compute_report, load_flight
 from quadlink import CONFIG_DIR
-from quadlink.campaign.draws import draw_flight
-from quadlink.campaign.runner import CampaignOptions, fly, run_campaign
-from quadlink.campaign.safety import envelope, read_truth
 from quadlink.config import load_config
-from quadlink.demo.cli import PORT_BLOCK_SIZE, compare_reports, run_demo
-from quadlink.demo.report import compute_report, load_flight
 from quadlink.mavlink import mavlink
 from quadlink.mavlink.tlog import read_tlog
 from sim_sitl.config import ScenarioConfig, load_scenario

@@ -62,7 +62,7 @@ def _wait_tcp(port: int, stack: object, timeout_s: float) -> None:
 
 
 def fly_push_toward_column(out_dir: Path, push_s: float, port_offset: int = 700) -> FlightRecord:
-    from quadlink.demo.orchestrator import ProcessSpec, Stack
+    from harness.demo.orchestrator import ProcessSpec, Stack
     from quadlink.mavlink.connection import open_mavlink
 
     p = _ports(port_offset)

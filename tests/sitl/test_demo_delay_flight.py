@@ -11,9 +11,9 @@ from pathlib import Path
 
 import pytest
 
+from harness.demo.cli import run_demo
+from harness.demo.link import LinkImpairment
 from quadlink import CONFIG_DIR
-from quadlink.demo.cli import run_demo
-from quadlink.demo.link import LinkImpairment
 
 pytestmark = [pytest.mark.sitl, pytest.mark.slow]   # ~40 s simulated, minutes of wall time on a loaded machine
 

@@ -13,8 +13,8 @@ from pathlib import Path
 
 import pytest
 
+from harness.demo.cli import run_demo
 from quadlink import CONFIG_DIR
-from quadlink.demo.cli import run_demo
 from quadlink.mavlink.tlog import read_tlog
 
 pytestmark = pytest.mark.sitl

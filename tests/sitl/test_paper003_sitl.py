@@ -1,6 +1,6 @@
 """Issue 19 in the SITL: paper 003's trajectory flown through the whole stack (SITL lock-step, bridge with the
 geometric tracker, companion, a ground-station client streaming position + velocity + acceleration setpoints),
-``quadlink.demo.paper003_cli.run_paper003`` — the code behind ``quadlink paper003 oval|hover``.
+``harness.demo.paper003_cli.run_paper003`` — the code behind ``quadlink paper003 oval|hover``.
 
 * the oval, flown as a campaign flight (issue 19's campaign: a drawn start pose turned -158 deg from north and a
   vehicle 8 % heavier than the stack's model, ``quadlink campaign --experiment paper003-oval``'s flight code
@@ -24,11 +24,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from harness.campaign.experiments import draw_experiment_flight
+from harness.campaign.runner import CampaignOptions, fly
+from harness.demo.paper003 import ISSUE19_TARGETS
+from harness.demo.paper003_cli import format_hover, run_paper003
 from quadlink import CONFIG_DIR
-from quadlink.campaign.experiments import draw_experiment_flight
-from quadlink.campaign.runner import CampaignOptions, fly
-from quadlink.demo.paper003 import ISSUE19_TARGETS
-from quadlink.demo.paper003_cli import format_hover, run_paper003
 from quadlink.mavlink import mavlink
 from quadlink.mavlink.setpoint_masks import TM_VELOCITY_ACCEL_YAW_RATE
 from quadlink.mavlink.tlog import read_tlog

@@ -11,14 +11,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from quadlink.campaign.draws import CAMERA_TILT_DEG, draw_flight, write_flight_files
-from quadlink.campaign.offboard_client import TYPE_MASK_VELOCITY_YAW_RATE, plan_end_s, setpoint_at
-from quadlink.campaign.report import summarize, summary_text
-from quadlink.campaign.runner import CampaignOptions, FlightResult, flight_ports, progress_line
-from quadlink.campaign.safety import envelope, read_truth
-from quadlink.campaign.sessions import MOTION_OFFSET_RAD, generate_session
+from harness.campaign.draws import CAMERA_TILT_DEG, draw_flight, write_flight_files
+from harness.campaign.offboard_client import TYPE_MASK_VELOCITY_YAW_RATE, plan_end_s, setpoint_at
+from harness.campaign.report import summarize, summary_text
+from harness.campaign.runner import CampaignOptions, FlightResult, flight_ports, progress_line
+from harness.campaign.safety import envelope, read_truth
+from harness.campaign.sessions import MOTION_OFFSET_RAD, generate_session
+from harness.demo.cli import PORT_BLOCK_SIZE, PORT_NAMES, FlightSpec, Ports, compare_reports
 from quadlink.config import load_config
-from quadlink.demo.cli import PORT_BLOCK_SIZE, PORT_NAMES, FlightSpec, Ports, compare_reports
 from quadlink.mavlink import mavlink
 from quadlink.mavlink.tlog import TlogWriter
 from quadlink.vehicle import load_vehicle

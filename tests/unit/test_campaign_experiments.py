@@ -11,10 +11,9 @@ import numpy as np
 import pytest
 import yaml
 
-from quadlink import CONFIG_DIR
-from quadlink.campaign.draws import draw_flight, write_sitl_files
-from quadlink.campaign.experiment_report import experiment_summary_text, summarize_experiment
-from quadlink.campaign.experiments import (
+from harness.campaign.draws import draw_flight, write_sitl_files
+from harness.campaign.experiment_report import experiment_summary_text, summarize_experiment
+from harness.campaign.experiments import (
     EXPERIMENTS,
     PATH_CLEARANCE_M,
     draw_experiment_flight,
@@ -22,9 +21,10 @@ from quadlink.campaign.experiments import (
     path_in_arena,
     path_xy_m,
 )
-from quadlink.campaign.runner import CampaignOptions, FlightResult
+from harness.campaign.runner import CampaignOptions, FlightResult
+from harness.demo.paper003 import Paper003Series, Recovery, hover_pass, tables
+from quadlink import CONFIG_DIR
 from quadlink.config import load_config
-from quadlink.demo.paper003 import Paper003Series, Recovery, hover_pass, tables
 from quadlink.errors import ConfigError
 from quadlink.vehicle import load_vehicle
 from sim_sitl.config import RoomConfig, ScenarioConfig, SceneObject, StartPose, load_scenario, load_sitl_config

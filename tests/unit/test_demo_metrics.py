@@ -7,8 +7,8 @@ import math
 import numpy as np
 import pytest
 
-from quadlink.demo import metrics
-from quadlink.demo.report import FlightLog, check_targets, compute_report, setpoints_in_control
+from harness.demo import metrics
+from harness.demo.report import FlightLog, check_targets, compute_report, setpoints_in_control
 from quadlink.mavlink import mavlink
 
 

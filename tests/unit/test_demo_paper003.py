@@ -1,4 +1,4 @@
-"""Paper 003's tables, push recoveries and figures from time series (quadlink.demo.paper003)."""
+"""Paper 003's tables, push recoveries and figures from time series (harness.demo.paper003)."""
 
 from __future__ import annotations
 
@@ -8,9 +8,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from quadlink.demo.paper003 import Paper003Series, Recovery, hover_pass, make_plots, push_recoveries, tables
-from quadlink.demo.paper003_cli import Recording
-from quadlink.demo.paper003_cli import _series as flight_series
+from harness.demo.paper003 import Paper003Series, Recovery, hover_pass, make_plots, push_recoveries, tables
+from harness.demo.paper003_cli import Recording
+from harness.demo.paper003_cli import _series as flight_series
 from quadlink.frames import Rz
 from quadlink.trajectory.minsnap import minimum_snap
 

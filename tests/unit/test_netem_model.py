@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from harness.netem import DelayLine, Impairment, ImpairmentModel, parse_endpoint
 from quadlink.errors import ConfigError
-from quadlink.netem import DelayLine, Impairment, ImpairmentModel, parse_endpoint
 
 N = 10_000
 

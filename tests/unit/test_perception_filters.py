@@ -7,12 +7,12 @@ import math
 import numpy as np
 import pytest
 
-from perception.attitude import AttitudeConfig, AttitudeFilter
 from perception.level import LevelConfig, OdometryLevel
 from perception.one_euro import OneEuroConfig, OneEuroFilter, OneEuroQuaternion
 from perception.synthetic import SyntheticFlight, pose
 from perception.ukf import Ukf, UkfConfig
 from perception.velocity import VelocityConfig, VelocityEstimator, body_pose_in_world
+from quadlink.attitude import AttitudeConfig, AttitudeFilter
 from quadlink.frames import GRAVITY_M_S2, R_from_euler, R_hq, Rz, euler_from_R, quat_wxyz_from_R
 from quadlink.vehicle import load_vehicle
 

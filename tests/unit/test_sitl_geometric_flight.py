@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from firmware_bridge.geometric_tracker import GeometricGains, GeometricTracker, TrackingState, TrajectoryTarget
-from quadlink.demo import paper003
+from harness.demo import paper003
 from quadlink.frames import GRAVITY_M_S2
 from quadlink.trajectory import minimum_snap
 from quadlink.vehicle import load_vehicle

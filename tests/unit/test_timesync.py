@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from harness.netem import Impairment, ImpairmentModel
 from quadlink.mavlink import mavlink
 from quadlink.mavlink.timesync import (
     TimesyncConfig,
@@ -13,7 +14,6 @@ from quadlink.mavlink.timesync import (
     is_request,
     request_fields,
 )
-from quadlink.netem import Impairment, ImpairmentModel
 
 NS = 1_000_000_000
 

@@ -17,8 +17,8 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
-from quadlink.demo.metrics import interpolate
-from quadlink.demo.report import FlightLog
+from harness.demo.metrics import interpolate
+from harness.demo.report import FlightLog
 from quadlink.mavlink.tlog import read_tlog
 from sim_sitl.config import PhysicsConfig, ScenarioConfig
 
@@ -34,7 +34,7 @@ class TruthSeries:
 
 
 def truth_of_flight(flight: FlightLog) -> TruthSeries:
-    """The series of a flight already parsed by the demo's report (:func:`quadlink.demo.report.load_flight`)."""
+    """The series of a flight already parsed by the demo's report (:func:`harness.demo.report.load_flight`)."""
     return TruthSeries(flight.t_truth, flight.p_ned, flight.t_dist1, flight.dist1_m)
 
 

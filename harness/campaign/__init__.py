@@ -7,6 +7,6 @@ experiments as campaigns (issue 19): ``experiments`` (their draws), ``experiment
 The arenas come from :mod:`sim_sitl.scenario_gen`.
 """
 
-from quadlink.campaign.cli import command
+from harness.campaign.cli import command
 
 __all__ = ["command"]

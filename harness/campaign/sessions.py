@@ -5,7 +5,7 @@ Two kinds of operator:
 * **haptic** — a teleop script (the format of ``configs/teleop_scripts/*.yaml``, read by
   ``teleop/devices/script.py``) for the virtual device: forces on the handle in D (x forward speed,
   y yaw rate, z down), flown through MANUAL_CONTROL;
-* **offboard** — a list of velocity setpoints for :mod:`quadlink.campaign.offboard_client`, the way a
+* **offboard** — a list of velocity setpoints for :mod:`harness.campaign.offboard_client`, the way a
   MAVSDK script flies (``set_velocity_body`` / ``set_velocity_ned``), sent as SET_POSITION_TARGET_LOCAL_NED
   to the companion's ground-station endpoint.
 

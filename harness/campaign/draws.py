@@ -27,8 +27,8 @@ from typing import Any
 import numpy as np
 import yaml
 
+from harness.campaign.sessions import Session, generate_session
 from quadlink import CONFIG_DIR
-from quadlink.campaign.sessions import Session, generate_session
 from sim_sitl.config import CameraNoiseConfig, ImuNoiseConfig, ScenarioConfig
 from sim_sitl.scenario_gen import generate_scenario, scenario_to_dict
 

@@ -2,8 +2,8 @@
 beside the paper's Tables 3-5 and issue 19's targets, PASS/FAIL, and the command that re-flies each flight.
 
 Pure but for :func:`write_experiment_campaign` (``campaign.json``). The oval's figures are ``paper003.json``'s
-tables (RMSE per axis x / y / z, :func:`quadlink.demo.paper003.tables`); the hover's are the three pushes' peak
-displacement and time back within 5 cm (truth, :func:`quadlink.demo.paper003.push_recoveries`). A flight passes
+tables (RMSE per axis x / y / z, :func:`harness.demo.paper003.tables`); the hover's are the three pushes' peak
+displacement and time back within 5 cm (truth, :func:`harness.demo.paper003.push_recoveries`). A flight passes
 when every criterion of its ``pass`` holds; a flight with no figures (it failed before the experiment ended)
 counts as failed.
 """
@@ -17,10 +17,10 @@ from typing import Any
 
 import numpy as np
 
-from quadlink.campaign.experiment_flight import replay_command, verdict
-from quadlink.campaign.experiments import experiment
-from quadlink.campaign.runner import CampaignOptions, FlightResult
-from quadlink.demo.paper003 import (
+from harness.campaign.experiment_flight import replay_command, verdict
+from harness.campaign.experiments import experiment
+from harness.campaign.runner import CampaignOptions, FlightResult
+from harness.demo.paper003 import (
     HOVER_BACK_WITHIN_S,
     HOVER_PEAK_RANGE_M,
     ISSUE19_TARGETS,

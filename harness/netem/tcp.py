@@ -27,9 +27,9 @@ from collections.abc import Callable
 
 import numpy as np
 
+from harness.netem.model import Impairment, ImpairmentModel
+from harness.netem.udp import stats_line
 from quadlink.errors import ConfigError, LinkError
-from quadlink.netem.model import Impairment, ImpairmentModel
-from quadlink.netem.udp import stats_line
 
 log = logging.getLogger(__name__)
 

@@ -16,11 +16,10 @@ from typing import Any
 
 import click
 
-from quadlink import CONFIG_DIR
-from quadlink.demo.link import LinkImpairment, LinkProxies, teleop_config_with_passivity, write_link_stats
-from quadlink.demo.orchestrator import ProcessDied, ProcessSpec, Stack
-from quadlink.demo.recorder import Recorder
-from quadlink.demo.report import (
+from harness.demo.link import LinkImpairment, LinkProxies, teleop_config_with_passivity, write_link_stats
+from harness.demo.orchestrator import ProcessDied, ProcessSpec, Stack
+from harness.demo.recorder import Recorder
+from harness.demo.report import (
     FlightLog,
     avoidance_distances,
     compute_report,
@@ -28,9 +27,10 @@ from quadlink.demo.report import (
     summary_table,
     write_report,
 )
+from quadlink import CONFIG_DIR
 from quadlink.errors import ConfigError
 
-log = logging.getLogger("quadlink.demo")
+log = logging.getLogger("harness.demo")
 
 DEFAULT_SCRIPT = CONFIG_DIR / "teleop_scripts" / "paper_experiment.yaml"
 # The flight's duration counts from the operator's start: a lock-step SITL on an idle machine runs several times
@@ -41,7 +41,7 @@ SITL_DURATION_MARGIN_S = 300.0
 
 PORT_NAMES = ("mk1", "mk2", "camera", "image", "autopilot", "gcs_bridge", "vehicle", "truth", "http",
               "vehicle_netem", "image_netem", "lockstep")
-#: ``vehicle_netem`` / ``image_netem``: the impaired ground link's ends (quadlink.demo.link)
+#: ``vehicle_netem`` / ``image_netem``: the impaired ground link's ends (harness.demo.link)
 DEFAULT_PORTS = {"mk1": 5760, "mk2": 5761, "camera": 5762, "image": 5770, "autopilot": 14540, "gcs_bridge": 14551,
                  "vehicle": 14555, "truth": 14560, "http": 8080, "vehicle_netem": 14557, "image_netem": 5771,
                  "lockstep": 5763}
@@ -72,7 +72,7 @@ class FlightSpec:
     """Everything a flight is made of besides ports: what ``flight.json`` holds and ``--replay`` re-flies.
 
     ``operator`` is ``haptic`` (the ground station with the virtual device running ``script``, a teleop
-    script) or ``offboard`` (:mod:`quadlink.campaign.offboard_client` flying ``script``, an offboard plan).
+    script) or ``offboard`` (:mod:`harness.campaign.offboard_client` flying ``script``, an offboard plan).
     Paths are absolute or relative to the flight's folder.
     """
 
@@ -139,7 +139,7 @@ def build_specs(scenario: str, script: Path, out_dir: Path, ports: Ports, lockst
     """The parts of a flight in start order. ``view=False`` runs headless: no operator image stream from the
     companion, no view or web page in the ground station (neither feeds back into the flight: the haptic
     cue's pan-scan estimate comes from TELEOP_FEEDBACK, not from the images), which saves their CPU.
-    ``via_netem``: the ground station talks to the netem proxies' ports (quadlink.demo.link). ``signing_key``:
+    ``via_netem``: the ground station talks to the netem proxies' ports (harness.demo.link). ``signing_key``:
     the ground link is MAVLink 2 signed with this key (quadlink keygen), and the companion refuses unsigned
     ground-station packets (issue 16). ``companion_config``: the companion's YAML (default: configs/companion.yaml
     with the room's height, :func:`companion_config_for_room`). ``deterministic``: the SITL serves the
@@ -175,7 +175,7 @@ def build_specs(scenario: str, script: Path, out_dir: Path, ports: Ports, lockst
     if operator == "offboard":
         operator_spec = ProcessSpec("operator", ("--vehicle", f"udpout:127.0.0.1:{ports.vehicle}",
                                                  "--plan", str(script), *stepped),
-                                    ready_after_s=0.5, module="quadlink.campaign.offboard_client")
+                                    ready_after_s=0.5, module="harness.campaign.offboard_client")
     elif operator == "haptic":
         operator_spec = ProcessSpec(
             "teleop", ("teleop", "--device", "virtual", "--script", str(script),

@@ -1,6 +1,6 @@
 """A scripted offboard operator (issue 15): what a MAVSDK script does, in plain pymavlink.
 
-``python -m quadlink.campaign.offboard_client --vehicle udpout:127.0.0.1:14555 --plan PLAN.yaml``
+``python -m harness.campaign.offboard_client --vehicle udpout:127.0.0.1:14555 --plan PLAN.yaml``
 
 Connects to the companion's ground-station endpoint, sends a 1 Hz GCS HEARTBEAT, arms and takes off
 through the companion (COMMAND_LONG to component 191, as the ground station does), switches to PX4's
@@ -12,7 +12,7 @@ at the end it commands LAND. The plan's timeline runs on the vehicle's clock (TE
 scripts do, so a lock-step flight sees the same setpoints at the same simulated time after the client
 joined whatever the machine's load.
 
-The plan (written by :func:`quadlink.campaign.sessions.generate_session`)::
+The plan (written by :func:`harness.campaign.sessions.generate_session`)::
 
     takeoff_s: 10.0        # offboard starts here (vehicle time)
     landing_s: 8.0
@@ -52,7 +52,7 @@ from quadlink.lockstep import DEFAULT_INPUT_TIMEOUT_S, CountedMavlink, LockstepC
 from quadlink.mavlink import mavlink
 from quadlink.px4_modes import Px4MainMode, encode_custom_mode
 
-log = logging.getLogger("quadlink.campaign.offboard")
+log = logging.getLogger("harness.campaign.offboard")
 
 SETPOINT_PERIOD_S = 0.05  # MAVSDK streams offboard setpoints at 20 Hz
 COMPANION_COMPONENT = 191

@@ -21,8 +21,8 @@ from collections.abc import Callable
 
 import numpy as np
 
+from harness.netem.model import DelayLine, Impairment, ImpairmentModel, ImpairmentStats
 from quadlink.errors import LinkError
-from quadlink.netem.model import DelayLine, Impairment, ImpairmentModel, ImpairmentStats
 
 log = logging.getLogger(__name__)
 

@@ -4,7 +4,7 @@ One command each: the SITL (lock-step), the bridge with the geometric tracker (`
 and a ground-station client in this process. The client takes off through the companion (MAV_CMD_NAV_TAKEOFF to
 compid 191) and streams PX4-style position + velocity + acceleration SET_POSITION_TARGET_LOCAL_NED at 50 Hz of
 the *vehicle's* clock (TELEOP_FEEDBACK stamps: in lock-step the simulation runs slower than the wall), as
-``quadlink trajectory`` does (:func:`quadlink.trajectory.cli.setpoint_fields`). The companion closes the position
+``quadlink trajectory`` does (:func:`harness.trajectory_cli.setpoint_fields`). The companion closes the position
 loop on its odometry and sends the bridge velocity + acceleration after its safety layer (companion.arbiter).
 
 * ``oval``: ``configs/trajectories/oval.yaml`` (paper 003's P1..P4 in 9 s). The client first holds the first
@@ -37,9 +37,9 @@ from typing import Any
 import click
 import numpy as np
 
-from quadlink.demo.cli import Ports, build_specs, write_companion_config
-from quadlink.demo.orchestrator import ProcessDied, Stack
-from quadlink.demo.paper003 import (
+from harness.demo.cli import Ports, build_specs, write_companion_config
+from harness.demo.orchestrator import ProcessDied, Stack
+from harness.demo.paper003 import (
     HOVER_SCENARIO,
     OVAL,
     Paper003Series,
@@ -50,10 +50,10 @@ from quadlink.demo.paper003 import (
     resample,
     tables,
 )
+from harness.trajectory_cli import load_trajectory_file, setpoint_fields
 from quadlink.errors import ConfigError
 from quadlink.frames import Rz
 from quadlink.mavlink import mavlink
-from quadlink.trajectory.cli import load_trajectory_file, setpoint_fields
 from quadlink.trajectory.minsnap import MinSnapTrajectory
 
 log = logging.getLogger("quadlink.paper003")

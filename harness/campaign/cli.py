@@ -8,10 +8,10 @@ from pathlib import Path
 
 import click
 
-from quadlink.campaign.experiments import EXPERIMENTS
-from quadlink.campaign.runner import CampaignCancelled, CampaignOptions, load_results, run_campaign
+from harness.campaign.experiments import EXPERIMENTS
+from harness.campaign.runner import CampaignCancelled, CampaignOptions, load_results, run_campaign
 
-log = logging.getLogger("quadlink.campaign")
+log = logging.getLogger("harness.campaign")
 
 
 @click.command(name="campaign")
@@ -50,8 +50,8 @@ def command(n_flights: int, seed: int, out_dir: Path, parallel: int, address: st
             view: bool, deterministic: bool, report_only: bool, first_index: int, experiment: str) -> None:
     """Fly N randomized flights (arena, start, operator, vehicle and sensors) and report the safety envelope, or
     N flights of one of paper 003's experiments and report its figures."""
-    from quadlink.campaign.experiment_report import experiment_summary_text, write_experiment_campaign
-    from quadlink.campaign.report import summary_text, write_campaign
+    from harness.campaign.experiment_report import experiment_summary_text, write_experiment_campaign
+    from harness.campaign.report import summary_text, write_campaign
 
     options = CampaignOptions(n_flights, seed, out_dir, duration_s, parallel, address, cpus_per_flight, port_offset,
                               offboard_share, fixed_share, first_index, view, experiment, deterministic)

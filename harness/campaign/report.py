@@ -2,7 +2,7 @@
 the files it writes).
 
 Per flight: its seeds, its arena and operator kind, the demo's metrics (``report.json``) and the safety
-envelope (:mod:`quadlink.campaign.safety`: the minimum true distance to walls, obstacles and the ceiling).
+envelope (:mod:`harness.campaign.safety`: the minimum true distance to walls, obstacles and the ceiling).
 Over the campaign: the CDF of that minimum with the 0.40 m target and the 0.45 m safe distance marked,
 histograms of the velocity-estimate and tracking RMSE (worst axis per flight), the share of flights with
 setpoint gaps over 100 ms, the five worst flights with the command that replays each.
@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-from quadlink.campaign.runner import CampaignOptions, FlightResult
+from harness.campaign.runner import CampaignOptions, FlightResult
 
 TARGET_M = 0.40
 SAFE_DISTANCE_M = 0.45

@@ -1,13 +1,13 @@
 """Network impairment between any two parts of the stack (issue 18): delay, jitter, loss, reorder, rate.
 
-* :mod:`quadlink.netem.model` — the pure, seeded model (packets in, release times out) and a delay line;
-* :mod:`quadlink.netem.udp` — the MAVLink UDP proxy (bidirectional, replies to the last sender);
-* :mod:`quadlink.netem.tcp` — the byte-stream proxy (operator image stream; no loss/reorder on TCP);
-* :mod:`quadlink.netem.cli` — ``quadlink netem``.
+* :mod:`harness.netem.model` — the pure, seeded model (packets in, release times out) and a delay line;
+* :mod:`harness.netem.udp` — the MAVLink UDP proxy (bidirectional, replies to the last sender);
+* :mod:`harness.netem.tcp` — the byte-stream proxy (operator image stream; no loss/reorder on TCP);
+* :mod:`harness.netem.cli` — ``quadlink netem``.
 
 To put a link between two local ports from code (the demo does this)::
 
-    from quadlink.netem import Impairment, start_proxy
+    from harness.netem import Impairment, start_proxy
     proxy = start_proxy("udp", listen_port=14556, target_port=14555,
                         impairment=Impairment(delay_ms=150, jitter_ms=30, loss=0.05), seed=1)
     ...  # the ground station sends to 14556, the companion listens on 14555
@@ -21,10 +21,10 @@ from __future__ import annotations
 from dataclasses import replace
 from typing import Literal
 
+from harness.netem.model import DelayLine, Impairment, ImpairmentModel, ImpairmentStats
+from harness.netem.tcp import TcpProxy
+from harness.netem.udp import UdpProxy
 from quadlink.errors import ConfigError
-from quadlink.netem.model import DelayLine, Impairment, ImpairmentModel, ImpairmentStats
-from quadlink.netem.tcp import TcpProxy
-from quadlink.netem.udp import UdpProxy
 
 __all__ = ["DelayLine", "Impairment", "ImpairmentModel", "ImpairmentStats", "TcpProxy", "UdpProxy",
            "parse_endpoint", "start_proxy"]

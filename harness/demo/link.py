@@ -17,8 +17,8 @@ from typing import Any
 
 import yaml
 
+from harness.netem import Impairment, TcpProxy, UdpProxy, start_proxy
 from quadlink import CONFIG_DIR
-from quadlink.netem import Impairment, TcpProxy, UdpProxy, start_proxy
 
 
 @dataclass(frozen=True)

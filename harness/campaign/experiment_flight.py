@@ -1,9 +1,9 @@
 """One campaign flight of a paper 003 experiment (I/O): draw, write the flight's files, fly, keep the figures.
 
 What a Ray task runs for ``quadlink campaign --experiment paper003-oval|paper003-hover`` (the runner's
-:func:`quadlink.campaign.runner.fly` hands over): the draws of :mod:`quadlink.campaign.experiments` written into
+:func:`harness.campaign.runner.fly` hands over): the draws of :mod:`harness.campaign.experiments` written into
 the flight's folder (``scenario.yaml`` with the drawn start pose, ``vehicle.yaml``, ``sitl.yaml``, ``draws.json``),
-then :func:`quadlink.demo.paper003_cli.run_paper003` on the flight's port slot, which writes ``paper003.json``,
+then :func:`harness.demo.paper003_cli.run_paper003` on the flight's port slot, which writes ``paper003.json``,
 ``series.csv``, ``truth.csv``, ``companion.tlog`` and ``logs/`` there. ``result.json`` as for a teleop flight.
 """
 
@@ -16,10 +16,10 @@ from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
-from quadlink.campaign.draws import write_sitl_files
-from quadlink.campaign.experiments import draw_experiment_flight
-from quadlink.campaign.runner import CampaignOptions, FlightResult, code_version, flight_folder, flight_ports
-from quadlink.demo.orchestrator import kill_leftovers
+from harness.campaign.draws import write_sitl_files
+from harness.campaign.experiments import draw_experiment_flight
+from harness.campaign.runner import CampaignOptions, FlightResult, code_version, flight_folder, flight_ports
+from harness.demo.orchestrator import kill_leftovers
 
 
 def replay_command(paper003: str, folder: str) -> str:
@@ -35,8 +35,8 @@ def verdict(report: dict[str, Any]) -> bool | None:
 
 
 def fly_experiment(options: CampaignOptions, index: int, slot: int, attempt: int) -> FlightResult:
-    from quadlink.demo.orchestrator import ProcessDied
-    from quadlink.demo.paper003_cli import run_paper003
+    from harness.demo.orchestrator import ProcessDied
+    from harness.demo.paper003_cli import run_paper003
 
     folder = flight_folder(options.out_dir, index)
     if attempt > 1:

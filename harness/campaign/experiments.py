@@ -1,9 +1,9 @@
 """Paper 003's experiments as campaign flights (issue 19): what each is, and its draws (pure).
 
-An experiment flight is ``quadlink paper003 oval|hover`` (:func:`quadlink.demo.paper003_cli.run_paper003`) in the
+An experiment flight is ``quadlink paper003 oval|hover`` (:func:`harness.demo.paper003_cli.run_paper003`) in the
 experiment's own arena (the oval: ``empty``, a 10 m x 10 m room; the hover: ``paper003-hover``, the same room with
 the three scripted pushes) from a drawn start pose, with the campaign's vehicle and sensor draws
-(:func:`quadlink.campaign.draws.draw_vehicle_and_sensors`: mass x U(0.9, 1.1), camera mount, IMU bias spreads,
+(:func:`harness.campaign.draws.draw_vehicle_and_sensors`: mass x U(0.9, 1.1), camera mount, IMU bias spreads,
 depth noise, the SITL's seed).
 
 The start pose: the experiments fly relative to the take-off pose (the odometry's local NED starts there, x
@@ -28,8 +28,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from quadlink.campaign.draws import draw_vehicle_and_sensors
-from quadlink.demo.paper003 import HOVER_SCENARIO, OVAL
+from harness.campaign.draws import draw_vehicle_and_sensors
+from harness.demo.paper003 import HOVER_SCENARIO, OVAL
 from quadlink.errors import ConfigError
 from sim_sitl.config import ScenarioConfig, StartPose, load_scenario
 from sim_sitl.scenario_gen import clearance_2d
@@ -70,7 +70,7 @@ def path_xy_m(paper003: str) -> NDArray[np.float64]:
     The hover: the take-off point and a circle of :data:`HOVER_REACH_M` round it (the pushes are along the
     arena's axes, whose directions in the start frame depend on the yaw)."""
     if paper003 == "oval":
-        from quadlink.trajectory.cli import load_trajectory_file
+        from harness.trajectory_cli import load_trajectory_file
 
         _, traj = load_trajectory_file(OVAL)
         p1 = traj.sample(0.0).p_m[:2]

@@ -5,7 +5,7 @@ Inputs (all in the demo's output folder): ``truth.tlog`` (SITL ground truth), ``
 as NAMED_VALUE_*), ``bridge.tlog`` (the autopilot's ground-station stream), ``teleop.csv`` (the haptic
 client's force log, with the measured round trip and the passivity account) and, for a flight over an
 impaired link, ``link.json`` (the netem proxies' counters). Times are
-simulated seconds throughout (see :mod:`quadlink.demo.metrics`).
+simulated seconds throughout (see :mod:`harness.demo.metrics`).
 """
 
 from __future__ import annotations
@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from quadlink.demo import metrics
+from harness.demo import metrics
 from quadlink.frames import euler_from_quat_wxyz
 from quadlink.mavlink import mavlink
 from quadlink.mavlink.tlog import read_tlog

@@ -8,8 +8,8 @@ import threading
 
 import click
 
+from harness.netem import Impairment, TcpProxy, UdpProxy, parse_endpoint
 from quadlink.errors import ConfigError
-from quadlink.netem import Impairment, TcpProxy, UdpProxy, parse_endpoint
 from quadlink.signals import STOP_SIGNALS
 
 log = logging.getLogger(__name__)

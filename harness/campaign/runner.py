@@ -1,9 +1,9 @@
 """Run a campaign's flights on Ray (issue 15): one Ray task per flight, results streamed as they finish.
 
-A flight (:func:`fly`) is the demo's orchestration (:func:`quadlink.demo.cli.run_demo`): the SITL in
+A flight (:func:`fly`) is the demo's orchestration (:func:`harness.demo.cli.run_demo`): the SITL in
 lock-step, the bridge, the companion and the operator as separate processes over their real links, on the
 ports of one per-flight block (:func:`flight_ports`); or, with ``experiment`` set, one of paper 003's
-experiments (:func:`quadlink.campaign.experiment_flight.fly_experiment`) on the same ports. The task
+experiments (:func:`harness.campaign.experiment_flight.fly_experiment`) on the same ports. The task
 reserves ``cpus_per_flight`` CPUs (``num_cpus``); at most ``parallel`` flights are in the air at once, each
 on its own port slot.
 
@@ -37,14 +37,14 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
+from harness.campaign.draws import draw_flight, write_flight_files
+from harness.campaign.safety import Envelope, envelope, read_truth, truth_of_flight
+from harness.demo.orchestrator import kill_leftovers
 from quadlink import REPO_ROOT
-from quadlink.campaign.draws import draw_flight, write_flight_files
-from quadlink.campaign.safety import Envelope, envelope, read_truth, truth_of_flight
 from quadlink.config import load_config
-from quadlink.demo.orchestrator import kill_leftovers
 from sim_sitl.config import ScenarioConfig
 
-log = logging.getLogger("quadlink.campaign")
+log = logging.getLogger("harness.campaign")
 
 PORT_SLOT_STRIDE = 25  # offsets between slots: every demo port group spans < 25 ports
 RAY_START_ATTEMPTS = 3
@@ -91,7 +91,7 @@ class CampaignOptions:
     fixed_share: float = 0.2  # share of flights in paper-arena or office
     first_index: int = 0
     view: bool = False  # the operator image view in each flight (costs CPU, changes nothing in the flight)
-    experiment: str = "teleop"  # or one of quadlink.campaign.experiments.EXPERIMENTS (paper003-oval, -hover)
+    experiment: str = "teleop"  # or one of harness.campaign.experiments.EXPERIMENTS (paper003-oval, -hover)
     deterministic: bool = True  # the deterministic lock-step (quadlink.lockstep): a flight re-flies bit for bit
 
 
@@ -137,11 +137,11 @@ def flight_folder(out_dir: Path, index: int) -> Path:
 def fly(options: CampaignOptions, index: int, slot: int, attempt: int,
         should_stop: Callable[[], bool] | None = None) -> FlightResult:
     """Draw, write and fly flight ``index`` on port slot ``slot`` (what a Ray task runs)."""
-    from quadlink.demo.cli import run_demo
-    from quadlink.demo.orchestrator import ProcessDied
+    from harness.demo.cli import run_demo
+    from harness.demo.orchestrator import ProcessDied
 
     if options.experiment != "teleop":
-        from quadlink.campaign.experiment_flight import fly_experiment
+        from harness.campaign.experiment_flight import fly_experiment
 
         return fly_experiment(options, index, slot, attempt)
     folder = flight_folder(options.out_dir, index)
