@@ -12,6 +12,6 @@ if [ "${1:-}" = "--slow" ]; then marker="slow"; shift; fi
 echo "[test] ruff"
 .venv/bin/ruff check .
 echo "[test] mypy"
-.venv/bin/mypy quadlink firmware_bridge perception companion teleop sim_sitl
+.venv/bin/mypy quadlink harness firmware_bridge perception companion teleop sim_sitl
 echo "[test] pytest -m '$marker'"
 exec .venv/bin/python -m pytest -m "$marker" -q "$@"
