@@ -159,7 +159,7 @@ class OperatorImagePublisher:
         image = RgbdFrame(frame.seq, frame.stamp_s, frame.rgb, None, frame.intrinsics, frame.R_qc, frame.p_qc_m,
                           meta.to_wire())
         try:
-            record = memoryview(encode_record(image, rgb_jpeg=True, jpeg_quality=self._jpeg_quality))
+            record = memoryview(encode_record(image, rgb_jpeg=True, jpeg_quality=self._jpeg_quality, with_mount=True))
         except ProtocolError as exc:
             log.warning("operator image %d not encoded: %s", frame.seq, exc)
             return

@@ -4,11 +4,17 @@ Record format (the unit of the TCP camera stream, :mod:`quadlink.camera_stream`,
 
     record  = b"QLCF" | uint32 LE header_len | header (UTF-8 JSON) | rgb bytes | depth bytes
     header  = {"seq", "stamp_s", "width", "height", "intrinsics": {fx, fy, cx, cy},
-               "R_qc": 3x3 rows, "p_qc_m": [x, y, z],
+               ["R_qc": 3x3 rows, "p_qc_m": [x, y, z],]
                "rgb_encoding": "rgb8" | "jpeg", "rgb_bytes": n, "depth_encoding": "mm_u16le" | "none",
                "depth_bytes": n, "meta": {...}}
     meta    = free-form on the sensor stream (SITL -> companion); on the companion's operator image stream it is
               quadlink.operator_image.OperatorImageMeta.to_wire(), decoded strictly by the ground station
+
+A sensor record carries what a real driver gives: image, depth, stamp and the intrinsics the device reports. It
+has **no mount**: where the camera sits on the vehicle is the reader's calibration (``configs/vehicle.yaml``), never
+the producer's (the SITL's mount is a drawn truth the vehicle must not see). ``R_qc``/``p_qc_m`` appear only where
+the producer *is* the vehicle and the reader needs its calibration: the companion's operator image stream
+(``encode_record(..., with_mount=True)``). A header with any key outside this schema is refused.
 
 Colour is RGB8 row-major (or JPEG); depth is uint16 little-endian millimetres, 0 = invalid. A header is
 hostile input: :class:`RecordHeader` validates it before anything is allocated, and :class:`RecordDecoder`
@@ -45,8 +51,9 @@ MAX_HEADER_BYTES = 1 << 20
 MAX_PAYLOAD_BYTES = 64 << 20
 
 
-def encode_record(frame: RgbdFrame, rgb_jpeg: bool = False, jpeg_quality: int = 85) -> bytes:
-    """Serialise a frame into one stream record (see module doc)."""
+def encode_record(frame: RgbdFrame, rgb_jpeg: bool = False, jpeg_quality: int = 85, with_mount: bool = False) -> bytes:
+    """Serialise a frame into one stream record (see module doc); ``with_mount`` adds the frame's ``R_qc``/``p_qc_m``
+    (the vehicle's own calibration, for its operator image stream only)."""
     if rgb_jpeg:
         ok, buf = cv2.imencode(".jpg", cv2.cvtColor(frame.rgb, cv2.COLOR_RGB2BGR),
                                [cv2.IMWRITE_JPEG_QUALITY, jpeg_quality])
@@ -67,19 +74,23 @@ def encode_record(frame: RgbdFrame, rgb_jpeg: bool = False, jpeg_quality: int = 
         "width": int(k.width),
         "height": int(k.height),
         "intrinsics": {"fx": k.fx, "fy": k.fy, "cx": k.cx, "cy": k.cy},
-        "R_qc": np.asarray(frame.R_qc, dtype=float).tolist(),
-        "p_qc_m": np.asarray(frame.p_qc_m, dtype=float).tolist(),
         "rgb_encoding": "jpeg" if rgb_jpeg else "rgb8",
         "rgb_bytes": len(rgb_bytes),
         "depth_encoding": "mm_u16le" if depth_bytes else "none",
         "depth_bytes": len(depth_bytes),
         "meta": frame.meta,
     }
+    if with_mount:
+        header["R_qc"] = np.asarray(frame.R_qc, dtype=float).tolist()
+        header["p_qc_m"] = np.asarray(frame.p_qc_m, dtype=float).tolist()
     header_bytes = json.dumps(header, separators=(",", ":")).encode()
     return _PREFIX.pack(MAGIC, len(header_bytes)) + header_bytes + rgb_bytes + depth_bytes
 
 
 MAX_IMAGE_SIDE_PX = 4096
+#: every key a header may have (``R_qc``/``p_qc_m`` only on the vehicle's own operator image stream)
+HEADER_KEYS = frozenset({"seq", "stamp_s", "width", "height", "intrinsics", "R_qc", "p_qc_m", "rgb_encoding",
+                         "rgb_bytes", "depth_encoding", "depth_bytes", "meta"})
 RGB_ENCODINGS = ("rgb8", "jpeg")
 DEPTH_ENCODINGS = ("mm_u16le", "none")
 _JPEG_SOF_MARKERS = frozenset((0xC0, 0xC1, 0xC2, 0xC3, 0xC5, 0xC6, 0xC7, 0xC9, 0xCA, 0xCB, 0xCD, 0xCE, 0xCF))
@@ -95,8 +106,8 @@ class RecordHeader:
     width: int
     height: int
     intrinsics: CameraIntrinsics
-    R_qc: NDArray[np.float64]
-    p_qc_m: NDArray[np.float64]
+    R_qc: NDArray[np.float64] | None  # None: a sensor record (the reader's calibration places the camera)
+    p_qc_m: NDArray[np.float64] | None
     rgb_encoding: str
     rgb_bytes: int
     depth_encoding: str
@@ -107,6 +118,11 @@ class RecordHeader:
     def parse(cls, header: Any) -> RecordHeader:
         if not isinstance(header, dict):
             raise ProtocolError("camera record header is not a JSON object")
+        unknown = sorted(set(header) - HEADER_KEYS)
+        if unknown:
+            raise ProtocolError(f"camera record header has fields outside the schema: {', '.join(map(str, unknown))}")
+        if ("R_qc" in header) != ("p_qc_m" in header):
+            raise ProtocolError("camera record header has one of R_qc, p_qc_m without the other")
         width = _header_int(header, "width", 1, MAX_IMAGE_SIDE_PX)
         height = _header_int(header, "height", 1, MAX_IMAGE_SIDE_PX)
         rgb_encoding = _header_choice(header, "rgb_encoding", RGB_ENCODINGS)
@@ -127,15 +143,18 @@ class RecordHeader:
         fx, fy, cx, cy = (_finite(k.get(name), f"intrinsics.{name}") for name in ("fx", "fy", "cx", "cy"))
         if not (fx > 0 and fy > 0):
             raise ProtocolError("focal lengths must be > 0")
-        R_qc = _finite_array(header.get("R_qc"), (3, 3), "R_qc")
-        if not np.allclose(R_qc @ R_qc.T, np.eye(3), atol=1e-3):
-            raise ProtocolError("R_qc is not a rotation")
+        R_qc = p_qc_m = None
+        if "R_qc" in header:
+            R_qc = _finite_array(header.get("R_qc"), (3, 3), "R_qc")
+            if not np.allclose(R_qc @ R_qc.T, np.eye(3), atol=1e-3):
+                raise ProtocolError("R_qc is not a rotation")
+            p_qc_m = _finite_array(header.get("p_qc_m"), (3,), "p_qc_m")
         return cls(
             seq=_header_int(header, "seq", 0, 2**63 - 1),
             stamp_s=_finite(header.get("stamp_s"), "stamp_s"),
             width=width, height=height,
             intrinsics=CameraIntrinsics(fx, fy, cx, cy, width, height),
-            R_qc=R_qc, p_qc_m=_finite_array(header.get("p_qc_m"), (3,), "p_qc_m"),
+            R_qc=R_qc, p_qc_m=p_qc_m,
             rgb_encoding=rgb_encoding, rgb_bytes=rgb_bytes, depth_encoding=depth_encoding, depth_bytes=depth_bytes,
             meta=header.get("meta"),
         )
@@ -236,8 +255,8 @@ def _decode_body(head: RecordHeader, buf: bytearray, offset: int) -> RgbdFrame:
         rgb=np.asarray(rgb, dtype=np.uint8),
         depth_m=depth,
         intrinsics=head.intrinsics,
-        R_qc=head.R_qc,
-        p_qc_m=head.p_qc_m,
+        R_qc=np.eye(3) if head.R_qc is None else head.R_qc,   # no mount: the camera source attaches its calibration
+        p_qc_m=np.zeros(3) if head.p_qc_m is None else head.p_qc_m,
         meta=dict(head.meta or {}),
     )
 

@@ -168,5 +168,6 @@ class RgbdCamera:
         if self.noise.rgb_noise_levels > 0:
             noisy = rgb.astype(np.float32) + np.float32(self.noise.rgb_noise_levels) * self._rgb_noise.draw()
             rgb = np.clip(noisy, 0, 255).astype(np.uint8)
+        # no mount: where the camera sits is the vehicle's calibration, not the simulator's truth
         return RgbdFrame(seq=seq, stamp_s=stamp_s, rgb=rgb, depth_m=depth, intrinsics=self.intrinsics,
-                         R_qc=self.R_qc, p_qc_m=self.p_qc_m, meta={"source": "sitl", "clock": "sim"})
+                         meta={"source": "sitl", "clock": "sim"})

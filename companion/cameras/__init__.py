@@ -59,10 +59,11 @@ def _resolution(text: str, url: str) -> tuple[int, int]:
 def open_camera(url: str, clock: Callable[[], float] = time.monotonic, R_qc: NDArray[np.float64] | None = None,
                 p_qc_m: NDArray[np.float64] | None = None,
                 stamps: Literal["local", "device"] = "local") -> CameraInput:
-    """Open the camera a URL names (table above); ``R_qc``, ``p_qc_m`` are the mount for sensors without one;
+    """Open the camera a URL names (table above); ``R_qc``, ``p_qc_m`` are the vehicle's calibrated mount, which every
+    source places its frames with (no sensor, simulated or real, reports where it is mounted);
     ``stamps`` is what a device camera does with its clock (``local``: mapped to ``clock``)."""
     if url.startswith("tcp://"):
-        return StreamCamera(url, clock)
+        return StreamCamera(url, clock, R_qc=R_qc, p_qc_m=p_qc_m)
     if url.startswith("realsense://software"):
         from companion.cameras.realsense_software import SoftwareRealSenseCamera
 

@@ -114,9 +114,7 @@ class SoftwareRealSenseCamera:
             return None
         if self._device is None:
             self._device = SoftwareRealSense(frame.intrinsics)
-            R_qc = frame.R_qc if self._R_qc is None else self._R_qc
-            p_qc = frame.p_qc_m if self._p_qc_m is None else self._p_qc_m
-            self.camera = RealSenseCamera(R_qc=R_qc, p_qc_m=p_qc, stamps=self._stamps, clock=self._clock,
+            self.camera = RealSenseCamera(R_qc=self._R_qc, p_qc_m=self._p_qc_m, stamps=self._stamps, clock=self._clock,
                                           device=self._device.device)
         assert self.camera is not None
         self._device.inject(frame)

@@ -5,11 +5,14 @@ from __future__ import annotations
 import math
 import socket
 import time
+from pathlib import Path
 
 import numpy as np
 import pybullet as p
 import pytest
+import yaml
 
+from quadlink import CONFIG_DIR
 from quadlink.camera import CameraIntrinsics, CameraStreamClient
 from quadlink.frames import Rz
 from quadlink.vehicle import CameraConfig, load_vehicle
@@ -129,7 +132,7 @@ def test_depth_noise_grows_with_square_of_distance():
 
 
 @pytest.mark.sitl
-def test_camera_stream_in_lockstep_carries_sim_time_and_mount():
+def test_camera_stream_in_lockstep_carries_sim_time_and_no_mount():
     opts = SitlOptions(config=SitlConfig(scenario="paper-arena"), port1=0, port2=0, camera_port=0, camera=True,
                        truth_url=None, lockstep=True, progress_every_s=60.0)
     sitl = Sitl(opts).start()
@@ -152,7 +155,7 @@ def test_camera_stream_in_lockstep_carries_sim_time_and_mount():
         assert [f.seq for f in frames] == list(range(frames[0].seq, frames[0].seq + 6))
         f = frames[-1]
         assert f.rgb.shape == (240, 320, 3) and f.depth_m.shape == (240, 320)
-        np.testing.assert_allclose(f.R_qc, load_vehicle().camera.R_qc_matrix, atol=1e-6)
+        np.testing.assert_array_equal(f.R_qc, np.eye(3))   # a sensor record has no mount (issue 29)
         assert f.intrinsics.fx == pytest.approx(160.0 / math.tan(math.radians(29.0)))
         assert f.rgb.astype(float).std() > 5.0  # textured
         # lock-step: sim time cannot have run past the next frame that nobody has acknowledged yet
@@ -168,3 +171,42 @@ def _free_udp_port() -> socket.socket:
     s.bind(("127.0.0.1", 0))
     s.settimeout(0.5)
     return s
+
+
+def _turned_mount_vehicle(tmp_path: Path, yaw_deg: float) -> tuple[Path, np.ndarray]:
+    """The nominal vehicle with its camera turned ``yaw_deg`` about the body's down axis (the SITL's truth)."""
+    data = yaml.safe_load((CONFIG_DIR / "vehicle.yaml").read_text())
+    R_true = Rz(math.radians(yaw_deg)) @ np.asarray(data["camera"]["R_qc"], dtype=float)
+    data["camera"]["R_qc"] = R_true.tolist()
+    path = tmp_path / "vehicle.yaml"
+    path.write_text(yaml.safe_dump(data))
+    return path, R_true
+
+
+@pytest.mark.sitl
+def test_the_companion_places_the_sitl_camera_with_its_own_calibration(tmp_path: Path) -> None:
+    """Issue 29: the SITL's camera sits 3 deg off the nominal mount; the companion's camera source (the one its
+    pipeline and reference law read) places every frame with the configured mount, never the simulator's."""
+    from companion.cameras import open_camera
+
+    vehicle_path, R_true = _turned_mount_vehicle(tmp_path, 3.0)
+    nominal = load_vehicle()
+    opts = SitlOptions(config=SitlConfig(scenario="paper-arena", vehicle=str(vehicle_path)), port1=0, port2=0,
+                       camera_port=0, camera=True, truth_url=None, progress_every_s=60.0)
+    sitl = Sitl(opts).start()
+    camera = open_camera(f"tcp://127.0.0.1:{sitl.camera_server.port}", R_qc=nominal.camera.R_qc_matrix,
+                         p_qc_m=nominal.camera.p_qc)
+    try:
+        np.testing.assert_allclose(sitl.camera.R_qc, R_true, atol=1e-9)   # the SITL renders through the turned mount
+        frame = None
+        deadline = time.monotonic() + 20
+        while frame is None and time.monotonic() < deadline:
+            frame = camera.read(1.0)
+        assert frame is not None
+        np.testing.assert_allclose(frame.R_qc, nominal.camera.R_qc_matrix, atol=1e-12)
+        np.testing.assert_allclose(frame.p_qc_m, nominal.camera.p_qc, atol=1e-12)
+        turned_deg = math.degrees(math.acos(np.clip((np.trace(frame.R_qc.T @ R_true) - 1) / 2, -1, 1)))
+        assert turned_deg == pytest.approx(3.0, abs=0.01)   # the nominal matrix is written to 6 decimals
+    finally:
+        camera.close()
+        sitl.stop()
