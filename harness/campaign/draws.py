@@ -13,7 +13,9 @@ calibration error the stack must tolerate):
 * camera mount ``camera.R_qc`` turned by U(-2, 2) deg about each body axis (``configs/vehicle.yaml``);
 * IMU bias spreads ``imu_noise.accel_bias_init_m_s2`` and ``gyro_bias_init_rad_s`` x U(0.5, 2) (the
   biases themselves are drawn by the SITL from its seed, which is drawn here too; ``configs/sitl.yaml``);
-* depth noise ``camera_noise.depth_sigma_per_m2`` x U(0.5, 2) (``configs/sitl.yaml``).
+* depth noise ``camera_noise.depth_sigma_per_m2`` x U(0.5, 2) (``configs/sitl.yaml``);
+* the room height the operator enters into the companion (``reference.room_height_m``): the truth + U(-0.1, 0.1) m,
+  or nothing at all (p = 0.15: only the altitude fence holds).
 """
 
 from __future__ import annotations
@@ -36,6 +38,15 @@ MASS_SPREAD = 0.10
 CAMERA_TILT_DEG = 2.0
 IMU_BIAS_SCALE = (0.5, 2.0)
 DEPTH_NOISE_SCALE = (0.5, 2.0)
+ROOM_HEIGHT_ENTRY_ERROR_M = 0.10  # +- of the operator's entry of the room's height
+ROOM_HEIGHT_UNKNOWN_P = 0.15       # share of flights whose operator entered no height
+
+
+def draw_room_height_error(rng: np.random.Generator) -> float | None:
+    """The operator's entry of the room's height minus the truth (m); None: not entered."""
+    if rng.random() < ROOM_HEIGHT_UNKNOWN_P:
+        return None
+    return round(float(rng.uniform(-ROOM_HEIGHT_ENTRY_ERROR_M, ROOM_HEIGHT_ENTRY_ERROR_M)), 3)
 
 
 def _rot(axis: int, a_rad: float) -> np.ndarray:
@@ -55,12 +66,13 @@ class FlightDraws:
     vehicle: dict[str, Any]  # the vehicle config (YAML data) the SITL flies
     sitl: dict[str, Any]  # the SITL config (YAML data), without the file paths
     record: dict[str, Any]  # draws.json
+    room_height_error_m: float | None = None  # the companion's room height entry - the truth; None: not entered
 
 
 def draw_flight(campaign_seed: int, index: int, duration_s: float, offboard_share: float = 0.0,
                 fixed_share: float = 0.2) -> FlightDraws:
     seq = np.random.SeedSequence(campaign_seed, spawn_key=(index,))
-    arena_ss, operator_ss, vehicle_ss, sitl_ss = seq.spawn(4)
+    arena_ss, operator_ss, vehicle_ss, sitl_ss, entry_ss = seq.spawn(5)  # a new stream leaves the others as they were
     arena = generate_scenario(np.random.default_rng(arena_ss), f"campaign-{campaign_seed}-{index:04d}", fixed_share)
     op_rng = np.random.default_rng(operator_ss)
     offboard = bool(op_rng.random() < offboard_share)
@@ -71,7 +83,9 @@ def draw_flight(campaign_seed: int, index: int, duration_s: float, offboard_shar
                                                                           "spawn_key": list(seq.spawn_key)},
         "arena": arena.record, "operator": session.record, **vehicle_record,
     }
-    return FlightDraws(index, campaign_seed, arena.scenario, session, vehicle, sitl, record)
+    room_height_error_m = draw_room_height_error(np.random.default_rng(entry_ss))
+    record["room_height_entry_error_m"] = room_height_error_m
+    return FlightDraws(index, campaign_seed, arena.scenario, session, vehicle, sitl, record, room_height_error_m)
 
 
 def draw_vehicle_and_sensors(vehicle_ss: np.random.SeedSequence, sitl_ss: np.random.SeedSequence,

@@ -162,7 +162,8 @@ def fly(options: CampaignOptions, index: int, slot: int, attempt: int,
                           port_offset=offset, progress_every_s=30.0, sitl_config=str(files.sitl),
                           operator=draws.session.kind, should_stop=should_stop, view=options.view,
                           plots=False, on_flight=lambda f: envelopes.append(envelope(truth_of_flight(f), scenario)),
-                          settle_s=LANDING_SETTLE_S, deterministic=options.deterministic and not options.view)
+                          settle_s=LANDING_SETTLE_S, deterministic=options.deterministic and not options.view,
+                          room_height_error_m=draws.room_height_error_m)
         result.report = report
         if report.get("interrupted"):
             result.status = "cancelled"

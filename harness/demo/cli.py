@@ -39,6 +39,11 @@ DEFAULT_SCRIPT = CONFIG_DIR / "teleop_scripts" / "paper_experiment.yaml"
 SITL_DURATION_MARGIN_S = 300.0
 
 
+#: the demo operator's entry of the room's height is this much above the truth: the unsafe side of the +-10 cm a
+#: tape measure and a rough guess give (issue 29: no operator knows the ceiling to the millimetre); campaigns draw it
+ROOM_HEIGHT_ENTRY_ERROR_M = 0.10
+
+
 PORT_NAMES = ("mk1", "mk2", "camera", "image", "autopilot", "gcs_bridge", "vehicle", "truth", "http",
               "vehicle_netem", "image_netem", "lockstep")
 #: ``vehicle_netem`` / ``image_netem``: the impaired ground link's ends (harness.demo.link)
@@ -86,6 +91,7 @@ class FlightSpec:
     view: bool = True  # the operator's image view (no effect on the flight; headless saves CPU)
     deterministic: bool = False  # the deterministic lock-step (quadlink.lockstep): the same spec flies the same bytes
     settle_s: float = 0.0  # run_demo's settle_s: how long the vehicle may fly on after the operator's session
+    room_height_error_m: float | None = ROOM_HEIGHT_ENTRY_ERROR_M  # the operator's entry - the truth; None: not entered
 
     def resolve(self, folder: Path) -> FlightSpec:
         def r(p: str | None) -> str | None:
@@ -99,7 +105,7 @@ class FlightSpec:
 
         return FlightSpec(r(self.scenario) or self.scenario, r(self.script) or self.script, self.duration_s,
                           self.operator, r(self.sitl_config), self.lockstep, self.speed, self.view,
-                          self.deterministic, self.settle_s)
+                          self.deterministic, self.settle_s, self.room_height_error_m)
 
 
 def write_companion_config(out_dir: Path, **sections: object) -> Path:
@@ -117,14 +123,17 @@ def write_companion_config(out_dir: Path, **sections: object) -> Path:
     return path
 
 
-def companion_config_for_room(out_dir: Path, scenario: str) -> Path:
-    """The companion's configuration for a flight in ``scenario``'s room: its height entered as the ceiling
-    (``reference.room_height_m``), as the operator of an indoor flight does (the camera never sees the
-    ceiling; PX4's GF_MAX_VER_DIST and ArduPilot's FENCE_ALT_MAX are set the same way)."""
+def companion_config_for_room(out_dir: Path, scenario: str, room_height_error_m: float | None) -> Path:
+    """The companion's configuration for a flight in ``scenario``'s room: the height the operator enters as the
+    ceiling (``reference.room_height_m``), as for an indoor flight (the camera never sees the ceiling; PX4's
+    GF_MAX_VER_DIST and ArduPilot's FENCE_ALT_MAX are set the same way). The entry is the room's true height plus
+    ``room_height_error_m``; ``None``: the operator entered nothing (only the altitude fence holds)."""
     from sim_sitl.config import load_scenario
 
-    room_height_m = float(load_scenario(scenario).room.height_m)
-    return write_companion_config(out_dir, reference={"room_height_m": round(room_height_m, 3)})
+    if room_height_error_m is None:
+        return write_companion_config(out_dir, reference={"room_height_m": None})
+    entered_m = float(load_scenario(scenario).room.height_m) + room_height_error_m
+    return write_companion_config(out_dir, reference={"room_height_m": round(entered_m, 2)})
 
 
 LOCKSTEP_ODOM_LOSS_T_S = 1.0   # the bridge's odometry-loss timeout in lock-step flights (sim seconds)
@@ -135,14 +144,16 @@ def build_specs(scenario: str, script: Path, out_dir: Path, ports: Ports, lockst
                 operator: str = "haptic", view: bool = True, via_netem: bool = False,
                 teleop_config: Path | None = None, signing_key: Path | None = None,
                 companion_config: Path | None = None, deterministic: bool = False,
-                settle_s: float = 0.0) -> list[ProcessSpec]:
+                settle_s: float = 0.0, room_height_error_m: float | None = ROOM_HEIGHT_ENTRY_ERROR_M,
+                ) -> list[ProcessSpec]:
     """The parts of a flight in start order. ``view=False`` runs headless: no operator image stream from the
     companion, no view or web page in the ground station (neither feeds back into the flight: the haptic
     cue's pan-scan estimate comes from TELEOP_FEEDBACK, not from the images), which saves their CPU.
     ``via_netem``: the ground station talks to the netem proxies' ports (harness.demo.link). ``signing_key``:
     the ground link is MAVLink 2 signed with this key (quadlink keygen), and the companion refuses unsigned
     ground-station packets (issue 16). ``companion_config``: the companion's YAML (default: configs/companion.yaml
-    with the room's height, :func:`companion_config_for_room`). ``deterministic``: the SITL serves the
+    with the operator's entry of the room's height, the truth plus ``room_height_error_m``,
+    :func:`companion_config_for_room`). ``deterministic``: the SITL serves the
     deterministic lock-step (:mod:`quadlink.lockstep`) and ends the flight itself on simulated time
     (``duration_s`` from the operator's start, or, once the operator has left, at the disarm or ``settle_s``
     later); the bridge, the companion and the operator step with it."""
@@ -150,13 +161,14 @@ def build_specs(scenario: str, script: Path, out_dir: Path, ports: Ports, lockst
         raise ConfigError("a deterministic flight is in lock-step, headless (--no-view) and without netem")
     signed = ("--signing-key", str(signing_key)) if signing_key is not None else ()
     if companion_config is None:
-        companion_config = companion_config_for_room(out_dir, scenario)
+        companion_config = companion_config_for_room(out_dir, scenario, room_height_error_m)
     params = out_dir / "bridge_params.yaml"
-    if lockstep and not params.exists():
+    if lockstep and not deterministic and not params.exists():
         # Lock-step runs the SITL up to ~2x real time and the bridge counts its timeouts in sim time, while the
         # companion's ODOMETRY reaches it over UDP with wall-clock jitter: on a loaded 2-core machine 0.3 s of
         # wall time (0.5 s of sim) passed without one and the bridge landed in flight (campaign 7, flight 8
-        # re-flown). Lock-step flights give it the wall-clock margin of a real-time flight; real time keeps 0.5 s.
+        # re-flown). Plain lock-step flights give it the wall-clock margin of a real-time flight; real time and the
+        # deterministic lock-step (every part on simulated time: no wall-clock jitter) fly the shipped 0.5 s.
         params.write_text(f"BRG_ODOM_LOSS_T: {LOCKSTEP_ODOM_LOSS_T_S}\n")
     vehicle_port, image_port = (ports.vehicle_netem, ports.image_netem) if via_netem else (ports.vehicle, ports.image)
     sitl = ["sitl", "--scenario", scenario, "--port1", str(ports.mk1), "--port2", str(ports.mk2),
@@ -216,7 +228,8 @@ def run_demo(scenario: str, duration_s: float, out_dir: Path, script: Path, lock
              view: bool = True, plots: bool = True,
              on_flight: Callable[[FlightLog], None] | None = None, link: LinkImpairment | None = None,
              passivity: bool | None = None, signing_key: Path | None = None,
-             settle_s: float = 0.0, deterministic: bool = False) -> dict[str, object]:
+             settle_s: float = 0.0, deterministic: bool = False,
+             room_height_error_m: float | None = ROOM_HEIGHT_ENTRY_ERROR_M) -> dict[str, object]:
     """Fly the demo; returns the report. Raises :class:`ProcessDied` if a part dies.
 
     Writes ``out_dir/flight.json`` (the :class:`FlightSpec`, what ``--replay`` re-flies) and
@@ -238,7 +251,7 @@ def run_demo(scenario: str, duration_s: float, out_dir: Path, script: Path, lock
         raise ConfigError(f"{script}: operator script not found")
     out_dir.mkdir(parents=True, exist_ok=True)
     spec = FlightSpec(str(scenario), str(script), float(duration_s), operator, sitl_config, lockstep, speed, view,
-                      deterministic, settle_s)
+                      deterministic, settle_s, room_height_error_m)
     (out_dir / "flight.json").write_text(json.dumps(dataclasses.asdict(spec), indent=2) + "\n")
     ports = Ports(port_offset, port_base)
     stack = Stack(out_dir / "logs")
@@ -261,7 +274,8 @@ def run_demo(scenario: str, duration_s: float, out_dir: Path, script: Path, lock
     t_wall0 = time.monotonic()
     specs = build_specs(scenario, Path(script), out_dir, ports, lockstep, speed, duration_s, record_frames,
                         sitl_config, operator, view, via_netem=link is not None, teleop_config=teleop_config,
-                        signing_key=signing_key, deterministic=deterministic, settle_s=settle_s)
+                        signing_key=signing_key, deterministic=deterministic, settle_s=settle_s,
+                        room_height_error_m=room_height_error_m)
     operator_name = specs[-1].name
     try:
         for part in specs:
@@ -392,7 +406,8 @@ def replay_flight(flight_dir: Path, out_dir: Path | None = None, port_offset: in
     out = out_dir or flight_dir / "replay"
     report = run_demo(spec.scenario, spec.duration_s, out, Path(spec.script), spec.lockstep, spec.speed, port_offset,
                       progress_every_s, port_base=port_base, sitl_config=spec.sitl_config, operator=spec.operator,
-                      view=spec.view, settle_s=spec.settle_s, deterministic=spec.deterministic)
+                      view=spec.view, settle_s=spec.settle_s, deterministic=spec.deterministic,
+                      room_height_error_m=spec.room_height_error_m)
     return report, out
 
 

@@ -260,3 +260,28 @@ def test_sitl_config_written_for_a_flight_is_complete(tmp_path: Path) -> None:
     cfg = load_sitl_config(files.sitl)
     assert cfg.camera_noise.depth_sigma_per_m2 == pytest.approx(0.0025 * d.record["vehicle"]["depth_noise_scale"])
     assert load_config(files.scenario, ScenarioConfig).start == d.scenario.start
+
+
+def test_the_companion_gets_the_operators_room_height_entry_not_the_truth(tmp_path: Path) -> None:
+    """Issue 29: the room's height reaches the companion as an operator's entry with its error, or not at all."""
+    import yaml
+
+    from harness.demo.cli import companion_config_for_room
+    from sim_sitl.config import load_scenario
+
+    true_m = load_scenario("paper-arena").room.height_m
+    entered = yaml.safe_load(companion_config_for_room(tmp_path / "a", "paper-arena", 0.07).read_text())
+    assert entered["reference"]["room_height_m"] == pytest.approx(true_m + 0.07)
+    unknown = yaml.safe_load(companion_config_for_room(tmp_path / "b", "paper-arena", None).read_text())
+    assert unknown["reference"]["room_height_m"] is None
+
+
+def test_campaign_draws_the_room_height_entry_error_per_flight() -> None:
+    from harness.campaign.draws import ROOM_HEIGHT_ENTRY_ERROR_M, draw_flight
+
+    errors = [draw_flight(7, i, 20.0).room_height_error_m for i in range(40)]
+    assert errors == [draw_flight(7, i, 20.0).room_height_error_m for i in range(40)]   # reproducible from the seed
+    known = [e for e in errors if e is not None]
+    assert 0 < len(errors) - len(known) < 20 and all(abs(e) <= ROOM_HEIGHT_ENTRY_ERROR_M for e in known)
+    assert max(known) - min(known) > ROOM_HEIGHT_ENTRY_ERROR_M   # spread over the range, not one value
+    assert draw_flight(7, 3, 20.0).record["room_height_entry_error_m"] == errors[3]
