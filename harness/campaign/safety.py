@@ -1,11 +1,9 @@
 """The safety envelope of one flight from its truth log and its arena (pure but for reading the tlog).
 
-The SITL's truth stream carries the distance from the centre of mass to the nearest surface excluding
-floor *and ceiling* (DISTANCE_SENSOR id 1) and to any surface (id 0, floor included), so neither is the
-issue-14 measure "walls, obstacles and the ceiling". This module adds the ceiling from the geometry: the
-room's ceiling is flat at ``room.height_m`` above the floor (objects hanging from it, soffits, are in id 1
-already), and the truth position is local NED from the start, where the centre of mass rests
-``body_size_m[2] / 2`` above the floor (the generator starts every flight on the floor, not on an object).
+The judge is :mod:`harness.judge` (the same for tests, the demo and the falsification search): the distance
+from the centre of mass to the walls, the objects and the ceiling, from the truth position and the scenario's
+geometry, over the whole flight. The truth position is local NED from the start, where the centre of mass
+rests ``body_size_m[2] / 2`` above the floor (the generator starts every flight on the floor, not on an object).
 """
 
 from __future__ import annotations
@@ -17,8 +15,8 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
-from harness.demo.metrics import interpolate
 from harness.demo.report import FlightLog
+from harness.judge import ArenaGeometry, judge
 from quadlink.mavlink.tlog import read_tlog
 from sim_sitl.config import PhysicsConfig, ScenarioConfig
 
@@ -64,15 +62,10 @@ class Envelope:
 
 def envelope(truth: TruthSeries, scenario: ScenarioConfig, body_height_m: float = PhysicsConfig().body_size_m[2],
              ) -> Envelope:
-    if truth.t_pos_s.size == 0 or truth.t_obstacle_s.size == 0:
+    """The flight's envelope by the one judge (:mod:`harness.judge`): every non-floor surface, the whole flight."""
+    if truth.t_pos_s.size == 0:
         return Envelope(math.nan, math.nan, math.nan, math.nan, "", math.nan)
-    up_m = body_height_m / 2 - truth.p_local_ned_m[:, 2]
-    ceiling_m = (scenario.room.height_m - up_m) if scenario.room.ceiling else np.full(up_m.shape, math.inf)
-    # on the obstacle stream's stamps (both at the truth rate, from the same SITL tick)
-    ceiling_at = interpolate(truth.t_pos_s, ceiling_m, truth.t_obstacle_s)
-    ceiling_at = np.where(np.isfinite(ceiling_at), ceiling_at, math.inf)
-    nonfloor = np.minimum(truth.obstacle_m, ceiling_at)
-    k = int(np.argmin(nonfloor))
-    return Envelope(float(nonfloor[k]), float(np.min(truth.obstacle_m)), float(np.min(ceiling_m)),
-                    float(truth.t_obstacle_s[k]), "ceiling" if ceiling_at[k] < truth.obstacle_m[k] else "obstacle",
-                    float(np.max(up_m)))
+    j = judge(truth.t_pos_s, truth.p_local_ned_m, ArenaGeometry(scenario), rest_height_m=body_height_m / 2)
+    surface = "ceiling" if j.nearest_surface == "ceiling" else "obstacle"
+    return Envelope(j.min_clearance_m, min(j.min_wall_m, j.min_object_m), j.min_ceiling_m, j.t_min_s, surface,
+                    j.max_height_m)

@@ -20,6 +20,8 @@ from typing import Any
 import numpy as np
 
 from harness.demo import metrics
+from harness.judge import CLEARANCE_BOUND_M, ArenaGeometry, judge
+from quadlink.errors import ConfigError
 from quadlink.frames import euler_from_quat_wxyz
 from quadlink.mavlink import mavlink
 from quadlink.mavlink.tlog import read_tlog
@@ -32,7 +34,7 @@ TRUTH_RESOLUTION_M = 0.01   # the SITL's DISTANCE_SENSOR truth is in whole centi
 
 TARGETS = {
     "velocity_rmse_m_s": 0.05,  # per axis, at most
-    "min_true_obstacle_distance_m": 0.40,  # at least
+    "min_true_clearance_m": CLEARANCE_BOUND_M,  # at least: harness.judge, every non-floor surface, whole flight
     "fraction_estimate_le_truth": 0.95,  # at least
     "setpoint_gaps_over_100ms": 0,  # at most
     "passivity_epsilon_j": 1e-3,  # observed energy of the force port at least -epsilon (over an impaired link)
@@ -126,6 +128,16 @@ def load_flight(out_dir: Path) -> FlightLog:
     return flight
 
 
+def _arena(scenario: str) -> ArenaGeometry | None:
+    """The judge's geometry of a scenario given by name or path (None: not a scenario, e.g. a synthetic log)."""
+    if not scenario:
+        return None
+    try:
+        return ArenaGeometry(scenario)
+    except ConfigError:
+        return None
+
+
 def _flying_mask(flight: FlightLog, t: np.ndarray, min_altitude_m: float = 0.3) -> np.ndarray:
     if flight.t_truth.size == 0:
         return np.zeros(t.shape, bool)
@@ -163,10 +175,16 @@ def compute_report(flight: FlightLog, cpu_s: dict[str, float] | None = None, sce
         track = metrics.rmse_per_axis(flight.t_fb, flight.v_cmd_h + flight.v_rep_h, flight.t_truth, v_true_h, free)
         report["tracking_rmse_m_s"] = dict(zip("xyz", map(float, track)))
         report["flying_time_s"] = float(np.sum(np.diff(flight.t_fb)[flying[1:]])) if flight.t_fb.size > 1 else 0.0
-    if flight.t_dist1.size:
-        flying = _flying_mask(flight, flight.t_dist1)
-        d = flight.dist1_m[flying] if np.any(flying) else flight.dist1_m
-        report["min_true_obstacle_distance_m"] = float(np.min(d))
+    if flight.t_dist1.size:   # the SITL's own nearest wall or object (pybullet), the whole flight
+        report["min_true_obstacle_distance_m"] = float(np.min(flight.dist1_m))
+    geometry = _arena(scenario)
+    if geometry is not None and flight.t_truth.size:
+        j = judge(flight.t_truth, flight.p_ned, geometry)
+        report["min_true_clearance_m"] = j.min_clearance_m
+        report["clearance"] = {"t_s": j.t_min_s, "surface": j.nearest_surface, "walls_m": j.min_wall_m,
+                               "objects_m": j.min_object_m, "ceiling_m": j.min_ceiling_m}
+        report["mobility"] = {"max_excursion_m": j.max_excursion_m, "path_length_m": j.path_length_m,
+                              "max_height_m": j.max_height_m}
     if flight.t_dist1.size and flight.t_fb.size:
         # The companion's map leaves the floor out by design (repulsion acts in a horizontal band), so its
         # nearest obstacle is compared with the truth of the same kind: nearest surface excluding floor and
@@ -269,9 +287,10 @@ def check_targets(report: dict[str, Any]) -> dict[str, Any]:
         worst = max(finite) if finite else math.nan
         out["velocity_rmse_m_s"] = {"value": worst, "target": f"<= {TARGETS['velocity_rmse_m_s']}",
                                     "pass": bool(worst <= TARGETS["velocity_rmse_m_s"])}
-    if "min_true_obstacle_distance_m" in report:
-        v = report["min_true_obstacle_distance_m"]
-        out["min_true_obstacle_distance_m"] = {"value": v, "target": ">= 0.40", "pass": bool(v >= 0.40)}
+    if "min_true_clearance_m" in report:
+        v = report["min_true_clearance_m"]
+        out["min_true_clearance_m"] = {"value": v, "target": f">= {CLEARANCE_BOUND_M:.2f}",
+                                       "pass": bool(v >= CLEARANCE_BOUND_M)}
     if "fraction_estimate_le_truth" in report:
         v = report["fraction_estimate_le_truth"]
         out["fraction_estimate_le_truth"] = {"value": v, "target": ">= 0.95", "pass": bool(v >= 0.95)}

@@ -28,6 +28,7 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
+from harness.judge import ArenaGeometry, Clearance
 from quadlink.frames import euler_from_quat_wxyz
 from quadlink.mavlink import mavlink
 from quadlink.mavlink.statustext import StatusTextAssembler
@@ -39,78 +40,6 @@ LOADED_MACHINE: dict[str, dict[str, object]] = {"modes": {"gcs_timeout_s": 2.0},
                                                 "arbiter": {"operator_timeout_s": 2.0, "script_timeout_s": 2.0}}
 MODE_TELEOP = 2
 MODE_HOLD = 3
-
-
-# ---------------------------------------------------------------- geometry (pure)
-def box_distance_m(p_ned_m: NDArray[np.float64], centre_ned_m: NDArray[np.float64], size_m: NDArray[np.float64],
-                   yaw_rad: float) -> float:
-    """Distance from a point to a solid box turned by ``yaw_rad`` about the down axis (0 inside)."""
-    d = np.asarray(p_ned_m, dtype=float) - np.asarray(centre_ned_m, dtype=float)
-    c, s = math.cos(yaw_rad), math.sin(yaw_rad)
-    local = np.array([c * d[0] + s * d[1], -s * d[0] + c * d[1], d[2]])   # Rz(yaw)^T d
-    q = np.abs(local) - np.asarray(size_m, dtype=float) / 2.0
-    return float(np.linalg.norm(np.maximum(q, 0.0)))
-
-
-def cylinder_distance_m(p_ned_m: NDArray[np.float64], centre_ned_m: NDArray[np.float64], radius_m: float,
-                        height_m: float) -> float:
-    """Distance from a point to a solid upright cylinder (0 inside)."""
-    d = np.asarray(p_ned_m, dtype=float) - np.asarray(centre_ned_m, dtype=float)
-    radial = max(math.hypot(d[0], d[1]) - radius_m, 0.0)
-    axial = max(abs(d[2]) - height_m / 2.0, 0.0)
-    return math.hypot(radial, axial)
-
-
-@dataclass(frozen=True)
-class Clearance:
-    """True distances from the centre of mass (m): walls, objects, ceiling, floor; ``surface`` = nearest
-    non-floor surface (walls, objects and ceiling)."""
-
-    wall_m: float
-    object_m: float
-    ceiling_m: float
-    floor_m: float
-    nearest_name: str
-
-    @property
-    def surface_m(self) -> float:
-        return min(self.wall_m, self.object_m, self.ceiling_m)
-
-
-class ArenaGeometry:
-    """The scenario's bodies as plain geometry (from ``sim_sitl.scene.build_scene``)."""
-
-    def __init__(self, scenario: str) -> None:
-        from sim_sitl.config import load_scenario
-        from sim_sitl.scene import build_scene
-
-        self.scenario = load_scenario(scenario)
-        self.scene = build_scene(self.scenario)
-        self.start_ned_m = np.array([*self.scenario.start.position_m[:2], 0.0])
-        self.room = self.scenario.room
-
-    def clearance(self, p_arena_ned_m: NDArray[np.float64]) -> Clearance:
-        p = np.asarray(p_arena_ned_m, dtype=float)
-        nx, ny = self.room.size_m
-        walls = (p[0] + nx / 2, nx / 2 - p[0], p[1] + ny / 2, ny / 2 - p[1]) if self.room.walls else (math.inf,)
-        wall = min(walls)
-        ceiling = p[2] + self.room.height_m if self.room.ceiling else math.inf
-        floor = -p[2]
-        best, name = math.inf, "wall"
-        for b in self.scene.bodies:
-            if b.surface in ("floor", "ceiling", "wall"):
-                continue
-            if b.kind == "box":
-                d = box_distance_m(p, np.array(b.centre_ned_m), np.array(b.size_m), b.yaw_rad)
-            else:
-                d = cylinder_distance_m(p, np.array(b.centre_ned_m), b.radius_m, b.height_m)
-            if b.surface == "floor":   # a rug: counts as floor
-                floor = min(floor, d)
-                continue
-            if d < best:
-                best, name = d, b.name
-        nearest = min((wall, "wall"), (best, name), (ceiling, "ceiling"))[1]
-        return Clearance(wall, best, ceiling, floor, nearest)
 
 
 # ---------------------------------------------------------------- the flight
@@ -132,10 +61,13 @@ class FlightLog:
     acks: list[tuple[int, int, int]] = field(default_factory=list)   # (command, result, source compid)
 
     def flying(self, min_height_m: float = 0.3) -> list[TruthSample]:
+        """The samples in the air (for mobility: how high, how far); never for clearance."""
         return [s for s in self.samples if s.clearance.floor_m > min_height_m]
 
     def min_surface(self, since_s: float = -math.inf) -> TruthSample | None:
-        fl = [s for s in self.flying() if s.t_s >= since_s]
+        """The sample nearest a non-floor surface over the whole flight from ``since_s``, take-off and touchdown
+        included (harness.judge: one judge, no blind spot)."""
+        fl = [s for s in self.samples if s.t_s >= since_s]
         return min(fl, key=lambda s: s.clearance.surface_m) if fl else None
 
     def summary(self, since_s: float = -math.inf) -> str:
@@ -147,9 +79,9 @@ class FlightLog:
         return (f"min clearance {c.surface_m:.3f} m ({c.nearest_name}) at t={s.t_s:.1f} s, p=({x:.2f}, "
                 f"{y:.2f}, {z:.2f}), mode {s.mode}; walls {c.wall_m:.3f} objects "
                 f"{c.object_m:.3f} ceiling {c.ceiling_m:.3f}; min wall/object/ceiling over the flight "
-                f"{min(x.clearance.wall_m for x in self.flying()):.3f}/"
-                f"{min(x.clearance.object_m for x in self.flying()):.3f}/"
-                f"{min(x.clearance.ceiling_m for x in self.flying()):.3f}")
+                f"{min(x.clearance.wall_m for x in self.samples):.3f}/"
+                f"{min(x.clearance.object_m for x in self.samples):.3f}/"
+                f"{min(x.clearance.ceiling_m for x in self.samples):.3f}")
 
     def save_csv(self, path: Path) -> None:
         rows = [(s.t_s, *s.p_arena_ned_m, s.yaw_rad, s.clearance.wall_m, s.clearance.object_m, s.clearance.ceiling_m,

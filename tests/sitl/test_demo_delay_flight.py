@@ -28,7 +28,7 @@ def test_short_flight_over_a_delayed_lossy_link(tmp_path: Path) -> None:
                       port_offset=OFFSET, progress_every_s=10.0, link=link)
     assert report["failure"] is None and not report["interrupted"]
     assert report["flying_time_s"] > 5.0
-    assert report["min_true_obstacle_distance_m"] >= 0.40
+    assert report["min_true_clearance_m"] >= 0.40
     assert report["setpoint_gaps_over_100ms"] == 0
     lk = report["link"]
     # round trip: both directions of 150 ms through the proxy, plus the loops' scheduling

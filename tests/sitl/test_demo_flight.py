@@ -59,7 +59,7 @@ def test_paper_experiment_full(tmp_path: Path) -> None:
                       script=CONFIG_DIR / "teleop_scripts" / "paper_experiment.yaml", lockstep=True,
                       port_offset=OFFSET, progress_every_s=10.0)
     _assert_common(report, out)
-    assert report["min_true_obstacle_distance_m"] >= 0.40
+    assert report["min_true_clearance_m"] >= 0.40
     assert report["fraction_estimate_le_truth"] >= 0.95
     assert all(t["pass"] for t in report["targets"].values()), report["targets"]
 

@@ -9,7 +9,6 @@ CI flights are short (<= ~40 s of flight), one of them in real time; the longer 
 from __future__ import annotations
 
 import asyncio
-import math
 import os
 import threading
 import time
@@ -35,10 +34,12 @@ def _offset(k: int) -> int:
 
 
 def _assert_clear(f: Flight, since_s: float) -> float:
-    s = f.log.min_surface(since_s)
+    """Clearance over the whole flight, take-off and touchdown included (harness.judge); ``since_s`` is where the
+    manoeuvre under test began, printed for the record."""
+    s = f.log.min_surface()
     assert s is not None, "never flew"
-    print(f.log.summary(since_s))
-    assert s.clearance.surface_m >= MIN_CLEARANCE_M, f.log.summary(since_s)
+    print(f.log.summary(), f"(manoeuvre from t={since_s:.1f} s)")
+    assert s.clearance.surface_m >= MIN_CLEARANCE_M, f.log.summary()
     return s.clearance.surface_m
 
 
@@ -277,10 +278,14 @@ def test_mavsdk_classic_offboard_into_a_wall_through_the_companion(tmp_path: Pat
 
 
 def test_operator_push_in_real_time(tmp_path: Path) -> None:
-    """The corner push of the first test with the SITL paced in real time (not lock-step)."""
-    with flight(tmp_path, offset=_offset(5), lockstep=False) as f:
+    """The push toward the south wall with the SITL paced in real time (not lock-step), on the shipped failsafe
+    timeouts (no LOADED_MACHINE margins): safe, and it got there (a vehicle that never moved would be safe too)."""
+    with flight(tmp_path, offset=_offset(5), lockstep=False, companion_config=companion_config_with(tmp_path)) as f:
         f.take_off()
-        t0 = f.t_s
+        t0, p0 = f.t_s, f.p_arena.copy()
         f.run_for(30.0, lambda: f.manual(700))
         _assert_clear(f, t0)
-        assert math.isfinite(f.log.flying()[-1].clearance.surface_m)
+        moved = float(np.linalg.norm(f.p_arena[:2] - p0[:2]))
+        gap = min(s.clearance.surface_m for s in f.log.samples if s.t_s >= t0)
+        assert moved > 1.0, f"moved {moved:.2f} m toward the wall"
+        assert gap <= 0.65, f"stopped {gap:.2f} m from the nearest surface (the wall is reachable to ~0.5 m)"

@@ -174,12 +174,13 @@ def test_offboard_plan_timeline_and_masks() -> None:
 
 
 def _truth_log(path: Path, heights_m: list[float], obstacle_m: list[float]) -> None:
-    """A truth log made by the SITL's encoder: climbing from the start (CoM 0.1 m above the floor)."""
+    """A truth log made by the SITL's encoder in the 6 m room of these tests, started at its centre (CoM 0.1 m above
+    the floor): the vehicle climbs and flies north so that the north wall (x = 3 m) is ``obstacle_m`` away."""
     enc = TruthEncoder()
     w = TlogWriter(path)
     for k, (h, d) in enumerate(zip(heights_m, obstacle_m)):
-        for pkt in enc.encode(k * 0.02, np.array([0.0, 0.0, -(h - 0.1)]), np.zeros(3), np.eye(3), np.zeros(3),
-                              h, d):
+        for pkt in enc.encode(k * 0.02, np.array([3.0 - d, 0.0, -(h - 0.1)]), np.zeros(3), np.eye(3), np.zeros(3),
+                              min(h, d), d):
             w.write(pkt, 0.0)
     w.close()
 

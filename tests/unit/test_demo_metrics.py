@@ -85,8 +85,8 @@ def test_report_on_synthetic_flight(rng: np.random.Generator) -> None:
     assert ident["gain"] == pytest.approx(0.8, rel=0.03)
     assert ident["phase_rad"] == pytest.approx(math.remainder(-0.3 - math.pi, 2 * math.pi), abs=0.03)
     assert all(t["pass"] for t in report["targets"].values())
-    bad = check_targets({**report, "min_true_obstacle_distance_m": 0.3})
-    assert not bad["min_true_obstacle_distance_m"]["pass"]
+    bad = check_targets({**report, "min_true_clearance_m": 0.3})
+    assert not bad["min_true_clearance_m"]["pass"]
 
 
 def test_setpoint_gaps_count_only_while_the_companion_is_in_control() -> None:
