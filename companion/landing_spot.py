@@ -23,6 +23,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
+from scipy.spatial import cKDTree
 
 from companion.avoidance import remove_toward_unknown, sector_index
 from companion.obstacle_points import finite_rows
@@ -70,10 +71,39 @@ class ObjectBelow:
         return f"land refused: object below, {self.top_height_m:.2f} m tall"
 
 
+#: a candidate top with a surface point within this horizontal distance at the vehicle's own level belongs to a wall,
+#: a column or a box side *beside* the vehicle, not to an object *below* it (issue 30: MAVSDK's LAND was refused
+#: 0.5 m from a wall, its lower part read as a top under the footprint)
+BESIDE_RADIUS_M = 0.15
+LEVEL_BAND_M = (-0.5, 0.10)   # "the vehicle's level": from 0.5 m above the centre of mass to 0.1 m below it (H, z down)
+
+
+def _beside(candidates: NDArray[np.float64], context: NDArray[np.float64], within_m: float) -> NDArray[np.bool_]:
+    """Which candidates (N x 3, H) lie under a surface that reaches up to the vehicle's level (``context`` M x 3):
+    a wall or column the vehicle rests beside, whose lower part a drift margin or a footprint can put "below" it. A
+    top of an object below the vehicle has nothing at the vehicle's level above it (else the vehicle would be in it).
+    Only context within ``within_m`` (+ the radius) of the vehicle counts, which keeps the per-frame tree small."""
+    if not candidates.shape[0] or not context.shape[0]:
+        return np.zeros(candidates.shape[0], dtype=bool)
+    lo, hi = LEVEL_BAND_M
+    z = context[:, 2]
+    near = (z >= lo) & (z <= hi)
+    if math.isfinite(within_m):
+        reach = within_m + BESIDE_RADIUS_M
+        near &= context[:, 0] ** 2 + context[:, 1] ** 2 <= reach * reach
+    level = context[near]
+    if not level.shape[0]:
+        return np.zeros(candidates.shape[0], dtype=bool)
+    d, _ = cKDTree(level[:, :2]).query(candidates[:, :2], distance_upper_bound=BESIDE_RADIUS_M)
+    return np.isfinite(d)
+
+
 def _objects_below(points_h_m: ArrayLike | None, height_m: float | None, floor_margin_m: float,
-                   within_m: float = math.inf) -> tuple[NDArray[np.float64], NDArray[np.float64]] | None:
+                   within_m: float = math.inf, context_h_m: ArrayLike | None = None,
+                   ) -> tuple[NDArray[np.float64], NDArray[np.float64]] | None:
     """The finite map points below the vehicle that are not the floor (and within ``within_m`` of it
-    horizontally), and their heights above the floor. One mask over the map's columns, one gather: run on every
+    horizontally), and their heights above the floor, less those beside the vehicle (:func:`_beside`, against
+    ``context_h_m``, default the points themselves). One mask over the map's columns, one gather: run on every
     frame over up to 20,000 particles (benchmarks/bench_safety_map.py)."""
     if points_h_m is None or height_m is None or not math.isfinite(height_m):
         return None
@@ -84,6 +114,8 @@ def _objects_below(points_h_m: ArrayLike | None, height_m: float | None, floor_m
         x, y = p[:, 0], p[:, 1]
         keep &= x * x + y * y <= within_m * within_m
     q = p.take(np.flatnonzero(keep), axis=0)
+    if q.shape[0]:
+        q = q[~_beside(q, p if context_h_m is None else finite_rows(context_h_m), within_m)]
     return q, height_m - q[:, 2]
 
 
@@ -226,12 +258,16 @@ def clearing_command(azimuth_rad: float, camera_yaw_rad: float, params: LandingS
 
 
 def object_below(points_h_m: ArrayLike | None, height_m: float | None, params: LandingSpotParams,
-                 floor_margin_m: float, extra_radius_m: float = 0.0) -> ObjectBelow | None:
+                 floor_margin_m: float, extra_radius_m: float = 0.0,
+                 context_h_m: ArrayLike | None = None) -> ObjectBelow | None:
     """The highest point (H, vehicle at the origin, z down) under the footprint (widened by ``extra_radius_m``)
     that is not the floor (higher than ``floor_margin_m`` and ``min_top_m`` above the take-off floor, ``height_m``
-    below the vehicle); None if there is none, or the check is off, or the height above the floor is unknown."""
+    below the vehicle); None if there is none, or the check is off, or the height above the floor is unknown. A wall,
+    a column or a box side beside the vehicle (a surface that reaches its level, in ``context_h_m`` — the map —
+    or in ``points_h_m``) is never "below" it."""
     below = _objects_below(points_h_m, height_m, max(floor_margin_m, params.min_top_m),
-                           within_m=params.footprint_radius_m + max(0.0, extra_radius_m)) if params.enabled else None
+                           within_m=params.footprint_radius_m + max(0.0, extra_radius_m),
+                           context_h_m=context_h_m) if params.enabled else None
     if below is None or not below[1].size:
         return None
     p, above_floor_m = below

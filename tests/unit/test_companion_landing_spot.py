@@ -235,3 +235,49 @@ def test_the_way_off_does_not_lead_over_the_next_box() -> None:
     free = np.full(72, np.inf)
     az = clearing_azimuth_rad(tops, height_m, P, FLOOR_MARGIN_M, 0.0, free, math.radians(15))
     assert az is not None and math.cos(az) < 0.5    # not on over the next box
+
+
+def _wall_points(x_m: float, height_m: float, room_height_m: float = 2.5, step_m: float = 0.05) -> np.ndarray:
+    """A wall's face along x = ``x_m`` (H, vehicle at the origin ``height_m`` above the floor, z down), sampled from
+    the floor to the ceiling and 1 m either side, as the map holds it."""
+    y = np.arange(-1.0, 1.0 + 1e-9, step_m)
+    z = np.arange(height_m - room_height_m, height_m + 1e-9, step_m)   # from the ceiling down to the floor
+    yy, zz = np.meshgrid(y, z)
+    return np.column_stack([np.full(yy.size, x_m), yy.ravel(), zz.ravel()])
+
+
+@pytest.mark.parametrize("drift_m", [0.0, 0.10, 0.20])
+@pytest.mark.parametrize("wall_m", [0.45, 0.5, 0.6])
+def test_a_wall_beside_the_vehicle_is_never_below_it_whatever_the_drift_margin(wall_m: float, drift_m: float) -> None:
+    """Issue 30: MAVSDK's LAND at rest 0.45-0.6 m from a wall was refused in one run of four: the map's drift margin
+    moves points toward the vehicle, which put the wall's lower part inside the 0.4 m footprint as a "top"."""
+    height_m = 1.0
+    wall = _wall_points(wall_m - drift_m, height_m)
+    floor = _top(0.0, 0.0, 2.0, height_m)
+    assert object_below(np.vstack([wall, floor]), height_m, P, FLOOR_MARGIN_M) is None
+    # a column (a thick pole) beside the vehicle is no different
+    a = np.linspace(0, 2 * math.pi, 24, endpoint=False)
+    z = np.arange(-0.5, height_m, 0.05)
+    ring = np.column_stack([0.35 + 0.1 * np.cos(a), 0.1 * np.sin(a)])
+    column = np.array([[x, y, zz] for x, y in ring for zz in z])
+    assert object_below(column, height_m, P, FLOOR_MARGIN_M) is None
+
+
+def test_a_box_under_the_vehicle_is_still_refused_beside_a_wall() -> None:
+    """The wall rule keeps the refusal it exists for: a box top under the footprint, with a wall right behind the
+    box, is still an object below."""
+    height_m = 1.0
+    wall = _wall_points(0.45, height_m)
+    box = _top(0.1, 0.0, 0.6, height_m - 0.6)
+    got = object_below(np.vstack([wall, box]), height_m, P, FLOOR_MARGIN_M)
+    assert got is not None and got.top_height_m == pytest.approx(0.6)
+
+
+def test_the_memory_does_not_keep_a_wall_as_a_top() -> None:
+    """Flying along a wall, its lower part below the vehicle is not remembered as the top of an object."""
+    height_m = 1.0
+    memory = BelowMemory(P)
+    memory.observe(_wall_points(0.45, height_m), height_m, FLOOR_MARGIN_M, np.zeros(3), 0.0)
+    assert len(memory) == 0
+    memory.observe(_top(0.0, 0.0, 0.4, height_m - 0.6), height_m, FLOOR_MARGIN_M, np.zeros(3), 0.0)
+    assert len(memory) > 0
