@@ -156,6 +156,12 @@ class Autopilot:
     def on_board_status(self, now_s: float, status: BoardStatusLike) -> list[Outbound]:
         return self.commander.on_board_status(now_s, status)
 
+    def on_board_baro(self, altitude_m: float, valid: bool) -> None:
+        """The board's barometric altitude (``Z`` frame, m, + up): fused into the vertical estimate that the blind
+        flight (no odometry, no companion) descends on."""
+        self.state.vertical.on_baro(altitude_m, valid)
+        self.state.baro_frames += 1
+
     def on_board_version(self, text: str, version_int: int = 0) -> None:
         self.commander.on_board_version(text, version_int)
 

@@ -470,6 +470,9 @@ class BridgeDaemon:
                         abs(status.imu_sample_count - self._imu_index) > COUNTER_MODULO // 2:
                     self._imu_index = _align(status.imu_sample_count, self._imu_index % COUNTER_MODULO)
                 self._send(self.autopilot.on_board_status(now, status))
+            elif frame.command == mk.BaroAltitude.COMMAND:
+                baro = mk.BaroAltitude.unpack(frame.payload)
+                self.autopilot.on_board_baro(baro.altitude_m, baro.valid and not baro.saturated)
             elif frame.command == mk.Version.COMMAND:
                 version = mk.Version.unpack(frame.payload)
                 text = f"FlightCtrl {version.version_str} (protocol {version.proto_major}.{version.proto_minor})"

@@ -201,8 +201,11 @@ class FlightControlService:
             start_s, height0 = s.blind_descent
             learned = s.hover_thrust_learned if s.hover_thrust_learned is not None else hover_prior
             ceiling = min(max(learned, hover_prior * (1.0 - margin)), hover_prior * (1.0 + margin))
-            probing = s.vertical.height_m <= 0.0 or \
-                now_s - start_s > height0 / vz_ref + BLIND_DESCENT_EXTRA_S
+            # with the board's barometer fused the height does not drift: the descent tracks its speed to the ground
+            # and the touchdown test below ends it (issue 30: probing at 0.9 x hover touched down at 1.2 m/s); on the
+            # accelerometer alone the estimate may run out early or late, so the descent probes for the ground
+            probing = not s.vertical.estimate.baro_fused and (
+                s.vertical.height_m <= 0.0 or now_s - start_s > height0 / vz_ref + BLIND_DESCENT_EXTRA_S)
             if probing:
                 ceiling *= p["BRG_FS_DESC_THR"]
         if s.vertical.estimate.pinned:

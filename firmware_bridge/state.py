@@ -168,6 +168,7 @@ class BridgeState:
         # flight without odometry (take-off phase 1 and the landing after it): accelerometer-only vertical
         self.vertical = VerticalEstimator(vehicle.hover_thrust_fraction, params["MPC_Z_VEL_MAX_UP"],
                                           params["MPC_Z_VEL_MAX_DN"])
+        self.baro_frames = 0   # the board's 'Z' frames received (0: a board without the barometer frame)
         self.blind = False  # in the air and no odometry acquired yet in this flight
         self.takeoff_phase: TakeoffPhase | None = None
         self.takeoff_start_s: float | None = None

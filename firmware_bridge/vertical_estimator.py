@@ -22,6 +22,18 @@ must accelerate downwards unless the ground carries it, so "thrust < hover and n
 
 Integration of a 10-bit accelerometer drifts (a residual bias of 0.02 m/s^2 is 0.12 m/s after 6 s), so the
 autopilot only flies on this for a bounded time and height (``BRG_TKO_OL_T``, ``BRG_TKO_OL_ALT``).
+
+**With the board's barometer** (the ``Z`` frame: MPX4115A altitude, 50 Hz; issue 30) the estimate no longer
+drifts: a third-order complementary filter pulls the height toward the baro height (relative to the baro's
+reading where the estimator was last pinned on the ground), the vertical speed with it, and learns the
+accelerometer's bias in the air::
+
+    e = h_baro - h;   h += (w + k1 e) dt;   w += (u + k2 e) dt;   b += k3 e dt     (w = -v_z up, u = -a_z up)
+
+with the triple pole at ``baro_bandwidth_rad_s`` (k1 = 3 w0, k2 = 3 w0^2, k3 = w0^3): the accelerometer carries
+the fast motion, the baro's noise (a few cm after the board's oversampling) and its slow drift are filtered.
+A baro frame older than ``BARO_STALE_S`` (or marked invalid or saturated) is not used: the accelerometer-only
+estimate goes on from where the fused one was.
 """
 
 from __future__ import annotations
@@ -32,6 +44,8 @@ from dataclasses import dataclass
 DEFAULT_BIAS_TAU_S = 1.0
 DEFAULT_LIFTOFF_FRACTION_OF_HOVER = 0.7  # no vehicle within 30 % of its configured mass lifts off below this
 ACCEL_LOWPASS_TAU_S = 0.1  # the vertical acceleration the ground-contact test looks at
+DEFAULT_BARO_BANDWIDTH_RAD_S = 1.0  # the fused filter's triple pole: the baro's noise is cut above ~0.2 Hz
+BARO_STALE_S = 0.2                  # a baro reading older than this (10 frames at 50 Hz) is not fused
 
 
 @dataclass(frozen=True)
@@ -41,12 +55,14 @@ class VerticalEstimate:
     accel_bias_m_s2: float  # vertical specific-force bias learnt on the ground
     pinned: bool  # on the ground: the thrust is below lift-off
     accel_z_m_s2: float  # bias-corrected vertical acceleration (NED), low-passed (ACCEL_LOWPASS_TAU_S)
+    baro_fused: bool = False  # the last update was corrected by a fresh baro reading
 
 
 class VerticalEstimator:
     def __init__(self, hover_thrust_fraction: float, max_climb_m_s: float = 1.5, max_descent_m_s: float = 1.0,
                  bias_tau_s: float = DEFAULT_BIAS_TAU_S,
-                 liftoff_fraction_of_hover: float = DEFAULT_LIFTOFF_FRACTION_OF_HOVER) -> None:
+                 liftoff_fraction_of_hover: float = DEFAULT_LIFTOFF_FRACTION_OF_HOVER,
+                 baro_bandwidth_rad_s: float = DEFAULT_BARO_BANDWIDTH_RAD_S) -> None:
         if not 0.0 < hover_thrust_fraction < 1.0:
             raise ValueError("hover thrust fraction must be in (0, 1)")
         self.hover_thrust_fraction = hover_thrust_fraction
@@ -59,6 +75,31 @@ class VerticalEstimator:
         self._bias: float | None = None
         self._pinned = True
         self._a_lp = 0.0
+        w0 = float(baro_bandwidth_rad_s)
+        if not w0 > 0.0:
+            raise ValueError("baro bandwidth must be > 0 rad/s")
+        self._k = (3.0 * w0, 3.0 * w0 * w0, w0 ** 3)
+        self._baro_alt_m: float | None = None   # the last usable baro altitude (board's reference, + up)
+        self._baro_t_s = -math.inf
+        self._baro_ground_m: float | None = None  # the baro altitude where the estimator was last pinned
+        self._t_s = 0.0                          # the estimator's own time (sum of the IMU's dt)
+        self._fused = False
+
+    def on_baro(self, altitude_m: float, valid: bool = True) -> None:
+        """A ``Z`` frame's barometric altitude (m, + up, the board's reference), received now (the estimator's
+        time): used until it is ``BARO_STALE_S`` old. Invalid or non-finite readings are ignored."""
+        if not valid or not math.isfinite(altitude_m):
+            return
+        self._baro_alt_m = float(altitude_m)
+        self._baro_t_s = self._t_s
+        if self._pinned:
+            self._baro_ground_m = self._baro_alt_m
+
+    def _baro_height_m(self) -> float | None:
+        """The baro's height above where the estimator was last pinned, if fresh."""
+        if self._baro_alt_m is None or self._baro_ground_m is None or self._t_s - self._baro_t_s > BARO_STALE_S:
+            return None
+        return self._baro_alt_m - self._baro_ground_m
 
     def reset_ground(self) -> None:
         """On the ground (landed, disarmed, or at the start of a take-off): pin; the learnt bias is kept."""
@@ -77,6 +118,7 @@ class VerticalEstimator:
     def update(self, dt_s: float, a_h_z_m_s2: float, thrust_fraction: float, on_ground: bool = False) -> None:
         """One IMU sample: ``a_h_z_m_s2`` = (R_hq f_q)_z + g (NED), the commanded collective thrust (0..1)."""
         dt_s = min(max(float(dt_s), 0.0), 0.1)
+        self._t_s += dt_s
         if self._bias is None:
             self._bias = float(a_h_z_m_s2)  # converge at once from the first sample (at rest at start-up)
         self._a_lp += (float(a_h_z_m_s2) - self._bias - self._a_lp) * dt_s / max(ACCEL_LOWPASS_TAU_S, dt_s)
@@ -87,15 +129,26 @@ class VerticalEstimator:
             self._bias += (float(a_h_z_m_s2) - self._bias) * dt_s / max(self.bias_tau_s, dt_s)
             self._vz = 0.0
             self._h = 0.0
+            if self._baro_alt_m is not None and self._t_s - self._baro_t_s <= BARO_STALE_S:
+                self._baro_ground_m = self._baro_alt_m   # the ground's baro reading follows the weather
+            self._fused = False
             return
         self._pinned = False
         a_z = float(a_h_z_m_s2) - self._bias
+        h_baro = self._baro_height_m()
+        self._fused = h_baro is not None
+        if h_baro is not None:
+            k1, k2, k3 = self._k
+            e = h_baro - self._h
+            self._h += k1 * e * dt_s
+            self._vz -= k2 * e * dt_s        # w = -vz gains k2 e
+            self._bias += k3 * e * dt_s      # the estimate lags low: the downward acceleration read too large
         self._vz = min(max(self._vz + a_z * dt_s, -self.max_climb_m_s), self.max_descent_m_s)
         self._h = max(self._h - self._vz * dt_s, 0.0)
 
     @property
     def estimate(self) -> VerticalEstimate:
-        return VerticalEstimate(self._vz, self._h, self._bias or 0.0, self._pinned, self._a_lp)
+        return VerticalEstimate(self._vz, self._h, self._bias or 0.0, self._pinned, self._a_lp, self._fused)
 
     @property
     def vz_m_s(self) -> float:
