@@ -13,5 +13,7 @@ echo "[test] ruff"
 .venv/bin/ruff check .
 echo "[test] mypy"
 .venv/bin/mypy quadlink harness firmware_bridge perception companion teleop sim_sitl
+echo "[test] mkdocs build --strict"
+.venv/bin/mkdocs build --strict --quiet --site-dir "$(mktemp -d)"
 echo "[test] pytest -m '$marker'"
 exec .venv/bin/python -m pytest -m "$marker" -q "$@"
