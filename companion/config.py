@@ -9,6 +9,7 @@ from typing import Literal
 
 from companion.arbiter import ArbiterParams
 from companion.landing_spot import LandingSpotParams
+from companion.latency import LatencyParams
 from companion.modes import ModeParams
 from companion.pan_scan import PanScanParams
 from companion.reference_params import ReferenceParams
@@ -102,6 +103,7 @@ class CompanionConfig:
     obstacles: ObstacleConfig = field(default_factory=ObstacleConfig)
     arbiter: ArbiterParams = field(default_factory=ArbiterParams)   # sources of motion (companion.arbiter)
     landing_spot: LandingSpotParams = field(default_factory=LandingSpotParams)   # commanded landings over objects
+    latency: LatencyParams = field(default_factory=LatencyParams)   # late data: what the safety law pays for it
     # signing and the sender allowlist on the ground-station endpoint (the autopilot link is internal)
     security: SecurityConfig = field(default_factory=SecurityConfig)
     vehicle: str = "vehicle"  # vehicle config (camera mount R_qc, p_qc) by name or path

@@ -50,6 +50,7 @@ what is sent to the autopilot.
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import logging
 import math
@@ -85,6 +86,7 @@ from companion.landing_spot import (
     object_below,
     room_to_clear,
 )
+from companion.latency import LatencyGuard
 from companion.link_reader import CodecReader
 from companion.lockstep_links import AUTOPILOT_IN, CAMERA_IN, GCS_IN, LockstepLinks
 from companion.modes import AutopilotRequest, Mode, ModeMachine, StatusText
@@ -186,6 +188,8 @@ class Companion:
                                     Task.FEEDBACK: 1.0 / t.feedback_rate_hz, Task.PROGRESS: PROGRESS_EVERY_S}, clock())
         self.progress = ProgressLine(PROGRESS_EVERY_S)
         self.time = AutopilotTime(self.timesync, t.camera_stamps, clock())   # stamps what we send
+        self.latency = LatencyGuard(cfg.latency)   # the age of each frame's data, paid for by the safety law
+        self._last_seq: int | None = None
 
     # ------------------------------------------------------------------ parameters (companion.params)
     @property
@@ -500,6 +504,9 @@ class Companion:
     def _process_frame(self, frame: RgbdFrame) -> None:
         t_in = self._stopwatch()
         self.stats.frames += 1
+        if self._last_seq is not None and frame.seq > self._last_seq + 1:
+            self.stats.frames_skipped += frame.seq - self._last_seq - 1   # dropped at the source, or skipped
+        self._last_seq = frame.seq
         st = self.state
         st.R_qc = np.asarray(frame.R_qc, dtype=float)
         out = self.perception.on_frame(frame)
@@ -522,8 +529,11 @@ class Companion:
         clearing = self._clearing_command(out)
         v_command = clearing[0] if clearing is not None else cmd.v_h_m_s if scripted else None
         ob = self.cfg.obstacles
-        step = frame_step(out, op, st.R_qc, st.scan(self.modes.mode, stamp, self.scan_params), self.ref_params,
-                          self.modes.operator_enabled or clearing is not None, ob.allow_unknown_when_fresh,
+        ref_params, operator_enabled = self._latency_law(stamp)
+        if self.latency.holding and clearing is None:
+            v_command, operator_enabled = None, False   # late data: no commanded motion, the repulsion still acts
+        step = frame_step(out, op, st.R_qc, st.scan(self.modes.mode, stamp, self.scan_params), ref_params,
+                          operator_enabled or clearing is not None, ob.allow_unknown_when_fresh,
                           v_command_h_m_s=v_command,
                           command_yaw_rate_rad_s=clearing[1] if clearing is not None else cmd.yaw_rate_rad_s,
                           height_above_takeoff_m=height,
@@ -543,6 +553,22 @@ class Companion:
                 self.out.to_gcs(m)
             self._publish_image(frame, out, step.ref)
         self.recording.write(frame)
+
+    def _latency_law(self, stamp_s: float) -> tuple[ReferenceParams, bool]:
+        """This frame's age on the autopilot's clock (companion.latency), the reference law's parameters that pay
+        for it (stopping time, speed limit) and whether the operator may move the vehicle; the hold is told."""
+        ref = self.ref_params
+        age_s = self.time.estimate_s(self.clock()) - stamp_s
+        v = self.latency.on_frame(self.clock(), age_s, ref.stopping_time_s, ref.max_speed_m_s)
+        self.stats.data_ages_s.append(v.age_s)
+        if v.changed:
+            text = (f"companion: data {v.age_s * 1e3:.0f} ms old: holding" if v.holding
+                    else f"companion: data {v.age_s * 1e3:.0f} ms old: resuming")
+            self._emit([StatusText(mavlink.MAV_SEVERITY_WARNING if v.holding else mavlink.MAV_SEVERITY_INFO, text)])
+            log.warning("%s", text)
+        if v.stopping_time_s != ref.stopping_time_s or v.max_speed_m_s != ref.max_speed_m_s:
+            ref = dataclasses.replace(ref, stopping_time_s=v.stopping_time_s, max_speed_m_s=v.max_speed_m_s)
+        return ref, self.modes.operator_enabled and not v.holding
 
     def _send_setpoint(self, stamp_s: float, ref: ReferenceOutput, a_ff_h_m_s2: NDArray[np.float64] | None = None
                        ) -> None:
@@ -594,6 +620,10 @@ class Companion:
         elif task == Task.COMMAND_AGE:   # the figures for the ground station (and the tlog)
             ms = int(self.time.estimate_s(self.clock()) * 1e3) & 0xFFFFFFFF
             self._emit(GcsReply(m) for m in self.command_clock.report(ms))
+            if self.stats.data_ages_s:   # the newest frame's data age, for the ground station and the tlog
+                self._emit([GcsReply(mavlink.MAVLink_named_value_float_message(
+                    ms, b"DATA_AGE", float(self.stats.data_ages_s[-1]))),
+                    GcsReply(mavlink.MAVLink_named_value_int_message(ms, b"LATE_HOLD", int(self.latency.holding)))])
         elif task == Task.FALLBACK:   # keeps the autopilot's stream alive without a camera (frame_step.fallback_step)
             stamp = self.time.estimate_s(now)
             op = self.motion.operator_of(self.motion.command(self._pose()))

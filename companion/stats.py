@@ -13,6 +13,12 @@ def _recent_median_ms(values_s: list[float], n: int = 300) -> str:
     return f"{recent[len(recent) // 2] * 1e3:.1f} ms" if recent else "-"
 
 
+def _recent_max_ms(values_s: list[float], n: int = 300) -> str:
+    """Largest of the last ``n`` durations, for the status line."""
+    recent = values_s[-n:]
+    return f"{max(recent) * 1e3:.1f} ms" if recent else "-"
+
+
 @dataclass
 class Stats:
     frames: int = 0
@@ -29,10 +35,14 @@ class Stats:
     refused_senders: int = 0        # state-changing messages from system ids not on the allowlist
     latencies_s: list[float] = field(default_factory=list)
     perception_s: list[float] = field(default_factory=list)
+    data_ages_s: list[float] = field(default_factory=list)   # camera stamp -> setpoint (companion.latency)
+    frames_skipped: int = 0         # frames read past to process the newest (a backlog is never processed)
 
     def summary(self, odometry_ok: bool, gcs_ok: bool) -> str:
         return (f"frame->setpoint p50 {_recent_median_ms(self.latencies_s)} "
-                f"(perception {_recent_median_ms(self.perception_s)})  odometry {'ok' if odometry_ok else 'FAIL'}  "
+                f"(perception {_recent_median_ms(self.perception_s)}, data age p50 "
+                f"{_recent_median_ms(self.data_ages_s)} max {_recent_max_ms(self.data_ages_s)}, skipped "
+                f"{self.frames_skipped})  odometry {'ok' if odometry_ok else 'FAIL'}  "
                 f"gcs link {'ok' if gcs_ok else 'lost'}  manual {self.manual_controls}  "
                 f"routed {self.routed_to_gcs} to GCS / {self.routed_to_autopilot} to autopilot")
 
@@ -41,6 +51,8 @@ class Stats:
         if len(self.latencies_s) > limit:
             del self.latencies_s[:-keep]
             del self.perception_s[:-keep]
+        if len(self.data_ages_s) > limit:
+            del self.data_ages_s[:-keep]
 
 
 class ProgressLine:
