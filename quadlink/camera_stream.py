@@ -192,6 +192,7 @@ class CameraStreamClient:
         self._rx = memoryview(bytearray(1 << 18))
         self._pending: list[RgbdFrame] = []
         self.frames_received = 0
+        self.frames_skipped = 0
         self.errors = 0
 
     def _connect(self) -> bool:
@@ -218,8 +219,44 @@ class CameraStreamClient:
     def connected(self) -> bool:
         return self._sock is not None
 
-    def read(self, timeout_s: float) -> RgbdFrame | None:
-        """The next frame, or None if none arrived within ``timeout_s``."""
+    def read(self, timeout_s: float, newest: bool = False) -> RgbdFrame | None:
+        """The next frame, or None if none arrived within ``timeout_s``. ``newest``: the newest frame already
+        received (whatever else is waiting in the socket is read too), the older ones dropped and counted in
+        ``frames_skipped``: a consumer that fell behind processes the present, never a backlog."""
+        frame = self._read_next(timeout_s)
+        if frame is None or not newest:
+            return frame
+        self._drain()
+        if self._pending:
+            self.frames_skipped += len(self._pending)
+            self.frames_received += len(self._pending)
+            frame = self._pending[-1]
+            self._pending.clear()
+        return frame
+
+    def _drain(self) -> None:
+        """Decode whatever the socket holds now, without waiting."""
+        sock = self._sock
+        if sock is None:
+            return
+        sock.settimeout(0.0)
+        try:
+            while True:
+                try:
+                    n = sock.recv_into(self._rx)
+                except (BlockingIOError, TimeoutError):
+                    return
+                if not n:
+                    self._disconnect("closed by the producer")
+                    return
+                self._pending.extend(self._decoder.feed(self._rx[:n]))
+        except ProtocolError as exc:
+            self.errors += 1
+            self._disconnect(str(exc))
+        except OSError as exc:
+            self._disconnect(str(exc))
+
+    def _read_next(self, timeout_s: float) -> RgbdFrame | None:
         deadline = self._clock() + timeout_s
         while not self._pending:
             remaining = deadline - self._clock()

@@ -40,7 +40,7 @@ class StreamCamera:
                 time.sleep(timeout_s)
                 return None
             self._next_try_s = now + self._retry_s
-        frame = self._client.read(timeout_s)
+        frame = self._client.read(timeout_s, newest=True)   # a backlog (a starved companion) is skipped, not flown
         if frame is None:
             return None
         return dataclasses.replace(frame, R_qc=self.R_qc, p_qc_m=self.p_qc_m)

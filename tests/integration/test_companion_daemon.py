@@ -169,7 +169,9 @@ class Rig:
         gcs_link = open_mavlink(cfg.links.gcs, 1, 191)
         self.pipeline = FakePipeline()
         self.tlog_path = tmp_path / "companion.tlog"
-        self.daemon = Companion(cfg, ap_link, gcs_link, StreamCamera(f"tcp://127.0.0.1:{self.server.port}"),
+        # the vehicle's calibrated mount (the record carries none: issue 29)
+        mount = StreamCamera(f"tcp://127.0.0.1:{self.server.port}", R_qc=CameraConfig().R_qc_matrix)
+        self.daemon = Companion(cfg, ap_link, gcs_link, mount,
                                 lambda frame: self.pipeline, tlog=TlogWriter(self.tlog_path),
                                 frame_recorder=FrameRecordWriter(tmp_path / "frames.qlcf"), image_server=images)
         self.ap = FakeAutopilot(ap_link.port.getsockname()[1])

@@ -121,7 +121,7 @@ class LockstepRig:
         ap_link = open_mavlink(cfg.links.autopilot, 1, 191)
         gcs_link = open_mavlink(cfg.links.gcs, 1, 191)
         ap_port, gcs_port = ap_link.port.getsockname()[1], gcs_link.port.getsockname()[1]
-        camera = StreamCamera(f"tcp://127.0.0.1:{self.server.port}")
+        camera = StreamCamera(f"tcp://127.0.0.1:{self.server.port}", R_qc=CameraConfig().R_qc_matrix)
         self.links = join_lockstep(self.coordinator.url, ap_link, gcs_link, camera)
         assert camera.connected, "the camera stream is connected before the hello"
         deadline = time.monotonic() + 5.0

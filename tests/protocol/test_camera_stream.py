@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import struct
+import time
 
 import numpy as np
 import pytest
@@ -138,3 +139,23 @@ def test_server_client_acks_for_lockstep(rng: np.random.Generator) -> None:
 def test_client_url_must_be_tcp() -> None:
     with pytest.raises(LinkError):
         CameraStreamClient("udp://127.0.0.1:5762")
+
+
+def test_a_consumer_that_fell_behind_reads_the_newest_frame(rng: np.random.Generator) -> None:
+    """Issue 30: a starved companion processes the present, never a backlog; what it skipped is counted."""
+    server = CameraStreamServer("127.0.0.1", 0)
+    client = CameraStreamClient(f"tcp://127.0.0.1:{server.port}")
+    try:
+        assert client.read(0.2) is None
+        assert server.wait_for_client(2.0)
+        for seq in range(10, 15):
+            assert server.publish(make_frame(rng, seq=seq)) == 1
+        time.sleep(0.3)   # all five are in the socket now
+        got = client.read(2.0, newest=True)
+        assert got is not None and got.seq == 14 and client.frames_skipped == 4
+        assert server.publish(make_frame(rng, seq=15)) == 1
+        nxt = client.read(2.0, newest=True)
+        assert nxt is not None and nxt.seq == 15 and client.frames_skipped == 4
+    finally:
+        client.close()
+        server.close()
