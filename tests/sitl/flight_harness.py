@@ -28,6 +28,7 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
+from harness.cpu_share import CpuShare
 from harness.judge import ArenaGeometry, Clearance
 from quadlink.frames import euler_from_quat_wxyz
 from quadlink.mavlink import mavlink
@@ -106,7 +107,8 @@ class Flight:
     """A running stack and a ground station on the companion's endpoint. Use :func:`flight`."""
 
     def __init__(self, out_dir: Path, scenario: str, offset: int, lockstep: bool,
-                 companion_config: Path | None, sitl_duration_s: float, camera: str = "tcp://127.0.0.1:{port}") -> None:
+                 companion_config: Path | None, sitl_duration_s: float, camera: str = "tcp://127.0.0.1:{port}",
+                 shipped_timeouts: bool = False, cpu_share: CpuShare | None = None) -> None:
         from harness.demo.cli import Ports
         from harness.demo.orchestrator import ProcessSpec, Stack
         from quadlink.mavlink.connection import open_mavlink
@@ -141,8 +143,10 @@ class Flight:
             self.stack.start(ProcessSpec("sitl", tuple(sitl), ready_after_s=2.0))
             # as tests/test_companion_sitl.py: a loaded machine can stall the lock-step IMU stream longer than
             # the bridge's 0.5 s board-loss timeout; these flights are about the companion
-            # (likewise its odometry-loss timeout: a starved companion stalls the odometry stream)
-            (out_dir / "bridge_params.yaml").write_text("BRG_BOARD_LOSS_T: 3.0\nBRG_ODOM_LOSS_T: 2.0\n")
+            # (likewise its odometry-loss timeout: a starved companion stalls the odometry stream).
+            # ``shipped_timeouts``: the bridge's and the companion's own values, as a user flies them (issue 29)
+            relaxed = "" if shipped_timeouts else "BRG_BOARD_LOSS_T: 3.0\nBRG_ODOM_LOSS_T: 2.0\n"
+            (out_dir / "bridge_params.yaml").write_text(relaxed)
             _wait_tcp(p.mk1, self.stack.check, 120.0)
             _wait_tcp(p.camera, self.stack.check, 60.0)
             self.stack.start(ProcessSpec("bridge", ("bridge", "--mk-cmd", f"socket://127.0.0.1:{p.mk1}",
@@ -151,13 +155,17 @@ class Flight:
                                                     "--mavlink", f"udpout:127.0.0.1:{p.gcs_bridge}",
                                                     "--params", str(out_dir / "bridge_params.yaml")),
                                          ready_after_s=1.0))
+            if cpu_share is not None:
+                cpu_share.add(self.stack.running[-1].popen.pid)
             comp = ["companion", "--autopilot", f"udpin:127.0.0.1:{p.autopilot}",
                     "--gcs", f"udpin:127.0.0.1:{p.vehicle}", "--camera", camera.format(port=p.camera),
                     "--image-port", "0", "--tlog", str(out_dir / "companion.tlog")]
             if companion_config is None:
-                companion_config = companion_config_with(out_dir, **LOADED_MACHINE)
+                companion_config = companion_config_with(out_dir, **({} if shipped_timeouts else LOADED_MACHINE))
             comp += ["--config", str(companion_config)]
             self.stack.start(ProcessSpec("companion", tuple(comp), ready_after_s=1.0))
+            if cpu_share is not None:
+                cpu_share.add(self.stack.running[-1].popen.pid)
         except BaseException:
             self.close()
             raise
@@ -242,9 +250,13 @@ class Flight:
 @contextlib.contextmanager
 def flight(out_dir: Path, scenario: str = "paper-arena", offset: int = 4000, lockstep: bool = True,
            companion_config: Path | None = None, sitl_duration_s: float = 400.0,
-           camera: str = "tcp://127.0.0.1:{port}") -> Iterator[Flight]:
-    """A flight; ``camera``: the companion's camera URL, ``{port}`` the SITL's camera stream port."""
-    f = Flight(out_dir, scenario, offset, lockstep, companion_config, sitl_duration_s, camera)
+           camera: str = "tcp://127.0.0.1:{port}", shipped_timeouts: bool = False,
+           cpu_share: CpuShare | None = None) -> Iterator[Flight]:
+    """A flight; ``camera``: the companion's camera URL, ``{port}`` the SITL's camera stream port;
+    ``shipped_timeouts``: the failsafe timeouts as shipped (else the loaded-machine margins, and the test says why);
+    ``cpu_share``: the bridge and the companion run in this CPU share (harness.cpu_share)."""
+    f = Flight(out_dir, scenario, offset, lockstep, companion_config, sitl_duration_s, camera, shipped_timeouts,
+               cpu_share)
     try:
         yield f
     finally:

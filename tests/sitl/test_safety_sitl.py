@@ -280,7 +280,7 @@ def test_mavsdk_classic_offboard_into_a_wall_through_the_companion(tmp_path: Pat
 def test_operator_push_in_real_time(tmp_path: Path) -> None:
     """The push toward the south wall with the SITL paced in real time (not lock-step), on the shipped failsafe
     timeouts (no LOADED_MACHINE margins): safe, and it got there (a vehicle that never moved would be safe too)."""
-    with flight(tmp_path, offset=_offset(5), lockstep=False, companion_config=companion_config_with(tmp_path)) as f:
+    with flight(tmp_path, offset=_offset(5), lockstep=False, shipped_timeouts=True) as f:
         f.take_off()
         t0, p0 = f.t_s, f.p_arena.copy()
         f.run_for(30.0, lambda: f.manual(700))
