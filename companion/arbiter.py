@@ -56,12 +56,11 @@ from quadlink.frames import Rz, wrap_pi
 from quadlink.mavlink import mavlink
 from quadlink.mavlink.setpoint_masks import (
     BODY_FRAMES,
-    TM_ACCEL,
     TM_FORCE,
-    TM_POSITION,
-    TM_VELOCITY,
     TM_YAW,
     TM_YAW_RATE,
+    PartialTypeMask,
+    mask_groups,
 )
 from quadlink.trajectory import TrajectorySample
 
@@ -165,11 +164,11 @@ def parse_setpoint(sp: Setpoint, pose: Pose) -> ScriptTarget | Refusal:
         return Refusal(f"setpoint frame {sp.frame} not supported (local or body NED)")
     if tm & TM_FORCE:
         return Refusal("force setpoints not supported (velocity, position or a trajectory)")
-    pos_given = (tm & TM_POSITION) == 0
-    vel_given = (tm & TM_VELOCITY) == 0
-    acc_given = (tm & TM_ACCEL) == 0
-    if any((tm & group) not in (0, group) for group in (TM_POSITION, TM_VELOCITY, TM_ACCEL)):
+    try:
+        groups = mask_groups(tm)
+    except PartialTypeMask:
         return Refusal(f"partial setpoint (type_mask {tm}): give all of x, y, z or none, likewise v and a")
+    pos_given, vel_given, acc_given = groups.position, groups.velocity, groups.acceleration
     if acc_given and (not vel_given or sp.frame not in LOCAL_FRAMES):
         return Refusal("acceleration setpoints only as a trajectory: with velocity, in a local frame")
     if acc_given and not _finite(*sp.acceleration_m_s2):

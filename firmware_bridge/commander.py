@@ -19,6 +19,7 @@ from firmware_bridge.modes import HOLD_MODES, FlightMode, TakeoffPhase, decode_s
 from firmware_bridge.offboard import IMU_PREDICTION_HORIZON_S, OffboardService
 from firmware_bridge.state import BoardStatusLike, BridgeState, Outbound
 from quadlink.mavlink import mavlink
+from quadlink.mavlink.command_params import COMMAND_PARAMS, CommandParamError, read_params
 from quadlink.mk.flags import BoardFlightState
 
 log = logging.getLogger("firmware_bridge.autopilot")
@@ -218,12 +219,16 @@ class CommanderService:
         s = self.state
         ACCEPTED, DENIED = mavlink.MAV_RESULT_ACCEPTED, mavlink.MAV_RESULT_DENIED
         TEMP = mavlink.MAV_RESULT_TEMPORARILY_REJECTED
-        if command == mavlink.MAV_CMD_COMPONENT_ARM_DISARM:
-            # param1 must be exactly 0 or 1: NaN is MAVLink's "unused", never "disarm" (issue 16)
-            if p[0] not in (0.0, 1.0):
+        if command in COMMAND_PARAMS:
+            # the one table of MAVLink's NaN = "unused" per command (quadlink.mavlink.command_params): ARM_DISARM's
+            # param1 must be exactly 0 or 1, NaN is never "disarm" (issue 16)
+            try:
+                p = read_params(command, p)
+            except CommandParamError as exc:
                 s.counters["commands_refused"] += 1
-                s.event(mavlink.MAV_SEVERITY_WARNING, f"Arm/disarm refused: param1 {p[0]!r}")
+                s.event(mavlink.MAV_SEVERITY_WARNING, f"Command {command} refused: {exc}")
                 return DENIED, []
+        if command == mavlink.MAV_CMD_COMPONENT_ARM_DISARM:
             force = p[1] == FORCE_ARM_DISARM_MAGIC  # NaN (MAVSDK's unused) is not the magic number
             if p[0] == 1.0:
                 if not s.board_link_ok:

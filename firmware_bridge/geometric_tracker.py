@@ -84,12 +84,11 @@ from quadlink.mavlink.param_service import ParamSpec
 from quadlink.mavlink.setpoint_masks import (
     BODY_FRAMES,
     LOCAL_FRAMES,
-    TM_ACCEL,
-    TM_FORCE,
     TM_POSITION,
-    TM_VELOCITY,
     TM_YAW,
     TM_YAW_RATE,
+    PartialTypeMask,
+    mask_groups,
 )
 
 E3 = np.array([0.0, 0.0, 1.0])
@@ -430,14 +429,6 @@ class PositionTargetLike(Protocol):
     yaw_rate: float
 
 
-def _group(tm: int, bits: int, name: str) -> bool:
-    """True if the field group is used (all its bits clear); partial groups are rejected as PX4 does not fly them."""
-    used = tm & bits
-    if used not in (0, bits):
-        raise SetpointRejected(f"type_mask {tm}: {name} must be used on all three axes or none")
-    return used == 0
-
-
 def decode_trajectory_setpoint(msg: PositionTargetLike, yaw_rad: float) -> TrajectoryTarget:
     """SET_POSITION_TARGET_LOCAL_NED with velocity (+ acceleration, + position) bits -> a local-NED target.
 
@@ -451,12 +442,15 @@ def decode_trajectory_setpoint(msg: PositionTargetLike, yaw_rad: float) -> Traje
     frame = int(msg.coordinate_frame)
     if frame not in BODY_FRAMES + LOCAL_FRAMES:
         raise SetpointRejected(f"frame {frame}: local NED/FRD or body NED/FRD only")
-    if tm & TM_FORCE:
+    try:
+        groups = mask_groups(tm)
+    except PartialTypeMask as exc:   # PX4 does not fly a partial group either
+        raise SetpointRejected(str(exc)) from exc
+    if groups.force:
         raise SetpointRejected(f"type_mask {tm}: force setpoints are not supported")
-    if not _group(tm, TM_VELOCITY, "velocity"):
+    if not groups.velocity:
         raise SetpointRejected(f"type_mask {tm}: the tracker needs a velocity")
-    has_accel = _group(tm, TM_ACCEL, "acceleration")
-    has_pos = _group(tm, TM_POSITION, "position")
+    has_accel, has_pos = groups.acceleration, groups.position
     if has_pos and frame != mavlink.MAV_FRAME_LOCAL_NED:
         raise SetpointRejected(f"frame {frame}: positions only in MAV_FRAME_LOCAL_NED")
     v = np.array([msg.vx, msg.vy, msg.vz], dtype=float)

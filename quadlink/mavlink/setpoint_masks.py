@@ -6,6 +6,8 @@ dialect's enum entries; the bridge, the companion's arbiter and the trajectory t
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 from quadlink.mavlink import mavlink
 
 TM_POSITION = (mavlink.POSITION_TARGET_TYPEMASK_X_IGNORE | mavlink.POSITION_TARGET_TYPEMASK_Y_IGNORE
@@ -30,3 +32,32 @@ LOCAL_FRAMES = (mavlink.MAV_FRAME_LOCAL_NED, mavlink.MAV_FRAME_LOCAL_OFFSET_NED,
 ATM_YAW_RATE = mavlink.ATTITUDE_TARGET_TYPEMASK_BODY_YAW_RATE_IGNORE
 ATM_THRUST = mavlink.ATTITUDE_TARGET_TYPEMASK_THROTTLE_IGNORE
 ATM_ATTITUDE = mavlink.ATTITUDE_TARGET_TYPEMASK_ATTITUDE_IGNORE
+
+
+class PartialTypeMask(ValueError):
+    """A field group (position, velocity, acceleration) used on some axes only: PX4 flies none of these."""
+
+
+@dataclass(frozen=True)
+class MaskGroups:
+    """Which field groups a POSITION_TARGET_TYPEMASK uses (a group is used when all its ignore bits are clear)."""
+
+    position: bool
+    velocity: bool
+    acceleration: bool
+    force: bool      # the acceleration fields are a force (no one here flies it)
+    yaw: bool
+    yaw_rate: bool
+
+
+def mask_groups(type_mask: int) -> MaskGroups:
+    """The groups ``type_mask`` uses; :class:`PartialTypeMask` if a three-axis group is used on some axes only.
+    The one reading of the rule for the bridge's tracker and the companion's arbiter."""
+    tm = int(type_mask)
+    used = {}
+    for name, bits in (("position", TM_POSITION), ("velocity", TM_VELOCITY), ("acceleration", TM_ACCEL)):
+        if tm & bits not in (0, bits):
+            raise PartialTypeMask(f"type_mask {tm}: {name} must be used on all three axes or none")
+        used[name] = tm & bits == 0
+    return MaskGroups(used["position"], used["velocity"], used["acceleration"], bool(tm & TM_FORCE),
+                      not tm & TM_YAW, not tm & TM_YAW_RATE)
