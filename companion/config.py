@@ -14,6 +14,7 @@ from companion.modes import ModeParams
 from companion.pan_scan import PanScanParams
 from companion.reference_params import ReferenceParams
 from quadlink.config import find_config, load_config
+from quadlink.ids import COMPANION_COMPONENT_ID
 from quadlink.mavlink.security import SecurityConfig
 
 
@@ -39,7 +40,7 @@ class IdentityConfig:
     """MAVLink identity: the companion uses the autopilot's system id and MAV_COMP_ID_ONBOARD_COMPUTER."""
 
     system_id: int = 1  # used until the autopilot's HEARTBEAT tells the real one
-    component_id: int = 191
+    component_id: int = COMPANION_COMPONENT_ID
     autopilot_component_id: int = 1
 
 

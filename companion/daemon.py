@@ -107,6 +107,7 @@ from companion.stats import PROGRESS_EVERY_S, ProgressLine, Stats
 from companion.timesync import AutopilotTime, TimeSync
 from companion.trajectory_follow import feed_forward_after_safety
 from companion.vehicle_state import VehicleState
+from perception.pipeline import PerceptionOutput
 from quadlink.camera import RgbdFrame
 from quadlink.lockstep import CountedMavlink, LockstepEnded, LockstepError, Step, wait_for_units
 from quadlink.mavlink import mavlink
@@ -481,7 +482,7 @@ class Companion:
                              self.ref_params.floor_margin_m, extra_radius_m)
         return None if below is None else below.refusal()
 
-    def _clearing_command(self, out: Any | None) -> tuple[NDArray[np.float64], float] | None:
+    def _clearing_command(self, out: PerceptionOutput | None) -> tuple[NDArray[np.float64], float] | None:
         """While a failsafe landing moves clear of an object below (companion.modes), the command that does it
         (velocity in H, yaw rate): the way off is chosen once and kept in the odometry's world; the vehicle turns
         its camera to it first and moves only while it looks that way (in HOLD nothing pan-scans, and a way the
@@ -586,7 +587,7 @@ class Companion:
                                     self.modes.gcs_ok, self._camera_fresh()))
         self.stats.feedback += 1
 
-    def _publish_image(self, frame: RgbdFrame, out: Any, ref: ReferenceOutput) -> None:
+    def _publish_image(self, frame: RgbdFrame, out: PerceptionOutput, ref: ReferenceOutput) -> None:
         if self.image_server is None or self.image_server.client_count == 0:
             return
         meta = self.state.image_meta(frame, out, ref, self.modes.mode, self.scan_params)

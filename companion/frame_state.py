@@ -27,6 +27,7 @@ from companion.operator_input import OperatorInput
 from companion.pan_scan import PanScanParams, PanScanState, pan_scan
 from companion.reference import ReferenceOutput
 from companion.reference_params import ReferenceParams
+from perception.pipeline import PerceptionOutput
 from quadlink.camera import RgbdFrame
 from quadlink.operator_image import OperatorImageMeta
 
@@ -35,7 +36,7 @@ class FrameState:
     """The state between camera frames; ``height``: the height estimator's parameters."""
 
     def __init__(self, height: HeightParams) -> None:
-        self.last_output: Any | None = None          # perception's last output (perception.pipeline)
+        self.last_output: PerceptionOutput | None = None          # perception's last output (perception.pipeline)
         self.last_ref: ReferenceOutput | None = None
         self.odometry_ok = False
         self.reset_counter = 0                       # ODOMETRY's reset_counter: the estimate restarted
@@ -46,7 +47,7 @@ class FrameState:
         self.avoidance_points_h_m: NDArray[np.float64] | None = None   # the avoidance's points at the last frame
         self._scan_t0_s: float | None = None
 
-    def on_odometry(self, out: Any | None, first_frame: bool) -> None:
+    def on_odometry(self, out: PerceptionOutput | None, first_frame: bool) -> None:
         """Perception's output for a frame (None: it failed on it): the odometry's health; good again after a
         failure (not on the first frame), the estimate has restarted: the reset counter tells the autopilot."""
         ok = out is not None and bool(out.odometry_ok)
@@ -75,7 +76,7 @@ class FrameState:
         return pan_scan(params, stamp_s - self._scan_t0_s)
 
     # ------------------------------------------------------------------ what is read between frames
-    def position_m(self, out: Any) -> NDArray[np.float64]:
+    def position_m(self, out: PerceptionOutput) -> NDArray[np.float64]:
         """The odometry's position (local NED from the take-off pose) with the height held to the floor
         (:mod:`companion.height`): what the arbiter, the autopilot's ODOMETRY and the ground station get."""
         p = np.array(out.position_m, dtype=float)
@@ -102,13 +103,14 @@ class FrameState:
                                       height_verified=self.height.verified(stamp_s))
         return self.last_ref
 
-    def odometry_message(self, stamp_s: float, out: Any) -> Any:
+    def odometry_message(self, stamp_s: float, out: PerceptionOutput) -> Any:
         """ODOMETRY at ``stamp_s`` for perception's output ``out`` (:func:`companion.messages.odometry_message`)."""
         return msgs.odometry_message(stamp_s, self.position_m(out), out.roll_rad, out.pitch_rad, out.yaw_rad,
                                      out.v_h_m_s, out.omega_q_rad_s, out.v_h_cov, bool(out.odometry_ok),
                                      float(out.odometry_fitness), self.reset_counter)
 
-    def telemetry(self, stamp_s: float, out: Any, min_distance_cm: int, max_distance_cm: int) -> Iterator[Any]:
+    def telemetry(self, stamp_s: float, out: PerceptionOutput, min_distance_cm: int,
+                  max_distance_cm: int) -> Iterator[Any]:
         """ATTITUDE, LOCAL_POSITION_NED and OBSTACLE_DISTANCE at ``stamp_s`` for the ground stations, one by one."""
         yield msgs.attitude_message(stamp_s, out.roll_rad, out.pitch_rad, out.yaw_rad, out.omega_q_rad_s)
         yield msgs.local_position_message(stamp_s, self.position_m(out), out.yaw_rad, out.v_h_m_s)
@@ -119,7 +121,7 @@ class FrameState:
         return feedback_message(stamp_s, self.last_output, self.last_ref, scan, self.R_qc, self.nearest,
                                 self.gyro_q_rad_s, mode, self.odometry_ok, gcs_ok, obstacles_fresh)
 
-    def image_meta(self, frame: RgbdFrame, out: Any, ref: ReferenceOutput, mode: Mode,
+    def image_meta(self, frame: RgbdFrame, out: PerceptionOutput, ref: ReferenceOutput, mode: Mode,
                    scan_params: PanScanParams) -> OperatorImageMeta:
         """The operator image's metadata for ``frame`` (:func:`companion.frame_step.operator_image_meta`)."""
         return operator_image_meta(frame.stamp_s, out, ref, self.scan(mode, frame.stamp_s, scan_params), scan_params,

@@ -23,6 +23,7 @@ from companion.operator_input import OperatorInput, camera_yaw_rad
 from companion.pan_scan import PanScanParams, PanScanState
 from companion.reference import ReferenceOutput, reference_velocity
 from companion.reference_params import ReferenceParams
+from perception.pipeline import PerceptionOutput
 from quadlink.frames import R_hq, euler_yaw_rate_rad_s
 from quadlink.operator_image import (
     MAX_OBSTACLE_POINTS,
@@ -53,7 +54,7 @@ class HeightFrom(Enum):
     ODOMETRY = "odometry"
 
 
-def height_m(out: Any) -> float | None:
+def height_m(out: PerceptionOutput | None) -> float | None:
     """Height above the take-off pose from the odometry alone (its world starts on the ground, NED); the
     daemon holds it to the floor the camera sees (:class:`companion.height.HeightEstimator`)."""
     if out is None or not out.odometry_ok or out.position_m is None:
@@ -62,15 +63,15 @@ def height_m(out: Any) -> float | None:
     return -z if math.isfinite(z) else None
 
 
-def map_points_h_m(out: Any | None, params: ReferenceParams) -> NDArray[np.float64] | None:
+def map_points_h_m(out: PerceptionOutput | None, params: ReferenceParams) -> NDArray[np.float64] | None:
     """Perception's map points as the avoidance takes them: each moved toward the vehicle by the odometry's drift
     since it was seen (``params.map_drift_m_s``, :func:`companion.obstacle_points.drifted_toward`)."""
     if out is None:
         return None
-    return drifted_toward(out.obstacle_points_h_m, getattr(out, "obstacle_ages_s", None), params.map_drift_m_s)
+    return drifted_toward(out.obstacle_points_h_m, out.obstacle_ages_s, params.map_drift_m_s)
 
 
-def frame_step(out: Any | None, op: OperatorInput, R_qc: NDArray[np.float64], scan: PanScanState,
+def frame_step(out: PerceptionOutput | None, op: OperatorInput, R_qc: NDArray[np.float64], scan: PanScanState,
                params: ReferenceParams, operator_enabled: bool, allow_unknown_when_fresh: bool,
                v_command_h_m_s: NDArray[np.float64] | None = None, command_yaw_rate_rad_s: float = 0.0,
                height_above_takeoff_m: float | None | HeightFrom = HeightFrom.ODOMETRY,
@@ -101,8 +102,8 @@ def frame_step(out: Any | None, op: OperatorInput, R_qc: NDArray[np.float64], sc
     return FrameStep(ref, nearest_obstacle(avoid, params), avoid)
 
 
-def fallback_step(last_out: Any | None, op: OperatorInput, R_qc: NDArray[np.float64], params: ReferenceParams,
-                  operator_enabled: bool,
+def fallback_step(last_out: PerceptionOutput | None, op: OperatorInput, R_qc: NDArray[np.float64],
+                  params: ReferenceParams, operator_enabled: bool,
                   height_above_takeoff_m: float | None | HeightFrom = HeightFrom.ODOMETRY,
                   height_verified: bool = True) -> ReferenceOutput:
     """No camera: obstacle data stale -> no motion toward unknown (= all) sectors, repulsion from the last
@@ -127,7 +128,7 @@ def setpoint_velocity(ref: ReferenceOutput, in_control: bool) -> tuple[NDArray[n
     return np.zeros(3), 0.0
 
 
-def feedback_message(stamp_s: float, out: Any | None, ref: ReferenceOutput | None, scan: PanScanState,
+def feedback_message(stamp_s: float, out: PerceptionOutput | None, ref: ReferenceOutput | None, scan: PanScanState,
                      R_qc: NDArray[np.float64], nearest: tuple[NDArray[np.float64], float] | None,
                      gyro_q_rad_s: NDArray[np.float64], mode: Mode, odometry_ok: bool, gcs_ok: bool,
                      obstacles_fresh: bool) -> Any:
@@ -165,7 +166,7 @@ def obstacle_points_c_m(points_h_m: NDArray[np.float64] | None, roll_rad: float,
     return (p_q - np.asarray(p_qc_m, dtype=float).reshape(3)) @ np.asarray(R_qc, dtype=float)
 
 
-def operator_image_meta(stamp_s: float, out: Any, ref: ReferenceOutput, scan: PanScanState,
+def operator_image_meta(stamp_s: float, out: PerceptionOutput, ref: ReferenceOutput, scan: PanScanState,
                         scan_params: PanScanParams, gyro_q_rad_s: NDArray[np.float64], mode: Mode,
                         avoidance_points_h_m: NDArray[np.float64] | None, R_qc: NDArray[np.float64],
                         p_qc_m: NDArray[np.float64]) -> OperatorImageMeta:

@@ -13,6 +13,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from companion.config import CompanionConfig
+from perception.pipeline import PerceptionOutput
 from quadlink.camera import RgbdFrame
 from quadlink.errors import QuadlinkError
 from quadlink.operator_image import OperatorImageMeta
@@ -33,7 +34,7 @@ class Pipeline(Protocol):
 
     def on_imu(self, stamp_s: float, gyro_q_rad_s: NDArray[np.float64], accel_q_m_s2: NDArray[np.float64]) -> None: ...
 
-    def on_frame(self, frame: RgbdFrame) -> Any: ...
+    def on_frame(self, frame: RgbdFrame) -> PerceptionOutput: ...
 
 
 class ImageSink(Protocol):

@@ -17,6 +17,7 @@ from numpy.typing import NDArray
 from companion.guard import ErrorCounter
 from companion.interfaces import Pipeline, PipelineFactory
 from companion.stats import Stats
+from perception.pipeline import PerceptionOutput
 from quadlink.camera import RgbdFrame
 from quadlink.errors import QuadlinkError
 
@@ -33,7 +34,7 @@ class PerceptionStage:
         self.pipeline: Pipeline | None = None
         self._intrinsics: Any = None
 
-    def on_frame(self, frame: RgbdFrame) -> Any | None:
+    def on_frame(self, frame: RgbdFrame) -> PerceptionOutput | None:
         """The pipeline's output for ``frame``, or None (refused or failed)."""
         if self.pipeline is None:
             self.pipeline = self._factory(frame)

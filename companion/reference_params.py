@@ -11,6 +11,7 @@ from dataclasses import dataclass
 from typing import Literal
 
 from companion.vertical_limits import VerticalParams
+from quadlink.safety import SAFE_DISTANCE_M
 
 
 @dataclass(frozen=True)
@@ -70,7 +71,7 @@ class ReferenceParams:
     repulsion_gain_m3_s: float = 0.13
     influence_distance_m: float = 0.9
     max_repulsion_m_s: float = 1.0
-    safe_distance_m: float = 0.45
+    safe_distance_m: float = SAFE_DISTANCE_M
     approach_gain_per_s: float = 1.2
     max_speed_m_s: float = 1.5
     unknown_sector_guard_rad: float = math.radians(15.0)

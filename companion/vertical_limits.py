@@ -29,6 +29,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from quadlink.safety import SAFE_DISTANCE_M
+
 
 @dataclass(frozen=True)
 class VerticalParams:
@@ -41,7 +43,7 @@ class VerticalParams:
 
     max_height_m: float | None = None
     room_height_m: float | None = None
-    safe_distance_m: float = 0.45
+    safe_distance_m: float = SAFE_DISTANCE_M
     floor_min_height_m: float = 0.3
     gain_per_s: float = 1.2
     stopping_time_s: float = 0.8

@@ -21,14 +21,12 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from quadlink.safety import CLEARANCE_BOUND_M
 from sim_sitl.config import PhysicsConfig, ScenarioConfig, load_scenario
 from sim_sitl.scene import build_scene
 
 Array = NDArray[np.float64]
 
-#: the promise (DESIGN.md "Motion authority and safety"): the centre of mass never comes closer than this to a
-#: non-floor surface; never widened
-CLEARANCE_BOUND_M = 0.40
 
 
 # ---------------------------------------------------------------- geometry

@@ -20,12 +20,13 @@ from numpy.typing import NDArray
 
 from quadlink.errors import LinkError
 from quadlink.frames import quat_wxyz_from_R
+from quadlink.ids import TRUTH_COMPONENT_ID, TRUTH_SENSOR_ANY_SURFACE, TRUTH_SENSOR_NON_FLOOR, TRUTH_SYSTEM_ID
 from quadlink.mavlink import mavlink
 
 log = logging.getLogger(__name__)
 
-TRUTH_SYSID = 250
-TRUTH_COMPID = 1
+TRUTH_SYSID = TRUTH_SYSTEM_ID
+TRUTH_COMPID = TRUTH_COMPONENT_ID
 DISTANCE_MAX_CM = 2000
 
 
@@ -50,7 +51,7 @@ class TruthEncoder:
         w = [float(x) for x in np.asarray(omega_q_rad_s, dtype=float)]
         out.append(mavlink.MAVLink_attitude_quaternion_message(ms, q[0], q[1], q[2], q[3], w[0], w[1], w[2],
                                                                [0.0, 0.0, 0.0, 0.0]).pack(self.mav))
-        for sensor_id, d_m in ((0, nearest_any_m), (1, nearest_obstacle_m)):
+        for sensor_id, d_m in ((TRUTH_SENSOR_ANY_SURFACE, nearest_any_m), (TRUTH_SENSOR_NON_FLOOR, nearest_obstacle_m)):
             d_cm = DISTANCE_MAX_CM + 1 if not math.isfinite(d_m) else min(int(round(d_m * 100.0)), DISTANCE_MAX_CM + 1)
             out.append(mavlink.MAVLink_distance_sensor_message(
                 ms, 0, DISTANCE_MAX_CM, d_cm, mavlink.MAV_DISTANCE_SENSOR_UNKNOWN, sensor_id,

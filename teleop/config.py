@@ -12,6 +12,7 @@ from pathlib import Path
 from typing import Literal
 
 from quadlink.config import find_config, load_config
+from quadlink.ids import COMPANION_COMPONENT_ID, GROUND_COMPONENT_ID
 from quadlink.mavlink import mavlink
 
 Vec3Cfg = tuple[float, float, float]
@@ -124,8 +125,8 @@ class CommandsConfig:
 
     autopilot_system: int = 1
     autopilot_component: int = 1
-    companion_component: int = 191
-    command_component: int = 191
+    companion_component: int = COMPANION_COMPONENT_ID
+    command_component: int = COMPANION_COMPONENT_ID
     pan_scan_param: str = "PANSCAN_EN"
     takeoff_altitude_m: float = 1.0
     ack_timeout_s: float = 1.0
@@ -157,7 +158,7 @@ class NetworkConfig:
     http_host: str = "127.0.0.1"
     http_port: int = 8080
     source_system: int = 255
-    source_component: int = 190
+    source_component: int = GROUND_COMPONENT_ID
     heartbeat_timeout_s: float = 2.0
     signing_key_file: str | None = None   # MAVLink 2 signing key shared with the vehicle (quadlink keygen FILE)
     signing_link_id: int = 0              # signing stream id: distinct per ground station sharing a system id

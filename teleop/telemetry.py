@@ -8,6 +8,7 @@ import math
 from dataclasses import dataclass, replace
 from typing import Any
 
+from quadlink.ids import COMPANION_COMPONENT_ID
 from quadlink.mavlink import mavlink
 
 _MODE_PREFIX = "QUADLINK_TELEOP_MODE_"
@@ -65,7 +66,7 @@ def _finite(x: float, default: float = 0.0) -> float:
 
 
 def apply_message(tel: Telemetry, msg: Any, t_s: float, autopilot: tuple[int, int] = (1, 1),
-                  companion_component: int = 191) -> Telemetry:
+                  companion_component: int = COMPANION_COMPONENT_ID) -> Telemetry:
     """The snapshot after ``msg`` (a pymavlink message) arrived at ``t_s``."""
     mtype = msg.get_type()
     src = (msg.get_srcSystem(), msg.get_srcComponent())

@@ -48,6 +48,7 @@ import click
 import yaml
 
 from quadlink.errors import ConfigError, QuadlinkError
+from quadlink.ids import COMPANION_COMPONENT_ID, GROUND_COMPONENT_ID, GROUND_SYSTEM_ID
 from quadlink.lockstep import DEFAULT_INPUT_TIMEOUT_S, CountedMavlink, LockstepClient, LockstepError, wait_for_units
 from quadlink.mavlink import mavlink
 from quadlink.px4_modes import Px4MainMode, encode_custom_mode
@@ -55,7 +56,7 @@ from quadlink.px4_modes import Px4MainMode, encode_custom_mode
 log = logging.getLogger("harness.campaign.offboard")
 
 SETPOINT_PERIOD_S = 0.05  # MAVSDK streams offboard setpoints at 20 Hz
-COMPANION_COMPONENT = 191
+COMPANION_COMPONENT = COMPANION_COMPONENT_ID
 VEHICLE_SYSTEM = 1
 HEARTBEAT_PERIOD_S = 1.0
 LOCKSTEP_NAME = "operator"
@@ -285,7 +286,7 @@ def main(vehicle: str, plan_path: Path, wall_timeout: float, lockstep_url: str |
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname).1s %(name)s: %(message)s")
     try:
         plan = load_plan(plan_path)
-        conn = open_mavlink(vehicle, source_system=255, source_component=190)
+        conn = open_mavlink(vehicle, source_system=GROUND_SYSTEM_ID, source_component=GROUND_COMPONENT_ID)
     except QuadlinkError as exc:
         click.echo(f"offboard_client: error: {exc}", err=True)
         sys.exit(2)

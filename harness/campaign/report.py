@@ -17,10 +17,11 @@ from typing import Any
 
 import numpy as np
 
+from harness.campaign import manoeuvres
 from harness.campaign.runner import CampaignOptions, FlightResult
+from quadlink.safety import CLEARANCE_BOUND_M, SAFE_DISTANCE_M
 
-TARGET_M = 0.40
-SAFE_DISTANCE_M = 0.45
+TARGET_M = CLEARANCE_BOUND_M
 WORST_N = 5
 
 
@@ -65,6 +66,7 @@ def summarize(results: list[FlightResult], options: CampaignOptions, wall_s: flo
     gaps = [row for row in flown if row["setpoint_gaps_over_100ms"] is not None]
     sim_s = float(np.sum(_finite(flown, "sim_duration_s")))
     worst = sorted(flown, key=lambda row: row["min_nonfloor_distance_m"])[:WORST_N]
+    by_manoeuvre = manoeuvres.table([m for r in results for m in manoeuvres.flight_manoeuvres(Path(r.folder), r.index)])
     return {
         "options": {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(options).items()},
         "flights": rows,
@@ -88,6 +90,8 @@ def summarize(results: list[FlightResult], options: CampaignOptions, wall_s: flo
             "worst": [{"index": w["index"], "min_nonfloor_distance_m": w["min_nonfloor_distance_m"],
                        "surface": w["closest_surface"], "layout": w["layout"], "operator": w["operator"],
                        "replay": w["replay"]} for w in worst],
+            # issue 29: by manoeuvre x direction of motion relative to the camera (an unseen flank is a row)
+            "by_manoeuvre_and_direction": by_manoeuvre,
         },
     }
 
@@ -159,4 +163,7 @@ def summary_text(campaign: dict[str, Any]) -> str:
     for w in s["worst"]:
         lines.append(f"  flight {w['index']:>4}: {w['min_nonfloor_distance_m']:.3f} m ({w['surface']}, {w['layout']}, "
                      f"{w['operator']})  {w['replay']}")
+    if s.get("by_manoeuvre_and_direction"):
+        lines += ["", "clearance by manoeuvre x direction of motion relative to the camera:",
+                  manoeuvres.table_text(s["by_manoeuvre_and_direction"])]
     return "\n".join(lines)

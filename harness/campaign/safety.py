@@ -17,6 +17,7 @@ from numpy.typing import NDArray
 
 from harness.demo.report import FlightLog
 from harness.judge import ArenaGeometry, judge
+from quadlink.ids import TRUTH_SENSOR_NON_FLOOR
 from quadlink.mavlink.tlog import read_tlog
 from sim_sitl.config import PhysicsConfig, ScenarioConfig
 
@@ -43,7 +44,7 @@ def read_truth(path: Path) -> TruthSeries:
         kind = m.get_type()
         if kind == "LOCAL_POSITION_NED":
             pos.append([m.time_boot_ms / 1e3, m.x, m.y, m.z])
-        elif kind == "DISTANCE_SENSOR" and m.id == 1:
+        elif kind == "DISTANCE_SENSOR" and m.id == TRUTH_SENSOR_NON_FLOOR:
             obs.append([m.time_boot_ms / 1e3, m.current_distance / 100.0])
     P = np.asarray(pos, dtype=float).reshape(-1, 4)
     O = np.asarray(obs, dtype=float).reshape(-1, 2)

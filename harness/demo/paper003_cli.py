@@ -53,17 +53,18 @@ from harness.demo.paper003 import (
 from harness.trajectory_cli import load_trajectory_file, setpoint_fields
 from quadlink.errors import ConfigError
 from quadlink.frames import Rz
+from quadlink.ids import COMPANION_COMPONENT_ID, GROUND_COMPONENT_ID
 from quadlink.mavlink import mavlink
 from quadlink.trajectory.minsnap import MinSnapTrajectory
 
 log = logging.getLogger("quadlink.paper003")
 
-COMPANION_COMPID = 191
-GCS_COMPID = 190
+COMPANION_COMPID = COMPANION_COMPONENT_ID
+GCS_COMPID = GROUND_COMPONENT_ID
 SETPOINT_RATE_HZ = 50.0
 FEEDBACK_CAMERA_FRESH = 8      # TELEOP_FEEDBACK flags bit3: obstacle data fresh (camera frames flow)
-MODE_TELEOP = 2
-MODE_HOLD = 3                  # TELEOP with no live source of motion (no script yet)
+MODE_TELEOP = mavlink.QUADLINK_TELEOP_MODE_TELEOP
+MODE_HOLD = mavlink.QUADLINK_TELEOP_MODE_HOLD                  # TELEOP with no live source of motion (no script yet)
 TAKEOFF_HEIGHT_M = 1.0
 #: the take-off has handed over once the companion is in TELEOP/HOLD with the vehicle off the ground; the setpoints
 #: then fly it to the experiment's height. Not the take-off's 1 m: a take-off that ends short (campaign hover

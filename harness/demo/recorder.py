@@ -12,6 +12,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from quadlink.ids import GROUND_COMPONENT_ID, GROUND_SYSTEM_ID, TRUTH_SENSOR_ANY_SURFACE, TRUTH_SENSOR_NON_FLOOR
 from quadlink.mavlink import mavlink
 from quadlink.mavlink.connection import open_mavlink
 from quadlink.mavlink.tlog import TlogWriter
@@ -41,7 +42,7 @@ class Recorder:
         self._writers: list[TlogWriter] = []
 
     def record(self, name: str, url: str, path: Path, is_truth: bool = False) -> None:
-        conn = open_mavlink(url, source_system=255, source_component=190)
+        conn = open_mavlink(url, source_system=GROUND_SYSTEM_ID, source_component=GROUND_COMPONENT_ID)
         writer = TlogWriter(path)
         self._writers.append(writer)
         self.counts[name] = 0
@@ -81,9 +82,9 @@ class Recorder:
             t.position_ned_m = (msg.x, msg.y, msg.z)
             t.velocity_ned_m_s = (msg.vx, msg.vy, msg.vz)
         elif kind == "DISTANCE_SENSOR":
-            if msg.id == 0:
+            if msg.id == TRUTH_SENSOR_ANY_SURFACE:
                 t.nearest_m = msg.current_distance / 100.0
-            elif msg.id == 1:
+            elif msg.id == TRUTH_SENSOR_NON_FLOOR:
                 t.nearest_obstacle_m = msg.current_distance / 100.0
 
     def stop(self) -> None:

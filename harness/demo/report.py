@@ -23,10 +23,11 @@ from harness.demo import metrics
 from harness.judge import CLEARANCE_BOUND_M, ArenaGeometry, judge
 from quadlink.errors import ConfigError
 from quadlink.frames import euler_from_quat_wxyz
+from quadlink.ids import TRUTH_SENSOR_ANY_SURFACE, TRUTH_SENSOR_NON_FLOOR
 from quadlink.mavlink import mavlink
 from quadlink.mavlink.tlog import read_tlog
+from quadlink.safety import SAFE_DISTANCE_M
 
-SAFE_DISTANCE_M = 0.45
 # configs/companion.yaml reference.influence_distance_m: beyond it the obstacle estimate drives nothing (eq. (7)'s
 # potential is zero); a flight's own companion.yaml, when its folder has one, overrides both
 INFLUENCE_DISTANCE_M = 0.9
@@ -87,8 +88,9 @@ def load_flight(out_dir: Path) -> FlightLog:
                 pos.append([m.time_boot_ms / 1e3, m.x, m.y, m.z, m.vx, m.vy, m.vz])
             elif kind == "ATTITUDE_QUATERNION":
                 att.append([m.time_boot_ms / 1e3, euler_from_quat_wxyz([m.q1, m.q2, m.q3, m.q4])[2]])
-            elif kind == "DISTANCE_SENSOR" and m.id in (0, 1):
-                (d0 if m.id == 0 else d1).append([m.time_boot_ms / 1e3, m.current_distance / 100.0])
+            elif kind == "DISTANCE_SENSOR" and m.id in (TRUTH_SENSOR_ANY_SURFACE, TRUTH_SENSOR_NON_FLOOR):
+                d = d0 if m.id == TRUTH_SENSOR_ANY_SURFACE else d1
+                d.append([m.time_boot_ms / 1e3, m.current_distance / 100.0])
         P, A = _arr(pos, 7), _arr(att, 2)
         flight.t_truth, flight.p_ned, flight.v_ned = P[:, 0], P[:, 1:4], P[:, 4:7]
         flight.t_att, flight.yaw_true = A[:, 0], np.unwrap(A[:, 1])

@@ -31,16 +31,17 @@ from numpy.typing import NDArray
 from harness.cpu_share import CpuShare
 from harness.judge import ArenaGeometry, Clearance
 from quadlink.frames import euler_from_quat_wxyz
+from quadlink.ids import COMPANION_COMPONENT_ID, GROUND_COMPONENT_ID, GROUND_SYSTEM_ID, TRUTH_SENSOR_NON_FLOOR
 from quadlink.mavlink import mavlink
 from quadlink.mavlink.statustext import StatusTextAssembler
 
-COMPANION_COMPID = 191
+COMPANION_COMPID = COMPANION_COMPONENT_ID
 # A process starved for 0.5 s on a loaded 2-core machine reads as a lost operator or ground station (wall
 # clock): these flights test the safety layer, not the link timeouts (the arbiter's are unit-tested).
 LOADED_MACHINE: dict[str, dict[str, object]] = {"modes": {"gcs_timeout_s": 2.0},
                                                 "arbiter": {"operator_timeout_s": 2.0, "script_timeout_s": 2.0}}
-MODE_TELEOP = 2
-MODE_HOLD = 3
+MODE_TELEOP = mavlink.QUADLINK_TELEOP_MODE_TELEOP
+MODE_HOLD = mavlink.QUADLINK_TELEOP_MODE_HOLD
 
 
 # ---------------------------------------------------------------- the flight
@@ -120,7 +121,7 @@ class Flight:
         self.lockstep = lockstep
         self.stack = Stack(out_dir / "logs")
         self.truth = open_mavlink(f"udpin:127.0.0.1:{p.truth}", 255, 0)
-        self.gcs = open_mavlink(f"udpout:127.0.0.1:{p.vehicle}", 255, 190)
+        self.gcs = open_mavlink(f"udpout:127.0.0.1:{p.vehicle}", GROUND_SYSTEM_ID, GROUND_COMPONENT_ID)
         self.log = FlightLog()
         self._statustexts = StatusTextAssembler()
         self.t_s = 0.0
@@ -184,7 +185,7 @@ class Flight:
                                                     self.sim_obstacle_m))
             elif kind == "ATTITUDE_QUATERNION":
                 self.yaw_rad = euler_from_quat_wxyz([m.q1, m.q2, m.q3, m.q4])[2]
-            elif kind == "DISTANCE_SENSOR" and m.id == 1:
+            elif kind == "DISTANCE_SENSOR" and m.id == TRUTH_SENSOR_NON_FLOOR:
                 self.sim_obstacle_m = m.current_distance / 100.0
         while (m := self.gcs.recv_msg()) is not None:
             kind = m.get_type()

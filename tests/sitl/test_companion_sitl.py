@@ -19,6 +19,7 @@ import numpy as np
 import pytest
 
 from quadlink.frames import euler_from_quat_wxyz, wrap_pi
+from quadlink.ids import TRUTH_SENSOR_NON_FLOOR
 from quadlink.mavlink import mavlink
 
 COLUMN_NED_M = np.array([0.3, 0.2])  # paper-arena column centre (arena frame)
@@ -104,7 +105,7 @@ def fly_push_toward_column(out_dir: Path, push_s: float, port_offset: int = 700)
                     rec.max_altitude_m = max(rec.max_altitude_m, -m.z)
                 elif kind == "ATTITUDE_QUATERNION":
                     state["yaw"] = euler_from_quat_wxyz([m.q1, m.q2, m.q3, m.q4])[2]
-                elif kind == "DISTANCE_SENSOR" and m.id == 1:
+                elif kind == "DISTANCE_SENSOR" and m.id == TRUTH_SENSOR_NON_FLOOR:
                     state["dist"] = m.current_distance / 100.0
                     if -state["pos"][2] > 0.3:  # flying
                         if state["dist"] < rec.min_obstacle_m:

@@ -147,7 +147,7 @@ def test_push_nearest_aims_the_direction_of_motion_at_the_nearest_obstacle() -> 
             found += 1
             assert m["target"] == "col"
             heading = math.radians(m["heading_deg"]) + m["turn_yaw_rate_rad_s"] * m["turn_s"]
-            direction = heading + MOTION_OFFSET_RAD
+            direction = heading + MOTION_OFFSET_RAD + math.radians(m["direction_deg"])
             want = math.pi / 2 + math.radians(m["approach_offset_deg"])  # east, plus the drawn angle
             assert math.cos(direction - want) == pytest.approx(1.0, abs=1e-4)
     assert found > 5
@@ -286,3 +286,57 @@ def test_campaign_draws_the_room_height_entry_error_per_flight() -> None:
     assert 0 < len(errors) - len(known) < 20 and all(abs(e) <= ROOM_HEIGHT_ENTRY_ERROR_M for e in known)
     assert max(known) - min(known) > ROOM_HEIGHT_ENTRY_ERROR_M   # spread over the range, not one value
     assert draw_flight(7, 3, 20.0).record["room_height_entry_error_m"] == errors[3]
+
+
+
+def test_sessions_fly_every_direction_relative_to_the_camera() -> None:
+    """Issue 29: scripts push along, diagonally, across and against the camera's axis; a haptic operator along it or
+    backing against it (eq. 2 allows nothing else); and a script's body velocity points where the plan says."""
+    from harness.campaign.sessions import MOTION_OFFSET_RAD, direction_label
+
+    seen: dict[str, set[str]] = {"haptic": set(), "offboard": set()}
+    for i in range(30):
+        for share in (0.0, 1.0):
+            d = draw_flight(11, i, 60.0, offboard_share=share)
+            for m in d.session.record["manoeuvres"]:
+                if m["kind"] in ("push_nearest", "slide_wall", "drive"):
+                    seen[d.session.kind].add(m["direction"])
+                    assert m["direction"] == direction_label(m["direction_deg"])
+            if d.session.kind == "offboard":
+                moving = [(st, seg) for st, seg in zip(
+                    [st for m in d.session.record["manoeuvres"] for st in m["steps"] if st[3] > 0],
+                    d.session.script["segments"]) if st[0] > 0]
+                for (_fwd, _, _, _, rel_deg), seg in moving:
+                    a = math.atan2(seg["right_m_s"], seg["forward_m_s"])
+                    assert math.cos(a - MOTION_OFFSET_RAD - math.radians(rel_deg)) == pytest.approx(1.0, abs=1e-3)
+    assert seen["offboard"] == {"along", "diagonal", "across", "against"}
+    assert seen["haptic"] == {"along", "against"}
+
+
+def test_the_report_tabulates_clearance_by_manoeuvre_and_direction(tmp_path: Path) -> None:
+    """Issue 29: each planned manoeuvre's window of the truth is judged; a weak direction shows as its own row."""
+    import json
+
+    import yaml
+
+    from harness.campaign.manoeuvres import flight_manoeuvres, table, table_text
+    from sim_sitl.scenario_gen import scenario_to_dict
+
+    s = ScenarioConfig(room=RoomConfig(size_m=(6.0, 6.0), height_m=2.5))
+    rows = []
+    for k, (near_along, near_across) in enumerate(((1.5, 0.35), (1.2, 0.6))):
+        folder = tmp_path / f"flight-{k:04d}"
+        folder.mkdir()
+        # 0..0.48 s: the along push ends near_along from the wall; 0.5..0.98 s: the across push comes to near_across
+        obstacle = list(np.linspace(2.0, near_along, 25)) + list(np.linspace(1.0, near_across, 25))
+        _truth_log(folder / "truth.tlog", [1.0] * 50, obstacle)
+        (folder / "scenario.yaml").write_text(yaml.safe_dump(scenario_to_dict(s)))
+        plan = [{"kind": "push_nearest", "direction": "along", "t_plan_s": 0.0, "steps": [[1, 0, 0, 0.48, 0.0]]},
+                {"kind": "push_nearest", "direction": "across", "t_plan_s": 0.5, "steps": [[1, 0, 0, 0.48, 90.0]]}]
+        (folder / "draws.json").write_text(json.dumps({"operator": {"manoeuvres": plan}}))
+        rows += flight_manoeuvres(folder, k)
+    got = {(r["manoeuvre"], r["direction"]): r for r in table(rows)}
+    assert got[("push_nearest", "along")]["min_clearance_m"] == pytest.approx(1.2, abs=0.01)
+    assert got[("push_nearest", "across")]["min_clearance_m"] == pytest.approx(0.35, abs=0.01)
+    assert got[("push_nearest", "across")]["worst_flight"] == 0 and got[("push_nearest", "across")]["count"] == 2
+    assert "across" in table_text(table(rows))
