@@ -49,7 +49,7 @@ def _fly_poses(world: World, camera: RgbdCamera, scenario: ScenarioConfig, rng: 
         R_ned_q = Rz(float(rng.uniform(-math.pi, math.pi))) @ R_hq(roll, pitch)
         world.reset_pose(np.array([start.position_m[0], start.position_m[1], -height_m]), R_ned_q)
         frame = camera.render(world.state, 0, 0.0)
-        obs = measure_floor(frame.depth_m, frame.intrinsics, frame.R_qc, frame.p_qc_m, roll, pitch)
+        obs = measure_floor(frame.depth_m, frame.intrinsics, camera.R_qc, camera.p_qc_m, roll, pitch)
         if obs is not None:
             errors_m.append(obs.height_m - height_m)
             assert obs.height_m == pytest.approx(height_m, abs=0.03), (start, height_m)
