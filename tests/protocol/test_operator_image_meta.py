@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 from typing import Any
@@ -114,11 +115,15 @@ def test_decode_rejects_a_non_dict() -> None:
 
 
 def _landing_output(points_h_m: np.ndarray, height_m: float) -> Any:
-    """The fields of PerceptionOutput that frame_step and the producer read, for a vehicle height_m up."""
-    from types import SimpleNamespace
+    """The producer's own output type (perception.pipeline.PerceptionOutput) for a vehicle height_m up, level, still;
+    no sectors (the map's points alone)."""
+    from perception.pipeline import PerceptionOutput
 
-    return SimpleNamespace(roll_rad=0.0, pitch_rad=0.0, yaw_rad=0.0, v_h_m_s=np.zeros(3), odometry_ok=True,
-                           position_m=np.array([0.0, 0.0, -height_m]), obstacle_points_h_m=points_h_m, sectors=None)
+    return PerceptionOutput(stamp_s=0.0, roll_rad=0.0, pitch_rad=0.0, yaw_rad=0.0, omega_q_rad_s=np.zeros(3),
+                            v_h_m_s=np.zeros(3), v_h_cov=np.eye(3) * 1e-4,
+                            position_m=np.array([0.0, 0.0, -height_m]), odometry_ok=True, odometry_fitness=1.0,
+                            obstacle_points_c_m=np.zeros((0, 3)), obstacle_points_h_m=points_h_m,
+                            sectors=None, nearest_obstacle_h_m=None, processing_time_s=0.0)  # type: ignore[arg-type]
 
 
 def _floor_h_m(height_m: float) -> np.ndarray:
@@ -161,8 +166,8 @@ def test_a_column_over_the_floor_is_the_one_obstacle_shown_where_it_is() -> None
     height = 0.5
     zs = np.linspace(-0.25, 0.25, 6)   # within the band about the vehicle's height
     column = np.column_stack([np.full(6, 0.7), np.full(6, 0.1), zs])
-    out = _landing_output(np.vstack([_floor_h_m(height), column]), height)
-    out.roll_rad, out.pitch_rad = 0.1, -0.05
+    out = dataclasses.replace(_landing_output(np.vstack([_floor_h_m(height), column]), height),
+                              roll_rad=0.1, pitch_rad=-0.05)
     R_qc = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]]) @ Rx(-0.3)   # tilted down
     p_qc = np.array([0.08, 0.0, 0.03])
     scan = pan_scan(PanScanParams(False, 0.6, 1.5), 0.0)

@@ -53,6 +53,7 @@ class TruthSample:
     clearance: Clearance
     mode: int
     sim_obstacle_m: float   # the SITL's own DISTANCE_SENSOR id 1 (objects and walls, pybullet)
+    v_ned_m_s: NDArray[np.float64] = field(default_factory=lambda: np.zeros(3))   # true velocity
 
 
 @dataclass
@@ -71,6 +72,17 @@ class FlightLog:
         included (harness.judge: one judge, no blind spot)."""
         fl = [s for s in self.samples if s.t_s >= since_s]
         return min(fl, key=lambda s: s.clearance.surface_m) if fl else None
+
+    def touchdown(self, since_s: float, floor_m: float = 0.12) -> tuple[float, float] | None:
+        """(time, vertical speed in m/s) at the first truth sample after ``since_s`` with the centre of mass within
+        ``floor_m`` of the floor (the body's half height is 0.10 m): the landing's impact speed, the fastest of
+        the last 0.2 s before it. None if it never came down."""
+        after = [s for s in self.samples if s.t_s >= since_s]
+        for k, s in enumerate(after):
+            if s.clearance.floor_m <= floor_m:
+                before = [x for x in after[:k + 1] if x.t_s >= s.t_s - 0.2]
+                return s.t_s, max(float(x.v_ned_m_s[2]) for x in before)
+        return None
 
     def summary(self, since_s: float = -math.inf) -> str:
         s = self.min_surface(since_s)
@@ -182,7 +194,7 @@ class Flight:
                 self.p_arena[2] += self._rest_z
                 self.log.samples.append(TruthSample(self.t_s, self.p_arena.copy(), self.yaw_rad,
                                                     self.geometry.clearance(self.p_arena), self.mode,
-                                                    self.sim_obstacle_m))
+                                                    self.sim_obstacle_m, np.array([m.vx, m.vy, m.vz])))
             elif kind == "ATTITUDE_QUATERNION":
                 self.yaw_rad = euler_from_quat_wxyz([m.q1, m.q2, m.q3, m.q4])[2]
             elif kind == "DISTANCE_SENSOR" and m.id == TRUTH_SENSOR_NON_FLOOR:
@@ -240,8 +252,23 @@ class Flight:
             raise AssertionError(f"companion not in teleop after takeoff (mode {self.mode}); "
                                  f"status: {self.log.statustexts[-5:]}")
 
+    def signal_part(self, name: str, sig: int) -> None:
+        """Send a part of the stack a signal (SIGKILL: it is gone and no longer checked; SIGSTOP: it stalls)."""
+        import signal as signals
+
+        r = next(r for r in self.stack.running if r.spec.name == name)
+        r.popen.send_signal(sig)
+        if sig == signals.SIGKILL:
+            r.popen.wait(10.0)
+            self.stack.running.remove(r)
+
     def close(self) -> None:
         try:
+            import signal as signals
+
+            for r in self.stack.running:   # a stalled part must be able to stop
+                with contextlib.suppress(OSError):
+                    r.popen.send_signal(signals.SIGCONT)
             self.stack.stop()
         finally:
             self.truth.close()

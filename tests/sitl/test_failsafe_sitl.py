@@ -1,0 +1,73 @@
+"""Issue 30 over the real ports, in real time, on the shipped timeouts: the vehicle without its companion.
+
+* The companion killed in a hover: the bridge lands the vehicle on its own (odometry lost -> brake, level, the
+  blind descent on the accelerometer fused with the board's barometer 'Z'): touchdown at <= 0.7 m/s (PX4 lands at
+  MPC_LAND_SPEED 0.7 m/s, ArduPilot at LAND_SPEED 0.5 m/s), drift <= 0.5 m.
+* The companion stalled (SIGSTOP) while the operator pushes toward a wall: the failsafe that starts next to the wall
+  must not carry the vehicle into it (clearance >= 0.40 m, the whole flight).
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+from pathlib import Path
+
+import numpy as np
+import pytest
+from flight_harness import Flight, flight
+
+pytestmark = [pytest.mark.sitl, pytest.mark.timeout(600)]
+
+MIN_CLEARANCE_M = 0.40
+MAX_TOUCHDOWN_M_S = 0.7
+MAX_DRIFT_M = 0.5
+OFFSET = 5700 + (os.getpid() % 20) * 20
+
+
+def _hover_at(f: Flight, height_m: float) -> None:
+    """Climb or descend on the handle until the centre of mass is within 5 cm of ``height_m`` above the floor."""
+    def z_cmd() -> None:
+        err = height_m - f.log.samples[-1].clearance.floor_m if f.log.samples else 0.0
+        f.manual(0, 0, int(np.clip(500 + 900 * err, 150, 850)))
+
+    f.run_for(20.0, z_cmd, until=lambda: bool(f.log.samples) and
+              abs(f.log.samples[-1].clearance.floor_m - height_m) < 0.05)
+    f.run_for(2.0, lambda: f.manual(0))
+
+
+@pytest.mark.parametrize("height_m", [1.2, pytest.param(0.5, marks=pytest.mark.slow),
+                                      pytest.param(1.9, marks=pytest.mark.slow)])
+def test_the_companion_killed_in_a_hover_lands_gently(tmp_path: Path, height_m: float) -> None:
+    """1.9 m: the highest hover under the companion's 2.0 m altitude fence (the bridge's descent starts there)."""
+    with flight(tmp_path, offset=OFFSET, lockstep=False, shipped_timeouts=True) as f:
+        f.take_off()
+        _hover_at(f, height_m)
+        t_kill, p_kill = f.t_s, f.p_arena.copy()
+        f.signal_part("companion", signal.SIGKILL)
+        f.run_for(25.0, None, until=lambda: f.log.touchdown(t_kill) is not None and f.t_s > t_kill + 2.0)
+        f.run_for(2.0, None)
+        td = f.log.touchdown(t_kill)
+        assert td is not None, f"never came down from {height_m} m: {f.log.summary()}"
+        t_td, vz_td = td
+        drift = float(np.linalg.norm(f.p_arena[:2] - p_kill[:2]))
+        print(f"companion killed at {height_m} m: touchdown after {t_td - t_kill:.1f} s at {vz_td:.2f} m/s, "
+              f"drift {drift:.2f} m; {f.log.summary()}")
+        assert vz_td <= MAX_TOUCHDOWN_M_S, f"touched down at {vz_td:.2f} m/s"
+        assert drift <= MAX_DRIFT_M, f"drifted {drift:.2f} m"
+        s = f.log.min_surface()
+        assert s is not None and s.clearance.surface_m >= MIN_CLEARANCE_M, f.log.summary()
+
+
+def test_a_companion_stalled_beside_a_wall_does_not_carry_the_vehicle_into_it(tmp_path: Path) -> None:
+    with flight(tmp_path, offset=OFFSET + 10, lockstep=False, shipped_timeouts=True) as f:
+        f.take_off()
+        f.run_for(25.0, lambda: f.manual(700), until=lambda: f.log.samples[-1].clearance.surface_m < 0.65)
+        t_stall = f.t_s
+        f.signal_part("companion", signal.SIGSTOP)   # a starved or hung companion: no setpoints, no odometry
+        f.run_for(25.0, None, until=lambda: f.log.touchdown(t_stall) is not None and f.t_s > t_stall + 2.0)
+        f.run_for(2.0, None)
+        print(f"stalled at t={t_stall:.1f} s: {f.log.summary()}; touchdown {f.log.touchdown(t_stall)}")
+        assert f.log.touchdown(t_stall) is not None, "the bridge did not land the vehicle"
+        s = f.log.min_surface()
+        assert s is not None and s.clearance.surface_m >= MIN_CLEARANCE_M, f.log.summary()
