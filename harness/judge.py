@@ -70,6 +70,9 @@ class ArenaGeometry:
     def __init__(self, scenario: ScenarioConfig | str) -> None:
         self.scenario = load_scenario(scenario) if isinstance(scenario, str) else scenario
         self.scene = build_scene(self.scenario)
+        # the scenario's own objects (partitions, blocks and stubs marked "wall" among them) come after the room's
+        # slabs, whose faces are the planes of clearance() below
+        self.objects = self.scene.bodies[len(self.scene.bodies) - len(self.scenario.objects):]
         self.start_ned_m = np.array([*self.scenario.start.position_m[:2], 0.0])
         self.room = self.scenario.room
 
@@ -80,9 +83,7 @@ class ArenaGeometry:
         ceiling = p[2] + self.room.height_m if self.room.ceiling else math.inf
         floor = -p[2]
         best, name = math.inf, "wall"
-        for b in self.scene.bodies:
-            if b.surface in ("ceiling", "wall") or b.name == "floor":
-                continue   # the room's own slabs: the planes above
+        for b in self.objects:
             if b.kind == "box":
                 d = box_distance_m(p, np.array(b.centre_ned_m), np.array(b.size_m), b.yaw_rad)
             else:
