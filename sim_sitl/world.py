@@ -106,21 +106,23 @@ class World:
         """One static pybullet body per ``scene.bodies`` entry (textures come later: ``load_textures``)."""
         for b in self.scene.bodies:
             centre = (D @ np.asarray(b.centre_ned_m)).tolist()
-            glass = b.material == "glass"  # no visual shape: the camera sees through it, the vehicle does not pass
+            # glass: fully transparent (the tiny renderer skips it; without a visual shape it would draw the
+            # collision shape): the camera sees through it, the vehicle does not pass
+            glass = b.material == "glass"
             if b.kind == "box":
                 half = [s / 2.0 for s in b.size_m]
                 cs = p.createCollisionShape(p.GEOM_BOX, halfExtents=half, physicsClientId=self.client)
-                vs = -1 if glass else p.createVisualShape(p.GEOM_BOX, halfExtents=half, physicsClientId=self.client)
+                vs = p.createVisualShape(p.GEOM_BOX, halfExtents=half, physicsClientId=self.client)
                 body = p.createMultiBody(0.0, cs, vs, centre, p.getQuaternionFromEuler([0.0, 0.0, -b.yaw_rad]),
                                          physicsClientId=self.client)
             else:
                 cs = p.createCollisionShape(p.GEOM_CYLINDER, radius=b.radius_m, height=b.height_m,
                                             physicsClientId=self.client)
-                vs = -1 if glass else p.createVisualShape(p.GEOM_CYLINDER, radius=b.radius_m, length=b.height_m,
-                                                          physicsClientId=self.client)
+                vs = p.createVisualShape(p.GEOM_CYLINDER, radius=b.radius_m, length=b.height_m,
+                                         physicsClientId=self.client)
                 body = p.createMultiBody(0.0, cs, vs, centre, physicsClientId=self.client)
+            p.changeVisualShape(body, -1, rgbaColor=[*b.color, 0.0 if glass else 1.0], physicsClientId=self.client)
             if not glass:
-                p.changeVisualShape(body, -1, rgbaColor=[*b.color, 1.0], physicsClientId=self.client)
                 self._pending_textures.append((body, b.texture_key))
             p.changeDynamics(body, -1, lateralFriction=self.cfg.physics.ground_friction, physicsClientId=self.client)
             self.surfaces[body] = b.surface
