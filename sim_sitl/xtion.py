@@ -23,6 +23,7 @@
 
 from __future__ import annotations
 
+import functools
 import math
 
 import cv2
@@ -166,20 +167,28 @@ def max_motion_bound_px(z_min_m: float, k: CameraIntrinsics, v_c_m_s: NDArray[np
 def motion_blur(rgb: NDArray[np.uint8], du_px: NDArray[np.float32], dv_px: NDArray[np.float32], cfg: XtionConfig
                 ) -> NDArray[np.uint8]:
     """Average ``rgb`` along each pixel's motion over the exposure (``du/dv``: the motion during it, px), centred on
-    the frame's instant: n = ceil(longest smear) samples, at most ``blur_max_samples``; unchanged below
-    ``blur_min_px``."""
+    the frame's instant: samples ``blur_sample_spacing_px`` apart along the longest smear (at least 2, at most
+    ``blur_max_samples``), each a bilinear remap; unchanged below ``blur_min_px``."""
     longest = float(np.sqrt(np.max(du_px * du_px + dv_px * dv_px)))
     if longest < cfg.blur_min_px:
         return rgb
-    n = int(min(cfg.blur_max_samples, max(2, math.ceil(longest))))
+    n = int(min(cfg.blur_max_samples, max(2, math.ceil(longest / cfg.blur_sample_spacing_px))))
     H, W = du_px.shape
-    u = np.arange(W, dtype=np.float32)[None, :]
-    v = np.arange(H, dtype=np.float32)[:, None]
+    u, v = _pixel_grid(W, H)
     acc = np.zeros(rgb.shape, np.float32)
     for i in range(n):
-        s = np.float32((i + 0.5) / n - 0.5)
-        map_x = u + s * du_px
-        map_y = v + s * dv_px
-        acc += cv2.remap(rgb, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-    acc *= np.float32(1.0 / n)
-    return np.asarray(acc + np.float32(0.5), dtype=np.uint8)
+        s = (i + 0.5) / n - 0.5
+        # fixed-point maps (1/32 px): remap is about twice as fast with them as with float maps
+        map1, map2 = cv2.convertMaps(cv2.scaleAdd(du_px, s, u), cv2.scaleAdd(dv_px, s, v), cv2.CV_16SC2)
+        cv2.accumulate(cv2.remap(rgb, map1, map2, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE), acc)
+    return np.asarray(cv2.convertScaleAbs(acc, alpha=1.0 / n), dtype=np.uint8)
+
+
+@functools.lru_cache(maxsize=4)
+def _pixel_grid(width: int, height: int) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+    """Column and row index of every pixel (H x W float32 each; read-only, shared)."""
+    u = np.arange(width, dtype=np.float32)[None, :].repeat(height, 0)
+    v = np.arange(height, dtype=np.float32)[:, None].repeat(width, 1)
+    u.flags.writeable = False
+    v.flags.writeable = False
+    return u, v

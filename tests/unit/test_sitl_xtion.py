@@ -1,5 +1,6 @@
 """The Xtion sensor model (sim_sitl/xtion.py) on synthetic depth maps: disparity steps and noise, IR shadows,
-materials, range, frame drops and stamp jitter, motion blur. No renderer: tests/sitl/test_sitl_xtion.py renders."""
+materials, range, frame drops and stamp jitter, motion blur. No renderer (tests/sitl/test_sitl_xtion_render.py
+renders)."""
 
 from __future__ import annotations
 
