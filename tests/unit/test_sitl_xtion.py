@@ -15,6 +15,7 @@ from quadlink.camera import CameraIntrinsics
 from quadlink.config import from_dict
 from quadlink.errors import ConfigError
 from sim_sitl.config import CameraNoiseConfig, ScenarioConfig, SitlConfig, XtionConfig
+from sim_sitl.scenario_gen import generate_procedural, generate_scenario, scenario_to_dict
 from sim_sitl.scene import MATERIAL_CODE
 from sim_sitl.xtion import (
     camera_velocity,
@@ -249,3 +250,43 @@ def test_scene_object_material_is_validated():
     assert [o.material for o in ok.objects] == ["matte", "glass"]
     with pytest.raises(ConfigError, match=r"objects\[1\]\.material.*'mirror'"):
         from_dict(ScenarioConfig, {"objects": [{"kind": "box"}, {"kind": "box", "material": "mirror"}]})
+
+
+def _matte(scenario: ScenarioConfig) -> ScenarioConfig:
+    return dataclasses.replace(scenario, objects=tuple(dataclasses.replace(o, material="matte")
+                                                      for o in scenario.objects))
+
+
+def test_procedural_arenas_draw_hazard_materials_reproducibly():
+    n_objects = n_hazard = 0
+    kinds: set[str] = set()
+    for seed in range(150):
+        plain, layout = generate_procedural(np.random.default_rng(seed), "t")
+        assert all(o.material == "matte" for o in plain.objects)  # the default: arenas as before
+        some, layout2 = generate_procedural(np.random.default_rng(seed), "t", hazard_material_p=0.3)
+        more, _ = generate_procedural(np.random.default_rng(seed), "t", hazard_material_p=0.6)
+        again, _ = generate_procedural(np.random.default_rng(seed), "t", hazard_material_p=0.3)
+        assert layout2 == layout and _matte(some) == plain  # the same geometry, textures and colours
+        assert again == some  # reproducible from the seed
+        hazard = [o.material != "matte" for o in some.objects]
+        # monotone in p: what is hazardous at 0.3 is so, with the same material, at 0.6
+        assert all(m.material == o.material for o, m, h in zip(some.objects, more.objects, hazard, strict=True) if h)
+        n_objects += len(hazard)
+        n_hazard += sum(hazard)
+        kinds |= {o.material for o in some.objects}
+    assert n_objects > 300
+    assert abs(n_hazard / n_objects - 0.3) < 4 * math.sqrt(0.3 * 0.7 / n_objects)
+    assert kinds == {"matte", "dark", "specular", "glass"}
+
+
+def test_campaign_arena_records_its_hazards_and_keeps_its_start():
+    for seed in range(20):
+        plain = generate_scenario(np.random.default_rng(seed), "t")
+        hazardous = generate_scenario(np.random.default_rng(seed), "t", hazard_material_p=0.5)
+        assert hazardous.scenario.start == plain.scenario.start
+        assert "hazard_materials" not in plain.record
+        assert hazardous.record["hazard_materials"] == {o.name: o.material for o in hazardous.scenario.objects
+                                                        if o.material != "matte"}
+        # the YAML form the SITL loads keeps the materials
+        again = from_dict(ScenarioConfig, scenario_to_dict(hazardous.scenario))
+        assert [o.material for o in again.objects] == [o.material for o in hazardous.scenario.objects]
