@@ -192,12 +192,13 @@ class RgbdCamera:
         rgb = np.asarray(rgba, dtype=np.uint8).reshape(k.height, k.width, 4)[:, :, :3]
         depth = linearize_depth(np.asarray(depth_buf).reshape(k.height, k.width), self.noise.near_clip_m,
                                 self.noise.far_clip_m)
-        if self._material_lut is None:
-            lut = np.zeros(max(self.world.materials, default=0) + 2, np.uint8)  # index 0: background (-1)
+        if self._material_lut is None:  # scene bodies by id; the background (-1) and any other body: matte
+            lut = np.zeros(max(self.world.materials, default=0) + 2, np.uint8)
             for body, material in self.world.materials.items():
                 lut[body + 1] = MATERIAL_CODE[material]
             self._material_lut = lut
-        ids = np.clip(np.asarray(seg, dtype=np.int64).reshape(k.height, k.width) + 1, 0, len(self._material_lut) - 1)
+        ids = np.asarray(seg, dtype=np.int64).reshape(k.height, k.width) + 1
+        ids[(ids < 0) | (ids >= len(self._material_lut))] = 0
         return rgb, depth, self._material_lut[ids]
 
     def capture(self, state: RigidState, seq: int, stamp_s: float) -> RgbdFrame | None:
