@@ -134,14 +134,14 @@ def test_glass_door_is_invisible_in_colour_and_depth(hazards, renderer):
     past the door; with the door matte, the door plane is 1.3 m away. The body is still there for the physics."""
     views = {}
     for name in ("base", "no_door", "matte"):
-        cam = _look(hazards[name], -0.3, 0.0, 0.0, QUIET, renderer)
+        cam = _look(hazards[name], -0.3, -0.75, 0.0, QUIET, renderer)
         views[name] = cam.render_raw(hazards[name].state)
     door = (slice(40, 200), slice(130, 190))  # the doorway (0.9 m x 2.1 m) fills the centre of the view
     rgb, z = views["base"]
     assert np.array_equal(rgb, views["no_door"][0]) and np.array_equal(z, views["no_door"][1])
     assert np.all(np.abs(views["matte"][1][door] - 1.28) < 0.03)  # door face at x = 0.98 m
     assert np.all(z[door] > 2.5)  # the room behind (the north wall 4.3 m away)
-    any_m, _ = hazards["base"].nearest_distances(np.array([0.95, 0.0, -1.0]))
+    any_m, _ = hazards["base"].nearest_distances(np.array([0.95, -0.75, -1.0]))
     assert any_m < 0.05  # the physics has the door
 
 
