@@ -76,8 +76,9 @@ class XtionConfig:
 
     Depth comes from the disparity d = f b / z between the IR camera and the projected pattern, measured in
     1/8 pixel; noise and steps live in disparity, so in depth both grow with z^2 (Khoshelham & Oude Elberink,
-    "Accuracy and resolution of Kinect depth data for indoor mapping applications", Sensors 12 (2012) 1437,
-    eqs. 5 and 9): sigma_z = z^2 sigma_d / (f b), step_z = z^2 step_d / (f b).
+    "Accuracy and resolution of Kinect depth data for indoor mapping applications", Sensors 12 (2012) 1437:
+    the disparity-depth relation and its error propagation): sigma_z = z^2 sigma_d / (f b), step_z = z^2 step_d
+    / (f b).
     """
 
     ir_focal_px: float = 580.0  # IR camera focal length at 640x480 (Kinect/Xtion calibrations give 570-590 px)

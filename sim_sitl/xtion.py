@@ -3,10 +3,11 @@
 ``camera_sim.RgbdCamera`` applies these when ``CameraNoiseConfig.model`` is ``xtion``; every parameter is in
 :class:`~sim_sitl.config.XtionConfig`, every random draw comes from the generator the caller passes.
 
-* **Depth from disparity** (Khoshelham & Oude Elberink, Sensors 12 (2012) 1437, eqs. 5 and 9): the sensor
-  measures the disparity d = f b / z (IR camera focal length f in px, projector baseline b) in steps of 1/8 px
-  with a random error sigma_d, so in depth the random error is z^2 sigma_d / (f b) and the steps between
-  the depths it can report are z^2 step_d / (f b): ~1 cm at 2 m, ~7 cm at 5 m, not 1 mm everywhere.
+* **Depth from disparity** (Khoshelham & Oude Elberink, Sensors 12 (2012) 1437: the disparity-depth relation
+  and its error propagation): the sensor measures the disparity d = f b / z (IR camera focal length f in px,
+  projector baseline b) in steps of 1/8 px with a random error sigma_d, so in depth the random error is
+  z^2 sigma_d / (f b) and the steps between the depths it can report are z^2 step_d / (f b): ~1 cm at 2 m,
+  ~7 cm at 5 m, not 1 mm everywhere.
 * **IR shadows**: the projector sits ``projector_x_m`` beside the IR camera along its optical x axis, so the
   image rows are its epipolar lines. A point is lit iff no nearer surface lies on its projector ray; along a
   row that is a running extremum of the projector column u_p = u - f_x x_p / z (:func:`ir_shadow`): a hole
@@ -62,7 +63,7 @@ def depth_step_m(z_m: float, cfg: XtionConfig) -> float:
 
 
 def depth_sigma_m(z_m: float, cfg: XtionConfig) -> float:
-    """The random error of depth at ``z_m``: z^2 sigma_d / (f b) (K&OE 2012, eq. 9)."""
+    """The random error of depth at ``z_m``: z^2 sigma_d / (f b) (K&OE 2012: the propagated disparity error)."""
     return z_m * z_m * cfg.disparity_sigma_px / (cfg.ir_focal_px * abs(cfg.projector_x_m))
 
 
