@@ -201,6 +201,22 @@ class RgbdCamera:
         ids[(ids < 0) | (ids >= len(self._material_lut))] = 0
         return rgb, depth, self._material_lut[ids]
 
+    def _render_xtion(self, state: RigidState, stamp_s: float
+                      ) -> tuple[NDArray[np.uint8], NDArray[np.float32], float]:
+        """Colour (motion-blurred over the exposure), the Xtion's depth, and the jittered stamp."""
+        cfg = self.noise.xtion
+        rgb, z, material = self.render_layers(state)
+        k = self.intrinsics
+        incidence_ok = incidence_cos(z, k) >= math.cos(math.radians(self.noise.max_incidence_deg))
+        depth = xtion_depth(z, material, k, cfg, self.mount.min_range_m, self.mount.max_range_m, incidence_ok,
+                            self._depth_noise.draw())
+        if cfg.exposure_s > 0:
+            v_c, omega_c = camera_velocity(state.R_ned_q, state.v_ned_m_s, state.omega_q_rad_s, self.R_qc, self.p_qc_m)
+            if max_motion_bound_px(float(z.min()), k, v_c, omega_c, cfg.exposure_s) >= cfg.blur_min_px:
+                du, dv = image_motion_px(z, k, v_c, omega_c, cfg.exposure_s)
+                rgb = motion_blur(rgb, du, dv, cfg)
+        return rgb, depth, stamp_s + draw_stamp_error_s(self._timing_rng, cfg, self._period_s)
+
     def capture(self, state: RigidState, seq: int, stamp_s: float) -> RgbdFrame | None:
         """What the driver delivers for the frame due at ``stamp_s``: None when the link loses it (``xtion``
         model, ``frame_drop_probability``; nothing is rendered then), else :meth:`render`'s frame."""
@@ -220,19 +236,3 @@ class RgbdCamera:
             rgb = np.clip(noisy, 0, 255).astype(np.uint8)
         return RgbdFrame(seq=seq, stamp_s=stamp_s, rgb=rgb, depth_m=depth, intrinsics=self.intrinsics,
                          R_qc=self.R_qc, p_qc_m=self.p_qc_m, meta={"source": "sitl", "clock": "sim"})
-
-    def _render_xtion(self, state: RigidState, stamp_s: float
-                      ) -> tuple[NDArray[np.uint8], NDArray[np.float32], float]:
-        """Colour (motion-blurred over the exposure), the Xtion's depth, and the jittered stamp."""
-        cfg = self.noise.xtion
-        rgb, z, material = self.render_layers(state)
-        k = self.intrinsics
-        incidence_ok = incidence_cos(z, k) >= math.cos(math.radians(self.noise.max_incidence_deg))
-        depth = xtion_depth(z, material, k, cfg, self.mount.min_range_m, self.mount.max_range_m, incidence_ok,
-                            self._depth_noise.draw())
-        if cfg.exposure_s > 0:
-            v_c, omega_c = camera_velocity(state.R_ned_q, state.v_ned_m_s, state.omega_q_rad_s, self.R_qc, self.p_qc_m)
-            if max_motion_bound_px(float(z.min()), k, v_c, omega_c, cfg.exposure_s) >= cfg.blur_min_px:
-                du, dv = image_motion_px(z, k, v_c, omega_c, cfg.exposure_s)
-                rgb = motion_blur(rgb, du, dv, cfg)
-        return rgb, depth, stamp_s + draw_stamp_error_s(self._timing_rng, cfg, self._period_s)
