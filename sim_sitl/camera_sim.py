@@ -7,6 +7,9 @@ world's client). Both give the same geometry; only the noise-free render differs
 Depth is the z coordinate in the optical frame (as structured-light sensors report), with noise
 sigma = k z^2, quantised, and 0 (invalid) outside [min_range, max_range] and where the surface is
 seen at a grazing angle (incidence beyond ``max_incidence_deg``, which also blanks depth edges).
+That is the ``basic`` model (``CameraNoiseConfig.model``); ``xtion`` (``xtion.py``) fails as the real sensor
+does: disparity noise and steps, IR shadows, no return from dark/specular surfaces, frame drops
+(:meth:`RgbdCamera.capture` gives None), stamp jitter and motion blur. Glass is never rendered (both models).
 """
 
 from __future__ import annotations
@@ -21,7 +24,17 @@ from quadlink.camera import CameraIntrinsics, RgbdFrame
 from quadlink.vehicle import CameraConfig
 from sim_sitl.config import CameraNoiseConfig, RendererName
 from sim_sitl.raster import RasterRenderer
+from sim_sitl.scene import MATERIAL_CODE
 from sim_sitl.world import D, RigidState, World
+from sim_sitl.xtion import (
+    camera_velocity,
+    draw_frame_dropped,
+    draw_stamp_error_s,
+    image_motion_px,
+    max_motion_bound_px,
+    motion_blur,
+    xtion_depth,
+)
 
 R_OPTICAL_GL = np.diag([1.0, -1.0, -1.0])  # optical (x right, y down, z fwd) -> OpenGL camera (y up, z back)
 
@@ -141,6 +154,10 @@ class RgbdCamera:
         self.p_qc_m = mount.p_qc
         self._depth_noise = NoiseBank(rng, (h, w))
         self._rgb_noise = NoiseBank(rng, (h, w, 3))
+        # the frames' fates (drops, stamp errors) in a stream of their own: a dropped frame draws no pixel noise
+        self._timing_rng = rng.spawn(1)[0]
+        self._period_s = 1.0 / mount.rate_hz
+        self._material_lut: NDArray[np.uint8] | None = None  # pybullet body id + 1 -> material code
 
     def pose_ned(self, state: RigidState) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """Camera position (arena NED) and R_ned_c (optical -> NED)."""
@@ -161,10 +178,59 @@ class RgbdCamera:
                                 self.noise.far_clip_m)
         return rgb, depth
 
+    def render_layers(self, state: RigidState) -> tuple[NDArray[np.uint8], NDArray[np.float32], NDArray[np.uint8]]:
+        """Noise-free colour, optical-axis depth (m) and per-pixel material codes (``scene.MATERIAL_CODE``)."""
+        p_ned, R_ned_c = self.pose_ned(state)
+        if self._raster is not None:
+            return self._raster.render_layers(p_ned, R_ned_c, self.intrinsics, self.noise.near_clip_m,
+                                              self.noise.far_clip_m)
+        view = view_matrix_gl(D @ R_ned_c, D @ p_ned)
+        k = self.intrinsics
+        _, _, rgba, depth_buf, seg = p.getCameraImage(
+            k.width, k.height, view, self._proj, renderer=p.ER_TINY_RENDERER, shadow=0,
+            lightDirection=[0.3, 0.2, 1.0], physicsClientId=self.world.client)
+        rgb = np.asarray(rgba, dtype=np.uint8).reshape(k.height, k.width, 4)[:, :, :3]
+        depth = linearize_depth(np.asarray(depth_buf).reshape(k.height, k.width), self.noise.near_clip_m,
+                                self.noise.far_clip_m)
+        if self._material_lut is None:  # scene bodies by id; the background (-1) and any other body: matte
+            lut = np.zeros(max(self.world.materials, default=0) + 2, np.uint8)
+            for body, material in self.world.materials.items():
+                lut[body + 1] = MATERIAL_CODE[material]
+            self._material_lut = lut
+        ids = np.asarray(seg, dtype=np.int64).reshape(k.height, k.width) + 1
+        ids[(ids < 0) | (ids >= len(self._material_lut))] = 0
+        return rgb, depth, self._material_lut[ids]
+
+    def _render_xtion(self, state: RigidState, stamp_s: float
+                      ) -> tuple[NDArray[np.uint8], NDArray[np.float32], float]:
+        """Colour (motion-blurred over the exposure), the Xtion's depth, and the jittered stamp."""
+        cfg = self.noise.xtion
+        rgb, z, material = self.render_layers(state)
+        k = self.intrinsics
+        incidence_ok = incidence_cos(z, k) >= math.cos(math.radians(self.noise.max_incidence_deg))
+        depth = xtion_depth(z, material, k, cfg, self.mount.min_range_m, self.mount.max_range_m, incidence_ok,
+                            self._depth_noise.draw())
+        if cfg.exposure_s > 0:
+            v_c, omega_c = camera_velocity(state.R_ned_q, state.v_ned_m_s, state.omega_q_rad_s, self.R_qc, self.p_qc_m)
+            if max_motion_bound_px(float(z.min()), k, v_c, omega_c, cfg.exposure_s) >= cfg.blur_min_px:
+                du, dv = image_motion_px(z, k, v_c, omega_c, cfg.exposure_s)
+                rgb = motion_blur(rgb, du, dv, cfg)
+        return rgb, depth, stamp_s + draw_stamp_error_s(self._timing_rng, cfg, self._period_s)
+
+    def capture(self, state: RigidState, seq: int, stamp_s: float) -> RgbdFrame | None:
+        """What the driver delivers for the frame due at ``stamp_s``: None when the link loses it (``xtion``
+        model, ``frame_drop_probability``; nothing is rendered then), else :meth:`render`'s frame."""
+        if self.noise.model == "xtion" and draw_frame_dropped(self._timing_rng, self.noise.xtion):
+            return None
+        return self.render(state, seq, stamp_s)
+
     def render(self, state: RigidState, seq: int, stamp_s: float) -> RgbdFrame:
-        rgb, z = self.render_raw(state)
-        depth = depth_noise_model(z, self.intrinsics, self.noise, self.mount.min_range_m, self.mount.max_range_m,
-                                  self.rng, self._depth_noise.draw())
+        if self.noise.model == "xtion":
+            rgb, depth, stamp_s = self._render_xtion(state, stamp_s)
+        else:
+            rgb, z = self.render_raw(state)
+            depth = depth_noise_model(z, self.intrinsics, self.noise, self.mount.min_range_m, self.mount.max_range_m,
+                                      self.rng, self._depth_noise.draw())
         if self.noise.rgb_noise_levels > 0:
             noisy = rgb.astype(np.float32) + np.float32(self.noise.rgb_noise_levels) * self._rgb_noise.draw()
             rgb = np.clip(noisy, 0, 255).astype(np.uint8)

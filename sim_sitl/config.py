@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Literal
+from typing import Literal, get_args
 
 from quadlink import CONFIG_DIR
 from quadlink.config import find_config, load_config
@@ -70,13 +70,66 @@ class LinkConfig:
 
 
 @dataclass(frozen=True)
+class XtionConfig:
+    """How a structured-light RGB-D camera (Asus Xtion, Kinect v1) fails; used when ``CameraNoiseConfig.model``
+    is ``xtion`` (``sim_sitl/xtion.py`` implements it; the valid range is the mount's ``min/max_range_m``).
+
+    Depth comes from the disparity d = f b / z between the IR camera and the projected pattern, measured in
+    1/8 pixel; noise and steps live in disparity, so in depth both grow with z^2 (Khoshelham & Oude Elberink,
+    "Accuracy and resolution of Kinect depth data for indoor mapping applications", Sensors 12 (2012) 1437:
+    the disparity-depth relation and its error propagation): sigma_z = z^2 sigma_d / (f b), step_z = z^2 step_d
+    / (f b).
+    """
+
+    ir_focal_px: float = 580.0  # IR camera focal length at 640x480 (Kinect/Xtion calibrations give 570-590 px)
+    # the projector's position along the IR camera's optical x axis: the baseline b = |projector_x_m| (K&OE 2012:
+    # ~7.5 cm). A point the projector cannot light is a hole: a band f b (1/z_near - 1/z_far) px wide beside a
+    # foreground edge, on the side away from the projector (light from the right casts shadows to the left).
+    # +x, the camera's right: the PrimeSense layout (Kinect, Xtion), whose shadows fall left of foreground objects.
+    projector_x_m: float = 0.075
+    disparity_step_px: float = 0.125  # disparity is reported in 1/8 px: step_z = z^2 / 348 m^-1, 1.15 cm at 2 m
+    # sigma_z = z^2 sigma_d / (f b): 0.0696 px gives 4.0 cm at 5 m, the random error K&OE 2012 measured there
+    disparity_sigma_px: float = 0.0696
+    frame_drop_probability: float = 0.01  # each 30 Hz frame independently lost on the USB link (not published)
+    stamp_jitter_s: float = 0.002  # sigma of the stamp's error (host-side stamping of USB frames)
+    stamp_jitter_max_s: float = 0.006  # the jitter is clipped here (and stays below half a frame period)
+    exposure_s: float = 0.015  # RGB exposure: motion blur integrates the image motion over it (indoor auto-exposure)
+    blur_min_px: float = 0.5  # no blur below this smear length (at rest it costs nothing)
+    blur_sample_spacing_px: float = 1.5  # shifted samples averaged along the motion, this far apart (bilinear)...
+    blur_max_samples: int = 8  # ...and at most this many (each costs ~0.2 ms at 320x240)
+
+    def __post_init__(self) -> None:
+        if not self.ir_focal_px > 0:
+            raise ValueError(f"ir_focal_px must be > 0, got {self.ir_focal_px!r}")
+        if self.projector_x_m == 0:
+            raise ValueError("projector_x_m must not be 0 (no baseline, no depth)")
+        for name in ("disparity_step_px", "disparity_sigma_px", "stamp_jitter_s", "stamp_jitter_max_s",
+                     "exposure_s", "blur_min_px"):
+            if not getattr(self, name) >= 0:
+                raise ValueError(f"{name} must be >= 0, got {getattr(self, name)!r}")
+        if not 0.0 <= self.frame_drop_probability < 1.0:
+            raise ValueError(f"frame_drop_probability must be in [0, 1), got {self.frame_drop_probability!r}")
+        if self.blur_max_samples < 2:
+            raise ValueError(f"blur_max_samples must be >= 2, got {self.blur_max_samples!r}")
+        if not self.blur_sample_spacing_px > 0:
+            raise ValueError(f"blur_sample_spacing_px must be > 0, got {self.blur_sample_spacing_px!r}")
+
+
+CameraModelName = Literal["basic", "xtion"]
+
+
+@dataclass(frozen=True)
 class CameraNoiseConfig:
-    depth_sigma_per_m2: float = 0.0025  # sigma_z = k z^2 (structured-light sensors)
+    # basic: sigma = k z^2, fixed depth steps, grazing-angle dropouts; xtion: ``XtionConfig`` on top of the
+    # grazing-angle dropouts (disparity noise and steps, IR shadows, dark/specular/glass, drops, jitter, blur)
+    model: CameraModelName = "basic"
+    depth_sigma_per_m2: float = 0.0025  # sigma_z = k z^2 (structured-light sensors); basic model
     max_incidence_deg: float = 78.0  # grazing angle beyond which depth is invalid
-    depth_quantum_m: float = 0.001
+    depth_quantum_m: float = 0.001  # basic model
     rgb_noise_levels: float = 1.5  # sigma of the colour noise, 8-bit levels
     near_clip_m: float = 0.05
     far_clip_m: float = 20.0
+    xtion: XtionConfig = field(default_factory=XtionConfig)
 
 
 RendererName = Literal["raster", "pybullet"]
@@ -106,6 +159,13 @@ class SitlConfig:
     lockstep_timeout_s: float = 2.0
 
 
+#: what a surface does to the structured light (``sim_sitl/xtion.py``): matte returns it; dark (a black monitor)
+#: absorbs it and specular (a glossy panel) mirrors it away: no return; glass passes it and the visible light:
+#: invisible in depth and colour (the renderer sees what is behind), yet a solid body for the physics
+Material = Literal["matte", "dark", "specular", "glass"]
+MATERIALS: tuple[str, ...] = get_args(Material)
+
+
 @dataclass(frozen=True)
 class SceneObject:
     """A static body: ``box`` (size_m = full extents, arena NED axes before yaw) or ``cylinder`` (vertical)."""
@@ -120,6 +180,7 @@ class SceneObject:
     texture: str = "noise"  # procedural: carpet, wood, concrete, noise, checker, plain
     color: tuple[float, float, float] = (0.7, 0.7, 0.7)
     surface: Literal["object", "floor", "wall", "ceiling"] = "object"  # a rug counts as floor for truth id 1
+    material: Material = "matte"
 
 
 @dataclass(frozen=True)

@@ -31,7 +31,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from quadlink.camera import CameraIntrinsics
-from sim_sitl.scene import Scene, SceneBody, TextureKey
+from sim_sitl.scene import MATERIAL_CODE, Scene, SceneBody, TextureKey
 
 log = logging.getLogger(__name__)
 
@@ -189,6 +189,11 @@ class RasterRenderer:
         self._normal = np.array([f.normal for f in faces])
         self._plane_d = np.einsum("ij,ij->i", self._normal, self._verts[:, 0])
         self._face_body = np.array([f.body for f in faces])
+        # per face: the material code of its body (the room's interior: matte); glass is never drawn: the camera
+        # sees what is behind it, in colour and in depth (the physics still has the body)
+        self._face_material = np.array([MATERIAL_CODE[bodies[f.body].material] if f.body >= 0 else 0 for f in faces],
+                                       dtype=np.uint8)
+        self._face_glass = self._face_material == MATERIAL_CODE["glass"]
         self._body_on_floor = np.array([b.surface == "floor" for b in bodies], dtype=bool)  # rugs: drawn first
         self._separate(bodies)
         self._build_atlas(textures)
@@ -331,6 +336,19 @@ class RasterRenderer:
                near_m: float, far_m: float) -> tuple[NDArray[np.uint8], NDArray[np.float32]]:
         """Colour (H x W x 3 RGB8) and optical-axis depth (m, float32; ``far_m`` where nothing is hit) seen
         by a camera at ``p_ned_m`` with ``R_ned_c`` (optical -> NED) and intrinsics ``k``."""
+        rgb, depth, _ = self._render(p_ned_m, R_ned_c, k, near_m, far_m, False)
+        return rgb, depth
+
+    def render_layers(self, p_ned_m: NDArray[np.float64], R_ned_c: NDArray[np.float64], k: CameraIntrinsics,
+                      near_m: float, far_m: float) -> tuple[NDArray[np.uint8], NDArray[np.float32], NDArray[np.uint8]]:
+        """As :meth:`render`, plus each pixel's material code (``scene.MATERIAL_CODE``; background: matte)."""
+        rgb, depth, material = self._render(p_ned_m, R_ned_c, k, near_m, far_m, True)
+        assert material is not None
+        return rgb, depth, material
+
+    def _render(self, p_ned_m: NDArray[np.float64], R_ned_c: NDArray[np.float64], k: CameraIntrinsics,
+                near_m: float, far_m: float, with_material: bool
+                ) -> tuple[NDArray[np.uint8], NDArray[np.float32], NDArray[np.uint8] | None]:
         p = np.asarray(p_ned_m, dtype=float)
         R = np.asarray(R_ned_c, dtype=float)
         W, H = k.width, k.height
@@ -342,7 +360,7 @@ class RasterRenderer:
         outside = ((z < near_m).all(1) | (z > far_m).all(1) | (Xc[..., 0] > x_lim * z).all(1)
                    | (Xc[..., 0] < -x_lim * z).all(1) | (Xc[..., 1] > y_lim * z).all(1)
                    | (Xc[..., 1] < -y_lim * z).all(1))
-        visible = front & ~outside
+        visible = front & ~outside & ~self._face_glass
         order = [np.flatnonzero(visible & (self._face_body == -1))]
         in_view = np.unique(self._face_body[visible & (self._face_body >= 0)])
         for j in self.draw_order(p, in_view):
@@ -377,7 +395,17 @@ class RasterRenderer:
         map1, map2 = cv2.convertMaps(ax.reshape(H, W), ay.reshape(H, W), cv2.CV_16SC2)
         rgba = cv2.remap(self.atlas, map1, map2, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
         rgb = np.asarray(cv2.cvtColor(rgba, cv2.COLOR_RGBA2RGB), dtype=np.uint8)
-        return rgb, depth.reshape(H, W).astype(np.float32, copy=False)
+        material: NDArray[np.uint8] | None = None
+        if with_material:
+            codes = np.zeros(len(drawn) + 1, np.uint8)
+            codes[1:] = self._face_material[drawn]
+            if ids.dtype == np.uint8:
+                lut = np.zeros(256, np.uint8)
+                lut[:len(codes)] = codes
+                material = np.asarray(cv2.LUT(ids, lut), dtype=np.uint8)
+            else:
+                material = codes[ids]
+        return rgb, depth.reshape(H, W).astype(np.float32, copy=False), material
 
     def _screen_polygons(self, Xc: NDArray[np.float64], drawn: NDArray[np.int64], k: CameraIntrinsics,
                          near_m: float) -> list[NDArray[np.int32] | None]:

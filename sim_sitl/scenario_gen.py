@@ -33,6 +33,9 @@ START_CLEARANCE_M = 1.0  # free radius around the start (take-off needs room; th
 #: heights (m above the floor) the vehicle flies through: an object counts as an obstacle for the
 #: operator generator only if it spans part of this band
 FLIGHT_BAND_M = (0.6, 1.6)
+#: the materials an Xtion does not see (``sim_sitl/xtion.py``): a procedural object gets one of them with the
+#: probability ``hazard_material_p`` (0 by default: the arenas of earlier campaigns are unchanged)
+HAZARD_MATERIALS = ("dark", "specular", "glass")
 
 
 def _color(rng: np.random.Generator) -> tuple[float, float, float]:
@@ -176,8 +179,23 @@ def _scatter(rng: np.random.Generator, room: RoomConfig, n_columns: int, n_boxes
     return objects
 
 
-def generate_procedural(rng: np.random.Generator, name: str, layout: str | None = None) -> tuple[ScenarioConfig, str]:
-    """One procedural arena and its layout; ``layout`` (one of :data:`LAYOUTS`) is drawn when None."""
+def draw_hazard_materials(rng: np.random.Generator, objects: list[SceneObject], p: float) -> list[SceneObject]:
+    """Each object dark, specular or glass with probability ``p`` (else as it was), from a child stream of ``rng``
+    (``Generator.spawn``: the parent's draws are untouched, so the geometry of a seed does not depend on ``p``).
+    Two draws per object whatever ``p``: an object hazardous at some ``p`` stays so at any larger one."""
+    if p <= 0:
+        return objects
+    child = rng.spawn(1)[0]
+    u = child.random(len(objects))
+    kind = child.integers(0, len(HAZARD_MATERIALS), len(objects))
+    return [dataclasses.replace(o, material=HAZARD_MATERIALS[int(k)]) if ui < p else o  # type: ignore[arg-type]
+            for o, ui, k in zip(objects, u, kind, strict=True)]
+
+
+def generate_procedural(rng: np.random.Generator, name: str, layout: str | None = None,
+                        hazard_material_p: float = 0.0) -> tuple[ScenarioConfig, str]:
+    """One procedural arena and its layout; ``layout`` (one of :data:`LAYOUTS`) is drawn when None; each object is
+    dark, specular or glass with probability ``hazard_material_p`` (:func:`draw_hazard_materials`)."""
     layout = layout or str(rng.choice(LAYOUTS))
     if layout not in LAYOUTS:
         raise ValueError(f"unknown layout {layout!r} (known: {', '.join(LAYOUTS)})")
@@ -224,6 +242,7 @@ def generate_procedural(rng: np.random.Generator, name: str, layout: str | None 
     n_columns = int(rng.integers(0, MAX_COLUMNS + 1))
     n_boxes = int(rng.integers(0, MAX_BOXES + 1))
     objects += _scatter(rng, room, n_columns, n_boxes, [start_xy], objects)
+    objects = draw_hazard_materials(rng, objects, hazard_material_p)
     scenario = ScenarioConfig(name=name, description=f"procedural {layout} {nx:.1f} x {ny:.1f} m, {h:.2f} m high, "
                               f"{n_columns} columns, {n_boxes} boxes", room=room,
                               start=StartPose(position_m=start_xy, yaw_deg=0.0), objects=tuple(objects))
@@ -236,21 +255,26 @@ class ArenaDraw:
     record: dict[str, Any]  # every draw, plain data (goes into the flight's draws.json)
 
 
-def generate_scenario(rng: np.random.Generator, name: str, fixed_share: float = 0.2) -> ArenaDraw:
+def generate_scenario(rng: np.random.Generator, name: str, fixed_share: float = 0.2,
+                      hazard_material_p: float = 0.0) -> ArenaDraw:
     """An arena for one flight: a fixed member (paper-arena, office) with probability ``fixed_share``, else a
-    procedural one; in both cases the start pose is drawn in free space."""
+    procedural one (its objects dark, specular or glass with probability ``hazard_material_p``); in both cases
+    the start pose is drawn in free space."""
     if rng.random() < fixed_share:
         base_name = str(rng.choice(FIXED_ARENAS))
         base = dataclasses.replace(load_scenario(base_name), name=name)
         layout = f"fixed:{base_name}"
     else:
-        base, layout = generate_procedural(rng, name)
+        base, layout = generate_procedural(rng, name, hazard_material_p=hazard_material_p)
     start = draw_start(base, rng)
     scenario = dataclasses.replace(base, start=start)
-    return ArenaDraw(scenario, {"layout": layout, "room_size_m": list(scenario.room.size_m),
-                                "room_height_m": scenario.room.height_m, "objects": len(scenario.objects),
-                                "start": {"position_m": list(start.position_m), "yaw_deg": start.yaw_deg},
-                                "start_clearance_m": clearance_2d(scenario, start.position_m)})
+    record = {"layout": layout, "room_size_m": list(scenario.room.size_m),
+              "room_height_m": scenario.room.height_m, "objects": len(scenario.objects),
+              "start": {"position_m": list(start.position_m), "yaw_deg": start.yaw_deg},
+              "start_clearance_m": clearance_2d(scenario, start.position_m)}
+    if hazard_material_p > 0:
+        record["hazard_materials"] = {o.name: o.material for o in scenario.objects if o.material != "matte"}
+    return ArenaDraw(scenario, record)
 
 
 def scenario_to_dict(scenario: ScenarioConfig) -> dict[str, Any]:

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from sim_sitl.config import RoomConfig, ScenarioConfig
+from sim_sitl.config import MATERIALS, RoomConfig, ScenarioConfig
 from sim_sitl.textures import make_texture
 
 SLAB_M = 0.2  # thickness of the floor, ceiling and wall slabs
@@ -28,6 +28,9 @@ SURFACE_WALL = "wall"
 SURFACE_OBJECT = "object"
 
 TextureKey = tuple[str, tuple[float, float, float], int]  # (kind, colour, size_px)
+
+#: per-pixel material codes the renderers give the camera model: the index in ``MATERIALS`` (matte = 0)
+MATERIAL_CODE: dict[str, int] = {m: i for i, m in enumerate(MATERIALS)}
 
 
 @dataclass(frozen=True)
@@ -49,6 +52,7 @@ class SceneBody:
     surface: str
     texture_px: int
     radius_m: float = 0.0
+    material: str = "matte"  # ``sim_sitl.config.MATERIALS``; the room's slabs are matte
 
     @property
     def texture_key(self) -> TextureKey:
@@ -81,8 +85,9 @@ def box_texture_px(size_m: tuple[float, float, float]) -> int:
 
 
 def _box(name: str, centre: tuple[float, float, float], size: tuple[float, float, float], yaw_rad: float,
-         texture: str, color: tuple[float, float, float], surface: str) -> SceneBody:
-    return SceneBody("box", name, centre, size, yaw_rad, texture, color, surface, box_texture_px(size))
+         texture: str, color: tuple[float, float, float], surface: str, material: str = "matte") -> SceneBody:
+    return SceneBody("box", name, centre, size, yaw_rad, texture, color, surface, box_texture_px(size),
+                     material=material)
 
 
 def build_scene(scenario: ScenarioConfig) -> Scene:
@@ -107,11 +112,11 @@ def build_scene(scenario: ScenarioConfig) -> Scene:
         centre = (float(obj.position_m[0]), float(obj.position_m[1]), float(obj.position_m[2]))
         if obj.kind == "box":
             bodies.append(_box(obj.name, centre, obj.size_m, math.radians(obj.yaw_deg), obj.texture, obj.color,
-                               obj.surface))
+                               obj.surface, obj.material))
         else:
             d = 2.0 * obj.radius_m
             bodies.append(SceneBody("cylinder", obj.name, centre, (d, d, obj.height_m), 0.0, obj.texture, obj.color,
-                                    obj.surface, CYLINDER_TEXTURE_PX, obj.radius_m))
+                                    obj.surface, CYLINDER_TEXTURE_PX, obj.radius_m, obj.material))
     return Scene(room, tuple(bodies))
 
 

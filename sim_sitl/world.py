@@ -79,6 +79,7 @@ class World:
         self._texture_ids: dict[TextureKey, int] = {}
         self._texture_images: dict[TextureKey, NDArray[np.uint8]] | None = None
         self.surfaces: dict[int, str] = {}
+        self.materials: dict[int, str] = {}  # pybullet body id -> material (the camera's segmentation)
         self._pending_textures: list[tuple[int, TextureKey]] = []
         p.setGravity(0.0, 0.0, -GRAVITY_M_S2, physicsClientId=self.client)
         p.setTimeStep(self.dt_s, physicsClientId=self.client)
@@ -105,6 +106,9 @@ class World:
         """One static pybullet body per ``scene.bodies`` entry (textures come later: ``load_textures``)."""
         for b in self.scene.bodies:
             centre = (D @ np.asarray(b.centre_ned_m)).tolist()
+            # glass: fully transparent (the tiny renderer skips it; without a visual shape it would draw the
+            # collision shape): the camera sees through it, the vehicle does not pass
+            glass = b.material == "glass"
             if b.kind == "box":
                 half = [s / 2.0 for s in b.size_m]
                 cs = p.createCollisionShape(p.GEOM_BOX, halfExtents=half, physicsClientId=self.client)
@@ -117,10 +121,12 @@ class World:
                 vs = p.createVisualShape(p.GEOM_CYLINDER, radius=b.radius_m, length=b.height_m,
                                          physicsClientId=self.client)
                 body = p.createMultiBody(0.0, cs, vs, centre, physicsClientId=self.client)
-            p.changeVisualShape(body, -1, rgbaColor=[*b.color, 1.0], physicsClientId=self.client)
+            p.changeVisualShape(body, -1, rgbaColor=[*b.color, 0.0 if glass else 1.0], physicsClientId=self.client)
+            if not glass:
+                self._pending_textures.append((body, b.texture_key))
             p.changeDynamics(body, -1, lateralFriction=self.cfg.physics.ground_friction, physicsClientId=self.client)
             self.surfaces[body] = b.surface
-            self._pending_textures.append((body, b.texture_key))
+            self.materials[body] = b.material
 
     def _build_vehicle(self) -> None:
         size = self.cfg.physics.body_size_m
