@@ -75,6 +75,7 @@ class SitlStats:
     port1_frames_dropped: int = 0
     port1_frames_late: int = 0
     camera_frames: int = 0
+    camera_frames_dropped: int = 0   # lost by the camera model before publication (the Xtion model's drops)
     camera_render_s: float = 0.0  # wall time in render + noise model
     camera_render_cpu_s: float = 0.0  # process CPU time in render + noise model (time.process_time)
     setpoints: int = 0
@@ -457,13 +458,16 @@ class Sitl:
         if server.client_count == 0:
             return None  # nobody watching: do not pay for rendering
         t0, cpu0 = self._clock(), time.process_time()
-        frame = self.camera.render(state, self._camera_seq, t_s)
+        frame = self.camera.capture(state, self._camera_seq, t_s)   # None: the driver lost it (the Xtion model)
         self.stats.camera_render_s += self._clock() - t0
         self.stats.camera_render_cpu_s += time.process_time() - cpu0
+        seq = self._camera_seq
+        self._camera_seq += 1   # a lost frame leaves a gap in the numbers, as a driver's frame counter does
+        if frame is None:
+            self.stats.camera_frames_dropped += 1
+            return None
         server.publish(frame)
         self.stats.camera_frames += 1
-        seq = self._camera_seq
-        self._camera_seq += 1
         gated = self.options.lockstep and self.coordinator is None  # the deterministic steps wait for more than acks
         return seq if gated and server.client_count > 0 else None
 

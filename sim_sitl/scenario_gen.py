@@ -179,7 +179,8 @@ def _scatter(rng: np.random.Generator, room: RoomConfig, n_columns: int, n_boxes
     return objects
 
 
-def draw_hazard_materials(rng: np.random.Generator, objects: list[SceneObject], p: float) -> list[SceneObject]:
+def draw_hazard_materials(rng: np.random.Generator, objects: list[SceneObject], p: float,
+                          materials: tuple[str, ...] = HAZARD_MATERIALS) -> list[SceneObject]:
     """Each object dark, specular or glass with probability ``p`` (else as it was), from a child stream of ``rng``
     (``Generator.spawn``: the parent's draws are untouched, so the geometry of a seed does not depend on ``p``).
     Two draws per object whatever ``p``: an object hazardous at some ``p`` stays so at any larger one."""
@@ -187,13 +188,14 @@ def draw_hazard_materials(rng: np.random.Generator, objects: list[SceneObject], 
         return objects
     child = rng.spawn(1)[0]
     u = child.random(len(objects))
-    kind = child.integers(0, len(HAZARD_MATERIALS), len(objects))
-    return [dataclasses.replace(o, material=HAZARD_MATERIALS[int(k)]) if ui < p else o  # type: ignore[arg-type]
+    kind = child.integers(0, len(materials), len(objects))
+    return [dataclasses.replace(o, material=materials[int(k)]) if ui < p else o  # type: ignore[arg-type]
             for o, ui, k in zip(objects, u, kind, strict=True)]
 
 
 def generate_procedural(rng: np.random.Generator, name: str, layout: str | None = None,
-                        hazard_material_p: float = 0.0) -> tuple[ScenarioConfig, str]:
+                        hazard_material_p: float = 0.0, hazard_materials: tuple[str, ...] = HAZARD_MATERIALS,
+                        ) -> tuple[ScenarioConfig, str]:
     """One procedural arena and its layout; ``layout`` (one of :data:`LAYOUTS`) is drawn when None; each object is
     dark, specular or glass with probability ``hazard_material_p`` (:func:`draw_hazard_materials`)."""
     layout = layout or str(rng.choice(LAYOUTS))
@@ -242,7 +244,7 @@ def generate_procedural(rng: np.random.Generator, name: str, layout: str | None 
     n_columns = int(rng.integers(0, MAX_COLUMNS + 1))
     n_boxes = int(rng.integers(0, MAX_BOXES + 1))
     objects += _scatter(rng, room, n_columns, n_boxes, [start_xy], objects)
-    objects = draw_hazard_materials(rng, objects, hazard_material_p)
+    objects = draw_hazard_materials(rng, objects, hazard_material_p, hazard_materials)
     scenario = ScenarioConfig(name=name, description=f"procedural {layout} {nx:.1f} x {ny:.1f} m, {h:.2f} m high, "
                               f"{n_columns} columns, {n_boxes} boxes", room=room,
                               start=StartPose(position_m=start_xy, yaw_deg=0.0), objects=tuple(objects))
@@ -256,7 +258,8 @@ class ArenaDraw:
 
 
 def generate_scenario(rng: np.random.Generator, name: str, fixed_share: float = 0.2,
-                      hazard_material_p: float = 0.0) -> ArenaDraw:
+                      hazard_material_p: float = 0.0, hazard_materials: tuple[str, ...] = HAZARD_MATERIALS,
+                      ) -> ArenaDraw:
     """An arena for one flight: a fixed member (paper-arena, office) with probability ``fixed_share``, else a
     procedural one (its objects dark, specular or glass with probability ``hazard_material_p``); in both cases
     the start pose is drawn in free space."""
@@ -265,7 +268,8 @@ def generate_scenario(rng: np.random.Generator, name: str, fixed_share: float = 
         base = dataclasses.replace(load_scenario(base_name), name=name)
         layout = f"fixed:{base_name}"
     else:
-        base, layout = generate_procedural(rng, name, hazard_material_p=hazard_material_p)
+        base, layout = generate_procedural(rng, name, hazard_material_p=hazard_material_p,
+                                           hazard_materials=hazard_materials)
     start = draw_start(base, rng)
     scenario = dataclasses.replace(base, start=start)
     record = {"layout": layout, "room_size_m": list(scenario.room.size_m),
