@@ -25,7 +25,7 @@ from quadlink import REPO_ROOT
 from quadlink.errors import ConfigError
 from quadlink.mk.flags import BoardFlightState
 from quadlink.mk.messages import AttitudeSetpoint, BoardStatus, ImuSample, decode_message
-from quadlink.mk.protocol import ADDR_ANY, ADDR_FC, FrameDecoder
+from quadlink.mk.protocol import ADDR_ANY, ADDR_FC, Frame, FrameDecoder
 from quadlink.vehicle import ImuConfig, VehicleConfig
 from sim_sitl.avr.sim import F_CPU_HZ, AvrSim
 from sim_sitl.baro import BaroConfig, BaroModel
@@ -62,6 +62,19 @@ def elf_path(configured: str | None) -> Path:
     return path
 
 
+def frames_with_cycles(decoder: FrameDecoder, data: bytes, cycles: list[int]) -> list[tuple[Frame, int]]:
+    """Feed a UART's bytes to ``decoder``; each complete frame with the cycle its last byte (``'\\r'``) left."""
+    out: list[tuple[Frame, int]] = []
+    start = 0
+    for end, byte in enumerate(data):
+        if byte == 0x0D:  # frames end on '\r' (never inside one)
+            out += [(frame, cycles[end]) for frame in decoder.feed(data[start:end + 1])]
+            start = end + 1
+    if start < len(data):
+        out += [(frame, cycles[-1]) for frame in decoder.feed(data[start:])]
+    return out
+
+
 @dataclass
 class ImuStreamStats:
     """The ``I`` stream as port 2 carried it: frames, lost samples (counter gaps) and late frames."""
@@ -88,19 +101,11 @@ class ImuStreamMonitor:
         self._origin = 0
 
     def feed(self, data: bytes, cycles: list[int]) -> None:
-        start = 0
-        for end, byte in enumerate(data):
-            if byte != 0x0D:  # frames end on '\r'; the cycle of that byte is the frame's
-                continue
-            for frame in self.decoder.feed(data[start:end + 1]):
-                msg = decode_message(frame)
-                if isinstance(msg, ImuSample):
-                    self._on_sample(msg.sample_counter, cycles[end])
-                else:
-                    self.stats.bad_frames += 1
-            start = end + 1
-        if start < len(data):
-            for _ in self.decoder.feed(data[start:]):
+        for frame, cycle in frames_with_cycles(self.decoder, data, cycles):
+            msg = decode_message(frame)
+            if isinstance(msg, ImuSample):
+                self._on_sample(msg.sample_counter, cycle)
+            else:
                 self.stats.bad_frames += 1
 
     def _on_sample(self, counter: int, cycle: int) -> None:

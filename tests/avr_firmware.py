@@ -67,3 +67,72 @@ def firmware_elf() -> Path:
     if isinstance(found, str):
         pytest.skip(f"the flight firmware cannot be built: {found}")
     return found
+
+
+class Rig:
+    """The flight firmware in simavr with its pins held as a board at rest, level, on the floor (no physics).
+
+    ``run_ticks`` advances whole 2 ms ticks and collects: the ``I`` stream's statistics, every port-1 frame
+    with the cycle its last byte left, the loop's busy cycles from PB0 and the motor bytes after each tick.
+    """
+
+    def __init__(self, elf: Path, battery_v: float = 12.6) -> None:
+        from quadlink.mk.protocol import FrameDecoder
+        from quadlink.vehicle import ImuConfig
+        from sim_sitl.avr.sim import AvrSim
+        from sim_sitl.avr_board import (
+            CH_ACCEL,
+            CH_BATTERY,
+            CH_GYRO,
+            CH_PRESSURE,
+            ImuStreamMonitor,
+            LoopTiming,
+            adc_count,
+            imu_volts,
+        )
+        from sim_sitl.baro import BaroConfig, amplified_v, pressure_pa, sensor_v
+
+        self.mcu = AvrSim(elf)
+        self.tick_cycles = 40_000
+        self.monitor = ImuStreamMonitor(self.tick_cycles, 2 * self.tick_cycles)
+        self.loop = LoopTiming()
+        self.decoder = FrameDecoder()
+        self.frames: list[tuple[object, int]] = []  # (decoded message, cycle)
+        self.motor_log: list[tuple[int, tuple[int, ...]]] = []  # (cycle at the tick's end, bytes)
+        imu = ImuConfig()
+        for axis in range(3):
+            self.mcu.set_adc_count(CH_GYRO + axis, 512)
+            self.mcu.set_adc_count(CH_ACCEL + axis, 512)
+        self.mcu.set_adc_count(CH_ACCEL + 2, adc_count(imu_volts(-9.80665, imu.accel_lsb_m_s2, imu.zero_count)))
+        self.mcu.set_adc_count(CH_PRESSURE, adc_count(amplified_v(sensor_v(pressure_pa(BaroConfig().site_altitude_m)))))
+        self.mcu.set_adc_count(CH_BATTERY, adc_count(battery_v / 4.0))
+
+    def close(self) -> None:
+        self.mcu.close()
+
+    def run_ticks(self, n: int) -> None:
+        from quadlink.mk.messages import decode_message
+        from sim_sitl.avr_board import frames_with_cycles
+
+        mcu = self.mcu
+        for _ in range(n):
+            target = (mcu.cycle // self.tick_cycles + 1) * self.tick_cycles
+            mcu.run_until(target)
+            for edge in mcu.take_edges():
+                if edge.pin == 0:
+                    self.loop.on_edge(edge.cycle, edge.level)
+            self.monitor.feed(*mcu.take_tx(1))
+            for frame, cycle in frames_with_cycles(self.decoder, *mcu.take_tx(0)):
+                self.frames.append((decode_message(frame), cycle))
+            self.motor_log.append((mcu.cycle, mcu.motors().bytes))
+
+    def run_s(self, seconds: float) -> None:
+        self.run_ticks(round(seconds * 500))
+
+    def send(self, msg: object) -> None:
+        from quadlink.mk.messages import encode_message
+
+        self.mcu.send_port1(encode_message(msg))  # type: ignore[arg-type]
+
+    def messages(self, kind: type, since_cycle: int = 0) -> list:
+        return [m for m, c in self.frames if isinstance(m, kind) and c >= since_cycle]

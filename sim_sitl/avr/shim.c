@@ -90,6 +90,7 @@ typedef struct qs_sim {
 	int rx_xon;                 /* simavr's UART said there is room */
 	uint64_t rx_next;           /* earliest cycle for the next byte to start */
 	uint32_t rx_fed;
+	uint64_t rx_last_start;     /* cycle the last fed byte started on the wire */
 	/* BL-Ctrl slaves */
 	int twi_selected;           /* motor index addressed for writing, or -1 */
 	uint8_t motor[QS_MOTORS];
@@ -223,6 +224,7 @@ static void qs_rx_feed(qs_sim_t *s)
 	s->rx_head = (s->rx_head + 1) % QS_RX_CAP;
 	s->rx_len--;
 	s->rx_fed++;
+	s->rx_last_start = s->avr->cycle;
 	s->rx_next = s->avr->cycle + u->cycles_per_byte;
 	avr_raise_irq(u->io.irq + UART_IRQ_INPUT, b);
 }
@@ -464,6 +466,9 @@ int qs_uart0_send(qs_sim_t *s, const uint8_t *data, int n)
 int qs_uart0_pending(qs_sim_t *s) { return s->rx_len; }
 
 uint32_t qs_uart0_fed(qs_sim_t *s) { return s->rx_fed; }
+
+/* the cycle at which the last byte fed to USART0 was completely received (its stop bit) */
+uint64_t qs_uart0_last_received(qs_sim_t *s) { return s->rx_last_start + s->uart[0]->cycles_per_byte; }
 
 /* ------------------------------------------------------------------ TWI motors */
 

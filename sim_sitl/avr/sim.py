@@ -44,6 +44,7 @@ _SIGNATURES: dict[str, tuple[object, list[object]]] = {
     "qs_uart0_send": (ctypes.c_int, [ctypes.c_void_p, ctypes.c_char_p, ctypes.c_int]),
     "qs_uart0_pending": (ctypes.c_int, [ctypes.c_void_p]),
     "qs_uart0_fed": (ctypes.c_uint32, [ctypes.c_void_p]),
+    "qs_uart0_last_received": (ctypes.c_uint64, [ctypes.c_void_p]),
     "qs_motors": (None, [ctypes.c_void_p, _u8p, _u32p, _u64p]),
     "qs_twi_nacked": (ctypes.c_uint32, [ctypes.c_void_p]),
     "qs_edges_take": (ctypes.c_int, [ctypes.c_void_p, _u64p, _u8p, _u8p, ctypes.c_int]),
@@ -196,6 +197,11 @@ class AvrSim:
     @property
     def port1_fed(self) -> int:
         return int(self._lib.qs_uart0_fed(self.handle))
+
+    @property
+    def port1_last_received_cycle(self) -> int:
+        """The cycle at which the last byte fed to USART0 had completely arrived (its stop bit)."""
+        return int(self._lib.qs_uart0_last_received(self.handle))
 
     # ------------------------------------------------------------------ TWI
     def motors(self) -> Motors:
