@@ -103,6 +103,8 @@ typedef struct qs_sim {
 	uint64_t target;            /* end of the chunk being run */
 	qs_hook_t hooks[QS_HOOKS];
 	int hook_count;
+	uint32_t *profile;          /* cycles spent at each flash word address (NULL: not profiling) */
+	uint32_t profile_words;
 	uint32_t resets;
 } qs_sim_t;
 
@@ -386,6 +388,7 @@ void qs_free(qs_sim_t *s)
 	avr_terminate(s->avr);
 	free(s->avr);
 	free(s->rx);
+	free(s->profile);
 	free(s);
 }
 
@@ -411,6 +414,8 @@ int qs_run_until(qs_sim_t *s, uint64_t target)
 	avr_t *avr = s->avr;
 	s->target = target;
 	while (avr->cycle < target) {
+		uint64_t before = avr->cycle;
+		avr_flashaddr_t pc = avr->pc;
 		qs_rx_feed(s);
 		if (avr->state == cpu_Sleeping) {
 			uint64_t wake = target;
@@ -418,12 +423,37 @@ int qs_run_until(qs_sim_t *s, uint64_t target)
 				wake = s->rx_next;
 			avr_cycle_timer_register(avr, wake > avr->cycle ? wake - avr->cycle : 1, qs_wake, s);
 		}
+		int sleeping = avr->state == cpu_Sleeping;
 		int st = avr_run(avr);
+		if (s->profile && !sleeping && (pc >> 1) < s->profile_words)
+			s->profile[pc >> 1] += (uint32_t)(avr->cycle - before);
 		if (st == cpu_Crashed || st == cpu_Done)
 			return st;
 	}
 	avr_cycle_timer_cancel(avr, qs_wake, s);
 	return avr->state;
+}
+
+/* cycle profile: the cycles each instruction (by flash word address) took, sleep excluded; interrupt entry is
+ * counted at the instruction it interrupted. on = 0 stops and frees it. */
+void qs_profile(qs_sim_t *s, int on)
+{
+	free(s->profile);
+	s->profile = NULL;
+	if (on) {
+		s->profile_words = (s->avr->flashend + 1) / 2;
+		s->profile = calloc(s->profile_words, sizeof(uint32_t));
+	}
+}
+
+int qs_profile_take(qs_sim_t *s, uint32_t *out, int max)
+{
+	if (!s->profile)
+		return 0;
+	int n = (int)s->profile_words < max ? (int)s->profile_words : max;
+	memcpy(out, s->profile, n * sizeof(uint32_t));
+	memset(s->profile, 0, s->profile_words * sizeof(uint32_t));
+	return n;
 }
 
 /* ------------------------------------------------------------------ ADC */

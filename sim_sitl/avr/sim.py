@@ -50,6 +50,8 @@ _SIGNATURES: dict[str, tuple[object, list[object]]] = {
     "qs_edges_take": (ctypes.c_int, [ctypes.c_void_p, _u64p, _u8p, _u8p, ctypes.c_int]),
     "qs_edges_overflow": (ctypes.c_uint32, [ctypes.c_void_p]),
     "qs_portb": (ctypes.c_int, [ctypes.c_void_p, ctypes.c_int]),
+    "qs_profile": (None, [ctypes.c_void_p, ctypes.c_int]),
+    "qs_profile_take": (ctypes.c_int, [ctypes.c_void_p, _u32p, ctypes.c_int]),
     "qs_eeprom_size": (ctypes.c_int, [ctypes.c_void_p]),
     "qs_eeprom_read": (ctypes.c_int, [ctypes.c_void_p, _u8p, ctypes.c_int]),
     "qs_eeprom_write": (ctypes.c_int, [ctypes.c_void_p, ctypes.c_char_p, ctypes.c_int]),
@@ -214,6 +216,18 @@ class AvrSim:
     @property
     def twi_nacked(self) -> int:
         return int(self._lib.qs_twi_nacked(self.handle))
+
+    # ------------------------------------------------------------------ profile
+    def profile(self, on: bool) -> None:
+        """Count the cycles each instruction takes from now (sleep excluded); off frees the counters."""
+        self._lib.qs_profile(self.handle, int(on))
+
+    def take_profile(self) -> dict[int, int]:
+        """Cycles per flash byte address since the last take (only addresses that ran)."""
+        words = 1 << 16
+        buf = (ctypes.c_uint32 * words)()
+        n = self._lib.qs_profile_take(self.handle, buf, words)
+        return {2 * i: int(buf[i]) for i in range(n) if buf[i]}
 
     # ------------------------------------------------------------------ EEPROM
     def eeprom(self) -> bytes:

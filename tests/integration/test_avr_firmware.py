@@ -54,10 +54,15 @@ def check_imu_stream(rig: Rig, seconds: float) -> None:
     assert s.frames >= seconds * 500 - 3
 
 
-def test_imu_stream_is_500_hz_with_no_lost_or_late_frame(rig: Rig) -> None:
-    rig.run_s(10.0)
-    check_imu_stream(rig, 10.0)
-    assert rig.loop.busy_cycles and max(rig.loop.busy_cycles) < TICK  # never an overrun
+LOOP_BUDGET = 0.60  # the 500 Hz loop's worst case, share of its 40,000 cycles (benchmarks/bench_firmware.py)
+
+
+def test_imu_stream_is_500_hz_with_no_lost_or_late_frame_disarmed_and_armed(rig: Rig) -> None:
+    rig.run_s(3.0)
+    fly(rig, 5.0, 0.4)  # armed: the whole attitude loop runs (on the floor: the pins do not move)
+    check_imu_stream(rig, 8.0)
+    worst = max(rig.loop.busy_cycles)
+    assert worst < TICK, f"the loop overran its tick: {worst} cycles"
 
 
 @pytest.mark.slow
@@ -83,8 +88,8 @@ def test_setpoint_to_motor_bytes_latency(rig: Rig) -> None:
         pytest.fail(f"motor bytes never followed the thrust step: {before} -> {rig.mcu.motors().bytes}")
     received = rig.mcu.port1_last_received_cycle
     latency = max(m.last_cycle) - received
-    # the frame is taken at the next tick's start, then flown and written in that tick's work
-    assert 0 < latency <= TICK + TICK // 2, f"latency {latency} cycles"
+    # the frame is taken at the next tick's start, then flown and written within that tick's work
+    assert 0 < latency <= TICK * (1 + LOOP_BUDGET), f"latency {latency} cycles"
     # ... and the bytes follow thrust x 4 motors / max: 0.6 of 4 x 5 N over 4 motors = 3 N = byte 153
     assert np.mean(m.bytes) == pytest.approx(0.6 * 255, abs=12)
 
