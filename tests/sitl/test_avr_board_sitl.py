@@ -111,6 +111,16 @@ def test_avr_board_and_python_model_agree_on_the_same_setpoints(firmware_elf: Pa
     assert board is not None and board.imu_stream.stats.lost == 0
 
 
+def test_the_avr_board_is_deterministic(firmware_elf: Path) -> None:  # noqa: F811
+    """The same seed and setpoints give the same flight, tick for tick (what the deterministic lock-step needs)."""
+    a, _ = fly_in_process(steps, GROUND_S + 2.0, firmware_elf)
+    b, _ = fly_in_process(steps, GROUND_S + 2.0, firmware_elf)
+    assert a[-1, 4] > 0.2  # it flew
+    np.testing.assert_array_equal(a, b)
+    c, _ = fly_in_process(steps, GROUND_S + 2.0, firmware_elf, seed=2)
+    assert not np.array_equal(a, c)  # ... and the seed matters (sensor noise reaches the pins)
+
+
 def test_failsafe_on_setpoint_silence_descends_and_cuts_on_the_floor(firmware_elf: Path) -> None:  # noqa: F811
     silence_s = GROUND_S + 2.5
 
