@@ -273,3 +273,45 @@ def _stop(*procs: object) -> None:
         except subprocess.TimeoutExpired:
             os.killpg(proc.pid, signal.SIGKILL)
             proc.wait(timeout=5.0)
+
+
+def _lockstep_flight(elf: Path, jitter_s: float, seed: int) -> tuple[object, object, np.ndarray]:
+    import threading
+    import time
+
+    from test_sitl_lockstep import FakeBridge
+
+    from sim_sitl.config import SitlConfig
+    from sim_sitl.runner import Sitl, SitlOptions
+
+    cfg = SitlConfig(scenario="empty", board="avr", firmware_elf=str(elf))
+    sitl = Sitl(SitlOptions(config=cfg, port1=0, port2=0, camera_port=0, camera=False, truth_url=None,
+                            progress_every_s=60.0, lockstep=True, lockstep_port=0, lockstep_participants=("bridge",),
+                            duration_s=1.0))
+    thread = threading.Thread(target=sitl.run, daemon=True)
+    thread.start()
+    try:
+        time.sleep(0.3)
+        assert sitl.sim.t_s == 0.0
+        bridge = FakeBridge(sitl, jitter_s, seed)
+        bridge.run()
+        thread.join(20.0)
+        assert not thread.is_alive()
+        s = sitl.sim.world.state
+        return sitl, bridge, np.concatenate([s.p_ned_m, s.v_ned_m_s, s.R_ned_q.ravel()])
+    finally:
+        sitl.stop()
+
+
+def test_deterministic_lockstep_with_the_avr_board(firmware_elf: Path) -> None:  # noqa: F811
+    """quadlink.lockstep with --board avr: the same inputs at different wall times are the same flight, bit for bit."""
+    sitl_a, bridge_a, truth_a = _lockstep_flight(firmware_elf, 0.0, 1)
+    sitl_b, bridge_b, truth_b = _lockstep_flight(firmware_elf, 0.004, 2)
+    for sitl, bridge in ((sitl_a, bridge_a), (sitl_b, bridge_b)):
+        assert bridge.ended is not None and "duration" in bridge.ended  # type: ignore[attr-defined]
+        assert [i for i, _ in bridge.steps] == list(range(100))  # type: ignore[attr-defined]
+        assert 495 <= bridge.samples <= 500  # type: ignore[attr-defined]  # the board's first frame a tick in
+        assert sitl.stats.setpoints == 99  # type: ignore[attr-defined]
+        assert sitl.armed  # type: ignore[attr-defined]
+    assert truth_a[2] < -0.02  # it lifted off
+    assert np.array_equal(truth_a, truth_b)
