@@ -14,6 +14,7 @@ of the tick's cycles act during the physics of tick k.
 
 from __future__ import annotations
 
+import bisect
 import logging
 from collections import deque
 from dataclasses import dataclass, field
@@ -166,6 +167,8 @@ class AvrBoard:
         self.last_status: BoardStatus | None = None
         self.setpoints_sent = 0
         self._out: list[tuple[bytes, list[int]]] = [(b"", []), (b"", [])]
+        # bytes a UART started in a chunk whose stop bit leaves in the next one: they wait for their time
+        self._in_flight: list[tuple[bytes, list[int]]] = [(b"", []), (b"", [])]
         self._port1_out = FrameDecoder()
         self._port1_in = FrameDecoder()
 
@@ -190,7 +193,7 @@ class AvrBoard:
         for edge in mcu.take_edges():
             if edge.pin == PIN_LOOP_BUSY:
                 self.loop.on_edge(edge.cycle, edge.level)
-        out1, out2 = mcu.take_tx(0), mcu.take_tx(1)
+        out1, out2 = self._left(0), self._left(1)
         self._out = [out1, out2]
         self.imu_stream.feed(*out2)
         self._watch_status(out1[0])
@@ -198,6 +201,15 @@ class AvrBoard:
         motor_bytes = mcu.motors().bytes
         cmd = np.array(motor_bytes, dtype=float) / MOTOR_BYTE_FULL * self.vehicle.motor.max_thrust_n
         return FirmwareOutput(cmd, self.armed, self.flight_state, self.failsafe)
+
+    def _left(self, port: int) -> tuple[bytes, list[int]]:
+        """The bytes of USART``port`` whose stop bit has left by now, with their cycles (oldest first)."""
+        data, cycles = self.mcu.take_tx(port)
+        held, held_cycles = self._in_flight[port]
+        data, cycles = held + data, held_cycles + cycles
+        n = bisect.bisect_right(cycles, self.mcu.cycle)
+        self._in_flight[port] = (data[n:], cycles[n:])
+        return data[:n], cycles[:n]
 
     def _watch_status(self, port1_bytes: bytes) -> None:
         """The flight state and failsafe flag as the board reports them in ``S`` (for the runner's end rules)."""

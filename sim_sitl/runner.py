@@ -414,6 +414,11 @@ class Sitl:
             log.warning("serial link over budget: %d port-1 and %d port-2 frames dropped so far (TX buffer full at "
                         "%d baud); ask for fewer or slower streams", drops[0], drops[1], self.options.config.link.baud)
             self._reported_drops = drops
+        if self.avr is not None:
+            imu, busy = self.avr.imu_stream.stats, self.avr.loop.busy_cycles
+            log.info("board avr: I frames lost %d late %d; loop busy max %.0f %% of the tick (last %d ticks)",
+                     imu.lost, imu.late, 100.0 * max(busy, default=0) / self.avr.cycles_per_tick, len(busy))
+            busy.clear()
         log.info("sim %.1f s  rtf %.2f  imu %.0f Hz  camera %.1f Hz  setpoints %d  link drops p1 %d p2 %d "
                  "(late p1 %d)  clients p1 %d p2 %d cam %d", self.sim.t_s, rtf, imu_hz, cam_hz, self.stats.setpoints,
                  self.line1.stats.frames_dropped, self.line2.stats.frames_dropped, self.line1.stats.frames_late,

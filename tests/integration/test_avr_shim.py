@@ -159,3 +159,13 @@ def test_eeprom_survives_a_reset_and_can_be_loaded(mcu: AvrSim) -> None:
     mcu.run_for(TICK)
     assert mcu.take_tx(0)[0] == b"B\x2a"
     assert mcu.eeprom()[0] == 42
+
+
+def test_the_build_command_prints_the_library() -> None:
+    import subprocess
+    import sys
+
+    proc = subprocess.run([sys.executable, "-m", "sim_sitl.avr.build"], capture_output=True, text=True, timeout=120,
+                          check=False)
+    assert proc.returncode == 0, proc.stderr
+    assert Path(proc.stdout.strip()) == library_path()
