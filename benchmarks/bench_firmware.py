@@ -185,10 +185,13 @@ def main() -> int:
         print(f"[{phase}] in-process flight, real-time factor: avr {avr.sim_s / avr.wall_s:.2f} wall, "
               f"{avr.sim_s / avr.cpu_s:.2f} CPU | model {model.sim_s / model.wall_s:.2f} wall, "
               f"{model.sim_s / model.cpu_s:.2f} CPU | avr/model CPU cost x{avr.cpu_s / model.cpu_s:.2f}")
+    rtf = {}
     for board in ("model", "avr"):
-        wall, cpu = sitl_rtf(board, elf, args.sitl_seconds)
+        rtf[board] = wall, cpu = sitl_rtf(board, elf, args.sitl_seconds)
         print(f"SITL --board {board} (unpaced, no camera, disarmed, {args.sitl_seconds:.0f} s sim): real-time factor "
               f"{wall:.2f} wall, {cpu:.2f} CPU (target >= 1x)")
+    print(f"SITL avr / model real-time factor: x{rtf['avr'][0] / rtf['model'][0]:.2f} wall, "
+          f"x{rtf['avr'][1] / rtf['model'][1]:.2f} CPU")
     if args.profile:
         prof = results["steps"].profile
         total = sum(prof.values())
