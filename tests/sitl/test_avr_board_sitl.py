@@ -172,10 +172,10 @@ def test_flight_through_the_bridge_takes_off_hovers_and_lands(firmware_elf: Path
         odom.start()
         # powered up on the floor for a while before arming, as a board is: its barometer settles (about 6 s
         # after power-up; armed earlier, its altitude and climb still carry the start-up transient)
-        wait_for(lambda: stack.sim_time_s >= BARO_SETTLE_S, 120.0, f"{BARO_SETTLE_S:.0f} s of simulated time")
+        wait_for(lambda: stack.sim_time_s >= BARO_SETTLE_S, 180.0, f"{BARO_SETTLE_S:.0f} s of simulated time")
         assert gcs.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1) == mavlink.MAV_RESULT_ACCEPTED
         assert gcs.command(mavlink.MAV_CMD_NAV_TAKEOFF, *([math.nan] * 7)) == mavlink.MAV_RESULT_ACCEPTED
-        assert gcs.recv("HEARTBEAT", 40.0, lambda m: m.custom_mode == PX4_LOITER) is not None
+        assert gcs.recv("HEARTBEAT", 150.0, lambda m: m.custom_mode == PX4_LOITER) is not None  # slow under load
         # hover: 4 s of simulated time near the take-off altitude, level and still
         t0 = stack.sim_time_s
         heights, tilts, speeds = [], [], []
@@ -193,7 +193,7 @@ def test_flight_through_the_bridge_takes_off_hovers_and_lands(firmware_elf: Path
         assert max(tilts) < math.radians(10.0)
         assert np.median(speeds) < 0.3
         assert gcs.command(mavlink.MAV_CMD_NAV_LAND) == mavlink.MAV_RESULT_ACCEPTED
-        assert gcs.recv("HEARTBEAT", 60.0, lambda m: not m.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED) \
+        assert gcs.recv("HEARTBEAT", 150.0, lambda m: not m.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED) \
             is not None
         p, _, _ = stack.state()
         assert abs(p[2]) < 0.15
