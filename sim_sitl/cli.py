@@ -40,15 +40,28 @@ log = logging.getLogger(__name__)
 @click.option("--truth", default="udpout:127.0.0.1:14560", show_default=True,
               help="ground-truth MAVLink endpoint (udpout:HOST:PORT, 'none' to disable)")
 @click.option("--duration", type=float, default=None, help="stop after this many simulated seconds")
+@click.option("--board", type=click.Choice(["model", "avr"]), default=None,
+              help="what flies: the Python board model or the firmware binary in simavr (default: the config's, model)")
+@click.option("--firmware-elf", default=None,
+              help="with --board avr: the firmware ELF (default firmware/build/quadlink-fc.elf)")
 def command(scenario: str | None, config_path: str | None, lockstep: bool, lockstep_port: int | None,
             lockstep_participants: str, end_after_operator_s: float | None, speed: float | None,
             camera_res: str | None, no_camera: bool, renderer: RendererName | None, pty: bool, port1: int, port2: int,
-            camera_port: int, truth: str, duration: float | None) -> None:
+            camera_port: int, truth: str, duration: float | None, board: str | None,
+            firmware_elf: str | None) -> None:
     from sim_sitl.runner import Sitl, SitlOptions, parse_resolution
 
     cfg = load_sitl_config(config_path)
     if renderer is not None:
         cfg = dataclasses.replace(cfg, camera=dataclasses.replace(cfg.camera, renderer=renderer))
+    if board is not None:
+        cfg = dataclasses.replace(cfg, board=board)  # type: ignore[arg-type]
+    if firmware_elf is not None:
+        cfg = dataclasses.replace(cfg, firmware_elf=firmware_elf)
+    if cfg.board == "avr":
+        from sim_sitl.avr_board import elf_path
+
+        elf_path(cfg.firmware_elf)  # a missing ELF is a one-line error before any port opens
     if speed is not None and speed < 0:
         raise ConfigError(f"--speed must be positive (or 0 for as fast as possible), got {speed}")
     res = None

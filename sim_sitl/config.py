@@ -14,6 +14,7 @@ from typing import Literal, get_args
 from quadlink import CONFIG_DIR
 from quadlink.config import find_config, load_config
 from quadlink.errors import ConfigError
+from sim_sitl.baro import BaroConfig
 from sim_sitl.disturbance import Push
 
 
@@ -133,6 +134,7 @@ class CameraNoiseConfig:
 
 
 RendererName = Literal["raster", "pybullet"]
+BoardName = Literal["model", "avr"]
 
 
 @dataclass(frozen=True)
@@ -157,6 +159,10 @@ class SitlConfig:
     truth_rate_hz: float = 50.0
     lockstep_chunk_s: float = 0.01
     lockstep_timeout_s: float = 2.0
+    # what flies: the Python board model (sim_sitl/firmware.py) or the firmware binary in simavr (sim_sitl/avr_board.py)
+    board: BoardName = "model"
+    firmware_elf: str | None = None  # board avr: the ELF to fly; None = the repo's firmware/build/quadlink-fc.elf
+    baro: BaroConfig = field(default_factory=BaroConfig)  # board avr: the pressure sensor on ADC6
 
 
 #: what a surface does to the structured light (``sim_sitl/xtion.py``): matte returns it; dark (a black monitor)

@@ -26,6 +26,7 @@ from quadlink.lockstep import DEFAULT_DONE_TIMEOUT_S, PARTICIPANTS, Coordinator,
 from quadlink.mk.flags import BoardError
 from quadlink.mk.messages import ImuSample, encode_message
 from quadlink.vehicle import load_vehicle
+from sim_sitl.avr_board import AvrBoard, elf_path
 from sim_sitl.board import BoardTelemetry, Port1Protocol
 from sim_sitl.config import SitlConfig, load_scenario
 from sim_sitl.pacing import RealTimePacer, SetpointGate, wait_serving
@@ -102,6 +103,15 @@ class Sitl:
         self.scenario = load_scenario(opts.scenario or cfg.scenario)
         self.rng = np.random.default_rng(cfg.seed)
         self.sim = SimVehicle(self.vehicle, cfg, self.scenario, self.rng)
+        self.avr: AvrBoard | None = None  # --board avr: the firmware binary flies (sim_sitl/avr_board.py)
+        if cfg.board == "avr":
+            try:
+                self.avr = AvrBoard(elf_path(cfg.firmware_elf), self.vehicle, cfg.baro,
+                                    np.random.default_rng(cfg.seed + 2), self.sim.tick_s, cfg.link.late_after_s)
+            except BaseException:
+                self.sim.close()
+                raise
+            self.sim.board = self.avr
         self.stats = SitlStats()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
@@ -172,8 +182,9 @@ class Sitl:
 
     def log_endpoints(self) -> None:
         o = self.options
-        log.info("SITL scenario %s, vehicle %s (%s frame, %.2f kg), %s", self.scenario.name, self.vehicle.name,
-                 self.vehicle.frame, self.vehicle.mass_kg,
+        log.info("SITL scenario %s, vehicle %s (%s frame, %.2f kg), board %s, %s", self.scenario.name,
+                 self.vehicle.name, self.vehicle.frame, self.vehicle.mass_kg,
+                 f"avr ({self.avr.mcu_elf})" if self.avr is not None else "model",
                  f"deterministic lock-step with {', '.join(o.lockstep_participants)}" if self.coordinator
                  else "lock-step" if o.lockstep else ("as fast as possible" if o.speed is not None and o.speed <= 0
                                                   else f"real time x{o.speed or 1.0:g}"))
@@ -215,6 +226,8 @@ class Sitl:
             self.coordinator.close()  # type: ignore[union-attr]
         if self._thread is None or not self._thread.is_alive():
             self.sim.close()
+            if getattr(self, "avr", None) is not None:
+                self.avr.close()  # type: ignore[union-attr]
 
     def _run_guarded(self) -> None:
         try:
@@ -321,7 +334,7 @@ class Sitl:
             if self._operator_left_s is None:
                 self._operator_left_s = t
                 log.info("the operator left at sim time %.2f s", t)
-            if not self.sim.firmware.armed:
+            if not self.armed:
                 if self._disarmed_since_s is None:
                     self._disarmed_since_s = t
                 if t >= self._disarmed_since_s + DISARMED_END_S - 1e-9:
@@ -370,9 +383,18 @@ class Sitl:
         if data:
             self._on_port1(data)
 
+    @property
+    def armed(self) -> bool:
+        """The board's arm state (the AVR board's LED pin, or the Python model's flag)."""
+        return self.avr.armed if self.avr is not None else self.sim.firmware.armed
+
     def _on_port1(self, data: bytes) -> int:
         """Port 1's bytes at the current sim time: requests answered on the simulated wire, setpoints to the
-        firmware. Returns the number of setpoints."""
+        firmware (the AVR board: all of them to USART0's receiver). Returns the number of setpoints."""
+        if self.avr is not None:
+            n = self.avr.on_port1(data)
+            self.stats.setpoints += n
+            return n
         t = self.sim.t_s
         commands, replies = self.protocol.on_bytes(data, t)
         for frame in replies:
@@ -393,6 +415,11 @@ class Sitl:
             log.warning("serial link over budget: %d port-1 and %d port-2 frames dropped so far (TX buffer full at "
                         "%d baud); ask for fewer or slower streams", drops[0], drops[1], self.options.config.link.baud)
             self._reported_drops = drops
+        if self.avr is not None:
+            imu, busy = self.avr.imu_stream.stats, self.avr.loop.busy_cycles
+            log.info("board avr: I frames lost %d late %d; loop busy max %.0f %% of the tick (last %d ticks)",
+                     imu.lost, imu.late, 100.0 * max(busy, default=0) / self.avr.cycles_per_tick, len(busy))
+            busy.clear()
         log.info("sim %.1f s  rtf %.2f  imu %.0f Hz  camera %.1f Hz  setpoints %d  link drops p1 %d p2 %d "
                  "(late p1 %d)  clients p1 %d p2 %d cam %d", self.sim.t_s, rtf, imu_hz, cam_hz, self.stats.setpoints,
                  self.line1.stats.frames_dropped, self.line2.stats.frames_dropped, self.line1.stats.frames_late,
@@ -404,6 +431,28 @@ class Sitl:
         Returns the sequence number of a camera frame published in lock-step (its ack is awaited by the
         caller, after this tick's serial bytes have left), else None.
         """
+        t = res.t_s
+        if self.avr is not None:
+            out1, out2 = self.avr.take_port_bytes()  # the UARTs paced them: not through the serial lines
+            imu = self.avr.imu_stream.stats
+            self.stats.imu_frames_offered, self.stats.imu_frames_dropped = imu.frames, imu.lost
+        else:
+            out1, out2 = self._model_board_bytes(res)
+        pending = None
+        if self.camera is not None and t + 1e-9 >= self._next_camera_s:
+            self._next_camera_s += self._camera_period_s
+            pending = self._render_camera(res.state, t)
+        if self.truth is not None and t + 1e-9 >= self._next_truth_s:
+            self._next_truth_s += self._truth_period_s
+            self._send_truth(res.state, t)
+        self._bytes_out[0] += len(out1)
+        self._bytes_out[1] += len(out2)
+        self.ports.write_serial(out1, out2)
+        return pending
+
+    def _model_board_bytes(self, res: TickResult) -> tuple[bytes, bytes]:
+        """The Python board's tick: the ``I`` frame on port 2, due telemetry on port 1, and the bytes both serial
+        lines carried by the tick's end."""
         t = res.t_s
         imu_cfg = self.vehicle.imu
         sample = ImuSample.from_si(res.imu.accel_q_m_s2, res.imu.gyro_q_rad_s, imu_cfg, res.tick)
@@ -417,19 +466,8 @@ class Sitl:
         if self.protocol.anything_due(t, res.firmware.armed):
             for frame in self.protocol.poll(self._telemetry(res)):
                 self.line1.offer(frame, t)
-        pending = None
-        if self.camera is not None and t + 1e-9 >= self._next_camera_s:
-            self._next_camera_s += self._camera_period_s
-            pending = self._render_camera(res.state, t)
-        if self.truth is not None and t + 1e-9 >= self._next_truth_s:
-            self._next_truth_s += self._truth_period_s
-            self._send_truth(res.state, t)
         t_end = t + self.sim.tick_s
-        out1, out2 = self.line1.drain(t_end), self.line2.drain(t_end)
-        self._bytes_out[0] += len(out1)
-        self._bytes_out[1] += len(out2)
-        self.ports.write_serial(out1, out2)
-        return pending
+        return self.line1.drain(t_end), self.line2.drain(t_end)
 
     def _telemetry(self, res: TickResult) -> BoardTelemetry:
         fw = self.sim.firmware

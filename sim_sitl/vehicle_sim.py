@@ -3,11 +3,16 @@
 One board tick is 1 / ``firmware.loop_rate_hz`` (2 ms): the firmware runs on the state at the tick,
 IMU sample ``k`` is taken at board time ``k * 2 ms``, then physics advances to the next tick (in
 ``physics.rate_hz / loop_rate_hz`` substeps). Time comes only from the tick counter.
+
+The Python firmware model flies by default; a :class:`FlightBoard` (the firmware binary in simavr,
+:class:`sim_sitl.avr_board.AvrBoard`) flies instead when one is given: it sees only the IMU reading, the
+state's height through its pressure sensor, and the battery.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Protocol
 
 import numpy as np
 
@@ -29,6 +34,12 @@ class TickResult:
     firmware: FirmwareOutput
 
 
+class FlightBoard(Protocol):
+    """A board that flies the motors from its sensor pins, one board tick at a time."""
+
+    def control(self, t_s: float, state: RigidState, imu: ImuReading, battery_mv: float) -> FirmwareOutput: ...
+
+
 class SimVehicle:
     def __init__(self, vehicle: VehicleConfig, cfg: SitlConfig, scenario: ScenarioConfig,
                  rng: np.random.Generator) -> None:
@@ -47,6 +58,7 @@ class SimVehicle:
         self.ticks = 0
         self.flying_time_s = 0.0
         self.disturbances = DisturbanceSchedule(scenario.disturbances)  # scripted pushes; .push() adds more
+        self.board: FlightBoard | None = None  # None: the Python firmware model flies
 
     @property
     def t_s(self) -> float:
@@ -58,9 +70,13 @@ class SimVehicle:
     def tick(self) -> TickResult:
         t = self.t_s
         s = self.world.state
-        roll, pitch, yaw = euler_from_R(s.R_ned_q)
-        out = self.firmware.step(t, self.tick_s, BoardSensing(roll, pitch, yaw, s.omega_q_rad_s, float(s.v_ned_m_s[2])))
+        if self.board is None:
+            roll, pitch, yaw = euler_from_R(s.R_ned_q)
+            out = self.firmware.step(t, self.tick_s, BoardSensing(roll, pitch, yaw, s.omega_q_rad_s,
+                                                                  float(s.v_ned_m_s[2])))
         reading = self.imu.measure(t, self.tick_s, s.R_ned_q, s.a_ned_m_s2, s.omega_q_rad_s, s.motor_thrust_n)
+        if self.board is not None:
+            out = self.board.control(t, s, reading, self.battery_mv())
         for i in range(self.substeps):
             self.world.external_force_ned_n = self.disturbances.force_ned_n(t + i * self.world.dt_s)
             self.world.step(out.motor_cmd_n)
