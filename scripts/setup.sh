@@ -12,8 +12,10 @@ say() { echo "[setup] $*"; }
 
 # --- Debian packages -------------------------------------------------------------------------
 # open3d links libusb-1.0 and libgomp; OpenGL/EGL stubs for pybullet's and open3d's imports;
-# python3-venv for the virtualenv; chromium for the operator-view screenshot test.
-debs=(libusb-1.0-0 libgomp1 libgl1 libegl1)
+# python3-venv for the virtualenv; chromium for the operator-view screenshot test;
+# the board firmware (firmware/, C for the ATmega1284P) and the SITL's simavr board (--board avr): avr-gcc,
+# avr-libc, simavr and its headers, libelf, make and the host compiler for the shim and the host unit tests.
+debs=(libusb-1.0-0 libgomp1 libgl1 libegl1 gcc make gcc-avr avr-libc binutils-avr simavr libsimavr-dev libelf-dev)
 python3 -c "import ensurepip, venv" 2>/dev/null || debs+=(python3-venv python3-pip)
 [ "$want_test" = 1 ] && debs+=(chromium)
 missing=()
@@ -50,4 +52,8 @@ if [ ! -f "$stamp" ] || [ pyproject.toml -nt "$stamp" ]; then
 fi
 .venv/bin/python -c "import open3d, pybullet, cv2, pymavlink" 2>/dev/null >/dev/null \
   || { echo "[setup] the installed packages do not import; see the error above" >&2; exit 1; }
+# --- the board firmware and the SITL's simavr shim -------------------------------------------
+say "building the FlightCtrl firmware (make -C firmware) and the simavr shim"
+make -s -C firmware >/dev/null || { echo "[setup] the firmware did not build; see: make -C firmware" >&2; exit 1; }
+.venv/bin/python -m sim_sitl.avr.build >/dev/null || { echo "[setup] the simavr shim did not build" >&2; exit 1; }
 say "ready: $(.venv/bin/quadlink --version)"

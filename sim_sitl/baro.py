@@ -51,7 +51,7 @@ class BaroConfig:
     site_altitude_m: float = 120.0  # the arena floor above mean sea level (mid-range of the amplifier)
     sea_level_pa: float = SEA_LEVEL_PA  # the day's weather
     offset_sigma_pa: float = 150.0  # sensor offset error, drawn once (the firmware zeroes at arming)
-    drift_pa_sqrt_s: float = 1.5  # random-walk drift density (about 0.13 m/sqrt(s) of height)
+    drift_pa_sqrt_s: float = 0.3  # random-walk drift density (about 2.5 cm/sqrt(s) of height)
     noise_pa: float = 4.0  # white noise per sample (about 0.35 m)
 
 
