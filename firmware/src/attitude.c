@@ -1,0 +1,95 @@
+#include "attitude.h"
+
+#include "fxmath.h"
+#include "sensors.h"
+
+void ql_attitude_init(ql_attitude_t *a)
+{
+    a->roll_q24 = a->pitch_q24 = a->yaw_q24 = 0;
+    for (uint8_t i = 0; i < 3u; i++) {
+        a->rate_q8[i] = 0;
+        a->bias_q16[i] = QL_IMU_ZERO_COUNT << 16;
+        a->cal_sum[i] = 0;
+    }
+    a->cal_ticks = 0;
+    a->calibrated = 0;
+    a->saturated = 0;
+}
+
+static int32_t clamp32(int32_t v, int32_t lim) { return v > lim ? lim : (v < -lim ? -lim : v); }
+
+void ql_attitude_update(ql_attitude_t *a, const uint16_t accel[3], const uint16_t gyro[3], uint8_t armed)
+{
+    uint8_t sat = 0;
+    int32_t f[3];
+    for (uint8_t i = 0; i < 3u; i++) {
+        sat |= (uint8_t)(gyro[i] == 0u || gyro[i] >= QL_IMU_COUNT_MAX || accel[i] == 0u ||
+                         accel[i] >= QL_IMU_COUNT_MAX);
+        f[i] = (int32_t)accel[i] - QL_IMU_ZERO_COUNT;
+    }
+    a->saturated = sat;
+
+    /* accelerometer attitude (specific force f = g [sin(pitch), -sin(roll) cos(pitch), -cos(roll) cos(pitch)]) */
+    int32_t norm2 = f[0] * f[0] + f[1] * f[1] + f[2] * f[2];
+    uint8_t acc_ok = (uint8_t)(norm2 >= QL_ATT_ACC_MIN2 && norm2 <= QL_ATT_ACC_MAX2);
+    int32_t roll_acc = ql_atan2_q24(-f[1], -f[2]);
+    int32_t pitch_acc = ql_atan2_q24(f[0], (int32_t)ql_isqrt32((uint32_t)(f[1] * f[1] + f[2] * f[2])));
+
+    if (!a->calibrated) {
+        /* power-up: average the gyro, hold the attitude at the accelerometer's */
+        for (uint8_t i = 0; i < 3u; i++) {
+            a->cal_sum[i] += (int32_t)gyro[i];
+            a->rate_q8[i] = 0;
+        }
+        a->roll_q24 = roll_acc;
+        a->pitch_q24 = pitch_acc;
+        if (++a->cal_ticks >= QL_ATT_CAL_TICKS) {
+            for (uint8_t i = 0; i < 3u; i++) {
+                a->bias_q16[i] = a->cal_sum[i] << 8; /* sum of 256 samples = mean * 256 (q8) -> q16 */
+            }
+            a->calibrated = 1;
+        }
+        return;
+    }
+
+    uint8_t still = acc_ok;
+    for (uint8_t i = 0; i < 3u; i++) {
+        int32_t g = ((int32_t)gyro[i] << 8) - QL_RSHIFT(a->bias_q16[i], 8);
+        a->rate_q8[i] = g;
+        still &= (uint8_t)(g <= QL_ATT_STILL_Q8 && g >= -QL_ATT_STILL_Q8);
+    }
+    if (!armed && still) {
+        for (uint8_t i = 0; i < 3u; i++) {
+            a->bias_q16[i] += (((int32_t)gyro[i] << 16) - a->bias_q16[i]) >> QL_ATT_BIAS_SHIFT;
+        }
+    }
+
+    /* Euler kinematics in q6 rate counts and Q12 trigonometry */
+    int32_t p = QL_RSHIFT(a->rate_q8[0], 2), q = QL_RSHIFT(a->rate_q8[1], 2), r = QL_RSHIFT(a->rate_q8[2], 2);
+    int32_t sr = ql_sin_q12(a->roll_q24), cr = ql_cos_q12(a->roll_q24);
+    int32_t sp = ql_sin_q12(a->pitch_q24), cp = ql_cos_q12(a->pitch_q24);
+    if (cp < QL_ATT_COS_MIN_Q12) {
+        cp = QL_ATT_COS_MIN_Q12; /* |pitch| near 90 deg: the Euler rates are singular; bounded instead */
+    }
+    int32_t tan_p = (sp * QL_Q12_ONE) / cp; /* C division truncates towards zero (the mirror does the same) */
+    int32_t sec_p = (QL_Q12_ONE * QL_Q12_ONE) / cp;
+    int32_t u = QL_RSHIFT(q * sr + r * cr, 12);
+    int32_t roll_rate = clamp32(p + QL_RSHIFT(tan_p * u, 12), QL_ATT_RATE_LIMIT_Q6);
+    int32_t pitch_rate = clamp32(QL_RSHIFT(q * cr - r * sr, 12), QL_ATT_RATE_LIMIT_Q6);
+    int32_t yaw_rate = clamp32(QL_RSHIFT(sec_p * u, 12), QL_ATT_RATE_LIMIT_Q6);
+    a->roll_q24 += QL_RSHIFT(roll_rate * QL_ATT_DANG_K, QL_ATT_DANG_SHIFT);
+    a->pitch_q24 += QL_RSHIFT(pitch_rate * QL_ATT_DANG_K, QL_ATT_DANG_SHIFT);
+    a->yaw_q24 = ql_wrap_pi_q24(a->yaw_q24 + QL_RSHIFT(yaw_rate * QL_ATT_DANG_K, QL_ATT_DANG_SHIFT));
+
+    if (acc_ok) {
+        uint8_t shift = armed ? QL_ATT_ACC_SHIFT_ARMED : QL_ATT_ACC_SHIFT_DISARMED;
+        int32_t e_pitch = pitch_acc - a->pitch_q24;
+        a->pitch_q24 += QL_RSHIFT(e_pitch, shift);
+        if (a->pitch_q24 < QL_ATT_ROLL_ACC_MAX_PITCH_Q24 && a->pitch_q24 > -QL_ATT_ROLL_ACC_MAX_PITCH_Q24) {
+            int32_t e_roll = ql_wrap_pi_q24(roll_acc - a->roll_q24);
+            a->roll_q24 += QL_RSHIFT(e_roll, shift);
+        }
+    }
+    a->roll_q24 = ql_wrap_pi_q24(a->roll_q24);
+    a->pitch_q24 = clamp32(a->pitch_q24, QL_HALF_PI_Q24);
+}

@@ -1,0 +1,101 @@
+#include "safety.h"
+
+#include "sensors.h"
+
+#define CDEG_RAD (3.14159265358979f / 18000.0f)
+#define DDEG_RAD (3.14159265358979f / 1800.0f)
+#define THRUST_FULL_SCALE 65535.0f
+
+static float clampf(float v, float lim) { return v > lim ? lim : (v < -lim ? -lim : v); }
+
+void ql_safety_init(ql_safety_t *s)
+{
+    s->armed = s->failsafe = 0;
+    s->flight_state = QL_STATE_LANDED;
+    s->error_flags = 0;
+    s->have_setpoint = 0;
+    s->seq = 0;
+    s->still_timing = 0;
+    s->last_setpoint_tick = s->failsafe_start_tick = s->still_since_tick = 0;
+    s->setpoints_received = 0;
+    s->cmd.roll_rad = s->cmd.pitch_rad = s->cmd.yaw_rate_rad_s = s->cmd.thrust = 0.0f;
+}
+
+float ql_hover_thrust_fraction(const ql_params_t *p)
+{
+    return p->mass_kg * QL_GRAVITY_M_S2 / (4.0f * p->max_thrust_n);
+}
+
+static uint32_t ticks_of(float seconds) { return (uint32_t)(seconds * (float)QL_LOOP_HZ + 0.5f); }
+
+uint8_t ql_safety_on_setpoint(ql_safety_t *s, const ql_params_t *p, const ql_setpoint_msg_t *m, uint32_t tick)
+{
+    /* integers on the wire: a NaN cannot arrive; the limits are the board's own */
+    s->cmd.roll_rad = clampf((float)m->roll_cdeg * CDEG_RAD, p->max_tilt_rad);
+    s->cmd.pitch_rad = clampf((float)m->pitch_cdeg * CDEG_RAD, p->max_tilt_rad);
+    s->cmd.yaw_rate_rad_s = clampf((float)m->yaw_rate_ddeg_s * DDEG_RAD, p->max_yaw_rate_rad_s);
+    s->cmd.thrust = (float)m->thrust / THRUST_FULL_SCALE;
+    s->seq = m->seq;
+    s->have_setpoint = 1;
+    s->last_setpoint_tick = tick;
+    s->setpoints_received++;
+    s->failsafe = 0;
+    s->error_flags &= (uint16_t)~QL_ERR_SETPOINT_TIMEOUT;
+    uint8_t arm = (uint8_t)((m->flags & QL_SETPOINT_FLAG_ARMED) != 0u);
+    uint8_t edge = (uint8_t)(arm && !s->armed);
+    s->armed = arm;
+    return edge;
+}
+
+static void disarm(ql_safety_t *s)
+{
+    s->armed = 0;
+    s->failsafe = 0;
+    s->flight_state = QL_STATE_LANDED;
+    s->cmd.thrust = 0.0f;
+}
+
+uint8_t ql_safety_step(ql_safety_t *s, const ql_params_t *p, uint32_t tick, float climb_m_s, uint8_t baro_valid,
+                       uint8_t accel_1g, ql_att_cmd_t *fly)
+{
+    if (s->armed && !s->failsafe && s->have_setpoint &&
+        tick - s->last_setpoint_tick > ticks_of(p->setpoint_timeout_s)) {
+        s->error_flags |= QL_ERR_SETPOINT_TIMEOUT;
+        if (s->flight_state == QL_STATE_FLYING) {
+            s->failsafe = 1;
+            s->failsafe_start_tick = tick;
+            s->still_timing = 0;
+        } else {
+            disarm(s); /* not flying: just cut */
+        }
+    }
+    if (!s->armed) {
+        disarm(s);
+        return 0;
+    }
+    if (s->failsafe) {
+        float hover = ql_hover_thrust_fraction(p);
+        float climb = baro_valid ? climb_m_s : 0.0f;
+        float scale = 1.0f + p->failsafe_climb_gain_1_m_s * (-p->failsafe_descent_m_s - climb);
+        scale = scale < p->failsafe_thrust_min ? p->failsafe_thrust_min
+                                               : (scale > p->failsafe_thrust_max ? p->failsafe_thrust_max : scale);
+        fly->roll_rad = fly->pitch_rad = fly->yaw_rate_rad_s = 0.0f;
+        fly->thrust = hover * scale;
+        uint8_t slow = (uint8_t)(!baro_valid || (climb_m_s < p->failsafe_ground_speed_m_s &&
+                                                  climb_m_s > -p->failsafe_ground_speed_m_s));
+        if (!(slow && accel_1g) || tick - s->failsafe_start_tick < QL_FS_MIN_TICKS) {
+            s->still_timing = 0;
+        } else if (!s->still_timing) {
+            s->still_timing = 1;
+            s->still_since_tick = tick;
+        } else if (tick - s->still_since_tick > QL_FS_STILL_TICKS) {
+            disarm(s); /* touchdown */
+            return 0;
+        }
+        s->flight_state = QL_STATE_FAILSAFE_DESCEND;
+        return 1;
+    }
+    *fly = s->cmd;
+    s->flight_state = s->cmd.thrust > p->landed_thrust_fraction ? QL_STATE_FLYING : QL_STATE_LANDED;
+    return 1;
+}
