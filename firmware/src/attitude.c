@@ -29,20 +29,17 @@ void ql_attitude_update(ql_attitude_t *a, const uint16_t accel[3], const uint16_
     }
     a->saturated = sat;
 
-    /* accelerometer attitude (specific force f = g [sin(pitch), -sin(roll) cos(pitch), -cos(roll) cos(pitch)]) */
     int32_t norm2 = f[0] * f[0] + f[1] * f[1] + f[2] * f[2];
     uint8_t acc_ok = (uint8_t)(norm2 >= QL_ATT_ACC_MIN2 && norm2 <= QL_ATT_ACC_MAX2);
-    int32_t roll_acc = ql_atan2_q24(-f[1], -f[2]);
-    int32_t pitch_acc = ql_atan2_q24(f[0], (int32_t)ql_isqrt32((uint32_t)(f[1] * f[1] + f[2] * f[2])));
-
     if (!a->calibrated) {
         /* power-up: average the gyro, hold the attitude at the accelerometer's */
         for (uint8_t i = 0; i < 3u; i++) {
             a->cal_sum[i] += (int32_t)gyro[i];
             a->rate_q8[i] = 0;
         }
-        a->roll_q24 = roll_acc;
-        a->pitch_q24 = pitch_acc;
+        /* the accelerometer's attitude: f = g [sin(pitch), -sin(roll) cos(pitch), -cos(roll) cos(pitch)] */
+        a->roll_q24 = ql_atan2_q24(-f[1], -f[2]);
+        a->pitch_q24 = ql_atan2_q24(f[0], (int32_t)ql_isqrt32((uint32_t)(f[1] * f[1] + f[2] * f[2])));
         if (++a->cal_ticks >= QL_ATT_CAL_TICKS) {
             for (uint8_t i = 0; i < 3u; i++) {
                 a->bias_q16[i] = a->cal_sum[i] << 8; /* sum of 256 samples = mean * 256 (q8) -> q16 */
@@ -67,12 +64,13 @@ void ql_attitude_update(ql_attitude_t *a, const uint16_t accel[3], const uint16_
     /* Euler kinematics in q6 rate counts and Q12 trigonometry */
     int32_t p = QL_RSHIFT(a->rate_q8[0], 2), q = QL_RSHIFT(a->rate_q8[1], 2), r = QL_RSHIFT(a->rate_q8[2], 2);
     int32_t sr = ql_sin_q12(a->roll_q24), cr = ql_cos_q12(a->roll_q24);
-    int32_t sp = ql_sin_q12(a->pitch_q24), cp = ql_cos_q12(a->pitch_q24);
+    int32_t sp = ql_sin_q12(a->pitch_q24), cp0 = ql_cos_q12(a->pitch_q24);
+    int32_t cp = cp0;
     if (cp < QL_ATT_COS_MIN_Q12) {
         cp = QL_ATT_COS_MIN_Q12; /* |pitch| near 90 deg: the Euler rates are singular; bounded instead */
     }
-    int32_t tan_p = (sp * QL_Q12_ONE) / cp; /* C division truncates towards zero (the mirror does the same) */
-    int32_t sec_p = (QL_Q12_ONE * QL_Q12_ONE) / cp;
+    int32_t sec_p = (QL_Q12_ONE * QL_Q12_ONE) / cp; /* the one division; positive operands */
+    int32_t tan_p = QL_RSHIFT(sp * sec_p, 12);
     int32_t u = QL_RSHIFT(q * sr + r * cr, 12);
     int32_t roll_rate = clamp32(p + QL_RSHIFT(tan_p * u, 12), QL_ATT_RATE_LIMIT_Q6);
     int32_t pitch_rate = clamp32(QL_RSHIFT(q * cr - r * sr, 12), QL_ATT_RATE_LIMIT_Q6);
@@ -82,11 +80,18 @@ void ql_attitude_update(ql_attitude_t *a, const uint16_t accel[3], const uint16_
     a->yaw_q24 = ql_wrap_pi_q24(a->yaw_q24 + QL_RSHIFT(yaw_rate * QL_ATT_DANG_K, QL_ATT_DANG_SHIFT));
 
     if (acc_ok) {
+        /* Pull towards the accelerometer without atan2: with the estimate's sines and cosines, the measured
+         * specific force gives sin(error) scaled by |f| (counts, 256 per g):
+         *   roll:  (-fy) cos(roll) - (-fz) sin(roll) = |f_yz| sin(roll - roll_est)
+         *   pitch: fx cos(pitch) - f_yz sin(pitch)   = |f| sin(pitch - pitch_est), f_yz = (-fy) sin(roll) + (-fz) cos(roll)
+         * Zero exactly at the accelerometer's attitude whatever |f| is; |f| only scales the gain (the gate
+         * keeps it within 0.8 .. 1.2 g). Counts * Q12 -> Q24 rad at 1 g: * 2^24 / (256 * 4096) = * 16. */
         uint8_t shift = armed ? QL_ATT_ACC_SHIFT_ARMED : QL_ATT_ACC_SHIFT_DISARMED;
-        int32_t e_pitch = pitch_acc - a->pitch_q24;
+        int32_t f_yz = QL_RSHIFT(-f[1] * sr - f[2] * cr, 12);
+        int32_t e_pitch = (f[0] * cp0 - f_yz * sp) * QL_ATT_ERR_Q24_PER_COUNT_Q12;
         a->pitch_q24 += QL_RSHIFT(e_pitch, shift);
         if (a->pitch_q24 < QL_ATT_ROLL_ACC_MAX_PITCH_Q24 && a->pitch_q24 > -QL_ATT_ROLL_ACC_MAX_PITCH_Q24) {
-            int32_t e_roll = ql_wrap_pi_q24(roll_acc - a->roll_q24);
+            int32_t e_roll = (-f[1] * cr + f[2] * sr) * QL_ATT_ERR_Q24_PER_COUNT_Q12;
             a->roll_q24 += QL_RSHIFT(e_roll, shift);
         }
     }

@@ -3,8 +3,10 @@
  * Gyro: body rates (bias removed) integrated through the ZYX Euler kinematics
  *   roll' = p + tan(pitch) (q sin(roll) + r cos(roll)),  pitch' = q cos(roll) - r sin(roll),
  *   yaw' = (q sin(roll) + r cos(roll)) / cos(pitch);
- * accelerometer: roll and pitch pulled towards atan2(-ay, -az) and atan2(ax, sqrt(ay^2 + az^2)) (specific
- * force, FRD) when |f| is near 1 g, fast while disarmed, slow in flight; yaw from the gyro alone.
+ * accelerometer: roll and pitch pulled towards the attitude of the measured specific force (FRD) when |f| is
+ * near 1 g, through the sine of the error (no atan2 in the loop), fast while disarmed, slow in flight; yaw
+ * from the gyro alone. During the power-up calibration the attitude is set from the accelerometer
+ * (atan2(-fy, -fz), atan2(fx, sqrt(fy^2 + fz^2))).
  * Gyro zero offsets: the mean of the first 256 samples after power-up (the board sits still while it boots),
  * then tracked slowly while disarmed and still. Pure integer code; sim_sitl/board_estimators.py mirrors it. */
 #ifndef QL_ATTITUDE_H
@@ -25,6 +27,7 @@
 /* Q24 angle increment per tick per q6 rate count: gyro_lsb / 64 * 0.002 s * 2^24 = 5.36222 ~ 21964 / 4096 */
 #define QL_ATT_DANG_K INT32_C(21964)
 #define QL_ATT_DANG_SHIFT 12
+#define QL_ATT_ERR_Q24_PER_COUNT_Q12 INT32_C(16) /* 2^24 / (256 counts per g * 4096) */
 
 typedef struct {
     int32_t roll_q24, pitch_q24, yaw_q24; /* rad * 2^24 */

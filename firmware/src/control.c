@@ -2,6 +2,8 @@
 
 #include <math.h>
 
+#include "sensors.h"
+
 static float clampf(float v, float lo, float hi) { return v < lo ? lo : (v > hi ? hi : v); }
 
 void ql_ctrl_init(ql_ctrl_t *c, const ql_params_t *p)
@@ -22,10 +24,29 @@ void ql_ctrl_init(ql_ctrl_t *c, const ql_params_t *p)
         sy += y[i] * y[i];
     }
     float k = p->drag_torque_per_thrust_m;
-    for (uint8_t i = 0; i < QL_MOTORS; i++) {
-        c->mix[i][0] = -y[i] / sy;
-        c->mix[i][1] = x[i] / sx;
-        c->mix[i][2] = spin[i] / (4.0f * k);
+    c->motor_bytes_per_n = 255.0f / p->max_thrust_n;
+    c->mix_gain[0] = 0.0f;
+    c->mix_gain[1] = 0.0f;
+    for (uint8_t i = 0; i < QL_MOTORS; i++) { /* A^-1 columns: -y / sum(y^2), x / sum(x^2), spin / (4 k) */
+        float col[3] = {-y[i] / sy, x[i] / sx, spin[i] / (4.0f * k)};
+        for (uint8_t j = 0; j < 3u; j++) {
+            float mag = col[j] < 0.0f ? -col[j] : col[j];
+            int8_t sign = (int8_t)(mag < 1e-6f * (1.0f / p->arm_length_m) ? 0 : (col[j] > 0.0f ? 1 : -1));
+            c->mix_sign[i][j] = sign;
+            if (sign != 0) {
+                c->mix_gain[j] = mag;
+            }
+        }
+    }
+    const float dt = 1.0f / (float)QL_LOOP_HZ;
+    for (uint8_t j = 0; j < 3u; j++) {
+        const float J = p->inertia_kg_m2[j];
+        c->kp_j[j] = J * (j < 2u ? p->rate_kp_1_s : p->yaw_rate_kp_1_s);
+        c->ki_j_dt[j] = J * (j < 2u ? p->rate_ki_1_s2 : p->yaw_rate_ki_1_s2) * dt;
+        c->ilim_j[j] = J * p->integrator_limit_rad_s2;
+        if (j < 2u) {
+            c->kd_j_dt[j] = J * p->rate_kd / dt;
+        }
     }
     ql_ctrl_reset(c);
 }
@@ -43,14 +64,22 @@ void ql_mix(const ql_ctrl_t *c, float thrust_n, const float torque_nm[3], float 
             float motor_n[QL_MOTORS])
 {
     float diff[QL_MOTORS];
+    float term[3];
+    for (uint8_t j = 0; j < 3u; j++) {
+        term[j] = c->mix_gain[j] * torque_nm[j];
+    }
     float lo = 0.0f, hi = 0.0f;
     for (uint8_t i = 0; i < QL_MOTORS; i++) {
-        diff[i] = c->mix[i][0] * torque_nm[0] + c->mix[i][1] * torque_nm[1] + c->mix[i][2] * torque_nm[2];
-        if (i == 0u || diff[i] < lo) {
-            lo = diff[i];
+        float d = 0.0f;
+        for (uint8_t j = 0; j < 3u; j++) {
+            d = c->mix_sign[i][j] > 0 ? d + term[j] : (c->mix_sign[i][j] < 0 ? d - term[j] : d);
         }
-        if (i == 0u || diff[i] > hi) {
-            hi = diff[i];
+        diff[i] = d;
+        if (i == 0u || d < lo) {
+            lo = d;
+        }
+        if (i == 0u || d > hi) {
+            hi = d;
         }
     }
     float span = hi - lo;
@@ -63,11 +92,11 @@ void ql_mix(const ql_ctrl_t *c, float thrust_n, const float torque_nm[3], float 
         lo *= s;
         hi *= s;
     }
-    float base = thrust_n / 4.0f;
+    float base = thrust_n * 0.25f;
     if (base + hi > max_n) { /* attitude before altitude: shift the collective */
-        base -= base + hi - max_n;
+        base = max_n - hi;
     } else if (base + lo < min_n) {
-        base += min_n - (base + lo);
+        base = min_n - lo;
     }
     for (uint8_t i = 0; i < QL_MOTORS; i++) {
         motor_n[i] = clampf(base + diff[i], min_n, max_n);
@@ -77,30 +106,29 @@ void ql_mix(const ql_ctrl_t *c, float thrust_n, const float torque_nm[3], float 
 void ql_ctrl_step(ql_ctrl_t *c, const ql_params_t *p, const ql_att_cmd_t *cmd, uint8_t landed,
                   const float att[2], const float rates[3], float dt_s, float motor_n[QL_MOTORS])
 {
-    const float *J = p->inertia_kg_m2;
-    float rate_sp[3], err[3], alpha[3], d[3], torque[3];
+    /* torque = J (kp e + I - kd d(rate)/dt) + w x (J w), with J folded into the gains at init; dt_s must be the
+     * loop period the gains were folded with (1 / QL_LOOP_HZ) */
+    (void)dt_s;
+    float rate_sp[3], torque[3];
     rate_sp[0] = clampf(p->angle_kp_1_s * (cmd->roll_rad - att[0]), -p->max_rate_rad_s, p->max_rate_rad_s);
     rate_sp[1] = clampf(p->angle_kp_1_s * (cmd->pitch_rad - att[1]), -p->max_rate_rad_s, p->max_rate_rad_s);
     rate_sp[2] = cmd->yaw_rate_rad_s;
     for (uint8_t i = 0; i < 3u; i++) {
-        err[i] = rate_sp[i] - rates[i];
-        d[i] = c->have_prev ? (rates[i] - c->prev_rates[i]) / dt_s : 0.0f;
+        float err = rate_sp[i] - rates[i];
+        c->integ[i] = landed ? 0.0f : clampf(c->integ[i] + c->ki_j_dt[i] * err, -c->ilim_j[i], c->ilim_j[i]);
+        torque[i] = c->kp_j[i] * err + c->integ[i];
+        if (i < 2u && c->have_prev) {
+            torque[i] -= c->kd_j_dt[i] * (rates[i] - c->prev_rates[i]);
+        }
         c->prev_rates[i] = rates[i];
     }
     c->have_prev = 1;
-    for (uint8_t i = 0; i < 3u; i++) {
-        float ki = i < 2u ? p->rate_ki_1_s2 : p->yaw_rate_ki_1_s2;
-        c->integ[i] = landed ? 0.0f
-                             : clampf(c->integ[i] + ki * err[i] * dt_s, -p->integrator_limit_rad_s2,
-                                      p->integrator_limit_rad_s2);
-    }
-    alpha[0] = p->rate_kp_1_s * err[0] + c->integ[0] - p->rate_kd * d[0];
-    alpha[1] = p->rate_kp_1_s * err[1] + c->integ[1] - p->rate_kd * d[1];
-    alpha[2] = p->yaw_rate_kp_1_s * err[2] + c->integ[2];
     /* gyroscopic feed-forward: w x (J w) */
-    torque[0] = J[0] * alpha[0] + (rates[1] * J[2] * rates[2] - rates[2] * J[1] * rates[1]);
-    torque[1] = J[1] * alpha[1] + (rates[2] * J[0] * rates[0] - rates[0] * J[2] * rates[2]);
-    torque[2] = J[2] * alpha[2] + (rates[0] * J[1] * rates[1] - rates[1] * J[0] * rates[0]);
+    const float *J = p->inertia_kg_m2;
+    const float jw0 = J[0] * rates[0], jw1 = J[1] * rates[1], jw2 = J[2] * rates[2];
+    torque[0] += rates[1] * jw2 - rates[2] * jw1;
+    torque[1] += rates[2] * jw0 - rates[0] * jw2;
+    torque[2] += rates[0] * jw1 - rates[1] * jw0;
     uint8_t finite = 1;
     for (uint8_t i = 0; i < 3u; i++) {
         finite &= (uint8_t)(isfinite(torque[i]) != 0);
@@ -110,13 +138,13 @@ void ql_ctrl_step(ql_ctrl_t *c, const ql_params_t *p, const ql_att_cmd_t *cmd, u
         torque[0] = torque[1] = torque[2] = 0.0f;
     }
     float thrust = isfinite(cmd->thrust) ? clampf(cmd->thrust, 0.0f, 1.0f) : 0.0f;
-    ql_mix(c, thrust * 4.0f * p->max_thrust_n, torque, p->idle_fraction * p->max_thrust_n, p->max_thrust_n,
+    ql_mix(c, thrust * (4.0f * p->max_thrust_n), torque, p->idle_fraction * p->max_thrust_n, p->max_thrust_n,
            motor_n);
 }
 
-uint8_t ql_motor_byte(float thrust_n, float max_thrust_n)
+uint8_t ql_motor_byte(float thrust_n, float bytes_per_n)
 {
-    float b = thrust_n / max_thrust_n * 255.0f + 0.5f;
+    float b = thrust_n * bytes_per_n + 0.5f;
     if (!(b >= 1.0f)) { /* also catches NaN */
         return 1u;
     }

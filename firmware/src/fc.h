@@ -63,6 +63,8 @@ typedef struct {
     uint8_t reported_armed; /* 0xFF before the first 'S' */
     uint32_t next_status_tick;
     uint8_t baro_seq;
+    uint8_t baro_countdown;
+    uint16_t second_countdown;
     ql_stream_t debug, data3d;
     uint8_t motor_test[QL_MOTORS];
     uint32_t motor_test_until;

@@ -25,12 +25,13 @@ int16_t ql_sin_q12(int32_t a_q24)
     } else if (a < -QL_HALF_PI_Q24) {
         a = -QL_PI_Q24 - a;
     }
-    int32_t x = QL_RSHIFT(a, 12); /* Q12 rad, |x| <= 6434 */
-    int32_t x2 = QL_RSHIFT(x * x, 12);
-    int32_t t = QL_Q12_ONE - QL_RSHIFT(x2 * SIN_INV42_Q12, 12);
-    t = QL_Q12_ONE - QL_RSHIFT(QL_RSHIFT(x2 * t, 12) * SIN_INV20_Q12, 12);
-    t = QL_Q12_ONE - QL_RSHIFT(QL_RSHIFT(x2 * t, 12) * SIN_INV6_Q12, 12);
-    int32_t s = QL_RSHIFT(x * t, 12);
+    /* 16-bit operands with 32-bit products: the AVR's widening multiply, no 32 x 32 library call */
+    int16_t x = (int16_t)QL_RSHIFT(a, 12); /* Q12 rad, |x| <= 6434 */
+    int16_t x2 = (int16_t)QL_RSHIFT((int32_t)x * x, 12);
+    int16_t t = (int16_t)(QL_Q12_ONE - QL_RSHIFT((int32_t)x2 * SIN_INV42_Q12, 12));
+    t = (int16_t)(QL_Q12_ONE - QL_RSHIFT((int32_t)(int16_t)QL_RSHIFT((int32_t)x2 * t, 12) * SIN_INV20_Q12, 12));
+    t = (int16_t)(QL_Q12_ONE - QL_RSHIFT((int32_t)(int16_t)QL_RSHIFT((int32_t)x2 * t, 12) * SIN_INV6_Q12, 12));
+    int32_t s = QL_RSHIFT((int32_t)x * t, 12);
     if (s > QL_Q12_ONE) {
         s = QL_Q12_ONE;
     } else if (s < -QL_Q12_ONE) {

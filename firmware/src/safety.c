@@ -37,6 +37,7 @@ uint8_t ql_safety_on_setpoint(ql_safety_t *s, const ql_params_t *p, const ql_set
     s->cmd.thrust = (float)m->thrust / THRUST_FULL_SCALE;
     s->seq = m->seq;
     s->have_setpoint = 1;
+    s->timeout_ticks = ticks_of(p->setpoint_timeout_s); /* here, not in the 500 Hz step: float costs cycles */
     s->last_setpoint_tick = tick;
     s->setpoints_received++;
     s->failsafe = 0;
@@ -59,7 +60,7 @@ uint8_t ql_safety_step(ql_safety_t *s, const ql_params_t *p, uint32_t tick, floa
                        uint8_t accel_1g, ql_att_cmd_t *fly)
 {
     if (s->armed && !s->failsafe && s->have_setpoint &&
-        tick - s->last_setpoint_tick > ticks_of(p->setpoint_timeout_s)) {
+        tick - s->last_setpoint_tick > s->timeout_ticks) {
         s->error_flags |= QL_ERR_SETPOINT_TIMEOUT;
         if (s->flight_state == QL_STATE_FLYING) {
             s->failsafe = 1;

@@ -26,6 +26,7 @@ typedef struct {
     uint8_t seq;
     uint8_t still_timing;
     uint32_t last_setpoint_tick;
+    uint32_t timeout_ticks;
     uint32_t failsafe_start_tick;
     uint32_t still_since_tick;
     uint32_t setpoints_received;
