@@ -241,7 +241,7 @@ class BoardBaro:
     def __init__(self) -> None:
         self.p16 = 0
         self.pf16 = 0
-        self.pref16 = 0
+        self.pref_q12 = 0  # Pa * 4096
         self.h_q8 = 0
         self.v_t16 = 0
         self.ref_ticks = 0
@@ -257,17 +257,18 @@ class BoardBaro:
         self.saturated = any(c in (0, BARO_ADC_MAX) for c in counts)
         self.p16 = BARO_P0_PA * 16 + ((sum(counts) * BARO_P16_PER_SUM_K) >> BARO_P16_PER_SUM_SHIFT)
         if not self.started:
-            self.pf16 = self.pref16 = self.p16
+            self.pf16 = self.p16
+            self.pref_q12 = self.p16 << 8
             self.started = True
         self.pf16 += _rshift(self.p16 - self.pf16, BARO_LP_SHIFT)
         if not armed:
-            self.pref16 += _rshift(self.p16 - self.pref16, BARO_REF_SHIFT)
+            self.pref_q12 += _rshift((self.p16 << 8) - self.pref_q12, BARO_REF_SHIFT)
             self.ref_ticks = min(self.ref_ticks + 1, BARO_REF_TICKS)
         elif not self.was_armed:
             self.h_q8 = 0
             self.v_t16 = 0
         self.was_armed = bool(armed)
-        meas_mm = ((self.pref16 - self.p16) * BARO_MM_PER_P16_K) >> BARO_MM_PER_P16_SHIFT
+        meas_mm = ((_rshift(self.pref_q12, 8) - self.p16) * BARO_MM_PER_P16_K) >> BARO_MM_PER_P16_SHIFT
         self.h_q8 += _rshift(self.v_t16, 8)
         r = (meas_mm << 8) - self.h_q8
         self.h_q8 += _rshift(r, BARO_ALPHA_SHIFT)

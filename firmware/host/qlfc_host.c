@@ -150,7 +150,7 @@ void qlh_baro_get(const ql_baro_t *b, int32_t out[9])
 {
     out[0] = b->p16;
     out[1] = b->pf16;
-    out[2] = b->pref16;
+    out[2] = b->pref_q12;
     out[3] = b->h_q8;
     out[4] = b->v_t16;
     out[5] = ql_baro_valid(b);

@@ -5,7 +5,7 @@
 
 void ql_baro_init(ql_baro_t *b)
 {
-    b->p16 = b->pf16 = b->pref16 = 0;
+    b->p16 = b->pf16 = b->pref_q12 = 0;
     b->h_q8 = b->v_t16 = 0;
     b->ref_ticks = 0;
     b->started = 0;
@@ -25,12 +25,13 @@ void ql_baro_update(ql_baro_t *b, const uint16_t counts[QL_BARO_OVERSAMPLE], uin
     b->saturated = sat;
     b->p16 = QL_BARO_P0_PA * INT32_C(16) + ((sum * QL_BARO_P16_PER_SUM_K) >> QL_BARO_P16_PER_SUM_SHIFT);
     if (!b->started) {
-        b->pf16 = b->pref16 = b->p16;
+        b->pf16 = b->p16;
+        b->pref_q12 = b->p16 << 8;
         b->started = 1;
     }
     b->pf16 += QL_RSHIFT(b->p16 - b->pf16, QL_BARO_LP_SHIFT);
     if (!armed) {
-        b->pref16 += QL_RSHIFT(b->p16 - b->pref16, QL_BARO_REF_SHIFT);
+        b->pref_q12 += QL_RSHIFT((b->p16 << 8) - b->pref_q12, QL_BARO_REF_SHIFT);
         if (b->ref_ticks < QL_BARO_REF_TICKS) {
             b->ref_ticks++;
         }
@@ -40,7 +41,7 @@ void ql_baro_update(ql_baro_t *b, const uint16_t counts[QL_BARO_OVERSAMPLE], uin
     }
     b->was_armed = armed;
 
-    int32_t meas_mm = ((b->pref16 - b->p16) * QL_BARO_MM_PER_P16_K) >> QL_BARO_MM_PER_P16_SHIFT;
+    int32_t meas_mm = ((QL_RSHIFT(b->pref_q12, 8) - b->p16) * QL_BARO_MM_PER_P16_K) >> QL_BARO_MM_PER_P16_SHIFT;
     b->h_q8 += QL_RSHIFT(b->v_t16, 8);
     int32_t r = (meas_mm << 8) - b->h_q8;
     b->h_q8 += QL_RSHIFT(r, QL_BARO_ALPHA_SHIFT);

@@ -28,7 +28,7 @@
 typedef struct {
     int32_t p16;        /* this tick's pressure, Pa * 16 */
     int32_t pf16;       /* low-passed pressure, Pa * 16 */
-    int32_t pref16;     /* reference pressure, Pa * 16 */
+    int32_t pref_q12;   /* reference pressure, Pa * 4096 (8 bits below Pa * 16: no dead band in its average) */
     int32_t h_q8;       /* altitude above the reference, mm * 256, up positive */
     int32_t v_t16;      /* climb, mm per tick * 65536, up positive */
     uint16_t ref_ticks;
