@@ -63,6 +63,7 @@ _SIGNATURES: dict[str, tuple[object, list[object]]] = {
     "qlh_params_size": (ctypes.c_size_t, []),
     "ql_params_defaults": (None, [vp]),
     "qlh_params_get": (None, [vp, c_fp]),
+    "qlh_params_set_gain": (None, [vp, ctypes.c_int, ctypes.c_float]),
     "ql_crc16": (ctypes.c_uint16, [c_u8p, ctypes.c_uint16]),
     "ql_params_load": (ctypes.c_uint8, [vp, c_u8p, ctypes.c_uint16]),
     "ql_params_store": (ctypes.c_uint16, [vp, c_u8p]),
