@@ -1,5 +1,6 @@
 /* Host-only flat API over the pure modules for the pytest suite (ctypes): no struct layouts cross the
  * boundary except opaque blobs whose sizes the tests ask for. Never built for the AVR. */
+#include <math.h>
 #include <stdlib.h>
 #include <string.h>
 
@@ -192,14 +193,40 @@ void qlh_params_set_gain(ql_params_t *p, int index, float value)
 /* ---- control ---- */
 size_t qlh_ctrl_size(void) { return sizeof(ql_ctrl_t); }
 
-void qlh_ctrl_step(ql_ctrl_t *c, const ql_params_t *p, const float cmd[4], int landed, const float att[2],
-                   const float rates[3], float dt_s, float motor_n[4])
+/* SI floats in and out (the tests compare with sim_sitl's float model); the loop itself is integer */
+static const float k_rate_r = QL_GYRO_LSB_RAD_S / 256.0f;
+
+void qlh_ctrl_step(ql_ctrl_t *c, const ql_params_t *p, const float cmd[4], int landed, const int32_t att_q24[2],
+                   const int32_t rate_r[3], float motor_n[4])
 {
-    ql_att_cmd_t k = {cmd[0], cmd[1], cmd[2], cmd[3]};
-    ql_ctrl_step(c, p, &k, (uint8_t)landed, att, rates, dt_s, motor_n);
+    ql_att_cmd_t k = {lroundf(cmd[0] * 16777216.0f), lroundf(cmd[1] * 16777216.0f), lroundf(cmd[2] / k_rate_r),
+                      lroundf(cmd[3] * 4.0f * p->max_thrust_n * 65536.0f)};
+    int32_t m[4];
+    ql_ctrl_step(c, &k, (uint8_t)landed, att_q24[0], att_q24[1], rate_r, m);
+    for (int i = 0; i < 4; i++) {
+        motor_n[i] = (float)m[i] / 65536.0f;
+    }
 }
 
-void qlh_ctrl_integ(const ql_ctrl_t *c, float out[3]) { memcpy(out, c->integ, sizeof(c->integ)); }
+void qlh_mix(const ql_ctrl_t *c, float thrust_n, const float torque_nm[3], float motor_n[4])
+{
+    int32_t t[3] = {lroundf(torque_nm[0] * 65536.0f), lroundf(torque_nm[1] * 65536.0f),
+                    lroundf(torque_nm[2] * 65536.0f)};
+    int32_t m[4];
+    ql_mix(c, lroundf(thrust_n * 65536.0f), t, m);
+    for (int i = 0; i < 4; i++) {
+        motor_n[i] = (float)m[i] / 65536.0f;
+    }
+}
+
+int qlh_motor_byte(const ql_ctrl_t *c, float thrust_n) { return ql_motor_byte(c, lroundf(thrust_n * 65536.0f)); }
+
+void qlh_ctrl_integ(const ql_ctrl_t *c, float out[3])
+{
+    for (int i = 0; i < 3; i++) {
+        out[i] = (float)c->integ_q24[i] / 16777216.0f;
+    }
+}
 
 /* ---- safety ---- */
 size_t qlh_safety_size(void) { return sizeof(ql_safety_t); }
@@ -214,12 +241,12 @@ int qlh_safety_on_setpoint(ql_safety_t *s, const ql_params_t *p, int16_t roll, i
 int qlh_safety_step(ql_safety_t *s, const ql_params_t *p, uint32_t tick, float climb, int valid, int acc1g,
                     float fly[4])
 {
-    ql_att_cmd_t k = {0.0f, 0.0f, 0.0f, 0.0f};
+    ql_att_cmd_t k = {0, 0, 0, 0};
     int run = ql_safety_step(s, p, tick, climb, (uint8_t)valid, (uint8_t)acc1g, &k);
-    fly[0] = k.roll_rad;
-    fly[1] = k.pitch_rad;
-    fly[2] = k.yaw_rate_rad_s;
-    fly[3] = k.thrust;
+    fly[0] = (float)k.roll_q24 / 16777216.0f;
+    fly[1] = (float)k.pitch_q24 / 16777216.0f;
+    fly[2] = (float)k.yaw_rate_r * k_rate_r;
+    fly[3] = (float)k.thrust_f / (4.0f * p->max_thrust_n * 65536.0f);
     return run;
 }
 

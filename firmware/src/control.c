@@ -2,9 +2,14 @@
 
 #include <math.h>
 
+#include "fxmath.h"
 #include "sensors.h"
 
-static float clampf(float v, float lo, float hi) { return v < lo ? lo : (v > hi ? hi : v); }
+#define RATE_R_RAD_S (QL_GYRO_LSB_RAD_S / 256.0f) /* rad/s per R */
+
+static int32_t clamp32(int32_t v, int32_t lim) { return v > lim ? lim : (v < -lim ? -lim : v); }
+
+static int32_t q(float v) { return (int32_t)lroundf(v); }
 
 void ql_ctrl_init(ql_ctrl_t *c, const ql_params_t *p)
 {
@@ -23,54 +28,64 @@ void ql_ctrl_init(ql_ctrl_t *c, const ql_params_t *p)
         sx += x[i] * x[i];
         sy += y[i] * y[i];
     }
-    float k = p->drag_torque_per_thrust_m;
-    c->motor_bytes_per_n = 255.0f / p->max_thrust_n;
-    c->mix_gain[0] = 0.0f;
-    c->mix_gain[1] = 0.0f;
+    const float k = p->drag_torque_per_thrust_m;
+    const float mix_scale = (float)(1L << QL_MIX_SHIFT);
     for (uint8_t i = 0; i < QL_MOTORS; i++) { /* A^-1 columns: -y / sum(y^2), x / sum(x^2), spin / (4 k) */
         float col[3] = {-y[i] / sy, x[i] / sx, spin[i] / (4.0f * k)};
         for (uint8_t j = 0; j < 3u; j++) {
-            float mag = col[j] < 0.0f ? -col[j] : col[j];
-            int8_t sign = (int8_t)(mag < 1e-6f * (1.0f / p->arm_length_m) ? 0 : (col[j] > 0.0f ? 1 : -1));
+            float mag = fabsf(col[j]);
+            int8_t sign = (int8_t)(mag < 1e-3f ? 0 : (col[j] > 0.0f ? 1 : -1));
             c->mix_sign[i][j] = sign;
             if (sign != 0) {
-                c->mix_gain[j] = mag;
+                c->mix_gain[j] = q(mag * mix_scale);
             }
         }
     }
     const float dt = 1.0f / (float)QL_LOOP_HZ;
+    const float L = RATE_R_RAD_S;
+    const float *J = p->inertia_kg_m2;
+    c->ka = q(p->angle_kp_1_s / (65536.0f * L) * 4096.0f);
+    c->max_rate_r = q(p->max_rate_rad_s / L);
     for (uint8_t j = 0; j < 3u; j++) {
-        const float J = p->inertia_kg_m2[j];
-        c->kp_j[j] = J * (j < 2u ? p->rate_kp_1_s : p->yaw_rate_kp_1_s);
-        c->ki_j_dt[j] = J * (j < 2u ? p->rate_ki_1_s2 : p->yaw_rate_ki_1_s2) * dt;
-        c->ilim_j[j] = J * p->integrator_limit_rad_s2;
+        const float kp = j < 2u ? p->rate_kp_1_s : p->yaw_rate_kp_1_s;
+        const float ki = j < 2u ? p->rate_ki_1_s2 : p->yaw_rate_ki_1_s2;
+        c->kp_j[j] = q(kp * J[j] * L * 65536.0f * 4096.0f);
+        c->ki[j] = q(ki * L * dt * 16777216.0f * 256.0f);
+        c->ilim_q24[j] = q(p->integrator_limit_rad_s2 * 16777216.0f);
+        c->j_q18[j] = q(J[j] * 262144.0f);
         if (j < 2u) {
-            c->kd_j_dt[j] = J * p->rate_kd / dt;
+            c->kd_j[j] = q(p->rate_kd * J[j] * L / dt * 65536.0f * 4096.0f);
         }
     }
+    /* w x (J w) = ((Jz - Jy) wy wz, (Jx - Jz) wz wx, (Jy - Jx) wx wy) */
+    const float w64 = 64.0f * L;
+    c->gyro_k[0] = q((J[2] - J[1]) * w64 * w64 * 65536.0f * 1048576.0f);
+    c->gyro_k[1] = q((J[0] - J[2]) * w64 * w64 * 65536.0f * 1048576.0f);
+    c->gyro_k[2] = q((J[1] - J[0]) * w64 * w64 * 65536.0f * 1048576.0f);
+    c->max_f = q(p->max_thrust_n * 65536.0f);
+    c->min_f = q(p->idle_fraction * p->max_thrust_n * 65536.0f);
+    c->byte_k = q(255.0f * 1048576.0f / (p->max_thrust_n * 65536.0f));
     ql_ctrl_reset(c);
 }
 
 void ql_ctrl_reset(ql_ctrl_t *c)
 {
     for (uint8_t i = 0; i < 3u; i++) {
-        c->integ[i] = 0.0f;
-        c->prev_rates[i] = 0.0f;
+        c->integ_q24[i] = 0;
+        c->prev_rate_r[i] = 0;
     }
     c->have_prev = 0;
 }
 
-void ql_mix(const ql_ctrl_t *c, float thrust_n, const float torque_nm[3], float min_n, float max_n,
-            float motor_n[QL_MOTORS])
+void ql_mix(const ql_ctrl_t *c, int32_t thrust_f, const int32_t torque_t[3], int32_t motor_f[QL_MOTORS])
 {
-    float diff[QL_MOTORS];
-    float term[3];
+    int32_t term[3], diff[QL_MOTORS];
     for (uint8_t j = 0; j < 3u; j++) {
-        term[j] = c->mix_gain[j] * torque_nm[j];
+        term[j] = (clamp32(torque_t[j], QL_T_LIMIT) * c->mix_gain[j]) >> QL_MIX_SHIFT;
     }
-    float lo = 0.0f, hi = 0.0f;
+    int32_t lo = 0, hi = 0;
     for (uint8_t i = 0; i < QL_MOTORS; i++) {
-        float d = 0.0f;
+        int32_t d = 0;
         for (uint8_t j = 0; j < 3u; j++) {
             d = c->mix_sign[i][j] > 0 ? d + term[j] : (c->mix_sign[i][j] < 0 ? d - term[j] : d);
         }
@@ -82,71 +97,63 @@ void ql_mix(const ql_ctrl_t *c, float thrust_n, const float torque_nm[3], float 
             hi = d;
         }
     }
-    float span = hi - lo;
-    float room = max_n - min_n;
-    if (span > room) { /* the torque alone exceeds the motors' range: scale it down */
-        float s = room / span;
+    const int32_t room = c->max_f - c->min_f;
+    const int32_t span = hi - lo;
+    if (span > room) { /* the torque alone exceeds the motors' range: scale it down (Q12 factor; diff / 16
+                          * keeps the product in int32 for |diff| < 2^27) */
+        int32_t s = (room << 12) / span;
         for (uint8_t i = 0; i < QL_MOTORS; i++) {
-            diff[i] *= s;
+            diff[i] = (QL_RSHIFT(diff[i], 4) * s) >> 8;
         }
-        lo *= s;
-        hi *= s;
+        lo = (QL_RSHIFT(lo, 4) * s) >> 8;
+        hi = (QL_RSHIFT(hi, 4) * s) >> 8;
     }
-    float base = thrust_n * 0.25f;
-    if (base + hi > max_n) { /* attitude before altitude: shift the collective */
-        base = max_n - hi;
-    } else if (base + lo < min_n) {
-        base = min_n - lo;
+    int32_t base = thrust_f >> 2;
+    if (base + hi > c->max_f) { /* attitude before altitude: shift the collective */
+        base = c->max_f - hi;
+    } else if (base + lo < c->min_f) {
+        base = c->min_f - lo;
     }
     for (uint8_t i = 0; i < QL_MOTORS; i++) {
-        motor_n[i] = clampf(base + diff[i], min_n, max_n);
+        int32_t m = base + diff[i];
+        motor_f[i] = m < c->min_f ? c->min_f : (m > c->max_f ? c->max_f : m);
     }
 }
 
-void ql_ctrl_step(ql_ctrl_t *c, const ql_params_t *p, const ql_att_cmd_t *cmd, uint8_t landed,
-                  const float att[2], const float rates[3], float dt_s, float motor_n[QL_MOTORS])
+void ql_ctrl_step(ql_ctrl_t *c, const ql_att_cmd_t *cmd, uint8_t landed, int32_t roll_q24, int32_t pitch_q24,
+                  const int32_t rate_r[3], int32_t motor_f[QL_MOTORS])
 {
-    /* torque = J (kp e + I - kd d(rate)/dt) + w x (J w), with J folded into the gains at init; dt_s must be the
-     * loop period the gains were folded with (1 / QL_LOOP_HZ) */
-    (void)dt_s;
-    float rate_sp[3], torque[3];
-    rate_sp[0] = clampf(p->angle_kp_1_s * (cmd->roll_rad - att[0]), -p->max_rate_rad_s, p->max_rate_rad_s);
-    rate_sp[1] = clampf(p->angle_kp_1_s * (cmd->pitch_rad - att[1]), -p->max_rate_rad_s, p->max_rate_rad_s);
-    rate_sp[2] = cmd->yaw_rate_rad_s;
+    int32_t rate_sp[3], torque[3];
+    /* angle P: the error clamped to 2 rad first (the rate clamp is reached at 0.5 rad) to stay in int32 */
+    rate_sp[0] = clamp32((clamp32(QL_RSHIFT(cmd->roll_q24 - roll_q24, 8), INT32_C(131072)) * c->ka) >> 12,
+                         c->max_rate_r);
+    rate_sp[1] = clamp32((clamp32(QL_RSHIFT(cmd->pitch_q24 - pitch_q24, 8), INT32_C(131072)) * c->ka) >> 12,
+                         c->max_rate_r);
+    rate_sp[2] = cmd->yaw_rate_r;
     for (uint8_t i = 0; i < 3u; i++) {
-        float err = rate_sp[i] - rates[i];
-        c->integ[i] = landed ? 0.0f : clampf(c->integ[i] + c->ki_j_dt[i] * err, -c->ilim_j[i], c->ilim_j[i]);
-        torque[i] = c->kp_j[i] * err + c->integ[i];
+        int32_t err = clamp32(rate_sp[i] - rate_r[i], QL_ERR_LIMIT_R);
+        c->integ_q24[i] = landed ? 0 : clamp32(c->integ_q24[i] + ((err * c->ki[i]) >> 8), c->ilim_q24[i]);
+        torque[i] = ((err * c->kp_j[i]) >> 12) + (((c->integ_q24[i] >> 12) * c->j_q18[i]) >> 14);
         if (i < 2u && c->have_prev) {
-            torque[i] -= c->kd_j_dt[i] * (rates[i] - c->prev_rates[i]);
+            torque[i] -= (clamp32(rate_r[i] - c->prev_rate_r[i], QL_ERR_LIMIT_R) * c->kd_j[i]) >> 12;
         }
-        c->prev_rates[i] = rates[i];
+        c->prev_rate_r[i] = rate_r[i];
     }
     c->have_prev = 1;
-    /* gyroscopic feed-forward: w x (J w) */
-    const float *J = p->inertia_kg_m2;
-    const float jw0 = J[0] * rates[0], jw1 = J[1] * rates[1], jw2 = J[2] * rates[2];
-    torque[0] += rates[1] * jw2 - rates[2] * jw1;
-    torque[1] += rates[2] * jw0 - rates[0] * jw2;
-    torque[2] += rates[0] * jw1 - rates[1] * jw0;
-    uint8_t finite = 1;
+    /* gyroscopic feed-forward, rates in units of 64 R (|w| <= 2^11 for the gyro's range) */
+    int32_t w[3];
     for (uint8_t i = 0; i < 3u; i++) {
-        finite &= (uint8_t)(isfinite(torque[i]) != 0);
+        w[i] = clamp32(rate_r[i] >> 6, INT32_C(4095));
     }
-    if (!finite) { /* never fly a NaN: drop the torque and the loop state */
-        ql_ctrl_reset(c);
-        torque[0] = torque[1] = torque[2] = 0.0f;
-    }
-    float thrust = isfinite(cmd->thrust) ? clampf(cmd->thrust, 0.0f, 1.0f) : 0.0f;
-    ql_mix(c, thrust * (4.0f * p->max_thrust_n), torque, p->idle_fraction * p->max_thrust_n, p->max_thrust_n,
-           motor_n);
+    torque[0] += (((w[1] * w[2]) >> 6) * c->gyro_k[0]) >> 14;
+    torque[1] += (((w[2] * w[0]) >> 6) * c->gyro_k[1]) >> 14;
+    torque[2] += (((w[0] * w[1]) >> 6) * c->gyro_k[2]) >> 14;
+    int32_t thrust = cmd->thrust_f < 0 ? 0 : (cmd->thrust_f > 4 * c->max_f ? 4 * c->max_f : cmd->thrust_f);
+    ql_mix(c, thrust, torque, motor_f);
 }
 
-uint8_t ql_motor_byte(float thrust_n, float bytes_per_n)
+uint8_t ql_motor_byte(const ql_ctrl_t *c, int32_t thrust_f)
 {
-    float b = thrust_n * bytes_per_n + 0.5f;
-    if (!(b >= 1.0f)) { /* also catches NaN */
-        return 1u;
-    }
-    return b >= 255.0f ? 255u : (uint8_t)b;
+    int32_t b = (thrust_f * c->byte_k + (INT32_C(1) << 19)) >> 20;
+    return (uint8_t)(b < 1 ? 1 : (b > 255 ? 255 : b));
 }

@@ -1,14 +1,10 @@
 #include "fc.h"
 
-#include <math.h>
 #include <stddef.h>
 
 #include "fxmath.h"
 #include "sensors.h"
 
-#define RAD_TO_DDEG (1800.0f / 3.14159265358979f)
-#define Q24_TO_RAD (1.0f / 16777216.0f)
-#define RATE_Q8_TO_RAD_S (QL_GYRO_LSB_RAD_S / 256.0f)
 #define BATTERY_MV_PER_COUNT_NUM INT32_C(625) /* 4 x 5 V / 1024 = 19.53125 mV = 625 / 32 */
 #define BATTERY_MV_PER_COUNT_SHIFT 5
 
@@ -46,7 +42,7 @@ void ql_fc_init(ql_fc_t *fc, const uint8_t *image, uint16_t image_len, ql_tx_fn 
     ql_attitude_init(&fc->att);
     ql_baro_init(&fc->baro);
     ql_ctrl_init(&fc->ctrl, &fc->params);
-    ql_safety_init(&fc->safety);
+    ql_safety_init(&fc->safety, &fc->params);
     ql_mk_decoder_init(&fc->dec);
     fc->tx = tx;
     fc->tx_ctx = tx_ctx;
@@ -150,12 +146,6 @@ void ql_fc_rx_byte(ql_fc_t *fc, uint8_t byte)
     }
 }
 
-static int16_t sat16(float v)
-{
-    float r = floorf(v + 0.5f);
-    return (int16_t)(r > 32767.0f ? 32767.0f : (r < -32768.0f ? -32768.0f : r));
-}
-
 static int16_t sat16u(uint32_t v) { return (int16_t)(v > 32767u ? 32767u : v); }
 
 static uint16_t error_flags(const ql_fc_t *fc)
@@ -193,7 +183,14 @@ static void send_baro(ql_fc_t *fc)
     send(fc, QL_PORT1, QL_CMD_BARO, out, ql_pack_baro(out, &m));
 }
 
-static int16_t ddeg(int32_t a_q24) { return sat16((float)a_q24 * (Q24_TO_RAD * RAD_TO_DDEG)); }
+/* Q24 rad -> 0.1 deg, in integers: (a >> 8) * 1800 / (pi 2^16) ~ (a >> 8) * 573 / 2^16 */
+static int16_t ddeg(int32_t a_q24) { return (int16_t)QL_RSHIFT(QL_RSHIFT(a_q24, 8) * INT32_C(573), 16); }
+
+/* thrust F (N * 2^16) -> cN */
+static int16_t centinewton(int32_t f) { return (int16_t)QL_RSHIFT(f * INT32_C(100), 16); }
+
+/* the failsafe's climb, m/s; float only when the safety logic needs it */
+static float climb_m_s(const ql_baro_t *b) { return ql_baro_climb_m_s(b); }
 
 static void send_data3d(ql_fc_t *fc)
 {
@@ -202,7 +199,7 @@ static void send_data3d(ql_fc_t *fc)
     m.angle_ddeg[0] = ddeg(fc->att.pitch_q24);
     m.angle_ddeg[1] = ddeg(fc->att.roll_q24);
     int16_t yaw = ddeg(fc->att.yaw_q24);
-    m.angle_ddeg[2] = yaw >= 1800 ? (int16_t)(yaw - 3600) : yaw; /* [-1800, 1799] */
+    m.angle_ddeg[2] = yaw >= 1800 ? (int16_t)(yaw - 3600) : (yaw < -1800 ? (int16_t)(yaw + 3600) : yaw);
     send(fc, QL_PORT1, QL_CMD_DATA3D, out, ql_pack_data3d(out, &m));
 }
 
@@ -214,9 +211,9 @@ static void send_debug(ql_fc_t *fc)
     a[0] = ddeg(fc->att.roll_q24);
     a[1] = ddeg(fc->att.pitch_q24);
     a[2] = ddeg(fc->att.yaw_q24);
-    a[3] = sat16(fc->thrust_flown * 100.0f);
+    a[3] = (int16_t)((fc->thrust_flown_f / 4 * 100 + fc->ctrl.max_f / 2) / fc->ctrl.max_f); /* % of max */
     for (uint8_t i = 0; i < QL_MOTORS; i++) {
-        a[4 + i] = sat16(fc->motor_n[i] * 100.0f);
+        a[4 + i] = centinewton(fc->motor_f[i]);
     }
     a[8] = (int16_t)((fc->battery_q4 >> 4) / 10u);
     a[9] = fc->safety.armed;
@@ -288,20 +285,15 @@ void ql_fc_tick(ql_fc_t *fc, const ql_adc_sweep_t *adc)
     int32_t norm2 = f0 * f0 + f1 * f1 + f2 * f2;
     uint8_t accel_1g = (uint8_t)(norm2 >= QL_TOUCH_ACC_MIN2 && norm2 <= QL_TOUCH_ACC_MAX2);
     ql_att_cmd_t fly;
-    uint8_t run = ql_safety_step(&fc->safety, &fc->params, fc->tick, ql_baro_climb_m_s(&fc->baro),
+    uint8_t run = ql_safety_step(&fc->safety, &fc->params, fc->tick, climb_m_s(&fc->baro),
                                  ql_baro_valid(&fc->baro), accel_1g, &fly);
     if (run) {
-        float att[2] = {(float)fc->att.roll_q24 * Q24_TO_RAD, (float)fc->att.pitch_q24 * Q24_TO_RAD};
-        float rates[3];
-        for (uint8_t i = 0; i < 3u; i++) {
-            rates[i] = (float)fc->att.rate_q8[i] * RATE_Q8_TO_RAD_S;
-        }
-        ql_ctrl_step(&fc->ctrl, &fc->params, &fly, (uint8_t)(fc->safety.flight_state == QL_STATE_LANDED), att,
-                     rates, QL_DT_S, fc->motor_n);
+        ql_ctrl_step(&fc->ctrl, &fly, (uint8_t)(fc->safety.flight_state == QL_STATE_LANDED), fc->att.roll_q24,
+                     fc->att.pitch_q24, fc->att.rate_q8, fc->motor_f);
         for (uint8_t i = 0; i < QL_MOTORS; i++) {
-            fc->motor[i] = ql_motor_byte(fc->motor_n[i], fc->ctrl.motor_bytes_per_n);
+            fc->motor[i] = ql_motor_byte(&fc->ctrl, fc->motor_f[i]);
         }
-        fc->thrust_flown = fly.thrust;
+        fc->thrust_flown_f = fly.thrust_f;
     } else {
         if (fc->running) {
             ql_ctrl_reset(&fc->ctrl);
@@ -309,9 +301,9 @@ void ql_fc_tick(ql_fc_t *fc, const ql_adc_sweep_t *adc)
         uint8_t testing = (uint8_t)((int32_t)(fc->motor_test_until - fc->tick) > 0);
         for (uint8_t i = 0; i < QL_MOTORS; i++) {
             fc->motor[i] = testing ? fc->motor_test[i] : 0u;
-            fc->motor_n[i] = (float)fc->motor[i] * (fc->params.max_thrust_n / 255.0f);
+            fc->motor_f[i] = (int32_t)(((int32_t)fc->motor[i] * fc->ctrl.max_f) / 255);
         }
-        fc->thrust_flown = 0.0f;
+        fc->thrust_flown_f = 0;
     }
     fc->running = run;
 
@@ -321,18 +313,20 @@ void ql_fc_tick(ql_fc_t *fc, const ql_adc_sweep_t *adc)
         fc->setpoints_per_s = (uint16_t)(fc->safety.setpoints_received - fc->window_start_setpoints);
         fc->window_start_setpoints = fc->safety.setpoints_received;
     }
+    /* at most one telemetry frame per tick (S, then Z, then C, then D): a frame that coincides with another
+     * waits a tick, so the tick's worst case stays one frame's encoding */
+    if (fc->baro_countdown < QL_BARO_PERIOD_TICKS) {
+        fc->baro_countdown++;
+    }
     if (fc->safety.armed != fc->reported_armed || (int32_t)(fc->tick - fc->next_status_tick) >= 0) {
         fc->next_status_tick = fc->tick + QL_STATUS_PERIOD_TICKS;
         send_status(fc);
-    }
-    if (++fc->baro_countdown >= QL_BARO_PERIOD_TICKS) {
+    } else if (fc->baro_countdown >= QL_BARO_PERIOD_TICKS) {
         fc->baro_countdown = 0;
         send_baro(fc);
-    }
-    if (stream_due(&fc->data3d, fc->tick)) {
+    } else if (stream_due(&fc->data3d, fc->tick)) {
         send_data3d(fc);
-    }
-    if (stream_due(&fc->debug, fc->tick)) {
+    } else if (stream_due(&fc->debug, fc->tick)) {
         send_debug(fc);
     }
     fc->tick++;

@@ -57,8 +57,8 @@ typedef struct {
     uint32_t tick; /* IMU samples emitted = board time / 2 ms */
     uint32_t tx_dropped[2];
     uint8_t motor[QL_MOTORS];
-    float motor_n[QL_MOTORS];
-    float thrust_flown;
+    int32_t motor_f[QL_MOTORS]; /* per-motor thrust, N * 2^16 */
+    int32_t thrust_flown_f;     /* collective flown, N * 2^16 */
     uint8_t running;
     uint8_t reported_armed; /* 0xFF before the first 'S' */
     uint32_t next_status_tick;

@@ -27,13 +27,15 @@ typedef struct {
     uint8_t still_timing;
     uint32_t last_setpoint_tick;
     uint32_t timeout_ticks;
+    int32_t max_tilt_q24, max_yaw_r, thrust_k8, landed_f; /* from the parameters, at init */
     uint32_t failsafe_start_tick;
     uint32_t still_since_tick;
     uint32_t setpoints_received;
-    ql_att_cmd_t cmd; /* the last valid setpoint, clamped */
+    ql_att_cmd_t cmd; /* the last valid setpoint, clamped, in the loop's units */
+    uint8_t cmd_flying; /* its thrust is above landed_thrust_fraction */
 } ql_safety_t;
 
-void ql_safety_init(ql_safety_t *s);
+void ql_safety_init(ql_safety_t *s, const ql_params_t *p);
 /* A decoded 's' frame at tick. Returns 1 on an arming edge (the caller resets its loops). */
 uint8_t ql_safety_on_setpoint(ql_safety_t *s, const ql_params_t *p, const ql_setpoint_msg_t *m, uint32_t tick);
 /* Per tick: climb (baro, m/s up), baro_valid, accel_1g (|f| ~ 1 g). Fills *fly with what to fly and returns 1

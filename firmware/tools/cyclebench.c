@@ -34,7 +34,7 @@ int main(void)
     ql_setpoint_msg_t m = {500, -300, 100, 40000u, QL_SETPOINT_FLAG_ARMED, 1};
     ql_safety_on_setpoint(&fc.safety, &fc.params, &m, fc.tick);
     ql_att_cmd_t fly;
-    float att[2] = {0.01f, -0.02f}, rates[3] = {0.1f, -0.2f, 0.05f}, motor[4];
+    int32_t rates[3] = {2500, -5000, 1250}, motor[4];
     uint8_t frame[QL_MK_MAX_FRAME_LEN], payload[QL_IMU_LEN];
     ql_imu_msg_t imu = {{510, 515, 258}, {511, 514, 509}, 77};
     for (uint16_t k = 0;; k++) {
@@ -43,7 +43,8 @@ int main(void)
         PULSE(ql_attitude_update(&fc.att, s.accel, s.gyro, 1));
         PULSE(ql_baro_update(&fc.baro, s.baro, 1));
         PULSE(ql_safety_step(&fc.safety, &fc.params, fc.tick, 0.1f, 1, 1, &fly));
-        PULSE(ql_ctrl_step(&fc.ctrl, &fc.params, &fly, 0, att, rates, 0.002f, motor));
+        rates[0] = (int32_t)(2500 + (k & 63));
+        PULSE(ql_ctrl_step(&fc.ctrl, &fly, 0, 170000L, -340000L, rates, motor));
         PULSE(ql_mk_encode(frame, 1, 'I', payload, ql_pack_imu(payload, &imu)));
         PULSE(ql_fc_tick(&fc, &s));
         fc.safety.last_setpoint_tick = fc.tick; /* stay armed, no failsafe */

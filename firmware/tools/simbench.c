@@ -132,6 +132,13 @@ int main(int argc, char **argv)
             for (uint8_t i = 0; i < n; i++) {
                 avr_raise_irq(rx, frame[i]);
             }
+            if (seq % 200u == 1u) { /* every 2 s: 'd' with a 10 ms interval (the heaviest telemetry) */
+                uint8_t interval = 1;
+                n = ql_mk_encode(frame, QL_MK_ADDR_FC, QL_CMD_DEBUG_REQ, &interval, 1);
+                for (uint8_t i = 0; i < n; i++) {
+                    avr_raise_irq(rx, frame[i]);
+                }
+            }
             armed = 1;
         }
     }

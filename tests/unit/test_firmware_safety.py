@@ -25,7 +25,7 @@ class Safety:
         self.params = blob(lib, "qlh_params_size")
         lib.ql_params_defaults(self.params)
         self.s = blob(lib, "qlh_safety_size")
-        lib.ql_safety_init(self.s)
+        lib.ql_safety_init(self.s, self.params)
         self.fly = (ctypes.c_float * 4)()
 
     def setpoint(self, tick: int, thrust: float, armed: bool = True, roll_cdeg: int = 0, seq: int = 0) -> int:

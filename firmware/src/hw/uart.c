@@ -19,12 +19,13 @@ static volatile uint16_t rx0_overflows;
 
 void uart_init(void)
 {
-    UBRR0 = UBRR_115200_U2X;
+    /* U2X before UBRR: the baud generator (and simavr's model of it) takes the divisor with the mode set */
     UCSR0A = (uint8_t)(1u << U2X0);
+    UBRR0 = UBRR_115200_U2X;
     UCSR0C = (uint8_t)((1u << UCSZ01) | (1u << UCSZ00));
     UCSR0B = (uint8_t)((1u << RXEN0) | (1u << TXEN0) | (1u << RXCIE0));
-    UBRR1 = UBRR_115200_U2X;
     UCSR1A = (uint8_t)(1u << U2X1);
+    UBRR1 = UBRR_115200_U2X;
     UCSR1C = (uint8_t)((1u << UCSZ11) | (1u << UCSZ10));
     UCSR1B = (uint8_t)(1u << TXEN1);
 }
