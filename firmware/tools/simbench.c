@@ -1,6 +1,6 @@
 /* Run quadlink-fc.elf in simavr (libsimavr) for a few simulated seconds with still sensors, arm it with 's'
  * frames at 100 Hz after 1 s, and report the 500 Hz tick's busy time from the PB0 edges (cycles), the frames
- * each port carried, and whether the board ever reset. Writes the raw port bytes to <out>.port1 / .port2.
+ * each port carried. STOP_S=t stops the setpoints at t s (failsafe). Writes the raw port bytes to <out>.port1 / .port2.
  *   build/host/simbench build/quadlink-fc.elf SECONDS OUTPREFIX */
 #include <stdio.h>
 #include <stdlib.h>
@@ -119,12 +119,14 @@ int main(int argc, char **argv)
     const double seconds = atof(argv[2]);
     const uint64_t end = (uint64_t)(seconds * 20e6);
     uint64_t next_sp = 20000000; /* 1 s: start arming */
+    /* STOP_S: the companion goes silent at this time (the board's failsafe takes over) */
+    const uint64_t stop = getenv("STOP_S") != NULL ? (uint64_t)(atof(getenv("STOP_S")) * 20e6) : UINT64_MAX;
     uint8_t seq = 0;
     avr_irq_t *rx = avr_io_getirq(avr, AVR_IOCTL_UART_GETIRQ('0'), UART_IRQ_INPUT);
     int state = cpu_Running;
     while (avr->cycle < end && state != cpu_Done && state != cpu_Crashed) {
         state = avr_run(avr);
-        if (avr->cycle >= next_sp) {
+        if (avr->cycle >= next_sp && avr->cycle < stop) {
             next_sp += 200000; /* 100 Hz */
             ql_setpoint_msg_t m = {0, 0, 0, 32768u, QL_SETPOINT_FLAG_ARMED, seq++};
             uint8_t payload[QL_SETPOINT_LEN], frame[QL_MK_MAX_FRAME_LEN];
