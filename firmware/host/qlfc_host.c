@@ -183,10 +183,14 @@ void qlh_params_get(const ql_params_t *p, float out[25])
 
 void qlh_params_set_gain(ql_params_t *p, int index, float value)
 {
-    float *g[] = {&p->angle_kp_1_s, &p->rate_kp_1_s, &p->rate_ki_1_s2, &p->rate_kd, &p->yaw_rate_kp_1_s,
-                  &p->yaw_rate_ki_1_s2};
-    if (index >= 0 && index < 6) {
-        *g[index] = value;
+    switch (index) { /* no pointers into the packed struct */
+    case 0: p->angle_kp_1_s = value; break;
+    case 1: p->rate_kp_1_s = value; break;
+    case 2: p->rate_ki_1_s2 = value; break;
+    case 3: p->rate_kd = value; break;
+    case 4: p->yaw_rate_kp_1_s = value; break;
+    case 5: p->yaw_rate_ki_1_s2 = value; break;
+    default: break;
     }
 }
 

@@ -43,7 +43,7 @@ void ql_ctrl_init(ql_ctrl_t *c, const ql_params_t *p)
     }
     const float dt = 1.0f / (float)QL_LOOP_HZ;
     const float L = RATE_R_RAD_S;
-    const float *J = p->inertia_kg_m2;
+    const float J[3] = {p->inertia_kg_m2[0], p->inertia_kg_m2[1], p->inertia_kg_m2[2]}; /* packed struct */
     c->ka = q(p->angle_kp_1_s / (65536.0f * L) * 4096.0f);
     c->max_rate_r = q(p->max_rate_rad_s / L);
     for (uint8_t j = 0; j < 3u; j++) {

@@ -8,7 +8,9 @@
 
 #define QL_PARAMS_VERSION 1u
 
-typedef struct {
+/* packed: the same byte layout on the AVR and on the host (IEEE-754 little-endian floats on both), so the host
+ * tool tools/mkeep.c writes the EEPROM image the board reads */
+typedef struct __attribute__((packed)) {
     uint16_t version;
     /* FirmwareConfig */
     float angle_kp_1_s;

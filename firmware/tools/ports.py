@@ -10,7 +10,7 @@ from __future__ import annotations
 import sys
 from collections import Counter
 
-from quadlink.mk.messages import BoardStatus, DebugData, ImuSample, decode_message
+from quadlink.mk.messages import BoardStatus, DebugData, ImuSample, Version, decode_message
 from quadlink.mk.protocol import FrameDecoder
 
 
@@ -34,6 +34,9 @@ def main() -> None:
                     print(f"  S t={m.board_time_ms / 1000:.3f} s armed={m.armed} failsafe={m.failsafe} "
                           f"state={m.flight_state} errors=0x{m.error_flags:x} seq={m.last_setpoint_seq}")
                     last = key
+        for m in msgs:
+            if isinstance(m, Version):
+                print(f"  V {m.version_str} protocol {m.proto_major}.{m.proto_minor} hardware_error {m.hardware_error}")
         debug = [m for m in msgs if isinstance(m, DebugData)]
         if debug:
             print(f"  last D analog[0..19]: {debug[-1].analog[:20]}")

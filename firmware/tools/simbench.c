@@ -7,6 +7,7 @@
 #include <string.h>
 
 #include <simavr/avr_adc.h>
+#include <simavr/avr_eeprom.h>
 #include <simavr/avr_ioport.h>
 #include <simavr/avr_uart.h>
 #include <simavr/sim_avr.h>
@@ -72,6 +73,33 @@ static void disable_stdio(char uart)
     avr_ioctl(avr, AVR_IOCTL_UART_SET_FLAGS(uart), &flags);
 }
 
+/* EEP=path: preload the EEPROM from an Intel HEX file (the parameter image of tools/mkeep.c) */
+static void load_eeprom(const char *path)
+{
+    FILE *f = fopen(path, "r");
+    char line[128];
+    static uint8_t mem[4096];
+    unsigned top = 0;
+    if (f == NULL) {
+        fprintf(stderr, "cannot read %s\n", path);
+        exit(1);
+    }
+    while (fgets(line, sizeof(line), f) != NULL) {
+        unsigned len, addr, type, byte;
+        if (sscanf(line, ":%2x%4x%2x", &len, &addr, &type) != 3 || type != 0) {
+            continue;
+        }
+        for (unsigned i = 0; i < len && addr + i < sizeof(mem); i++) {
+            sscanf(line + 9 + 2 * i, "%2x", &byte);
+            mem[addr + i] = (uint8_t)byte;
+        }
+        top = addr + len > top ? addr + len : top;
+    }
+    fclose(f);
+    avr_eeprom_desc_t d = {.ee = mem, .offset = 0, .size = top};
+    avr_ioctl(avr, AVR_IOCTL_EEPROM_SET, &d);
+}
+
 static void set_mv(int channel, uint32_t mv) { avr_raise_irq(avr_io_getirq(avr, AVR_IOCTL_ADC_GETIRQ, channel), mv); }
 
 int main(int argc, char **argv)
@@ -97,6 +125,9 @@ int main(int argc, char **argv)
     for (int p = 0; p < 2; p++) {
         snprintf(path, sizeof(path), "%s.port%d", argv[3], p + 1);
         port_out[p] = fopen(path, "wb");
+    }
+    if (getenv("EEP") != NULL) {
+        load_eeprom(getenv("EEP"));
     }
     disable_stdio('0');
     disable_stdio('1');
@@ -133,6 +164,12 @@ int main(int argc, char **argv)
             uint8_t n = ql_mk_encode(frame, QL_MK_ADDR_FC, QL_CMD_SETPOINT, payload, ql_pack_setpoint(payload, &m));
             for (uint8_t i = 0; i < n; i++) {
                 avr_raise_irq(rx, frame[i]);
+            }
+            if (seq == 50u) { /* ask for the version once: hardware_error[0] says whether the EEPROM was valid */
+                n = ql_mk_encode(frame, QL_MK_ADDR_FC, QL_CMD_VERSION_REQ, payload, 0);
+                for (uint8_t i = 0; i < n; i++) {
+                    avr_raise_irq(rx, frame[i]);
+                }
             }
             if (seq % 200u == 1u) { /* every 2 s: 'd' with a 10 ms interval (the heaviest telemetry) */
                 uint8_t interval = 1;
