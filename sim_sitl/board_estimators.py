@@ -153,6 +153,10 @@ class BoardAttitudeFilter:
         self.rate_q8 = [0, 0, 0]
         self.bias_q16 = [IMU_ZERO_COUNT << 16] * 3
         self.cal_sum = [0, 0, 0]
+        # Q12 sines and cosines of roll and pitch, refreshed alternately (one pair per tick), as the C
+        self.sin_roll = self.sin_pitch = 0
+        self.cos_roll = self.cos_pitch = Q12_ONE
+        self.trig_phase = 0
         self.cal_ticks = 0
         self.calibrated = False
         self.saturated = False
@@ -175,6 +179,8 @@ class BoardAttitudeFilter:
             if self.cal_ticks >= ATT_CAL_TICKS:
                 self.bias_q16 = [s << 8 for s in self.cal_sum]
                 self.calibrated = True
+                self.sin_roll, self.cos_roll = sin_q12(self.roll_q24), cos_q12(self.roll_q24)
+                self.sin_pitch, self.cos_pitch = sin_q12(self.pitch_q24), cos_q12(self.pitch_q24)
             return self.estimate()
 
         still = acc_ok
@@ -187,8 +193,12 @@ class BoardAttitudeFilter:
                 self.bias_q16[i] += ((gyro[i] << 16) - self.bias_q16[i]) >> ATT_BIAS_SHIFT
 
         p, q, r = (_rshift(g, 2) for g in self.rate_q8)
-        sr, cr = sin_q12(self.roll_q24), cos_q12(self.roll_q24)
-        sp, cp0 = sin_q12(self.pitch_q24), cos_q12(self.pitch_q24)
+        if self.trig_phase:
+            self.sin_pitch, self.cos_pitch = sin_q12(self.pitch_q24), cos_q12(self.pitch_q24)
+        else:
+            self.sin_roll, self.cos_roll = sin_q12(self.roll_q24), cos_q12(self.roll_q24)
+        self.trig_phase ^= 1
+        sr, cr, sp, cp0 = self.sin_roll, self.cos_roll, self.sin_pitch, self.cos_pitch
         cp = max(cp0, ATT_COS_MIN_Q12)
         sec_p = (Q12_ONE * Q12_ONE) // cp
         tan_p = _rshift(sp * sec_p, 12)

@@ -11,7 +11,10 @@ void ql_attitude_init(ql_attitude_t *a)
         a->bias_q16[i] = QL_IMU_ZERO_COUNT << 16;
         a->cal_sum[i] = 0;
     }
+    a->sin_roll = a->sin_pitch = 0;
+    a->cos_roll = a->cos_pitch = QL_Q12_ONE;
     a->cal_ticks = 0;
+    a->trig_phase = 0;
     a->calibrated = 0;
     a->saturated = 0;
 }
@@ -45,6 +48,10 @@ void ql_attitude_update(ql_attitude_t *a, const uint16_t accel[3], const uint16_
                 a->bias_q16[i] = a->cal_sum[i] << 8; /* sum of 256 samples = mean * 256 (q8) -> q16 */
             }
             a->calibrated = 1;
+            a->sin_roll = ql_sin_q12(a->roll_q24);
+            a->cos_roll = ql_cos_q12(a->roll_q24);
+            a->sin_pitch = ql_sin_q12(a->pitch_q24);
+            a->cos_pitch = ql_cos_q12(a->pitch_q24);
         }
         return;
     }
@@ -63,8 +70,16 @@ void ql_attitude_update(ql_attitude_t *a, const uint16_t accel[3], const uint16_
 
     /* Euler kinematics in q6 rate counts and Q12 trigonometry */
     int32_t p = QL_RSHIFT(a->rate_q8[0], 2), q = QL_RSHIFT(a->rate_q8[1], 2), r = QL_RSHIFT(a->rate_q8[2], 2);
-    int32_t sr = ql_sin_q12(a->roll_q24), cr = ql_cos_q12(a->roll_q24);
-    int32_t sp = ql_sin_q12(a->pitch_q24), cp0 = ql_cos_q12(a->pitch_q24);
+    if (a->trig_phase) {
+        a->sin_pitch = ql_sin_q12(a->pitch_q24);
+        a->cos_pitch = ql_cos_q12(a->pitch_q24);
+    } else {
+        a->sin_roll = ql_sin_q12(a->roll_q24);
+        a->cos_roll = ql_cos_q12(a->roll_q24);
+    }
+    a->trig_phase ^= 1u;
+    int32_t sr = a->sin_roll, cr = a->cos_roll;
+    int32_t sp = a->sin_pitch, cp0 = a->cos_pitch;
     int32_t cp = cp0;
     if (cp < QL_ATT_COS_MIN_Q12) {
         cp = QL_ATT_COS_MIN_Q12; /* |pitch| near 90 deg: the Euler rates are singular; bounded instead */

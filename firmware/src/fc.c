@@ -11,11 +11,11 @@
 /* Version: the board replaces sim_sitl's emulated firmware and answers as it does (FC 2.01a, protocol 11.0) */
 static const uint8_t k_version[QL_VERSION_LEN] = {2u, 1u, 11u, 0u, 0u, 0u, 0u, 0u, 0u, 0u};
 
-/* analog[0..15] as sim_sitl/board.py's DEBUG_LABELS; 16..19 the firmware's own */
+/* analog[0..15] as sim_sitl/board.py's DEBUG_LABELS; 16..20 the firmware's own */
 static const char *const k_labels[QL_DEBUG_LABELS] = {
     "Roll 0.1deg", "Pitch 0.1deg", "Yaw 0.1deg", "Thrust %",  "Motor1 cN",    "Motor2 cN",   "Motor3 cN",
     "Motor4 cN",   "Battery 10mV", "Armed",      "Flight state", "Setpoints/s", "Gyro x cnt", "Gyro y cnt",
-    "Gyro z cnt",  "Acc z cnt",    "Busy cyc",   "Busy max cyc", "P2 drops",     "P1 rx drops",
+    "Gyro z cnt",  "Acc z cnt",    "Busy cyc u16", "Busy max u16", "P2 drops",     "P1 rx drops",  "Late ticks",
 };
 
 const char *ql_fc_label(uint8_t index) { return index < QL_DEBUG_LABELS ? k_labels[index] : NULL; }
@@ -223,10 +223,12 @@ static void send_debug(ql_fc_t *fc)
     a[13] = (int16_t)fc->last_counts[4];
     a[14] = (int16_t)fc->last_counts[5];
     a[15] = (int16_t)fc->last_counts[2];
-    a[16] = sat16u(fc->busy_cycles);
-    a[17] = sat16u(fc->busy_max);
+    /* cycles up to 40 000 (and 80 000 late) do not fit int16: the raw 16 bits, to be read as uint16 */
+    a[16] = (int16_t)fc->busy_cycles;
+    a[17] = (int16_t)fc->busy_max;
     a[18] = sat16u(fc->tx_dropped[QL_PORT2]);
     a[19] = sat16u(ql_mk_frames_dropped(&fc->dec.stats));
+    a[20] = sat16u(fc->late_ticks);
     send(fc, QL_PORT1, QL_CMD_DEBUG, out, ql_pack_debug(out, status, a));
 }
 

@@ -25,7 +25,7 @@
 #define QL_BATTERY_HYST_MV 200u
 #define QL_TOUCH_ACC_MIN2 (INT32_C(230) * INT32_C(230)) /* |f| within 0.9 .. 1.1 g: not falling, not pushing off */
 #define QL_TOUCH_ACC_MAX2 (INT32_C(282) * INT32_C(282))
-#define QL_DEBUG_LABELS 20u
+#define QL_DEBUG_LABELS 21u
 #define QL_HWERR_PARAMS_DEFAULTED 0x01u /* Version.hardware_error[0]: the EEPROM held no valid parameters */
 
 typedef uint8_t (*ql_tx_fn)(void *ctx, uint8_t port, const uint8_t *frame, uint8_t len);
@@ -76,6 +76,7 @@ typedef struct {
     uint16_t setpoints_per_s;
     uint32_t window_start_setpoints;
     uint16_t busy_cycles, busy_max; /* set by the hardware layer after each tick */
+    uint16_t late_ticks;            /* ticks whose work ran past the next compare match */
     uint16_t last_counts[6];      /* ax ay az gx gy gz of the last tick */
 } ql_fc_t;
 

@@ -26,6 +26,11 @@ def main() -> None:
         if imu:
             gaps = sum(1 for a, b in zip(imu, imu[1:]) if (b.sample_counter - a.sample_counter) % 4096 != 1)
             print(f"  I: {len(imu)} samples, {gaps} counter gaps")
+        status = [m for m in msgs if isinstance(m, BoardStatus)]
+        if status:
+            counts = [m.imu_sample_count for m in status]
+            print(f"  S: {len(status)} frames, imu_sample_count {counts[0]} .. {counts[-1]}, "
+                  f"{'monotonic (no reset)' if all(b > a for a, b in zip(counts, counts[1:])) else 'NOT monotonic'}")
         last = None
         for m in msgs:
             if isinstance(m, BoardStatus):
@@ -39,7 +44,10 @@ def main() -> None:
                 print(f"  V {m.version_str} protocol {m.proto_major}.{m.proto_minor} hardware_error {m.hardware_error}")
         debug = [m for m in msgs if isinstance(m, DebugData)]
         if debug:
-            print(f"  last D analog[0..19]: {debug[-1].analog[:20]}")
+            a = debug[-1].analog
+            print(f"  last D analog[0..15]: {a[:16]}")
+            print(f"  busy {a[16] & 0xFFFF} cycles, max {a[17] & 0xFFFF}, port-2 drops {a[18]}, port-1 rx drops "
+                  f"{a[19]}, late ticks {a[20]}")
 
 
 if __name__ == "__main__":

@@ -22,6 +22,9 @@ static uint64_t busy_armed_sum, busy_armed_n, busy_armed_max;
 static int armed;
 static avr_t *avr;
 static int groups = 1;
+static uint64_t first_rise, rise_lag_max;
+static uint32_t armed_busy[200000];
+static size_t armed_busy_n;
 static uint64_t group_sum[16], group_n[16], group_max[16];
 
 static void on_uart0(struct avr_irq_t *irq, uint32_t value, void *param)
@@ -44,6 +47,13 @@ static void on_pb0(struct avr_irq_t *irq, uint32_t value, void *param)
     (void)param;
     if (value) {
         rise_cycle = avr->cycle;
+        if (first_rise == 0) {
+            first_rise = rise_cycle;
+        }
+        uint64_t lag = (rise_cycle - first_rise) % 40000u; /* from the tick's compare match (first rise ~ 0) */
+        if (lag < 20000u && lag > rise_lag_max) {
+            rise_lag_max = lag;
+        }
         return;
     }
     if (rise_cycle == 0) {
@@ -59,10 +69,19 @@ static void on_pb0(struct avr_irq_t *irq, uint32_t value, void *param)
     busy_max = busy > busy_max ? busy : busy_max;
     busy_min = busy < busy_min ? busy : busy_min;
     if (armed) {
+        if (armed_busy_n < sizeof(armed_busy) / sizeof(armed_busy[0])) {
+            armed_busy[armed_busy_n++] = (uint32_t)busy;
+        }
         busy_armed_sum += busy;
         busy_armed_n++;
         busy_armed_max = busy > busy_armed_max ? busy : busy_armed_max;
     }
+}
+
+static int cmp_u32(const void *a, const void *b)
+{
+    uint32_t x = *(const uint32_t *)a, y = *(const uint32_t *)b;
+    return x < y ? -1 : (x > y ? 1 : 0);
 }
 
 static void disable_stdio(char uart)
@@ -171,7 +190,7 @@ int main(int argc, char **argv)
                     avr_raise_irq(rx, frame[i]);
                 }
             }
-            if (seq % 200u == 1u) { /* every 2 s: 'd' with a 10 ms interval (the heaviest telemetry) */
+            if (getenv("NO_D") == NULL && seq % 200u == 1u) { /* every 2 s: 'd' with a 10 ms interval (the heaviest telemetry) */
                 uint8_t interval = 1;
                 n = ql_mk_encode(frame, QL_MK_ADDR_FC, QL_CMD_DEBUG_REQ, &interval, 1);
                 for (uint8_t i = 0; i < n; i++) {
@@ -187,9 +206,17 @@ int main(int argc, char **argv)
     printf("tick busy (PB0 high, cycles of 40000): min %llu mean %.0f max %llu over %llu ticks\n",
            (unsigned long long)busy_min, busy_n ? (double)busy_sum / (double)busy_n : 0.0,
            (unsigned long long)busy_max, (unsigned long long)busy_n);
+    printf("tick start lag (PB0 rise after the first tick's phase): max %llu cycles\n",
+           (unsigned long long)rise_lag_max);
     printf("armed ticks: mean %.0f max %llu over %llu ticks\n",
            busy_armed_n ? (double)busy_armed_sum / (double)busy_armed_n : 0.0, (unsigned long long)busy_armed_max,
            (unsigned long long)busy_armed_n);
+    if (armed_busy_n > 0) {
+        qsort(armed_busy, armed_busy_n, sizeof(armed_busy[0]), cmp_u32);
+        printf("armed ticks percentiles: 50 %% %u, 90 %% %u, 99 %% %u, 99.9 %% %u, max %u cycles\n",
+               armed_busy[armed_busy_n / 2], armed_busy[armed_busy_n * 9 / 10], armed_busy[armed_busy_n * 99 / 100],
+               armed_busy[armed_busy_n * 999 / 1000], armed_busy[armed_busy_n - 1]);
+    }
     for (int g = 0; groups > 1 && g < groups; g++) {
         printf("pulse %d: mean %.0f max %llu cycles\n", g, group_n[g] ? (double)group_sum[g] / (double)group_n[g] : 0.0,
                (unsigned long long)group_max[g]);

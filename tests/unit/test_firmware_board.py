@@ -116,15 +116,15 @@ def test_baro_at_50_hz(board: CBoard) -> None:
 def test_version_labels_and_extern_control_ack(board: CBoard, firmware_lib: ctypes.CDLL) -> None:
     board.rx(encode_message(VersionRequest()))
     board.rx(encode_message(ExternControl((0, 0), 0, 5, -5, 0, 120, 0, 0, 7, 1)))
-    for i in range(22):
+    for i in range(23):
         board.rx(encode_message(DebugLabelRequest(i)))
     msgs = decode(board.take(PORT1))
     assert of(msgs, Version) == [SITL_VERSION]
     assert of(msgs, ExternControlAck) == [ExternControlAck(7)]
     labels = [m.label for m in of(msgs, DebugLabel)]
     assert labels[:16] == list(DEBUG_LABELS)
-    assert labels[16:20] == ["Busy cyc", "Busy max cyc", "P2 drops", "P1 rx drops"]
-    assert labels[20:] == ["Analog20", "Analog21"]
+    assert labels[16:21] == ["Busy cyc u16", "Busy max u16", "P2 drops", "P1 rx drops", "Late ticks"]
+    assert labels[21:] == ["Analog21", "Analog22"]
     # without valid parameters in the EEPROM the board says so in the version's first error byte
     blank = CBoard(firmware_lib, bytes(200))
     blank.rx(encode_message(VersionRequest()))
@@ -147,7 +147,7 @@ def test_debug_stream_layout_interval_and_timeout(board: CBoard) -> None:
     board.take(PORT1)
     board.rx(encode_message(DebugRequest(10)))  # every 100 ms
     board.rx(encode_message(AttitudeSetpoint(0.0, 0.0, 0.0, 0.5, True, seq=5)))
-    board.lib.qlh_board_set_busy(board.ptr, 12345, 23456)
+    board.lib.qlh_board_set_busy(board.ptr, 12345, 39999)
     for k in range(3000):
         if k % 5 == 0:  # 100 Hz setpoints
             board.rx(encode_message(AttitudeSetpoint(0.0, 0.0, 0.0, 0.5, True, seq=k & 0xFF)))
@@ -164,7 +164,8 @@ def test_debug_stream_layout_interval_and_timeout(board: CBoard) -> None:
     assert a[11] == 100  # setpoints in the last second
     assert a[12:16] == (500, 510, 520, 250)
     assert sum(a[4:8]) == pytest.approx(0.5 * 20.0 * 100, abs=8)  # motor thrusts, cN, sum to the collective
-    assert a[16:20] == (12345, 23456, 0, 0)
+    assert a[16] == 12345 and a[17] & 0xFFFF == 39999  # cycles as uint16 bits in the int16 slots
+    assert a[18:21] == (0, 0, 0)
     board.rx(encode_message(DebugRequest(0)))  # 0 stops at once
     board.rx(encode_message(DebugRequest(1)))
     board.rx(encode_message(DebugRequest(0)))

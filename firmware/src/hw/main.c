@@ -99,7 +99,8 @@ int main(void)
         uint8_t late = (uint8_t)((TIFR1 & (1u << OCF1A)) != 0u);
         sei();
         if (late || tick_pending) { /* the work ran past the next tick */
-            busy = 0xFFFFu;
+            fc.late_ticks++;
+            busy = (uint16_t)(busy + TICK_CYCLES); /* TCNT1 restarted at the compare match */
         }
         fc.busy_cycles = busy;
         if (busy > fc.busy_max) {
