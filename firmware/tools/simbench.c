@@ -34,10 +34,15 @@ static void on_uart0(struct avr_irq_t *irq, uint32_t value, void *param)
     fputc((int)(value & 0xFF), port_out[0]);
 }
 
+static uint64_t last_u1_cycle, u1_gap_hist[4]; /* gaps between USART1 bytes: <1800, <1900, <2000, more */
+
 static void on_uart1(struct avr_irq_t *irq, uint32_t value, void *param)
 {
     (void)irq;
     (void)param;
+    uint64_t gap = avr->cycle - last_u1_cycle;
+    last_u1_cycle = avr->cycle;
+    u1_gap_hist[gap < 1800u ? 0 : (gap < 1900u ? 1 : (gap < 2000u ? 2 : 3))]++;
     fputc((int)(value & 0xFF), port_out[1]);
 }
 
@@ -206,6 +211,9 @@ int main(int argc, char **argv)
     printf("tick busy (PB0 high, cycles of 40000): min %llu mean %.0f max %llu over %llu ticks\n",
            (unsigned long long)busy_min, busy_n ? (double)busy_sum / (double)busy_n : 0.0,
            (unsigned long long)busy_max, (unsigned long long)busy_n);
+    printf("USART1 byte gaps (cycles): <1800 %llu, 1800-1899 %llu, 1900-1999 %llu, >=2000 %llu\n",
+           (unsigned long long)u1_gap_hist[0], (unsigned long long)u1_gap_hist[1],
+           (unsigned long long)u1_gap_hist[2], (unsigned long long)u1_gap_hist[3]);
     printf("tick start lag (PB0 rise after the first tick's phase): max %llu cycles\n",
            (unsigned long long)rise_lag_max);
     printf("armed ticks: mean %.0f max %llu over %llu ticks\n",
