@@ -55,7 +55,8 @@ def call_graph(elf: str) -> dict[str, set[str]]:
     return graph
 
 
-def deepest(fn: str, graph: dict[str, set[str]], frames: dict[str, int], seen: tuple[str, ...] = ()) -> tuple[int, list[str]]:
+def deepest(fn: str, graph: dict[str, set[str]], frames: dict[str, int],
+            seen: tuple[str, ...] = ()) -> tuple[int, list[str]]:
     if fn in seen:
         return 0, [fn + " (recursion!)"]
     best, path = 0, []
