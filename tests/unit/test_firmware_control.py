@@ -10,6 +10,7 @@ torque scale-down factor is Q8).
 from __future__ import annotations
 
 import ctypes
+
 import numpy as np
 import pytest
 from firmware_host import blob, f32
