@@ -43,7 +43,8 @@ ATT_CAL_TICKS = 256
 ATT_BIAS_SHIFT = 9
 ATT_STILL_Q8 = 3 * 256
 ATT_ACC_SHIFT_DISARMED = 5
-ATT_ACC_SHIFT_ARMED = 10
+ATT_ACC_SHIFT_ARMED = 8  # armed on the ground
+ATT_ACC_SHIFT_FLYING = 12
 ATT_ACC_MIN2 = 205 * 205
 ATT_ACC_MAX2 = 307 * 307
 ATT_RATE_LIMIT_Q6 = 65536
@@ -144,7 +145,8 @@ class BoardAttitude:
 
 
 class BoardAttitudeFilter:
-    """Mirror of ``ql_attitude_update``: feed the six raw counts of each 2 ms tick (and the arm state)."""
+    """Mirror of ``ql_attitude_update``: feed the six raw counts of each 2 ms tick, the arm state (freezes the
+    gyro offsets) and whether the board flies (flight state not landed: the slowest accelerometer gain)."""
 
     def __init__(self) -> None:
         self.roll_q24 = 0
@@ -161,7 +163,8 @@ class BoardAttitudeFilter:
         self.calibrated = False
         self.saturated = False
 
-    def update(self, accel_counts: Sequence[int], gyro_counts: Sequence[int], armed: bool = False) -> BoardAttitude:
+    def update(self, accel_counts: Sequence[int], gyro_counts: Sequence[int], armed: bool = False,
+               flying: bool = False) -> BoardAttitude:
         accel = [int(c) for c in accel_counts]
         gyro = [int(c) for c in gyro_counts]
         self.saturated = any(c == 0 or c >= IMU_COUNT_MAX for c in (*accel, *gyro))
@@ -211,7 +214,7 @@ class BoardAttitudeFilter:
         self.yaw_q24 = wrap_pi_q24(self.yaw_q24 + _rshift(yaw_rate * ATT_DANG_K, ATT_DANG_SHIFT))
 
         if acc_ok:
-            shift = ATT_ACC_SHIFT_ARMED if armed else ATT_ACC_SHIFT_DISARMED
+            shift = ATT_ACC_SHIFT_DISARMED if not armed else (ATT_ACC_SHIFT_FLYING if flying else ATT_ACC_SHIFT_ARMED)
             f_yz = _rshift(-f[1] * sr - f[2] * cr, 12)
             e_pitch = (f[0] * cp0 - f_yz * sp) * ATT_ERR_Q24_PER_COUNT_Q12
             self.pitch_q24 += _rshift(e_pitch, shift)

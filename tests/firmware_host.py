@@ -53,7 +53,7 @@ _SIGNATURES: dict[str, tuple[object, list[object]]] = {
     "ql_isqrt32": (ctypes.c_uint32, [ctypes.c_uint32]),
     "qlh_att_size": (ctypes.c_size_t, []),
     "ql_attitude_init": (None, [vp]),
-    "ql_attitude_update": (None, [vp, c_u16p, c_u16p, ctypes.c_uint8]),
+    "ql_attitude_update": (None, [vp, c_u16p, c_u16p, ctypes.c_uint8, ctypes.c_uint8]),
     "qlh_att_get": (None, [vp, c_i32p]),
     "qlh_baro_size": (ctypes.c_size_t, []),
     "ql_baro_init": (None, [vp]),

@@ -21,7 +21,8 @@ void ql_attitude_init(ql_attitude_t *a)
 
 static int32_t clamp32(int32_t v, int32_t lim) { return v > lim ? lim : (v < -lim ? -lim : v); }
 
-void ql_attitude_update(ql_attitude_t *a, const uint16_t accel[3], const uint16_t gyro[3], uint8_t armed)
+void ql_attitude_update(ql_attitude_t *a, const uint16_t accel[3], const uint16_t gyro[3], uint8_t armed,
+                        uint8_t flying)
 {
     uint8_t sat = 0;
     int32_t f[3];
@@ -101,7 +102,7 @@ void ql_attitude_update(ql_attitude_t *a, const uint16_t accel[3], const uint16_
          *   pitch: fx cos(pitch) - f_yz sin(pitch)   = |f| sin(pitch - pitch_est), f_yz = (-fy) sin(roll) + (-fz) cos(roll)
          * Zero exactly at the accelerometer's attitude whatever |f| is; |f| only scales the gain (the gate
          * keeps it within 0.8 .. 1.2 g). Counts * Q12 -> Q24 rad at 1 g: * 2^24 / (256 * 4096) = * 16. */
-        uint8_t shift = armed ? QL_ATT_ACC_SHIFT_ARMED : QL_ATT_ACC_SHIFT_DISARMED;
+        uint8_t shift = !armed ? QL_ATT_ACC_SHIFT_DISARMED : (flying ? QL_ATT_ACC_SHIFT_FLYING : QL_ATT_ACC_SHIFT_ARMED);
         int32_t f_yz = QL_RSHIFT(-f[1] * sr - f[2] * cr, 12);
         int32_t e_pitch = (f[0] * cp0 - f_yz * sp) * QL_ATT_ERR_Q24_PER_COUNT_Q12;
         a->pitch_q24 += QL_RSHIFT(e_pitch, shift);

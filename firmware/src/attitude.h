@@ -20,7 +20,11 @@
 #define QL_ATT_BIAS_SHIFT 9              /* still & disarmed: bias EMA, time constant 512 ticks (1 s) */
 #define QL_ATT_STILL_Q8 (INT32_C(3) * INT32_C(256))      /* |gyro - bias| <= 3 counts on every axis = still */
 #define QL_ATT_ACC_SHIFT_DISARMED 5      /* accelerometer gain while disarmed: tau = 32 ticks */
-#define QL_ATT_ACC_SHIFT_ARMED 10        /* in flight: tau = 1024 ticks (2 s) */
+#define QL_ATT_ACC_SHIFT_ARMED 8         /* armed on the ground (motors idling): tau = 256 ticks (0.5 s) */
+/* Flying: tau = 4096 ticks (8 s). In flight a quadrotor's accelerometer reads mostly thrust (f ~ (0, 0, -T/m)
+ * whatever the tilt), so it pulls the estimate towards level; slow enough that a 0.5 s manoeuvre leaks ~6 %
+ * of its tilt, fast enough to bound the gyro's bias walk (tests/unit/test_firmware_closed_loop.py). */
+#define QL_ATT_ACC_SHIFT_FLYING 12
 #define QL_ATT_ACC_MIN2 (INT32_C(205) * INT32_C(205))    /* |f| within 0.8 .. 1.2 g (counts^2) to trust the accelerometer */
 #define QL_ATT_ACC_MAX2 (INT32_C(307) * INT32_C(307))
 #define QL_ATT_RATE_LIMIT_Q6 INT32_C(65536)      /* Euler-rate clamp (q6 counts, 10.5 rad/s) keeps int32 in range */
@@ -44,7 +48,9 @@ typedef struct {
 } ql_attitude_t;
 
 void ql_attitude_init(ql_attitude_t *a);
-/* accel and gyro: raw ADC counts (FRD); armed selects the accelerometer gain and freezes the bias. */
-void ql_attitude_update(ql_attitude_t *a, const uint16_t accel[3], const uint16_t gyro[3], uint8_t armed);
+/* accel and gyro: raw ADC counts (FRD); armed freezes the gyro offsets; armed and flying select the
+ * accelerometer gain. */
+void ql_attitude_update(ql_attitude_t *a, const uint16_t accel[3], const uint16_t gyro[3], uint8_t armed,
+                        uint8_t flying);
 
 #endif

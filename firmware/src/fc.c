@@ -269,7 +269,8 @@ void ql_fc_tick(ql_fc_t *fc, const ql_adc_sweep_t *adc)
 
     /* 2. estimates */
     uint8_t armed = fc->safety.armed;
-    ql_attitude_update(&fc->att, adc->accel, adc->gyro, armed);
+    uint8_t flying = (uint8_t)(armed && fc->safety.flight_state != QL_STATE_LANDED); /* last tick's state */
+    ql_attitude_update(&fc->att, adc->accel, adc->gyro, armed, flying);
     ql_baro_update(&fc->baro, adc->baro, armed);
     battery_update(fc, adc->battery);
     if (fc->att.saturated) {

@@ -40,7 +40,7 @@ int main(void)
     for (uint16_t k = 0;; k++) {
         s.gyro[0] = (uint16_t)(505u + (k & 15u));
         s.accel[1] = (uint16_t)(500u + (k & 31u));
-        PULSE(ql_attitude_update(&fc.att, s.accel, s.gyro, 1));
+        PULSE(ql_attitude_update(&fc.att, s.accel, s.gyro, 1, 1));
         PULSE(ql_baro_update(&fc.baro, s.baro, 1));
         PULSE(ql_safety_step(&fc.safety, &fc.params, fc.tick, 0.1f, 1, 1, &fly));
         rates[0] = (int32_t)(2500 + (k & 63));

@@ -25,8 +25,8 @@ class CAttitude:
         self.state = blob(lib, "qlh_att_size")
         lib.ql_attitude_init(self.state)
 
-    def update(self, accel: list[int], gyro: list[int], armed: bool) -> list[int]:
-        self.lib.ql_attitude_update(self.state, u16(accel), u16(gyro), int(armed))
+    def update(self, accel: list[int], gyro: list[int], armed: bool, flying: bool) -> list[int]:
+        self.lib.ql_attitude_update(self.state, u16(accel), u16(gyro), int(armed), int(flying))
         out = (ctypes.c_int32 * 11)()
         self.lib.qlh_att_get(self.state, out)
         return list(out)
@@ -79,15 +79,18 @@ def test_fixed_point_helpers_equal_and_accurate(firmware_lib: ctypes.CDLL, rng: 
         assert firmware_lib.ql_isqrt32(int(n)) == math.isqrt(int(n))
 
 
-def _random_imu_stream(rng: np.random.Generator, n: int) -> list[tuple[list[int], list[int], bool]]:
-    """Counts that wander over the whole ADC range (rails included), with bursts of stillness and arm toggles."""
+def _random_imu_stream(rng: np.random.Generator, n: int) -> list[tuple[list[int], list[int], bool, bool]]:
+    """Counts that wander over the whole ADC range (rails included), with bursts of stillness, arm and flight
+    toggles."""
     ticks = []
     accel = np.array([512.0, 512.0, 256.0])
     gyro = np.array([512.0, 512.0, 512.0])
-    armed = False
+    armed = flying = False
     for k in range(n):
         if rng.random() < 0.02:
             armed = not armed
+        if rng.random() < 0.02:
+            flying = not flying
         if k % 700 < 350:  # still: small noise around a level board
             a = accel + rng.normal(0, 1.5, 3)
             g = gyro + rng.normal(0, 1.0, 3)
@@ -95,16 +98,16 @@ def _random_imu_stream(rng: np.random.Generator, n: int) -> list[tuple[list[int]
             a = rng.normal([512, 512, 300], [150, 150, 200])
             g = rng.normal(512, 180, 3)
         ticks.append(([int(c) for c in np.clip(np.rint(a), 0, 1023)],
-                      [int(c) for c in np.clip(np.rint(g), 0, 1023)], armed))
+                      [int(c) for c in np.clip(np.rint(g), 0, 1023)], armed, armed and flying))
     return ticks
 
 
 def test_attitude_mirror_is_bit_exact(firmware_lib: ctypes.CDLL, rng: np.random.Generator) -> None:
     c = CAttitude(firmware_lib)
     py = be.BoardAttitudeFilter()
-    for k, (accel, gyro, armed) in enumerate(_random_imu_stream(rng, 4000)):
-        c_state = c.update(accel, gyro, armed)
-        py.update(accel, gyro, armed)
+    for k, (accel, gyro, armed, flying) in enumerate(_random_imu_stream(rng, 4000)):
+        c_state = c.update(accel, gyro, armed, flying)
+        py.update(accel, gyro, armed, flying)
         assert c_state == mirror_att_state(py), f"tick {k}: C {c_state} != mirror {mirror_att_state(py)}"
 
 
@@ -177,7 +180,7 @@ def _fly(f: be.BoardAttitudeFilter, euler0: tuple[float, float, float], euler_ra
         q = math.cos(mid_phi) * dtheta + math.sin(mid_phi) * math.cos(mid_theta) * dpsi
         r = -math.sin(mid_phi) * dtheta + math.cos(mid_phi) * math.cos(mid_theta) * dpsi
         phi, theta, psi = phi + dt * dphi, theta + dt * dtheta, psi + dt * dpsi
-        est = f.update(accel_counts(phi, theta), gyro_counts(np.array([p, q, r])), armed)
+        est = f.update(accel_counts(phi, theta), gyro_counts(np.array([p, q, r])), armed, flying=armed)
     wrap = (psi + math.pi) % (2 * math.pi) - math.pi
     return np.array([phi, theta, wrap]), np.array([est.roll_rad, est.pitch_rad, est.yaw_rad])
 
@@ -209,7 +212,7 @@ def test_gyro_offsets_are_removed_at_power_up_and_tracked_while_still() -> None:
     acc = accel_counts(0.0, 0.0)
     calibrate(f, acc, gyro_counts(np.zeros(3), offset))
     for _ in range(10 * be.LOOP_HZ):  # 10 s still, armed (slow accelerometer): no drift from the offsets
-        est = f.update(acc, gyro_counts(np.zeros(3), offset), armed=True)
+        est = f.update(acc, gyro_counts(np.zeros(3), offset), armed=True, flying=True)
     assert max(abs(est.roll_rad), abs(est.pitch_rad)) < math.radians(0.5)
     assert abs(est.yaw_rad) < math.radians(1.0)
     assert max(abs(r) for r in est.rates_q_rad_s) < IMU.gyro_lsb_rad_s
