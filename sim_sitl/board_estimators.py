@@ -30,9 +30,10 @@ PI_Q24 = 52707179  # round(pi * 2^24)
 HALF_PI_Q24 = 26353589
 TWO_PI_Q24 = 105414357
 Q12_ONE = 4096  # sines and cosines
-_SIN_INV42_Q12 = 98
-_SIN_INV20_Q12 = 205
-_SIN_INV6_Q12 = 683
+_SIN_8_OVER_42_Q16 = 12483
+_SIN_16_OVER_20_Q16 = 52429
+_SIN_2_OVER_3_Q16 = 43691
+_Q15_ONE = 32768
 _ATAN_PI4_Q15 = 25736
 _ATAN_C0_Q15 = 8018
 _ATAN_C1_Q15 = 2173
@@ -94,18 +95,20 @@ def wrap_pi_q24(a: int) -> int:
 
 
 def sin_q12(a_q24: int) -> int:
-    """``ql_sin_q12``: Taylor series to x^7 on [-pi/2, pi/2] with Q12 reciprocals."""
+    """``ql_sin_q12``: Taylor series to x^7 on [-pi/2, pi/2]; x in Q14, x^2 in Q12, Horner terms in Q15."""
     a = wrap_pi_q24(a_q24)
     if a > HALF_PI_Q24:
         a = PI_Q24 - a
     elif a < -HALF_PI_Q24:
         a = -PI_Q24 - a
-    x = _rshift(a, 12)
-    x2 = _rshift(x * x, 12)
-    t = Q12_ONE - _rshift(x2 * _SIN_INV42_Q12, 12)
-    t = Q12_ONE - _rshift(_rshift(x2 * t, 12) * _SIN_INV20_Q12, 12)
-    t = Q12_ONE - _rshift(_rshift(x2 * t, 12) * _SIN_INV6_Q12, 12)
-    return max(-Q12_ONE, min(Q12_ONE, _rshift(x * t, 12)))
+    x = _rshift(a, 10)
+    x2 = (x * x) >> 16
+    t = _Q15_ONE - ((x2 * _SIN_8_OVER_42_Q16) >> 16)
+    u = (x2 * t) >> 16
+    t = _Q15_ONE - ((u * _SIN_16_OVER_20_Q16) >> 16)
+    u = (x2 * t) >> 16
+    t = _Q15_ONE - (2 * u + ((u * _SIN_2_OVER_3_Q16) >> 16))
+    return max(-Q12_ONE, min(Q12_ONE, (x * t + (1 << 16)) >> 17))
 
 
 def cos_q12(a_q24: int) -> int:

@@ -11,11 +11,14 @@ int32_t ql_wrap_pi_q24(int32_t a)
     return a;
 }
 
-/* Taylor series to x^7 in Horner form on [-pi/2, pi/2]: x (1 - x^2/6 (1 - x^2/20 (1 - x^2/42))); the
- * reciprocals are Q12 constants (max error about 1e-3). */
-#define SIN_INV42_Q12 INT32_C(98)
-#define SIN_INV20_Q12 INT32_C(205)
-#define SIN_INV6_Q12 INT32_C(683)
+/* Taylor series to x^7 in Horner form on [-pi/2, pi/2]: x (1 - x^2/6 (1 - x^2/20 (1 - x^2/42))), with 16-bit
+ * operands, 32-bit products and shifts by 16 (the AVR takes the high word for free): x in Q14, x^2 in Q12, the
+ * Horner terms in unsigned Q15 (all positive on this interval), 1/42, 0.8 and 2/3 as Q16 multipliers. Max error
+ * about 5e-4 (tests/unit/test_firmware_estimators.py); ~4 x cheaper on the AVR than 32 x 32 products. */
+#define SIN_8_OVER_42_Q16 UINT32_C(12483)  /* x2 (Q12) / 42 -> Q15: x 8 / 42 */
+#define SIN_16_OVER_20_Q16 UINT32_C(52429) /* Q11 / 20 -> Q15: x 16 / 20 */
+#define SIN_2_OVER_3_Q16 UINT32_C(43691)   /* Q11 / 6 -> Q15 = x 8 / 3 = x 2 + x 2/3 */
+#define Q15_ONE_U UINT32_C(32768)
 
 int16_t ql_sin_q12(int32_t a_q24)
 {
@@ -25,13 +28,14 @@ int16_t ql_sin_q12(int32_t a_q24)
     } else if (a < -QL_HALF_PI_Q24) {
         a = -QL_PI_Q24 - a;
     }
-    /* 16-bit operands with 32-bit products: the AVR's widening multiply, no 32 x 32 library call */
-    int16_t x = (int16_t)QL_RSHIFT(a, 12); /* Q12 rad, |x| <= 6434 */
-    int16_t x2 = (int16_t)QL_RSHIFT((int32_t)x * x, 12);
-    int16_t t = (int16_t)(QL_Q12_ONE - QL_RSHIFT((int32_t)x2 * SIN_INV42_Q12, 12));
-    t = (int16_t)(QL_Q12_ONE - QL_RSHIFT((int32_t)(int16_t)QL_RSHIFT((int32_t)x2 * t, 12) * SIN_INV20_Q12, 12));
-    t = (int16_t)(QL_Q12_ONE - QL_RSHIFT((int32_t)(int16_t)QL_RSHIFT((int32_t)x2 * t, 12) * SIN_INV6_Q12, 12));
-    int32_t s = QL_RSHIFT((int32_t)x * t, 12);
+    int16_t x = (int16_t)QL_RSHIFT(a, 10);                                /* Q14, |x| <= 25736 */
+    uint16_t x2 = (uint16_t)(((int32_t)x * x) >> 16);                     /* Q12, <= 10106 */
+    uint16_t t = (uint16_t)(Q15_ONE_U - (((uint32_t)x2 * SIN_8_OVER_42_Q16) >> 16));
+    uint16_t u = (uint16_t)(((uint32_t)x2 * t) >> 16);                    /* Q11 */
+    t = (uint16_t)(Q15_ONE_U - (((uint32_t)u * SIN_16_OVER_20_Q16) >> 16));
+    u = (uint16_t)(((uint32_t)x2 * t) >> 16);
+    t = (uint16_t)(Q15_ONE_U - (2u * (uint32_t)u + (((uint32_t)u * SIN_2_OVER_3_Q16) >> 16)));
+    int32_t s = ((int32_t)x * (int32_t)t + (INT32_C(1) << 16)) >> 17;  /* Q14 * Q15 -> Q12, rounded */
     if (s > QL_Q12_ONE) {
         s = QL_Q12_ONE;
     } else if (s < -QL_Q12_ONE) {
