@@ -64,7 +64,7 @@ void ql_ctrl_init(ql_ctrl_t *c, const ql_params_t *p)
     c->gyro_k[2] = q((J[1] - J[0]) * w64 * w64 * 65536.0f * 1048576.0f);
     c->max_f = q(p->max_thrust_n * 65536.0f);
     c->min_f = q(p->idle_fraction * p->max_thrust_n * 65536.0f);
-    c->byte_k = q(255.0f * 1048576.0f / (p->max_thrust_n * 65536.0f));
+    c->byte_k = q(255.0f * 65536.0f / (p->max_thrust_n * 65536.0f)); /* Q16: 51 for 5 N, exact */
     ql_ctrl_reset(c);
 }
 
@@ -154,6 +154,6 @@ void ql_ctrl_step(ql_ctrl_t *c, const ql_att_cmd_t *cmd, uint8_t landed, int32_t
 
 uint8_t ql_motor_byte(const ql_ctrl_t *c, int32_t thrust_f)
 {
-    int32_t b = (thrust_f * c->byte_k + (INT32_C(1) << 19)) >> 20;
+    int32_t b = (thrust_f * c->byte_k + (INT32_C(1) << 15)) >> 16; /* a shift by 16: the high word, no loop */
     return (uint8_t)(b < 1 ? 1 : (b > 255 ? 255 : b));
 }

@@ -41,7 +41,7 @@ typedef struct {
     int32_t kd_j[2];      /* rate step (R) -> torque (T), Q12 */
     int32_t gyro_k[3];    /* (J_b - J_c) (64 R)^2 -> T, Q20 */
     int32_t min_f, max_f; /* per-motor thrust range, F */
-    int32_t byte_k;       /* F -> BL-Ctrl byte, Q20: 255 / max_thrust */
+    int32_t byte_k;       /* F -> BL-Ctrl byte, Q16: 255 / max_thrust (51 for 5 N) */
     int32_t integ_q24[3]; /* integrator, rad/s^2 * 2^24 (the Python model's units) */
     int32_t prev_rate_r[3];
     uint8_t have_prev;

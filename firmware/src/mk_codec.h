@@ -43,10 +43,11 @@ typedef struct {
 } ql_mk_frame_t;
 
 typedef struct {
-    ql_mk_stats_t stats;
-    uint8_t buf[QL_MK_MAX_FRAME_LEN];
+    /* the per-byte fields first: the AVR's indexed loads reach 63 bytes past a pointer */
     uint8_t len;        /* pending bytes; buf[0] == '#' when len > 0 */
     uint8_t discarding; /* inside an overlong frame: skip to its '\r' or the next '#' */
+    ql_mk_stats_t stats;
+    uint8_t buf[QL_MK_MAX_FRAME_LEN];
 } ql_mk_decoder_t;
 
 void ql_mk_decoder_init(ql_mk_decoder_t *dec);

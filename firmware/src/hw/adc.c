@@ -2,31 +2,32 @@
 
 #include <avr/interrupt.h>
 #include <avr/io.h>
-#include <string.h>
 
-/* channel order of a sweep: the six IMU channels first (sampled closest to the tick), the slow ones after */
-static const uint8_t k_sequence[] = {0, 1, 2, 3, 4, 5, 6, 6, 6, 6, 6, 6, 6, 6, 7};
-#define SEQ_LEN ((uint8_t)sizeof(k_sequence))
+/* channel order of a sweep: the six IMU channels first (sampled closest to the tick), the slow ones after; as
+ * ADMUX values (AVCC reference, right adjusted) so the interrupt only copies a byte */
+#define MUX(ch) ((uint8_t)((1u << REFS0) | (ch)))
+static const uint8_t k_admux[] = {MUX(0), MUX(1), MUX(2), MUX(3), MUX(4), MUX(5), MUX(6), MUX(6),
+                                  MUX(6), MUX(6), MUX(6), MUX(6), MUX(6), MUX(6), MUX(7)};
+#define SEQ_LEN ((uint8_t)sizeof(k_admux))
 
-static volatile uint16_t work[SEQ_LEN];
-static volatile uint16_t done[SEQ_LEN];
-static volatile uint8_t index_; /* SEQ_LEN: idle */
+/* two sweep buffers: the interrupt fills one while the tick reads the other (no copy in the interrupt) */
+static uint16_t sweeps[2][SEQ_LEN];
+static uint16_t *wptr;           /* next sample of the sweep being written (interrupt-owned) */
+static uint8_t index_;           /* conversions done in this sweep; SEQ_LEN: idle */
+static uint8_t writing;          /* buffer being written */
+static volatile uint8_t ready;   /* last complete buffer */
 static volatile uint8_t fresh;
 static volatile uint16_t overruns;
-
-static void select_and_start(uint8_t ch)
-{
-    ADMUX = (uint8_t)((1u << REFS0) | ch); /* AVCC reference, right adjusted */
-    ADCSRA |= (uint8_t)(1u << ADSC);
-}
 
 void adc_init(void)
 {
     DIDR0 = 0xFFu; /* all eight pins analog: no digital input buffers */
     ADCSRA = (uint8_t)((1u << ADEN) | (1u << ADIE) | (1u << ADPS2) | (1u << ADPS1) | (1u << ADPS0));
     for (uint8_t i = 0; i < SEQ_LEN; i++) {
-        work[i] = done[i] = 512u;
+        sweeps[0][i] = sweeps[1][i] = 512u;
     }
+    writing = 0;
+    ready = 1;
     index_ = SEQ_LEN;
 }
 
@@ -37,7 +38,9 @@ void adc_start_sweep(void)
         return;
     }
     index_ = 0;
-    select_and_start(k_sequence[0]);
+    wptr = sweeps[writing];
+    ADMUX = k_admux[0];
+    ADCSRA |= (uint8_t)(1u << ADSC);
 }
 
 ISR(ADC_vect)
@@ -46,14 +49,14 @@ ISR(ADC_vect)
     if (i >= SEQ_LEN) {
         return;
     }
-    work[i] = ADC;
+    *wptr++ = ADC;
     i++;
     if (i < SEQ_LEN) {
-        select_and_start(k_sequence[i]);
+        ADMUX = k_admux[i];
+        ADCSRA |= (uint8_t)(1u << ADSC);
     } else {
-        for (uint8_t k = 0; k < SEQ_LEN; k++) {
-            done[k] = work[k];
-        }
+        ready = writing;
+        writing ^= 1u;
         fresh = 1;
     }
     index_ = i;
@@ -61,23 +64,20 @@ ISR(ADC_vect)
 
 uint8_t adc_take_sweep(ql_adc_sweep_t *out)
 {
-    uint16_t copy[SEQ_LEN];
     uint8_t sreg = SREG;
     cli();
-    for (uint8_t k = 0; k < SEQ_LEN; k++) {
-        copy[k] = done[k];
-    }
+    const uint16_t *src = sweeps[ready]; /* the interrupt writes the other buffer for the next 1.25 ms */
     uint8_t was_fresh = fresh;
     fresh = 0;
     SREG = sreg;
     for (uint8_t k = 0; k < 3u; k++) {
-        out->gyro[k] = copy[k];
-        out->accel[k] = copy[3u + k];
+        out->gyro[k] = src[k];
+        out->accel[k] = src[3u + k];
     }
     for (uint8_t k = 0; k < QL_BARO_OVERSAMPLE; k++) {
-        out->baro[k] = copy[6u + k];
+        out->baro[k] = src[6u + k];
     }
-    out->battery = copy[SEQ_LEN - 1u];
+    out->battery = src[SEQ_LEN - 1u];
     return was_fresh;
 }
 
