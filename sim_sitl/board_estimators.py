@@ -7,9 +7,9 @@ integer arithmetic so the SITL's Python board model can fly on the board's estim
 ``make -C firmware host``) and to this mirror and asserts identical integer states.
 
 Integer rules that make the two agree: every right shift of a signed value is arithmetic (Python's ``>>`` and
-gcc's agree: floor), ``_rshift`` rounds half up as ``QL_RSHIFT``, divisions of non-negative values are the
-same in both languages, and the only signed division (``altitude_cm``) goes through ``_cdiv`` (C truncates
-towards zero). The C keeps every intermediate within int32; so does this mirror, by the same ranges.
+gcc's agree: floor), ``_rshift`` rounds half up as ``QL_RSHIFT``, and the only divisions (of non-negative values)
+are the same in both languages. The C keeps every intermediate within int32; so does this mirror, by the same
+ranges.
 """
 
 from __future__ import annotations
@@ -74,12 +74,6 @@ BARO_V_LIMIT_T16 = 6553600
 def _rshift(x: int, s: int) -> int:
     """``QL_RSHIFT``: (x + 2^(s-1)) >> s, arithmetic (rounds half up)."""
     return (x + (1 << (s - 1))) >> s
-
-
-def _cdiv(a: int, b: int) -> int:
-    """C's integer division (truncates towards zero)."""
-    q = abs(a) // abs(b)
-    return q if (a >= 0) == (b >= 0) else -q
 
 
 def _clamp(v: int, lim: int) -> int:
@@ -162,6 +156,7 @@ class BoardAttitudeFilter:
         self.sin_roll = self.sin_pitch = 0
         self.cos_roll = self.cos_pitch = Q12_ONE
         self.trig_phase = 0
+        self.sec_pitch = Q12_ONE  # 1 / max(cos(pitch), 0.25), Q12, one Newton step per tick
         self.cal_ticks = 0
         self.calibrated = False
         self.saturated = False
@@ -206,7 +201,12 @@ class BoardAttitudeFilter:
         self.trig_phase ^= 1
         sr, cr, sp, cp0 = self.sin_roll, self.cos_roll, self.sin_pitch, self.cos_pitch
         cp = max(cp0, ATT_COS_MIN_Q12)
-        sec_p = (Q12_ONE * Q12_ONE) // cp
+        cr_prod = (cp * self.sec_pitch) >> 12
+        if cr_prod < Q12_ONE // 2 or cr_prod > Q12_ONE + Q12_ONE // 2:
+            self.sec_pitch = (Q12_ONE * Q12_ONE) // cp
+        else:
+            self.sec_pitch = (self.sec_pitch * (2 * Q12_ONE - cr_prod)) >> 12
+        sec_p = self.sec_pitch
         tan_p = _rshift(sp * sec_p, 12)
         u = _rshift(q * sr + r * cr, 12)
         roll_rate = _clamp(p + _rshift(tan_p * u, 12), ATT_RATE_LIMIT_Q6)
@@ -297,7 +297,7 @@ class BoardBaro:
 
     @property
     def altitude_cm(self) -> int:
-        return _cdiv(self.h_q8, 2560)
+        return ((self.h_q8 >> 9) * 3277) >> 14  # mm / 10 without a division, as the C
 
     @property
     def climb_cm_s(self) -> int:

@@ -246,7 +246,7 @@ int qlh_safety_step(ql_safety_t *s, const ql_params_t *p, uint32_t tick, float c
                     float fly[4])
 {
     ql_att_cmd_t k = {0, 0, 0, 0};
-    int run = ql_safety_step(s, p, tick, climb, (uint8_t)valid, (uint8_t)acc1g, &k);
+    int run = ql_safety_step(s, p, tick, lroundf(climb * QL_CLIMB_T16_PER_M_S), (uint8_t)valid, (uint8_t)acc1g, &k);
     fly[0] = (float)k.roll_q24 / 16777216.0f;
     fly[1] = (float)k.pitch_q24 / 16777216.0f;
     fly[2] = (float)k.yaw_rate_r * k_rate_r;

@@ -13,6 +13,7 @@ void ql_attitude_init(ql_attitude_t *a)
     }
     a->sin_roll = a->sin_pitch = 0;
     a->cos_roll = a->cos_pitch = QL_Q12_ONE;
+    a->sec_pitch = QL_Q12_ONE;
     a->cal_ticks = 0;
     a->trig_phase = 0;
     a->calibrated = 0;
@@ -20,6 +21,10 @@ void ql_attitude_init(ql_attitude_t *a)
 }
 
 static int32_t clamp32(int32_t v, int32_t lim) { return v > lim ? lim : (v < -lim ? -lim : v); }
+
+/* a 16 x 16 -> 32 bit product (the AVR's widening multiply, not a 32 x 32 library call); both operands must
+ * fit int16, which the callers' ranges guarantee */
+static inline int32_t mul16(int32_t a, int32_t b) { return (int32_t)(int16_t)a * (int16_t)b; }
 
 void ql_attitude_update(ql_attitude_t *a, const uint16_t accel[3], const uint16_t gyro[3], uint8_t armed,
                         uint8_t flying)
@@ -33,7 +38,7 @@ void ql_attitude_update(ql_attitude_t *a, const uint16_t accel[3], const uint16_
     }
     a->saturated = sat;
 
-    int32_t norm2 = f[0] * f[0] + f[1] * f[1] + f[2] * f[2];
+    int32_t norm2 = mul16(f[0], f[0]) + mul16(f[1], f[1]) + mul16(f[2], f[2]);
     uint8_t acc_ok = (uint8_t)(norm2 >= QL_ATT_ACC_MIN2 && norm2 <= QL_ATT_ACC_MAX2);
     if (!a->calibrated) {
         /* power-up: average the gyro, hold the attitude at the accelerometer's */
@@ -85,8 +90,17 @@ void ql_attitude_update(ql_attitude_t *a, const uint16_t accel[3], const uint16_
     if (cp < QL_ATT_COS_MIN_Q12) {
         cp = QL_ATT_COS_MIN_Q12; /* |pitch| near 90 deg: the Euler rates are singular; bounded instead */
     }
-    int32_t sec_p = (QL_Q12_ONE * QL_Q12_ONE) / cp; /* the one division; positive operands */
-    int32_t tan_p = QL_RSHIFT(sp * sec_p, 12);
+    /* 1 / cos(pitch) without a division each tick (a 32-bit division is ~650 AVR cycles): Newton's
+     * r <- r (2 - c r) from the last tick's value, which pitch moves by well under 1 %; a value that is not
+     * within 50 % (start, or a jump) is computed by the division (positive operands) */
+    int32_t cr_prod = mul16(cp, a->sec_pitch) >> 12; /* cp <= 4096, sec <= 16384 */
+    if (cr_prod < QL_Q12_ONE / 2 || cr_prod > QL_Q12_ONE + QL_Q12_ONE / 2) {
+        a->sec_pitch = (QL_Q12_ONE * QL_Q12_ONE) / cp;
+    } else {
+        a->sec_pitch = (a->sec_pitch * (2 * QL_Q12_ONE - cr_prod)) >> 12;
+    }
+    int32_t sec_p = a->sec_pitch;
+    int32_t tan_p = QL_RSHIFT(mul16(sp, sec_p), 12);
     int32_t u = QL_RSHIFT(q * sr + r * cr, 12);
     int32_t roll_rate = clamp32(p + QL_RSHIFT(tan_p * u, 12), QL_ATT_RATE_LIMIT_Q6);
     int32_t pitch_rate = clamp32(QL_RSHIFT(q * cr - r * sr, 12), QL_ATT_RATE_LIMIT_Q6);
@@ -103,11 +117,11 @@ void ql_attitude_update(ql_attitude_t *a, const uint16_t accel[3], const uint16_
          * Zero exactly at the accelerometer's attitude whatever |f| is; |f| only scales the gain (the gate
          * keeps it within 0.8 .. 1.2 g). Counts * Q12 -> Q24 rad at 1 g: * 2^24 / (256 * 4096) = * 16. */
         uint8_t shift = !armed ? QL_ATT_ACC_SHIFT_DISARMED : (flying ? QL_ATT_ACC_SHIFT_FLYING : QL_ATT_ACC_SHIFT_ARMED);
-        int32_t f_yz = QL_RSHIFT(-f[1] * sr - f[2] * cr, 12);
-        int32_t e_pitch = (f[0] * cp0 - f_yz * sp) * QL_ATT_ERR_Q24_PER_COUNT_Q12;
+        int32_t f_yz = QL_RSHIFT(-mul16(f[1], sr) - mul16(f[2], cr), 12); /* |f| <= 512, Q12 <= 4096 */
+        int32_t e_pitch = (mul16(f[0], cp0) - mul16(f_yz, sp)) * QL_ATT_ERR_Q24_PER_COUNT_Q12;
         a->pitch_q24 += QL_RSHIFT(e_pitch, shift);
         if (a->pitch_q24 < QL_ATT_ROLL_ACC_MAX_PITCH_Q24 && a->pitch_q24 > -QL_ATT_ROLL_ACC_MAX_PITCH_Q24) {
-            int32_t e_roll = (-f[1] * cr + f[2] * sr) * QL_ATT_ERR_Q24_PER_COUNT_Q12;
+            int32_t e_roll = (-mul16(f[1], cr) + mul16(f[2], sr)) * QL_ATT_ERR_Q24_PER_COUNT_Q12;
             a->roll_q24 += QL_RSHIFT(e_roll, shift);
         }
     }

@@ -41,6 +41,7 @@ typedef struct {
     int32_t bias_q16[3];                  /* gyro zero, counts * 65536 */
     int32_t cal_sum[3];
     int32_t sin_roll, cos_roll, sin_pitch, cos_pitch; /* Q12, refreshed alternately (one pair per tick) */
+    int32_t sec_pitch;  /* 1 / max(cos(pitch), 0.25), Q12: one Newton step per tick from the last value */
     uint16_t cal_ticks;
     uint8_t trig_phase;
     uint8_t calibrated;

@@ -55,7 +55,8 @@ void ql_baro_update(ql_baro_t *b, const uint16_t counts[QL_BARO_OVERSAMPLE], uin
 
 uint8_t ql_baro_valid(const ql_baro_t *b) { return (uint8_t)(b->ref_ticks >= QL_BARO_REF_TICKS && !b->saturated); }
 
-int32_t ql_baro_altitude_cm(const ql_baro_t *b) { return b->h_q8 / INT32_C(2560); /* mm * 256 -> cm, truncated */ }
+/* mm * 256 -> cm without a division: (mm / 2) * 3277 / 2^14 = mm * 0.100006 (0.6 cm at the 925 m extreme) */
+int32_t ql_baro_altitude_cm(const ql_baro_t *b) { return ((b->h_q8 >> 9) * INT32_C(3277)) >> 14; }
 
 int16_t ql_baro_climb_cm_s(const ql_baro_t *b)
 {

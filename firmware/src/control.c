@@ -145,9 +145,10 @@ void ql_ctrl_step(ql_ctrl_t *c, const ql_att_cmd_t *cmd, uint8_t landed, int32_t
     for (uint8_t i = 0; i < 3u; i++) {
         w[i] = clamp32(rate_r[i] >> 6, INT32_C(4095));
     }
-    torque[0] += (((w[1] * w[2]) >> 6) * c->gyro_k[0]) >> 14;
-    torque[1] += (((w[2] * w[0]) >> 6) * c->gyro_k[1]) >> 14;
-    torque[2] += (((w[0] * w[1]) >> 6) * c->gyro_k[2]) >> 14;
+    /* |w| <= 4095: 16 x 16 -> 32 bit products */
+    torque[0] += ((((int32_t)(int16_t)w[1] * (int16_t)w[2]) >> 6) * c->gyro_k[0]) >> 14;
+    torque[1] += ((((int32_t)(int16_t)w[2] * (int16_t)w[0]) >> 6) * c->gyro_k[1]) >> 14;
+    torque[2] += ((((int32_t)(int16_t)w[0] * (int16_t)w[1]) >> 6) * c->gyro_k[2]) >> 14;
     int32_t thrust = cmd->thrust_f < 0 ? 0 : (cmd->thrust_f > 4 * c->max_f ? 4 * c->max_f : cmd->thrust_f);
     ql_mix(c, thrust, torque, motor_f);
 }

@@ -67,7 +67,8 @@ static uint8_t stream_due(ql_stream_t *s, uint32_t tick)
     return 1;
 }
 
-static void on_frame(ql_fc_t *fc, const ql_mk_frame_t *f)
+/* noinline: ql_fc_rx_byte runs per received byte and should not pay this function's register saves */
+__attribute__((noinline)) static void on_frame(ql_fc_t *fc, const ql_mk_frame_t *f)
 {
     uint8_t out[QL_LABEL_LEN > QL_VERSION_LEN ? QL_LABEL_LEN : QL_VERSION_LEN];
     if (f->address != QL_MK_ADDR_ANY && f->address != QL_MK_ADDR_FC) {
@@ -189,8 +190,6 @@ static int16_t ddeg(int32_t a_q24) { return (int16_t)QL_RSHIFT(QL_RSHIFT(a_q24, 
 /* thrust F (N * 2^16) -> cN */
 static int16_t centinewton(int32_t f) { return (int16_t)QL_RSHIFT(f * INT32_C(100), 16); }
 
-/* the failsafe's climb, m/s; float only when the safety logic needs it */
-static float climb_m_s(const ql_baro_t *b) { return ql_baro_climb_m_s(b); }
 
 static void send_data3d(ql_fc_t *fc)
 {
@@ -285,10 +284,11 @@ void ql_fc_tick(ql_fc_t *fc, const ql_adc_sweep_t *adc)
     /* 3. safety and the attitude loop */
     int32_t f0 = (int32_t)adc->accel[0] - QL_IMU_ZERO_COUNT, f1 = (int32_t)adc->accel[1] - QL_IMU_ZERO_COUNT;
     int32_t f2 = (int32_t)adc->accel[2] - QL_IMU_ZERO_COUNT;
-    int32_t norm2 = f0 * f0 + f1 * f1 + f2 * f2;
+    int32_t norm2 = (int32_t)(int16_t)f0 * (int16_t)f0 + (int32_t)(int16_t)f1 * (int16_t)f1 +
+                    (int32_t)(int16_t)f2 * (int16_t)f2; /* |f| <= 512: 16 x 16 -> 32 bit products */
     uint8_t accel_1g = (uint8_t)(norm2 >= QL_TOUCH_ACC_MIN2 && norm2 <= QL_TOUCH_ACC_MAX2);
     ql_att_cmd_t fly;
-    uint8_t run = ql_safety_step(&fc->safety, &fc->params, fc->tick, climb_m_s(&fc->baro),
+    uint8_t run = ql_safety_step(&fc->safety, &fc->params, fc->tick, fc->baro.v_t16,
                                  ql_baro_valid(&fc->baro), accel_1g, &fly);
     if (run) {
         ql_ctrl_step(&fc->ctrl, &fly, (uint8_t)(fc->safety.flight_state == QL_STATE_LANDED), fc->att.roll_q24,

@@ -46,7 +46,8 @@ uint32_t ql_mk_frames_dropped(const ql_mk_stats_t *s)
 }
 
 /* Validate buf[0..n) = '#' addr cmd chars crc1 crc2 (no '\r'); 1 and the frame if valid, else count the drop. */
-static uint8_t check_body(ql_mk_decoder_t *dec, uint8_t n, ql_mk_frame_t *out)
+/* noinline: keeps the per-byte path of ql_mk_decoder_feed free of the register saves this needs */
+__attribute__((noinline)) static uint8_t check_body(ql_mk_decoder_t *dec, uint8_t n, ql_mk_frame_t *out)
 {
     const uint8_t *d = dec->buf;
     ql_mk_stats_t *s = &dec->stats;
@@ -58,15 +59,16 @@ static uint8_t check_body(ql_mk_decoder_t *dec, uint8_t n, ql_mk_frame_t *out)
         s->invalid_chars++;
         return 0;
     }
+    /* one pass: the characters' range and the checksum (from '#' through the last data character) */
+    uint16_t sum = (uint16_t)(d[0] + d[1] + d[2]);
     for (uint8_t i = 3; i < n; i++) {
         if (!is_data_char(d[i])) {
             s->invalid_chars++;
             return 0;
         }
-    }
-    uint16_t sum = 0;
-    for (uint8_t i = 0; i < (uint8_t)(n - 2u); i++) {
-        sum = (uint16_t)(sum + d[i]);
+        if (i < (uint8_t)(n - 2u)) {
+            sum = (uint16_t)(sum + d[i]);
+        }
     }
     sum &= 0x0FFFu;
     if (d[n - 2u] != QL_MK_CHAR_OFFSET + (sum >> 6) || d[n - 1u] != QL_MK_CHAR_OFFSET + (sum & 63u)) {

@@ -24,6 +24,7 @@ void ql_safety_init(ql_safety_t *s, const ql_params_t *p)
     s->thrust_k8 = (int32_t)lroundf(4.0f * p->max_thrust_n * 65536.0f / THRUST_FULL_SCALE * 256.0f);
     s->landed_f = thrust_f_of(p, p->landed_thrust_fraction);
     s->timeout_ticks = ticks_of(p->setpoint_timeout_s);
+    s->ground_t16 = (int32_t)lroundf(p->failsafe_ground_speed_m_s * QL_CLIMB_T16_PER_M_S);
     s->armed = s->failsafe = 0;
     s->flight_state = QL_STATE_LANDED;
     s->error_flags = 0;
@@ -74,7 +75,7 @@ static void disarm(ql_safety_t *s)
     s->cmd_flying = 0;
 }
 
-uint8_t ql_safety_step(ql_safety_t *s, const ql_params_t *p, uint32_t tick, float climb_m_s, uint8_t baro_valid,
+uint8_t ql_safety_step(ql_safety_t *s, const ql_params_t *p, uint32_t tick, int32_t climb_t16, uint8_t baro_valid,
                        uint8_t accel_1g, ql_att_cmd_t *fly)
 {
     if (s->armed && !s->failsafe && s->have_setpoint &&
@@ -94,14 +95,13 @@ uint8_t ql_safety_step(ql_safety_t *s, const ql_params_t *p, uint32_t tick, floa
     }
     if (s->failsafe) {
         float hover = ql_hover_thrust_fraction(p);
-        float climb = baro_valid ? climb_m_s : 0.0f;
+        float climb = baro_valid ? (float)climb_t16 * (1.0f / QL_CLIMB_T16_PER_M_S) : 0.0f; /* failsafe only */
         float scale = 1.0f + p->failsafe_climb_gain_1_m_s * (-p->failsafe_descent_m_s - climb);
         scale = scale < p->failsafe_thrust_min ? p->failsafe_thrust_min
                                                : (scale > p->failsafe_thrust_max ? p->failsafe_thrust_max : scale);
         fly->roll_q24 = fly->pitch_q24 = fly->yaw_rate_r = 0;
         fly->thrust_f = thrust_f_of(p, hover * scale);
-        uint8_t slow = (uint8_t)(!baro_valid || (climb_m_s < p->failsafe_ground_speed_m_s &&
-                                                  climb_m_s > -p->failsafe_ground_speed_m_s));
+        uint8_t slow = (uint8_t)(!baro_valid || (climb_t16 < s->ground_t16 && climb_t16 > -s->ground_t16));
         if (!(slow && accel_1g) || tick - s->failsafe_start_tick < QL_FS_MIN_TICKS) {
             s->still_timing = 0;
         } else if (!s->still_timing) {

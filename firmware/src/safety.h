@@ -28,6 +28,7 @@ typedef struct {
     uint32_t last_setpoint_tick;
     uint32_t timeout_ticks;
     int32_t max_tilt_q24, max_yaw_r, thrust_k8, landed_f; /* from the parameters, at init */
+    int32_t ground_t16;                                   /* failsafe_ground_speed_m_s in climb_t16 units */
     uint32_t failsafe_start_tick;
     uint32_t still_since_tick;
     uint32_t setpoints_received;
@@ -38,9 +39,11 @@ typedef struct {
 void ql_safety_init(ql_safety_t *s, const ql_params_t *p);
 /* A decoded 's' frame at tick. Returns 1 on an arming edge (the caller resets its loops). */
 uint8_t ql_safety_on_setpoint(ql_safety_t *s, const ql_params_t *p, const ql_setpoint_msg_t *m, uint32_t tick);
-/* Per tick: climb (baro, m/s up), baro_valid, accel_1g (|f| ~ 1 g). Fills *fly with what to fly and returns 1
- * while the motors run (armed), 0 when they are cut (the caller resets its loops on a 1 -> 0 edge). */
-uint8_t ql_safety_step(ql_safety_t *s, const ql_params_t *p, uint32_t tick, float climb_m_s, uint8_t baro_valid,
+/* Per tick: climb_t16 (baro, up, the baro's v_t16 units: mm per tick * 2^16 = 131 072 per m/s), baro_valid,
+ * accel_1g (|f| ~ 1 g). Fills *fly with what to fly and returns 1 while the motors run (armed), 0 when they are
+ * cut (the caller resets its loops on a 1 -> 0 edge). */
+#define QL_CLIMB_T16_PER_M_S 131072.0f
+uint8_t ql_safety_step(ql_safety_t *s, const ql_params_t *p, uint32_t tick, int32_t climb_t16, uint8_t baro_valid,
                        uint8_t accel_1g, ql_att_cmd_t *fly);
 float ql_hover_thrust_fraction(const ql_params_t *p);
 
