@@ -29,6 +29,14 @@ SHARED = REPO.parent / "shared"
 TUM_HEAD = SHARED / "data" / "tum_fr1_xyz_head"
 
 
+@pytest.fixture(scope="session")
+def firmware_lib():  # noqa: ANN201
+    """The FlightCtrl firmware's pure C modules, host-built (``make -C firmware host``) and loaded with ctypes."""
+    from firmware_host import load_firmware_lib
+
+    return load_firmware_lib()
+
+
 @pytest.fixture
 def rng() -> np.random.Generator:
     return np.random.default_rng(20261123)
