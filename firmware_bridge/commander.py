@@ -149,7 +149,8 @@ class CommanderService:
                 # the thrust is up already: ramping it again from idle dropped a vehicle 5 cm up back on its gear
                 s.tko_ramp_start_s = None
             elif s.in_air:
-                s.event(mavlink.MAV_SEVERITY_CRITICAL, "Odometry lost: level hold, descending")
+                s.event(mavlink.MAV_SEVERITY_CRITICAL, "Odometry lost: level hold, descending"
+                        + (" on the baro" if s.vertical.estimate.baro_fused else ""))
                 s.failsafe_reason = "odometry lost"
                 vz = float(self.offboard.v_est_h(now_s)[2])
                 s.v_h_dead_reckoned[2] = vz

@@ -100,6 +100,8 @@ class FlightControlService:
             v_est = s.v_h_dead_reckoned.copy()
             if not (braking and np.all(np.isfinite(v_est[:2]))):
                 v_est[:2] = 0.0
+            if s.vertical.estimate.baro_fused:   # the barometer keeps the vertical speed from drifting (issue 30)
+                v_est[2] = s.vertical.vz_m_s
             cmd = s.pid_tracker.update(dt, v_ref, 0.0, v_est, est.roll_rad, est.pitch_rad)
             if not braking:
                 cmd = AttitudeCommand(0.0, 0.0, 0.0, cmd.thrust_fraction, cmd.a_des_h_m_s2, cmd.saturated)
@@ -200,7 +202,12 @@ class FlightControlService:
                 s.blind_descent = (now_s, s.vertical.height_m)
             start_s, height0 = s.blind_descent
             learned = s.hover_thrust_learned if s.hover_thrust_learned is not None else hover_prior
-            ceiling = min(max(learned, hover_prior * (1.0 - margin)), hover_prior * (1.0 + margin))
+            if s.vertical.estimate.baro_fused:
+                # on the barometer the estimate cannot run away upward: the descent may use the thrust it needs
+                # to hold its speed (a ceiling at the short take-off's learnt thrust dropped it at 1.2 m/s)
+                ceiling = hover_prior * (1.0 + margin)
+            else:
+                ceiling = min(max(learned, hover_prior * (1.0 - margin)), hover_prior * (1.0 + margin))
             # with the board's barometer fused the height does not drift: the descent tracks its speed to the ground
             # and the touchdown test below ends it (issue 30: probing at 0.9 x hover touched down at 1.2 m/s); on the
             # accelerometer alone the estimate may run out early or late, so the descent probes for the ground

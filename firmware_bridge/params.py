@@ -62,7 +62,7 @@ PARAM_SPECS: tuple[ParamSpec, ...] = (
     ParamSpec("BRG_TKO_OL_T", 6.0, 1.0, 30.0, "s", "take-off phase 1: time bound"),
     ParamSpec("BRG_TKO_THR_MRG", 0.25, 0.05, 0.6, "fraction", "take-off phase 1: thrust ceiling above hover, fraction"),
     ParamSpec("BRG_TKO_RAMP_T", 1.0, 0.0, 5.0, "s", "take-off phase 1: thrust ramp from idle"),
-    ParamSpec("BRG_OL_LAND_SPD", 0.3, 0.1, 1.0, "m/s", "landing with no odometry yet: descent rate"),
+    ParamSpec("BRG_OL_LAND_SPD", 0.5, 0.1, 1.0, "m/s", "landing without odometry: descent rate (ArduPilot LAND_SPEED)"),
 ) + GEOMETRIC_PARAM_SPECS  # BRG_TRACKER (0 PID, 1 geometric) and the geometric tracker's gains (issue 19)
 
 SPECS_BY_NAME: dict[str, ParamSpec] = {p.name: p for p in PARAM_SPECS}

@@ -29,7 +29,7 @@ from quadlink.mk.messages import AttitudeSetpoint, BoardStatus, ImuSample, decod
 from quadlink.mk.protocol import ADDR_ANY, ADDR_FC, Frame, FrameDecoder
 from quadlink.vehicle import ImuConfig, VehicleConfig
 from sim_sitl.avr.sim import F_CPU_HZ, AvrSim
-from sim_sitl.baro import BaroConfig, BaroModel
+from sim_sitl.baro import ADC_REF_V, BaroConfig, BaroModel, adc_count
 from sim_sitl.firmware import FirmwareOutput
 from sim_sitl.imu import ImuReading
 from sim_sitl.world import RigidState
@@ -37,17 +37,11 @@ from sim_sitl.world import RigidState
 log = logging.getLogger(__name__)
 
 DEFAULT_ELF = REPO_ROOT / "firmware" / "build" / "quadlink-fc.elf"
-ADC_REF_V = 5.0
 BATTERY_DIVIDER = 4.0
 CH_GYRO, CH_ACCEL, CH_PRESSURE, CH_BATTERY = 0, 3, 6, 7
 PIN_LOOP_BUSY, PIN_LED = 0, 1
 MOTOR_BYTE_FULL = 255
 IMU_COUNTER_MODULO = 4096
-
-
-def adc_count(volts: float) -> int:
-    """The 10-bit conversion of ``firmware/HARDWARE.md``: round(V / 5.0 V x 1024), clamped 0..1023."""
-    return min(1023, max(0, round(volts / ADC_REF_V * 1024.0)))
 
 
 def imu_volts(si: float, lsb: float, zero_count: int) -> float:

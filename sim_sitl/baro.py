@@ -14,6 +14,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
+ADC_REF_V = 5.0   # the board's ADC reference (AVCC), firmware/HARDWARE.md
+
+
+def adc_count(volts: float) -> int:
+    """The 10-bit conversion of ``firmware/HARDWARE.md``: round(V / 5.0 V x 1024), clamped 0..1023."""
+    return min(1023, max(0, round(volts / ADC_REF_V * 1024.0)))
+
+
 SEA_LEVEL_PA = 101_325.0
 SEA_LEVEL_K = 288.15
 LAPSE_K_M = 0.0065

@@ -5,7 +5,8 @@ Port 1 (commands and telemetry): ``'v'`` -> ``'V'`` :class:`Version`; ``'d'`` / 
 each stopping ``stream_timeout_s`` (4 s, as MK's FlightCtrl) after the last request; ``'a'`` -> ``'A'``
 debug labels; ``'s'`` :class:`AttitudeSetpoint` goes to the firmware; ``'b'`` :class:`ExternControl`
 is acknowledged with ``'B'`` (the stack's firmware does not fly it); ``'S'`` :class:`BoardStatus` at
-10 Hz and at once on every change of the arm state. Requests addressed to another node are ignored.
+10 Hz and at once on every change of the arm state; ``'Z'`` :class:`BaroAltitude` at 50 Hz (the board's
+barometric estimate, :mod:`sim_sitl.board_sensing`). Requests addressed to another node are ignored.
 Port 2 carries only ``'I'`` :class:`ImuSample` at 500 Hz (built by the runner).
 """
 
@@ -17,6 +18,7 @@ from dataclasses import dataclass
 
 from quadlink.mk.messages import (
     AttitudeSetpoint,
+    BaroAltitude,
     BoardStatus,
     Data3D,
     Data3DRequest,
@@ -32,6 +34,7 @@ from quadlink.mk.messages import (
     encode_message,
 )
 from quadlink.mk.protocol import ADDR_ANY, ADDR_FC, FrameDecoder
+from sim_sitl.board_estimators import BoardBaroEstimate
 from sim_sitl.firmware import AttitudeCommand
 
 log = logging.getLogger(__name__)
@@ -62,6 +65,7 @@ class BoardTelemetry:
     thrust_fraction: float
     motor_thrust_n: tuple[float, float, float, float]
     imu_counts: tuple[int, int, int, int, int, int] = (512,) * 6
+    baro: BoardBaroEstimate | None = None   # the board's barometric estimate ('Z' at 50 Hz when given)
 
 
 class _Stream:
@@ -83,8 +87,12 @@ class _Stream:
 
 
 class Port1Protocol:
-    def __init__(self, stream_timeout_s: float = 4.0, status_rate_hz: float = 10.0) -> None:
+    def __init__(self, stream_timeout_s: float = 4.0, status_rate_hz: float = 10.0,
+                 baro_rate_hz: float = 50.0) -> None:
         self.decoder = FrameDecoder()
+        self.baro_period_s = 1.0 / baro_rate_hz
+        self._next_baro_s = 0.0
+        self._baro_seq = 0
         self.stream_timeout_s = stream_timeout_s
         self.status_period_s = 1.0 / status_rate_hz
         self._debug = _Stream()
@@ -128,7 +136,7 @@ class Port1Protocol:
 
     def anything_due(self, t_s: float, armed: bool) -> bool:
         """Cheap check before building a telemetry snapshot for :meth:`poll`."""
-        return (armed != self._last_armed or t_s + 1e-9 >= self._next_status_s
+        return (armed != self._last_armed or t_s + 1e-9 >= self._next_status_s or t_s + 1e-9 >= self._next_baro_s
                 or (self._debug.interval_s > 0 and t_s + 1e-9 >= self._debug.next_s)
                 or (self._data3d.interval_s > 0 and t_s + 1e-9 >= self._data3d.next_s))
 
@@ -144,6 +152,12 @@ class Port1Protocol:
                 battery_mv=telem.battery_mv, error_flags=telem.error_flags,
                 board_time_ms=int(round(telem.imu_sample_count * 2)) & 0xFFFFFFFF,
                 imu_sample_count=telem.imu_sample_count, last_setpoint_seq=telem.last_setpoint_seq)))
+        if telem.baro is not None and t + 1e-9 >= self._next_baro_s:
+            self._next_baro_s = t + self.baro_period_s
+            b = telem.baro
+            out.append(encode_message(BaroAltitude(b.altitude_m, b.climb_m_s, float(b.pressure_pa), b.valid,
+                                                   b.saturated, self._baro_seq)))
+            self._baro_seq = (self._baro_seq + 1) & 0xFF
         if self._data3d.due(t):
             out.append(encode_message(Data3D(telem.roll_rad, telem.pitch_rad, telem.yaw_rad)))
         if self._debug.due(t):

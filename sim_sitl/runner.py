@@ -21,7 +21,6 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from quadlink.camera import CameraStreamServer
-from quadlink.frames import euler_from_R
 from quadlink.lockstep import DEFAULT_DONE_TIMEOUT_S, PARTICIPANTS, Coordinator, LockstepError, wait_for_units
 from quadlink.mk.flags import BoardError
 from quadlink.mk.messages import ImuSample, encode_message
@@ -471,7 +470,8 @@ class Sitl:
 
     def _telemetry(self, res: TickResult) -> BoardTelemetry:
         fw = self.sim.firmware
-        roll, pitch, yaw = euler_from_R(res.state.R_ned_q)
+        att = self.sim.sensing.attitude   # what the board reports is its own estimate, not the truth
+        roll, pitch, yaw = att.roll_rad, att.pitch_rad, att.yaw_rad
         mv = self.sim.battery_mv()
         b = self.vehicle.battery
         errors = fw.error_flags
@@ -487,7 +487,7 @@ class Sitl:
             error_flags=errors, last_setpoint_seq=fw.command.seq, roll_rad=roll, pitch_rad=pitch, yaw_rad=yaw,
             thrust_fraction=fw.command.thrust if res.firmware.armed else 0.0,
             motor_thrust_n=tuple(float(x) for x in res.state.motor_thrust_n),  # type: ignore[arg-type]
-            imu_counts=self._last_imu_counts)
+            imu_counts=self._last_imu_counts, baro=self.sim.sensing.baro)
 
     def _render_camera(self, state: RigidState, t_s: float) -> int | None:
         """Render and publish the frame of ``t_s``; its seq if lock-step must wait for its acks."""

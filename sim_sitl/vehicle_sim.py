@@ -16,11 +16,12 @@ from typing import Protocol
 
 import numpy as np
 
-from quadlink.frames import euler_from_R
+from quadlink.mk.flags import BoardFlightState
 from quadlink.vehicle import VehicleConfig
+from sim_sitl.board_sensing import ModelBoardSensing
 from sim_sitl.config import ScenarioConfig, SitlConfig
 from sim_sitl.disturbance import DisturbanceSchedule
-from sim_sitl.firmware import AttitudeCommand, BoardSensing, Firmware, FirmwareOutput
+from sim_sitl.firmware import AttitudeCommand, Firmware, FirmwareOutput
 from sim_sitl.imu import ImuModel, ImuReading
 from sim_sitl.world import RigidState, World
 
@@ -55,6 +56,8 @@ class SimVehicle:
         p.setTimeStep(self.world.dt_s, physicsClientId=self.world.client)
         self.firmware = Firmware(vehicle, cfg.firmware)
         self.imu = ImuModel(cfg.imu_noise, rng, vehicle.motor.max_thrust_n)
+        # the model board's own sensing (its pressure sensor draws from a child stream: the IMU's draws unchanged)
+        self.sensing = ModelBoardSensing(vehicle, cfg.baro, rng.spawn(1)[0])
         self.ticks = 0
         self.flying_time_s = 0.0
         self.disturbances = DisturbanceSchedule(scenario.disturbances)  # scripted pushes; .push() adds more
@@ -70,12 +73,13 @@ class SimVehicle:
     def tick(self) -> TickResult:
         t = self.t_s
         s = self.world.state
-        if self.board is None:
-            roll, pitch, yaw = euler_from_R(s.R_ned_q)
-            out = self.firmware.step(t, self.tick_s, BoardSensing(roll, pitch, yaw, s.omega_q_rad_s,
-                                                                  float(s.v_ned_m_s[2])))
         reading = self.imu.measure(t, self.tick_s, s.R_ned_q, s.a_ned_m_s2, s.omega_q_rad_s, s.motor_thrust_n)
-        if self.board is not None:
+        if self.board is None:   # the model flies on its own estimate, as the firmware does (no truth)
+            fw = self.firmware
+            sensing = self.sensing.sense(s, reading, self.tick_s, fw.armed,
+                                         fw.flight_state != BoardFlightState.LANDED)
+            out = fw.step(t, self.tick_s, sensing)
+        else:
             out = self.board.control(t, s, reading, self.battery_mv())
         for i in range(self.substeps):
             self.world.external_force_ned_n = self.disturbances.force_ned_n(t + i * self.world.dt_s)
