@@ -32,12 +32,13 @@ def _rows(study: Any) -> list[dict[str, Any]]:
                                                       optuna.trial.TrialState.FAIL):
             continue
         value = t.value if t.state == optuna.trial.TrialState.COMPLETE else None
+        env = t.user_attrs.get("envelope") or {}
         rows.append({"trial": t.number, "clearance_m": value, "status": t.user_attrs.get("status", "failed"),
                      "finding": bool(t.user_attrs.get("finding", value is None)),
                      "reason": t.user_attrs.get("reason", ""), "params": dict(t.params),
                      "replay": t.user_attrs.get("replay", ""), "folder": t.user_attrs.get("folder", ""),
-                     "wall_s": t.user_attrs.get("wall_s"), "surface": (t.user_attrs.get("envelope") or {}).get("surface"),
-                     "t_min_s": (t.user_attrs.get("envelope") or {}).get("t_min_s"),
+                     "wall_s": t.user_attrs.get("wall_s"), "surface": env.get("surface"), "t_min_s": env.get("t_min_s"),
+                     "moved_m": t.user_attrs.get("moved_m"),
                      "retried": bool(t.user_attrs.get("retried", False))})
     return rows
 
