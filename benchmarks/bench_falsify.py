@@ -93,8 +93,8 @@ def main() -> int:
                       f"below 0.45 m {s['below_safe_distance']}, below 0.40 m {s['below_envelope']}, "
                       f"failed {s['failed']} ({args.budget} flights, {wall_s:.0f} s)")
             r, t = compare[f"random_s{seed}"], compare[f"tpe_s{seed}"]
-            verdict = ("TPE found a lower clearance than random sampling" if t["best_clearance_m"] < r["best_clearance_m"]
-                       else "TPE did NOT find a lower clearance than random sampling")
+            lower = t["best_clearance_m"] < r["best_clearance_m"]
+            verdict = f"TPE {'found' if lower else 'did NOT find'} a lower clearance than random sampling"
             print(f"seed {seed}: {verdict} ({t['best_clearance_m']:.3f} m vs {r['best_clearance_m']:.3f} m on "
                   f"{args.budget} flights each, {args.startup} of TPE's random); one seed at this budget is one "
                   f"sample, not a statistic")
