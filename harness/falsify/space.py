@@ -146,6 +146,22 @@ def params_from_dict(data: dict[str, Any]) -> FlightParams:
     return FlightParams(**data)
 
 
+def distributions() -> dict[str, Any]:
+    """The space as Optuna distributions, by parameter name (what :func:`suggest` asks a trial for)."""
+    from optuna.distributions import CategoricalDistribution, FloatDistribution, IntDistribution
+
+    out: dict[str, Any] = {}
+    for f in param_fields():
+        opts = choices(f)
+        if opts is not None:
+            out[f.name] = CategoricalDistribution(list(opts))
+        elif f.name == "sitl_seed":
+            out[f.name] = IntDistribution(int(f.metadata["low"]), int(f.metadata["high"]))
+        else:
+            out[f.name] = FloatDistribution(f.metadata["low"], f.metadata["high"])
+    return out
+
+
 def suggest(trial: Any) -> FlightParams:
     """Ask an Optuna trial for a point (``suggest_*`` per field, named as the field)."""
     values: dict[str, Any] = {}
