@@ -145,6 +145,7 @@ def load_search_options(out_dir: Path, **overrides: Any) -> SearchOptions:
     if not path.is_file():
         raise ConfigError(f"{out_dir}: no falsification study (no search.json)")
     meta = json.loads(path.read_text())
+    meta["address"] = None  # where to fly is the command line's choice, not the study's
     meta.update({k: v for k, v in overrides.items() if v is not None})
     meta["out_dir"] = out_dir
     return SearchOptions(**meta)
