@@ -27,7 +27,14 @@ from typing import Any, Literal, get_args
 import numpy as np
 import yaml
 
-from harness.campaign.draws import FlightFiles, mount_turned, write_sitl_files
+from harness.campaign.draws import (
+    CAMERA_TILT_DEG,
+    IMU_BIAS_SCALE,
+    MASS_SPREAD,
+    FlightFiles,
+    mount_turned,
+    write_sitl_files,
+)
 from harness.campaign.sessions import (
     FULL_DEFLECTION_N,
     LANDING_S,
@@ -54,6 +61,8 @@ HAPTIC_DIRECTIONS = ("along", "against")
 ROOM_SIZE_M = (10.0, 10.0)
 SLAB_THICKNESS_M = 0.2
 MIN_START_CLEARANCE_M = 0.5  # the take-off needs this much room around the body (0.36 m wide)
+#: +- of the operator's entry of the room's height (issue 29's campaigns draw the same: U(-0.1, 0.1) m)
+ROOM_HEIGHT_ENTRY_ERROR_M = 0.10
 CLIMB_MAX_M_S = 0.4  # full deflection of the handle's z (configs/companion.yaml reference.k_climb_m_s)
 HANDLE_GAIN = 1.1  # a little more force than the fraction: the handle sits where spring and push balance
 
@@ -86,14 +95,19 @@ class FlightParams:
     push_yaw_rate_rad_s: float = _p(-0.6, 0.6, "rad/s", "turn rate commanded while pushing")
     push_climb_m_s: float = _p(-0.2, 0.4, "m/s", "climb (up positive) commanded while pushing")
     pan_scan: bool = _p(doc="the companion's pan-scan (eq. 4) on or off")
-    # sensors, calibration, vehicle
-    camera_roll_error_deg: float = _p(-3.0, 3.0, "deg", "true mount turned about the body x axis")
-    camera_pitch_error_deg: float = _p(-3.0, 3.0, "deg", "... about y")
-    camera_yaw_error_deg: float = _p(-3.0, 3.0, "deg", "... about z")
-    accel_bias_scale: float = _p(0.5, 3.0, "1", "x the nominal accelerometer bias sigma at power-up")
-    gyro_bias_scale: float = _p(0.5, 3.0, "1", "x the nominal gyro bias sigma at power-up")
-    room_height_error_m: float = _p(-0.3, 0.3, "m", "what the companion is told minus the true room height")
-    mass_scale: float = _p(0.9, 1.1, "1", "x the nominal mass (the companion keeps its nominal model)")
+    # sensors, calibration, vehicle: the campaign's ranges (harness/campaign/draws.py), so that a finding lies
+    # within the conditions the safety claim is made for
+    camera_roll_error_deg: float = _p(-CAMERA_TILT_DEG, CAMERA_TILT_DEG, "deg", "true mount turned about body x")
+    camera_pitch_error_deg: float = _p(-CAMERA_TILT_DEG, CAMERA_TILT_DEG, "deg", "... about y")
+    camera_yaw_error_deg: float = _p(-CAMERA_TILT_DEG, CAMERA_TILT_DEG, "deg", "... about z")
+    accel_bias_scale: float = _p(*IMU_BIAS_SCALE, "1", "x the nominal accelerometer bias sigma at power-up")
+    gyro_bias_scale: float = _p(*IMU_BIAS_SCALE, "1", "x the nominal gyro bias sigma at power-up")
+    room_height_entered: bool = _p(doc="the operator entered the room's height into the companion (else only "
+                                       "its altitude fence holds)")
+    room_height_error_m: float = _p(-ROOM_HEIGHT_ENTRY_ERROR_M, ROOM_HEIGHT_ENTRY_ERROR_M, "m",
+                                    "the entered height minus the true one (when entered)")
+    mass_scale: float = _p(1 - MASS_SPREAD, 1 + MASS_SPREAD, "1", "x the nominal mass (the companion keeps its "
+                                                                  "nominal model)")
     sitl_seed: int = _p(0, 9999, "", "the SITL's own seed (noise and the biases' draws)")
 
     def __post_init__(self) -> None:
@@ -115,7 +129,7 @@ def choices(f: dataclasses.Field[Any]) -> tuple[Any, ...] | None:
     tp = {"obstacle_kind": ObstacleKind, "operator": OperatorKind, "push_direction": PushDirection}.get(f.name)
     if tp is not None:
         return get_args(tp)
-    if f.name == "pan_scan":
+    if f.name in ("pan_scan", "room_height_entered"):
         return (True, False)
     return None
 
@@ -343,7 +357,8 @@ def build_flight(params: FlightParams, duration_s: float, name: str = "falsify")
         raise ConfigError(f"falsify point: the take-off point is {start_clear_m:.2f} m from the {params.obstacle_kind}")
     kind, script = session_of(params, duration_s)
     vehicle, sitl = vehicle_and_sitl(params)
-    companion = {"reference": {"room_height_m": round(params.room_height_m + params.room_height_error_m, 4)},
+    entered = round(params.room_height_m + params.room_height_error_m, 4) if params.room_height_entered else None
+    companion = {"reference": {"room_height_m": entered},
                  "pan_scan": {"enabled": bool(params.pan_scan)}}
     record = {"falsify": dataclasses.asdict(params), "duration_s": duration_s, "operator_flown": kind,
               "start_clearance_m": start_clear_m, "phases_s": list(_phases(params, duration_s)),

@@ -111,8 +111,11 @@ def test_every_sampled_point_is_a_valid_flight(rng: np.random.Generator) -> None
             err = (bearing - math.radians(p.obstacle_bearing_deg) + math.pi) % (2 * math.pi) - math.pi
             assert abs(err) < 1e-2, p.obstacle_kind
         assert sc.room.height_m == pytest.approx(p.room_height_m, abs=1e-3)
-        assert f.companion["reference"]["room_height_m"] == pytest.approx(p.room_height_m + p.room_height_error_m,
-                                                                          abs=1e-3)
+        if p.room_height_entered:
+            assert f.companion["reference"]["room_height_m"] == pytest.approx(p.room_height_m + p.room_height_error_m,
+                                                                              abs=1e-3)
+        else:
+            assert f.companion["reference"]["room_height_m"] is None
         assert f.companion["pan_scan"]["enabled"] is p.pan_scan
         assert f.sitl["seed"] == p.sitl_seed
         if p.push_direction in ("across", "diagonal"):
@@ -134,6 +137,7 @@ def test_written_files_load_with_the_parts_own_loaders(rng: np.random.Generator,
         assert sitl.seed == p.sitl_seed and Path(sitl.vehicle).is_file() and Path(sitl.scenario).is_file()
         cfg = load_companion_config(companion)
         assert cfg.pan_scan.enabled is p.pan_scan
+        assert (cfg.reference.room_height_m is None) is not p.room_height_entered
         before, push, after = f.record["phases_s"]
         assert before + push + after == pytest.approx(DURATION_S - TAKEOFF_S - LANDING_S)
         assert push == pytest.approx(min(p.push_duration_s, DURATION_S - TAKEOFF_S - LANDING_S - before))
