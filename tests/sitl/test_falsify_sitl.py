@@ -10,6 +10,10 @@ from __future__ import annotations
 import json
 import math
 import os
+import signal
+import subprocess
+import sys
+import time
 from pathlib import Path
 
 import optuna
@@ -86,3 +90,44 @@ def test_four_flight_search_resume_report_replay_export(tmp_path: Path) -> None:
     files, companion, _ = materialize(dest, tmp_path / "materialized")
     assert companion.read_bytes() == (folder / "companion.yaml").read_bytes()
     assert files.scenario.read_bytes() == (folder / "scenario.yaml").read_bytes()
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    return Path(f"/proc/{pid}/cmdline").is_file() and b"quadlink" in Path(f"/proc/{pid}/cmdline").read_bytes()
+
+
+@pytest.mark.slow
+def test_ctrl_c_keeps_the_study_resumable(tmp_path: Path) -> None:
+    """Ctrl-C with two flights in the air: exit status 130, no part left running, the two trials recorded as
+    interrupted and their points enqueued; --resume flies an interrupted point first."""
+    out = tmp_path / "study"
+    cmd = [sys.executable, "-m", "quadlink.cli", "falsify", "--budget", "3", "--parallel", "2", "--seed", "9",
+           "--out", str(out), "--duration", "20", "--port-offset", str(OFFSET)]
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    deadline = time.monotonic() + 240.0
+    pid_files = [out / f"trial-{n:04d}" / "logs" / "pids" for n in (0, 1)]
+    while not all(p.is_file() and len(p.read_text().split()) >= 8 for p in pid_files):  # all four parts started
+        assert proc.poll() is None and time.monotonic() < deadline, proc.communicate()[0] if proc.poll() else ""
+        time.sleep(0.5)
+    time.sleep(3.0)
+    parts = [int(line.split()[0]) for p in pid_files for line in p.read_text().splitlines() if line.strip()]
+    proc.send_signal(signal.SIGINT)
+    output, _ = proc.communicate(timeout=120.0)
+    assert proc.returncode == 130, output
+    assert "--resume" in output
+    assert not [pid for pid in parts if _alive(pid)]
+    study = optuna.load_study(study_name=STUDY_NAME, storage=storage_url(out))
+    assert sorted(study.user_attrs["interrupted_trials"]) == [0, 1]
+    waiting = study.get_trials(states=(optuna.trial.TrialState.WAITING,))
+    assert sorted(t.user_attrs["requeued_from"] for t in waiting) == [0, 1]
+    resumed = CliRunner().invoke(command, ["--resume", str(out), "--budget", "1", "--port-offset", str(OFFSET)])
+    assert resumed.exit_code == 0, (resumed.output, resumed.exception)
+    study = optuna.load_study(study_name=STUDY_NAME, storage=storage_url(out))
+    done = study.get_trials(states=(optuna.trial.TrialState.COMPLETE,))
+    assert len(done) == 1 and done[0].user_attrs["requeued_from"] in (0, 1)
+    assert done[0].params == study.trials[done[0].user_attrs["requeued_from"]].params
