@@ -246,3 +246,41 @@ def test_cli_refuses_bad_input_in_one_line(tmp_path: Path) -> None:
     assert r.exit_code == 2 and "--budget and --seed" in r.output
     r = CliRunner().invoke(command, ["--resume", str(tmp_path)])
     assert r.exit_code != 0 and "no search.json" in str(r.exception)
+
+
+def test_samplers() -> None:
+    from harness.falsify.search import make_sampler
+
+    assert isinstance(make_sampler("tpe", 1, 5), optuna.samplers.TPESampler)
+    assert isinstance(make_sampler("random", 1, 5), optuna.samplers.RandomSampler)
+    try:
+        import cmaes  # noqa: F401
+    except ImportError:
+        with pytest.raises(ConfigError, match="cmaes"):
+            make_sampler("cmaes", 1, 5)
+    else:
+        assert isinstance(make_sampler("cmaes", 1, 5), optuna.samplers.CmaEsSampler)
+    with pytest.raises(ConfigError, match="unknown sampler"):
+        make_sampler("grid", 1, 5)
+
+
+def test_study_on_disk_is_created_once_and_resumed(tmp_path: Path, rng: np.random.Generator) -> None:
+    from harness.falsify.search import SearchOptions, load_search_options, open_study
+
+    options = SearchOptions(budget=3, seed=4, out_dir=tmp_path / "s", sampler="tpe", startup_trials=5,
+                            duration_s=21.0, address="ray://head:10001")
+    with pytest.raises(ConfigError, match="no falsification study"):
+        open_study(options, resume=True)
+    study = open_study(options, resume=False)
+    assert (tmp_path / "s" / "study.db").is_file()
+    trial = study.ask()
+    suggest(trial)
+    study.tell(trial, 0.7)
+    with pytest.raises(ConfigError, match="--resume"):
+        open_study(options, resume=False)
+    again = load_search_options(tmp_path / "s", budget=9, parallel=2)
+    assert (again.seed, again.sampler, again.duration_s, again.budget, again.parallel) == (4, "tpe", 21.0, 9, 2)
+    assert again.address is None  # where to fly is the command line's choice
+    resumed = open_study(again, resume=True)
+    assert [t.value for t in resumed.trials] == [0.7]
+    assert resumed.sampler._n_startup_trials == 4  # the random exploration left: 5 - 1 flown
