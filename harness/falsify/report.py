@@ -17,6 +17,7 @@ from pathlib import Path
 from typing import Any
 
 from harness.falsify.objective import ENVELOPE_M, SAFE_DISTANCE_M
+from harness.falsify.space import HAPTIC_DIRECTIONS
 
 LOWEST_SHOWN = 10
 
@@ -85,10 +86,13 @@ def summary_text(s: dict[str, Any]) -> str:
              f"{s['below_safe_distance']}", "", "lowest flights:"]
     for r in s["lowest"]:
         p = r["params"]
-        lines.append(f"  trial {r['trial']:4d}  {r['clearance_m']:.3f} m ({r['surface']}, t {r['t_min_s'] or 0:.1f} s)"
+        flown = p.get("operator") if p.get("push_direction") in HAPTIC_DIRECTIONS else "offboard"
+        moved = f"moved {r['moved_m']:.2f} m, " if isinstance(r.get("moved_m"), (int, float)) else ""
+        lines.append(f"  trial {r['trial']:4d}  {r['clearance_m']:.3f} m ({r['surface']}, t {r['t_min_s'] or 0:.1f} s, "
+                     f"{moved.rstrip(', ')})"
                      f"  {p.get('obstacle_kind')} {p.get('obstacle_distance_m', 0):.2f} m at "
                      f"{p.get('obstacle_bearing_deg', 0):+.0f} deg, push {p.get('push_direction')} "
-                     f"{p.get('push_speed_fraction', 0):.2f} by {p.get('operator')}, pan-scan "
+                     f"{p.get('push_speed_fraction', 0):.2f} by {flown}, pan-scan "
                      f"{'on' if p.get('pan_scan') else 'off'}")
         lines.append(f"              re-fly: {r['replay']}")
     if s["findings"]:
