@@ -30,6 +30,7 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "netem": ("harness.netem.cli", "A UDP/TCP link with delay, jitter, loss, reordering and a rate limit."),
     "trajectory": ("harness.trajectory_cli", "Stream a minimum-snap trajectory (YAML) as MAVLink setpoints."),
     "paper003": ("harness.demo.paper003_cli", "Fly paper 003's hover or oval through the whole stack; its tables."),
+    "falsify": ("harness.falsify.cli", "Search the flight space for the lowest clearance (Optuna on Ray); resumable."),
 }
 
 

@@ -62,6 +62,14 @@ def _rot(axis: int, a_rad: float) -> np.ndarray:
     return R
 
 
+def mount_turned(R_qc: list[list[float]], tilt_deg_xyz: list[float]) -> list[list[float]]:
+    """The camera mount ``R_qc`` turned in the body frame by ``tilt_deg_xyz`` about x, then y, then z (YAML data)."""
+    t = [math.radians(a) for a in tilt_deg_xyz]
+    dR = _rot(2, t[2]) @ _rot(1, t[1]) @ _rot(0, t[0])
+    R = dR @ np.asarray(R_qc, dtype=float)
+    return [[round(float(v), 9) for v in row] for row in R]
+
+
 @dataclass(frozen=True)
 class FlightDraws:
     index: int
@@ -103,9 +111,7 @@ def draw_vehicle_and_sensors(vehicle_ss: np.random.SeedSequence, sitl_ss: np.ran
     mass_scale = float(rng.uniform(1 - MASS_SPREAD, 1 + MASS_SPREAD))
     vehicle["mass_kg"] = round(vehicle["mass_kg"] * mass_scale, 6)
     tilt_deg = [float(x) for x in rng.uniform(-CAMERA_TILT_DEG, CAMERA_TILT_DEG, 3)]
-    dR = _rot(2, math.radians(tilt_deg[2])) @ _rot(1, math.radians(tilt_deg[1])) @ _rot(0, math.radians(tilt_deg[0]))
-    R_qc = dR @ np.asarray(vehicle["camera"]["R_qc"], dtype=float)  # the mount turned in the body frame
-    vehicle["camera"]["R_qc"] = [[round(float(v), 9) for v in row] for row in R_qc]
+    vehicle["camera"]["R_qc"] = mount_turned(vehicle["camera"]["R_qc"], tilt_deg)
     imu_nominal, cam_nominal = ImuNoiseConfig(), CameraNoiseConfig()
     accel_scale, gyro_scale = (float(x) for x in rng.uniform(*IMU_BIAS_SCALE, 2))
     depth_scale = float(rng.uniform(*DEPTH_NOISE_SCALE))

@@ -35,10 +35,11 @@ import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
-from harness.campaign.draws import draw_flight, write_flight_files
+from harness.campaign.draws import FlightFiles, draw_flight, write_flight_files
 from harness.campaign.safety import Envelope, envelope, read_truth, truth_of_flight
+from harness.demo.cli import ROOM_HEIGHT_ENTRY_ERROR_M
 from harness.demo.orchestrator import kill_leftovers
 from quadlink import REPO_ROOT
 from quadlink.config import load_config
@@ -95,6 +96,16 @@ class CampaignOptions:
     deterministic: bool = True  # the deterministic lock-step (quadlink.lockstep): a flight re-flies bit for bit
 
 
+@dataclass(frozen=True)
+class PoolOptions:
+    """Where and how wide a :class:`FlightPool` flies: ``parallel`` flights at once, each on its own port slot."""
+
+    out_dir: Path
+    parallel: int = 1
+    address: str | None = None  # a Ray cluster (ray://HOST:10001 or HOST:6379); None: an embedded local Ray
+    cpus_per_flight: float = 1.0
+
+
 @dataclass
 class FlightResult:
     index: int
@@ -137,9 +148,6 @@ def flight_folder(out_dir: Path, index: int) -> Path:
 def fly(options: CampaignOptions, index: int, slot: int, attempt: int,
         should_stop: Callable[[], bool] | None = None) -> FlightResult:
     """Draw, write and fly flight ``index`` on port slot ``slot`` (what a Ray task runs)."""
-    from harness.demo.cli import run_demo
-    from harness.demo.orchestrator import ProcessDied
-
     if options.experiment != "teleop":
         from harness.campaign.experiment_flight import fly_experiment
 
@@ -150,20 +158,36 @@ def fly(options: CampaignOptions, index: int, slot: int, attempt: int,
         (folder / "logs" / "pids").unlink(missing_ok=True)
     draws = draw_flight(options.seed, index, options.duration_s, options.offboard_share, options.fixed_share)
     files = write_flight_files(draws, folder)
-    offset = flight_ports(options.port_offset, slot)
+    return fly_files(files, folder, index, draws.session.kind, options.duration_s,
+                     flight_ports(options.port_offset, slot), attempt, draws.record, should_stop=should_stop,
+                     view=options.view, deterministic=options.deterministic,
+                     room_height_error_m=draws.room_height_error_m)
+
+
+def fly_files(files: FlightFiles, folder: Path, index: int, operator: str, duration_s: float, port_offset: int,
+              attempt: int, record: dict[str, Any], should_stop: Callable[[], bool] | None = None,
+              view: bool = False, deterministic: bool = True, companion_config: Path | None = None,
+              room_height_error_m: float | None = ROOM_HEIGHT_ENTRY_ERROR_M) -> FlightResult:
+    """Fly the flight whose files are written in ``folder`` (:class:`FlightFiles`: scenario, operator script or
+    plan, SITL config) on the demo's ports shifted by ``port_offset``, judge it and write ``result.json``.
+    ``companion_config``: the companion's YAML (default: the nominal one with the operator's entry of the room's
+    height, the truth + ``room_height_error_m``; None: not entered)."""
+    from harness.demo.cli import run_demo
+    from harness.demo.orchestrator import ProcessDied
+
     t0 = time.monotonic()
-    result = FlightResult(index, "ok", attempt, str(folder), draws=draws.record, port_offset=offset,
+    result = FlightResult(index, "ok", attempt, str(folder), draws=record, port_offset=port_offset,
                           node=os.uname().nodename, t_start_unix_s=time.time(), code_version=code_version())
     scenario = load_config(files.scenario, ScenarioConfig)
     envelopes: list[Envelope] = []
     try:
-        report = run_demo(str(files.scenario), options.duration_s + STARTUP_ALLOWANCE_S, folder, files.operator,
+        report = run_demo(str(files.scenario), duration_s + STARTUP_ALLOWANCE_S, folder, files.operator,
                           lockstep=True,
-                          port_offset=offset, progress_every_s=30.0, sitl_config=str(files.sitl),
-                          operator=draws.session.kind, should_stop=should_stop, view=options.view,
+                          port_offset=port_offset, progress_every_s=30.0, sitl_config=str(files.sitl),
+                          operator=operator, should_stop=should_stop, view=view,
                           plots=False, on_flight=lambda f: envelopes.append(envelope(truth_of_flight(f), scenario)),
-                          settle_s=LANDING_SETTLE_S, deterministic=options.deterministic and not options.view,
-                          room_height_error_m=draws.room_height_error_m)
+                          settle_s=LANDING_SETTLE_S, deterministic=deterministic and not view,
+                          companion_config=companion_config, room_height_error_m=room_height_error_m)
         result.report = report
         if report.get("interrupted"):
             result.status = "cancelled"
@@ -184,12 +208,39 @@ def fly(options: CampaignOptions, index: int, slot: int, attempt: int,
     return result
 
 
-def _ray_task(options: CampaignOptions, index: int, slot: int, attempt: int) -> FlightResult:
+class FlightJob(Protocol):
+    """One flight for :class:`FlightPool`: picklable (it travels to a Ray worker), flown by :meth:`fly`."""
+
+    @property
+    def index(self) -> int: ...
+
+    @property
+    def folder(self) -> Path: ...
+
+    def fly(self, slot: int, attempt: int) -> FlightResult: ...
+
+
+@dataclass(frozen=True)
+class CampaignFlight:
+    """Flight ``index`` of a campaign (its draws come from the campaign's seed)."""
+
+    options: CampaignOptions
+    index: int
+
+    @property
+    def folder(self) -> Path:
+        return flight_folder(self.options.out_dir, self.index)
+
+    def fly(self, slot: int, attempt: int) -> FlightResult:
+        return fly(self.options, self.index, slot, attempt)
+
+
+def _ray_task(job: FlightJob, slot: int, attempt: int) -> FlightResult:
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname).1s %(name)s: %(message)s")
-    return fly(options, index, slot, attempt)
+    return job.fly(slot, attempt)
 
 
-def _init_ray(options: CampaignOptions) -> Any:
+def _init_ray(options: PoolOptions | CampaignOptions) -> Any:
     import ray
 
     if options.address:
@@ -235,78 +286,126 @@ def progress_line(done: int, total: int, running: int, retried: int, failed: int
     return text
 
 
+class FlightPool:
+    """Flights in the air as Ray tasks (one per port slot), results as they land.
+
+    :meth:`submit` a :class:`FlightJob` when :attr:`free_slots` is not zero, :meth:`wait` for the next results.
+    A job whose worker dies is flown again once on the same slot (after its leftover parts are killed) and marked
+    retried; twice: "lost". A bug in the flight code comes back as a "failed" result. :meth:`cancel` interrupts
+    the flights in the air (each stops its parts in order), waits up to 20 s and kills leftovers by pid. The
+    campaign (:func:`run_campaign`) and the falsification search (``harness.falsify``) both fly through it.
+    """
+
+    def __init__(self, options: PoolOptions) -> None:
+        self.options = options
+        self.ray = _init_ray(options)
+        from ray.exceptions import NodeDiedError, WorkerCrashedError
+
+        try:
+            from ray.exceptions import LocalRayletDiedError
+            self._lost: tuple[type[BaseException], ...] = (WorkerCrashedError, NodeDiedError, LocalRayletDiedError)
+        except ImportError:  # older Ray
+            self._lost = (WorkerCrashedError, NodeDiedError)
+        self._task = self.ray.remote(num_cpus=options.cpus_per_flight, max_retries=0)(_ray_task)
+        self._slots = list(range(max(1, options.parallel)))
+        self.pending: dict[Any, tuple[FlightJob, int, int]] = {}  # ref -> (job, slot, attempt)
+        self.retried = 0
+        options.out_dir.mkdir(parents=True, exist_ok=True)
+
+    @property
+    def free_slots(self) -> int:
+        return len(self._slots)
+
+    @property
+    def running(self) -> int:
+        return len(self.pending)
+
+    def submit(self, job: FlightJob) -> None:
+        if not self._slots:
+            raise RuntimeError("no free port slot: wait for a flight to land first")
+        self._submit(job, self._slots.pop(0), 1)
+
+    def _submit(self, job: FlightJob, slot: int, attempt: int) -> None:
+        self.pending[self._task.remote(job, slot, attempt)] = (job, slot, attempt)
+
+    def wait(self, timeout_s: float = 2.0) -> list[tuple[FlightJob, FlightResult]]:
+        """The flights that landed within ``timeout_s`` (possibly none)."""
+        if not self.pending:
+            return []
+        ready, _ = self.ray.wait(list(self.pending), num_returns=1, timeout=timeout_s)
+        out = []
+        for ref in ready:
+            job, slot, attempt = self.pending.pop(ref)
+            try:
+                result = self.ray.get(ref)
+            except self._lost as exc:
+                if attempt == 1:
+                    self.retried += 1
+                    log.warning("flight %d: worker lost (%s); retrying once", job.index, type(exc).__name__)
+                    self._submit(job, slot, 2)
+                    continue
+                result = FlightResult(job.index, "lost", attempt, str(job.folder), failure=f"worker lost twice: {exc}")
+                kill_leftovers(job.folder / "logs")
+            except self.ray.exceptions.RayTaskError as exc:  # a bug in the flight code: report, go on
+                result = FlightResult(job.index, "failed", attempt, str(job.folder),
+                                      failure=str(exc).splitlines()[-1])
+            self._slots.append(slot)
+            out.append((job, result))
+        return out
+
+    def cancel(self) -> list[FlightJob]:
+        """Interrupt the flights in the air; returns their jobs."""
+        from ray.exceptions import TaskCancelledError
+
+        jobs = [job for job, _, _ in self.pending.values()]
+        _cancel(self.ray, self.pending, TaskCancelledError)
+        self.pending.clear()
+        return jobs
+
+    def shutdown(self) -> None:
+        self.ray.shutdown()
+
+
 def run_campaign(options: CampaignOptions, on_result: Callable[[FlightResult], None] | None = None,
                  echo: Callable[[str], None] = print) -> list[FlightResult]:
     """Fly the campaign on Ray; ``on_result`` sees each flight as it finishes. Ctrl-C cancels cleanly."""
-    ray = _init_ray(options)
-    from ray.exceptions import NodeDiedError, TaskCancelledError, WorkerCrashedError
-
-    try:
-        from ray.exceptions import LocalRayletDiedError
-        lost_errors: tuple[type[BaseException], ...] = (WorkerCrashedError, NodeDiedError, LocalRayletDiedError)
-    except ImportError:  # older Ray
-        lost_errors = (WorkerCrashedError, NodeDiedError)
-    task = ray.remote(num_cpus=options.cpus_per_flight, max_retries=0)(_ray_task)
-    options.out_dir.mkdir(parents=True, exist_ok=True)
+    pool = FlightPool(PoolOptions(options.out_dir, options.parallel, options.address, options.cpus_per_flight))
     queue = list(range(options.first_index, options.first_index + options.flights))
-    free_slots = list(range(max(1, options.parallel)))
-    pending: dict[Any, tuple[int, int, int]] = {}  # ref -> (index, slot, attempt)
     results: list[FlightResult] = []
-    retried = failed = 0
+    failed = 0
     t0 = time.monotonic()
     last: FlightResult | None = None
     tty = sys.stdout.isatty()
-
-    def submit(index: int, slot: int, attempt: int) -> None:
-        pending[task.remote(options, index, slot, attempt)] = (index, slot, attempt)
-
     try:
-        while queue or pending:
-            while queue and free_slots:
-                submit(queue.pop(0), free_slots.pop(0), 1)
-            ready, _ = ray.wait(list(pending), num_returns=1, timeout=2.0)
-            for ref in ready:
-                index, slot, attempt = pending.pop(ref)
-                try:
-                    result = ray.get(ref)
-                except lost_errors as exc:
-                    if attempt == 1:
-                        retried += 1
-                        log.warning("flight %d: worker lost (%s); retrying once", index, type(exc).__name__)
-                        submit(index, slot, 2)
-                        continue
-                    result = FlightResult(index, "lost", attempt, str(flight_folder(options.out_dir, index)),
-                                          failure=f"worker lost twice: {exc}")
-                    kill_leftovers(flight_folder(options.out_dir, index) / "logs")
-                except ray.exceptions.RayTaskError as exc:  # a bug in the flight code: report, go on
-                    result = FlightResult(index, "failed", attempt, str(flight_folder(options.out_dir, index)),
-                                          failure=str(exc).splitlines()[-1])
-                free_slots.append(slot)
+        while queue or pool.running:
+            while queue and pool.free_slots:
+                pool.submit(CampaignFlight(options, queue.pop(0)))
+            ready = pool.wait(2.0)
+            for _, result in ready:
                 if result.status != "ok":
                     failed += 1
                 results.append(result)
                 last = result
                 if on_result is not None:
                     on_result(result)
-            line = progress_line(len(results), options.flights, len(pending), retried, failed,
+            line = progress_line(len(results), options.flights, pool.running, pool.retried, failed,
                                  time.monotonic() - t0, last)
             if tty:
                 echo("\r" + line + "\x1b[K")
             elif ready:
                 echo(line)
     except KeyboardInterrupt:
-        echo(f"\ncancelling {len(pending)} flights in the air ...")
-        _cancel(ray, pending, options, TaskCancelledError)
+        echo(f"\ncancelling {pool.running} flights in the air ...")
+        pool.cancel()
         raise CampaignCancelled(sorted(results, key=lambda r: r.index)) from None
     finally:
-        ray.shutdown()
+        pool.shutdown()
     if tty:
         echo("\n")
     return sorted(results, key=lambda r: r.index)
 
 
-def _cancel(ray: Any, pending: dict[Any, tuple[int, int, int]], options: CampaignOptions,
-            cancelled: type[BaseException]) -> None:
+def _cancel(ray: Any, pending: dict[Any, tuple[FlightJob, int, int]], cancelled: type[BaseException]) -> None:
     """Interrupt the running flights (their stacks stop their parts), then kill whatever is left by pid."""
     for ref in pending:
         ray.cancel(ref, force=False)  # KeyboardInterrupt in the task: run_demo stops its parts in order
@@ -314,8 +413,7 @@ def _cancel(ray: Any, pending: dict[Any, tuple[int, int, int]], options: Campaig
     refs = list(pending)
     while refs and time.monotonic() < deadline:
         ready, refs = ray.wait(refs, num_returns=len(refs), timeout=1.0)
-    for index, _, _ in pending.values():
-        killed = kill_leftovers(flight_folder(options.out_dir, index) / "logs")
+    for job, _, _ in pending.values():
+        killed = kill_leftovers(job.folder / "logs")
         if killed:
-            log.warning("flight %d: killed leftover parts %s", index, killed)
-
+            log.warning("flight %d: killed leftover parts %s", job.index, killed)

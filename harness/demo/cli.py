@@ -92,6 +92,7 @@ class FlightSpec:
     deterministic: bool = False  # the deterministic lock-step (quadlink.lockstep): the same spec flies the same bytes
     settle_s: float = 0.0  # run_demo's settle_s: how long the vehicle may fly on after the operator's session
     room_height_error_m: float | None = ROOM_HEIGHT_ENTRY_ERROR_M  # the operator's entry - the truth; None: not entered
+    companion_config: str | None = None  # the companion's YAML (None: the nominal one with the room's height entry)
 
     def resolve(self, folder: Path) -> FlightSpec:
         def r(p: str | None) -> str | None:
@@ -105,7 +106,7 @@ class FlightSpec:
 
         return FlightSpec(r(self.scenario) or self.scenario, r(self.script) or self.script, self.duration_s,
                           self.operator, r(self.sitl_config), self.lockstep, self.speed, self.view,
-                          self.deterministic, self.settle_s, self.room_height_error_m)
+                          self.deterministic, self.settle_s, self.room_height_error_m, r(self.companion_config))
 
 
 def write_companion_config(out_dir: Path, **sections: object) -> Path:
@@ -229,7 +230,8 @@ def run_demo(scenario: str, duration_s: float, out_dir: Path, script: Path, lock
              on_flight: Callable[[FlightLog], None] | None = None, link: LinkImpairment | None = None,
              passivity: bool | None = None, signing_key: Path | None = None,
              settle_s: float = 0.0, deterministic: bool = False,
-             room_height_error_m: float | None = ROOM_HEIGHT_ENTRY_ERROR_M) -> dict[str, object]:
+             room_height_error_m: float | None = ROOM_HEIGHT_ENTRY_ERROR_M,
+             companion_config: Path | None = None) -> dict[str, object]:
     """Fly the demo; returns the report. Raises :class:`ProcessDied` if a part dies.
 
     Writes ``out_dir/flight.json`` (the :class:`FlightSpec`, what ``--replay`` re-flies) and
@@ -244,6 +246,8 @@ def run_demo(scenario: str, duration_s: float, out_dir: Path, script: Path, lock
     failsafe lands it (a campaign's flight ends on the ground, not torn down in the air).
     ``deterministic``: the deterministic lock-step (:func:`build_specs`): the SITL ends the flight on simulated
     time, and the same arguments fly the same flight, bit for bit.
+    ``companion_config``: the companion's YAML (default: configs/companion.yaml with the room's height; a
+    falsification flight gives one with a room-height error or the pan-scan off).
     """
     if signing_key is not None and not Path(signing_key).is_file():
         raise ConfigError(f"{signing_key}: signing key not found (create one with: quadlink keygen FILE)")
@@ -251,7 +255,8 @@ def run_demo(scenario: str, duration_s: float, out_dir: Path, script: Path, lock
         raise ConfigError(f"{script}: operator script not found")
     out_dir.mkdir(parents=True, exist_ok=True)
     spec = FlightSpec(str(scenario), str(script), float(duration_s), operator, sitl_config, lockstep, speed, view,
-                      deterministic, settle_s, room_height_error_m)
+                      deterministic, settle_s, room_height_error_m,
+                      str(companion_config) if companion_config is not None else None)
     (out_dir / "flight.json").write_text(json.dumps(dataclasses.asdict(spec), indent=2) + "\n")
     ports = Ports(port_offset, port_base)
     stack = Stack(out_dir / "logs")
@@ -275,7 +280,7 @@ def run_demo(scenario: str, duration_s: float, out_dir: Path, script: Path, lock
     specs = build_specs(scenario, Path(script), out_dir, ports, lockstep, speed, duration_s, record_frames,
                         sitl_config, operator, view, via_netem=link is not None, teleop_config=teleop_config,
                         signing_key=signing_key, deterministic=deterministic, settle_s=settle_s,
-                        room_height_error_m=room_height_error_m)
+                        room_height_error_m=room_height_error_m, companion_config=companion_config)
     operator_name = specs[-1].name
     try:
         for part in specs:
@@ -407,7 +412,8 @@ def replay_flight(flight_dir: Path, out_dir: Path | None = None, port_offset: in
     report = run_demo(spec.scenario, spec.duration_s, out, Path(spec.script), spec.lockstep, spec.speed, port_offset,
                       progress_every_s, port_base=port_base, sitl_config=spec.sitl_config, operator=spec.operator,
                       view=spec.view, settle_s=spec.settle_s, deterministic=spec.deterministic,
-                      room_height_error_m=spec.room_height_error_m)
+                      room_height_error_m=spec.room_height_error_m,
+                      companion_config=Path(spec.companion_config) if spec.companion_config else None)
     return report, out
 
 
