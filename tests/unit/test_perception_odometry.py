@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import importlib.util
 import math
 from pathlib import Path
 
@@ -11,7 +12,7 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from perception import metrics
+from perception import cli, metrics
 from perception.cli import command as vo_eval
 from perception.odometry import (
     OdometryConfig,
@@ -414,33 +415,63 @@ def test_unsynchronised_depth_is_registered_to_the_colour_instant() -> None:
     assert odo._kf is not None and odo._kf.depth_at_colour_instant
 
 
-def test_tum_frames_against_ground_truth(tum_head: Path) -> None:
-    src = TumSequence(tum_head, resize_to=(320, 240))
-    assert len(src) == 10
-    odo = RgbdOdometry()
-    st, est = [], []
-    for f in src.frames():
-        res = odo.process(f.stamp_s, f.rgb, f.depth_m, f.intrinsics)
-        assert res.ok
-        st.append(f.stamp_s)
-        est.append(res.T_c0_ck)
-    gs, gp = read_tum_trajectory(tum_head / "groundtruth.txt")
-    ie, ig = metrics.associate_stamps(np.array(st), gs)
-    assert len(ie) == 10
-    gt_rel = np.array([inv_T(gp[ig[0]]) @ gp[j] for j in ig])
-    est = np.array(est)[ie]
-    # 7.6 cm of real motion in 0.3 s; ground-truth stamps are approximate (README): a few mm per frame
-    travelled_gt = np.linalg.norm(gt_rel[-1][:3, 3])
-    travelled_est = np.linalg.norm(est[-1][:3, 3])
-    assert travelled_est == pytest.approx(travelled_gt, rel=0.15)
-    cos = est[-1][:3, 3] @ gt_rel[-1][:3, 3] / (travelled_est * travelled_gt)
-    assert cos > 0.97
-    r = metrics.rpe(np.array(st)[ie], est, gt_rel)
-    assert r.trans_rmse_m_s < 0.2 and r.rot_rmse_deg_s < 10.0
-    assert metrics.ate(est, gt_rel).rmse_m < 0.01
-    # a motionless estimate is much worse: the metric discriminates
-    still = np.repeat(np.eye(4)[None], len(est), axis=0)
-    assert metrics.rpe(np.array(st)[ie], still, gt_rel).trans_rmse_m_s > 0.2
+def _clip_runs(folder: Path, methods: tuple[str, ...], passes: int = 1
+               ) -> dict[str, tuple[cli.SequenceRun, cli.SequenceMetrics]]:
+    """Each method on a committed TUM clip, one thread, in this process (as ``quadlink vo-eval``): the run of the
+    pass with the lowest median CPU time (the machine is shared; the trajectories are deterministic) and its TUM
+    metrics against the truth interpolated at the colour stamps."""
+    frames = cli.load_frames(folder)
+    threads = cv2.getNumThreads()
+    cv2.setNumThreads(1)
+    try:
+        out = {}
+        for method in methods:
+            runs = [cli.run_sequence(frames, method, folder.name) for _ in range(passes)]
+            run = min(runs, key=lambda r: float(np.median(r.cpu_ms)))
+            gt = cli.ground_truth_at(folder, run.stamps_s)
+            assert gt is not None
+            assert gt[0].all(), "every frame of a clip has ground truth"
+            out[method] = (run, cli.evaluate(run, *gt))
+        return out
+    finally:
+        cv2.setNumThreads(threads)
+
+
+def test_tum_clip_accuracy_against_ground_truth_and_the_peers(any_tum_clip: Path) -> None:
+    """Issue 33's accuracy targets on real frames, against OpenCV and Open3D run on the same frames here:
+    per-frame translational RPE <= 0.8x the better peer's, rotational no worse than the better peer's, ATE no
+    worse, no failed frame. And against the truth alone: the error of the clip's dominant motion (fr3_teddy:
+    15 mm a frame; fr1_rpy: 2.9 degrees a frame) is under a fifth of that motion."""
+    methods = ("ours", "opencv") + (("open3d",) if importlib.util.find_spec("open3d") else ())
+    runs = _clip_runs(any_tum_clip, methods)
+    run, ours = runs["ours"]
+    assert run.failures == 0 and ours.frames_evaluated == len(run.stamps_s) == 10
+    peers = [m for name, (_, m) in runs.items() if name != "ours"]
+    best_t = min(m.rpe_frame.trans_rmse_m for m in peers)
+    best_r = min(m.rpe_frame.rot_rmse_deg for m in peers)
+    assert ours.rpe_frame.trans_rmse_m <= 0.8 * best_t, (ours.rpe_frame, best_t)
+    assert ours.rpe_frame.rot_rmse_deg <= best_r, (ours.rpe_frame, best_r)
+    assert ours.ate.rmse_m <= min(m.ate.rmse_m for m in peers)
+    # a motionless estimate's error is the truth's own motion between frames
+    ok, gt = cli.ground_truth_at(any_tum_clip, run.stamps_s)  # type: ignore[misc]
+    still = metrics.rpe_window(run.stamps_s, np.repeat(np.eye(4)[None], len(gt), 0), gt,
+                               ours.rpe_frame.delta_s)
+    checked = 0
+    if still.trans_rmse_m > 0.005:
+        assert ours.rpe_frame.trans_rmse_m < 0.2 * still.trans_rmse_m
+        checked += 1
+    if still.rot_rmse_deg > 1.5:
+        assert ours.rpe_frame.rot_rmse_deg < 0.2 * still.rot_rmse_deg
+        checked += 1
+    assert checked >= 1, "the clip moves"
+
+
+def test_tum_clip_time_per_frame_is_under_half_of_opencvs(tum_clip: Path) -> None:
+    """Issue 33's speed target as a ratio measured here, both on one thread: median CPU time per frame of ours at
+    most half of OpenCV's RGBD odometry's on the same real frames (best of three passes each)."""
+    runs = _clip_runs(tum_clip, ("ours", "opencv"), passes=3)
+    ratio = float(np.median(runs["ours"][0].cpu_ms)) / float(np.median(runs["opencv"][0].cpu_ms))
+    assert ratio <= 0.5, ratio
 
 
 def test_metrics_horn_alignment_and_rpe() -> None:
@@ -506,12 +537,12 @@ def test_tum_folder_source_camera_yaml_jpeg_and_overrides(tmp_path: Path) -> Non
         TumSequence(tmp_path / "missing")
 
 
-def test_vo_eval_cli_prints_metrics_and_writes_trajectory(tum_head: Path, tmp_path: Path) -> None:
+def test_vo_eval_cli_prints_metrics_and_writes_trajectory(tum_clip: Path, tmp_path: Path) -> None:
     out = tmp_path / "traj.txt"
-    res = CliRunner().invoke(vo_eval, [str(tum_head), "--out", str(out), "--max-frames", "5"])
+    res = CliRunner().invoke(vo_eval, [str(tum_clip), "--out", str(out), "--max-frames", "5"])
     assert res.exit_code == 0, res.output
     assert "RPE1s" in res.output and "ATE" in res.output and "CPU ms" in res.output
-    row = [line for line in res.output.splitlines() if line.startswith("tum_fr1_xyz_head")]
+    row = [line for line in res.output.splitlines() if line.startswith("fr3_teddy")]
     assert len(row) == 1
     fields = row[0].split()
     assert fields[1] == "ours" and fields[2] == "5/5" and fields[3] == "-"   # 0.13 s: no pair 1 s apart
@@ -520,7 +551,7 @@ def test_vo_eval_cli_prints_metrics_and_writes_trajectory(tum_head: Path, tmp_pa
     assert len(s) == 5 and np.allclose(p[0], np.eye(4))
 
 
-def test_vo_eval_cli_several_sequences_and_methods(tum_head: Path, tmp_path: Path) -> None:
+def test_vo_eval_cli_several_sequences_and_methods(tum_clip: Path, tmp_path: Path) -> None:
     """Two sequences (the shared head and a synthetic one with truth) and two methods in one call: one table
     row each, one trajectory file each; the synthetic sequence's metrics come from its interpolated truth."""
     seq = tmp_path / "synth"
@@ -530,17 +561,17 @@ def test_vo_eval_cli_several_sequences_and_methods(tum_head: Path, tmp_path: Pat
     gt = [f"{t:.6f} {0.3 * t:.6f} 0 0 0 0 0 1" for t in np.arange(-0.02, 0.1, 0.01)]
     (seq / "groundtruth.txt").write_text("\n".join(gt) + "\n")
     out = tmp_path / "trajs"
-    res = CliRunner().invoke(vo_eval, [str(tum_head), str(seq), "--method", "ours", "--method", "opencv",
+    res = CliRunner().invoke(vo_eval, [str(tum_clip), str(seq), "--method", "ours", "--method", "opencv",
                                        "--max-frames", "3", "--out", str(out)])
     assert res.exit_code == 0, res.output
-    rows = [line.split() for line in res.output.splitlines() if line.startswith(("tum_fr1", "synth"))]
-    assert [(r[0], r[1]) for r in rows] == [("tum_fr1_xyz_head", "ours"), ("tum_fr1_xyz_head", "opencv"),
+    rows = [line.split() for line in res.output.splitlines() if line.startswith(("fr3_teddy", "synth"))]
+    assert [(r[0], r[1]) for r in rows] == [("fr3_teddy", "ours"), ("fr3_teddy", "opencv"),
                                             ("synth", "ours"), ("synth", "opencv")]
     ours_synth = rows[2]
     assert ours_synth[2] == "3/3"
     assert float(ours_synth[6]) < 1e-3 and float(ours_synth[7]) < 1.0   # ATE m, per-frame RPE mm
-    assert sorted(p.name for p in out.iterdir()) == ["synth_opencv.txt", "synth_ours.txt",
-                                                     "tum_fr1_xyz_head_opencv.txt", "tum_fr1_xyz_head_ours.txt"]
+    assert sorted(p.name for p in out.iterdir()) == ["fr3_teddy_opencv.txt", "fr3_teddy_ours.txt",
+                                                     "synth_opencv.txt", "synth_ours.txt"]
 
 
 def test_vo_eval_cli_without_groundtruth_and_bad_path(tmp_path: Path) -> None:
