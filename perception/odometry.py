@@ -185,8 +185,10 @@ class RgbdOdometry:
         T_pred = self._predict(dt_s)                  # T_ck_ckm1 guess
         T_ckm1_kf = inv_T(self._T_kf_ckm1)
         R_kf_ck_prior = None if R_ckm1_ck_prior is None else self._T_kf_ckm1[:3, :3] @ R_ckm1_ck_prior
-        pair = self.align(self._kf, cur, R_kf_ck_prior, T_ckm1_kf if T_pred is None else T_pred @ T_ckm1_kf,
-                          self._T_kf_ckm1)
+        T_start = T_ckm1_kf if T_pred is None else T_pred @ T_ckm1_kf
+        # the constant-velocity prediction is a prior only when it comes from aligned frames
+        T_mp = T_start if T_pred is not None and self._bridged == 0 else None
+        pair = self.align(self._kf, cur, R_kf_ck_prior, T_start, self._T_kf_ckm1, T_mp)
         T_kf_ck: Mat4 | None = None
         if pair.ok:
             T_kf_ck = inv_T(pair.T_ck_ckm1)
@@ -364,7 +366,8 @@ class RgbdOdometry:
         T[:3, 3] = T_last[:3, 3] * f
         return T
     def align(self, ref: PreparedFrame, cur: PreparedFrame, R_ckm1_ck_prior: NDArray[np.float64] | None = None,
-              T_init: Mat4 | None = None, T_ref_ckm1: Mat4 | None = None) -> PairResult:
+              T_init: Mat4 | None = None, T_ref_ckm1: Mat4 | None = None, T_motion_prior: Mat4 | None = None
+              ) -> PairResult:
         """Estimate ``T_ck_ckm1`` between two prepared frames with this odometry's configuration
         (:func:`perception.odometry_align.align_pair`)."""
-        return align_pair(ref, cur, self.config, R_ckm1_ck_prior, T_init, T_ref_ckm1)
+        return align_pair(ref, cur, self.config, R_ckm1_ck_prior, T_init, T_ref_ckm1, T_motion_prior)
