@@ -159,7 +159,7 @@ def leave_one_out_report(paths: list[Path], progress: Callable[[str], None] | No
     grid = "; ".join(f"{k} in {{{', '.join(map(str, v))}}}" for k, v in loo.GRID.items())
     ship = ", ".join(f"{k}={v}" for k, v in loo.consensus(results).items())
     return (f"Searched (each split, each variant): {grid}; every other parameter at its default.\n"
-            f"Consensus of the splits (shipped values): {ship}.\n\n" + loo.markdown_table(results, peers))
+            f"Majority of the splits for ours (the shipping rule): {ship}.\n\n" + loo.markdown_table(results, peers))
 
 
 def _fmt(x: float, spec: str) -> str:

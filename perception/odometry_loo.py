@@ -32,25 +32,30 @@ from perception import cli
 from perception.odometry import OdometryConfig
 from quadlink.camera import RgbdFrame
 
-# the searched values (the shipped defaults among them: the consensus of the last run, docs/odometry.md); other
-# parameters keep their documented defaults
+# the searched values (the shipped defaults among them: the majority of the splits, docs/odometry.md); other
+# parameters keep their documented defaults. depth_weight is not searched: 1 is the maximum-likelihood weight of two
+# terms each normalised by its robust scale (DVO), and 0.5, which two of three TUM splits preferred in an earlier
+# run, loses the re-initialisation from rest at 3 rad/s of yaw (test_the_bridge_ends_after_max_bridged_frames...)
 GRID: dict[str, tuple[Any, ...]] = {
     "keyframe_max_frames": (4, 8),
     "gradient_fraction": (0.2, 0.5),
-    "depth_weight": (0.5, 1.0),
     "motion_prior_sigma_m": (0.0, 1e-3, 3e-4, 1e-4),
 }
 
-# method variants, each a change of the method measured leave-one-out (its overrides beat the grid's values)
+# method variants, each a change of the method measured leave-one-out (its overrides beat the grid's values):
+# "ours" is the shipped method (no constant-velocity prior term: it biases accelerating flight, docs/odometry.md);
+# the others switch one part off, or (the prior term) on
+NO_PRIOR = {"motion_prior_sigma_m": 0.0}
 VARIANTS: dict[str, dict[str, Any]] = {
-    "ours": {},
-    "no motion-prior fallback": {"max_bridged_frames": 0},
-    "frame-to-frame (no keyframes)": {"keyframe_max_frames": 1},
-    "no keyframe window": {"keyframe_refinement": False},
-    "photometric only (no depth term)": {"depth_weight": 0.0},
-    "least squares (no t-weights)": {"t_dof": 1e9},
-    "no constant-velocity prior term": {"motion_prior_sigma_m": 0.0},
+    "ours": dict(NO_PRIOR),
+    "+ constant-velocity prior term": {},
+    "no motion-prior fallback": {**NO_PRIOR, "max_bridged_frames": 0},
+    "frame-to-frame (no keyframes)": {**NO_PRIOR, "keyframe_max_frames": 1},
+    "no keyframe window": {**NO_PRIOR, "keyframe_refinement": False},
+    "photometric only (no depth term)": {**NO_PRIOR, "depth_weight": 0.0},
+    "least squares (no t-weights)": {**NO_PRIOR, "t_dof": 1e9},
 }
+TARGET_VARIANTS = ("ours", "+ constant-velocity prior term")   # the rows whose targets the table checks
 
 PEERS = ("opencv", "open3d")
 
@@ -210,10 +215,12 @@ def markdown_table(results: Sequence[SplitResult], peers: dict[str, dict[str, Sc
             lines.append(f"| {held} | {r.variant} | " + " | ".join(_cells(r.held)) + f" | {chosen} |")
         for name, s in peers[held].items():
             lines.append(f"| {held} | {name} | " + " | ".join(_cells(s)) + " | – |")
-    lines += ["", "| held out | target | ours / better peer | limit | met |", "|---|---|---|---|---|"]
+    lines += ["", "| held out | method | target | ours / better peer | limit | met |", "|---|---|---|---|---|---|"]
     for held in dict.fromkeys(r.held_out for r in results):
-        ours = next(r for r in results if r.held_out == held and r.variant == "ours")
-        for name, (ratio, limit, met) in targets(ours.held, list(peers[held].values())).items():
-            shown = f"{ratio:.0f} frames" if name == "failures" else f"{ratio:.2f}"
-            lines.append(f"| {held} | {name} | {shown} | {limit:g} | {'yes' if met else '**no**'} |")
+        for r in results:
+            if r.held_out != held or r.variant not in TARGET_VARIANTS:
+                continue
+            for name, (ratio, limit, met) in targets(r.held, list(peers[held].values())).items():
+                shown = f"{ratio:.0f} frames" if name == "failures" else f"{ratio:.2f}"
+                lines.append(f"| {held} | {r.variant} | {name} | {shown} | {limit:g} | {'yes' if met else '**no**'} |")
     return "\n".join(lines)
