@@ -15,6 +15,7 @@ import logging
 import math
 import os
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -24,7 +25,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from perception import metrics
-from perception.odometry import OdometryResult, RgbdOdometry
+from perception.odometry import OdometryConfig, OdometryResult, RgbdOdometry
 from quadlink.camera import RgbdFrame
 from quadlink.datasets.tum import TumSequence, read_tum_list, read_tum_trajectory, write_tum_trajectory
 from quadlink.errors import QuadlinkError
@@ -50,7 +51,10 @@ def make_odometry(method: str):  # type: ignore[no-untyped-def]
 
 @dataclass(frozen=True)
 class SequenceRun:
-    """One method's trajectory on one sequence, with its per-frame cost (the first frame excluded)."""
+    """One method's trajectory on one sequence, with its per-frame cost (the first frame excluded).
+
+    ``failures``: frames that were not aligned and got no pose from a motion prior (the pose held);
+    ``fallbacks``: frames that were not aligned and were bridged by the motion prior (ours only)."""
 
     name: str
     method: str
@@ -59,6 +63,7 @@ class SequenceRun:
     failures: int
     wall_ms: NDArray[np.float64]
     cpu_ms: NDArray[np.float64]
+    fallbacks: int = 0
 
 
 @dataclass(frozen=True)
@@ -71,12 +76,14 @@ class SequenceMetrics:
     ate: metrics.AteResult
 
 
-def run_sequence(frames: list[RgbdFrame], method: str, name: str = "") -> SequenceRun:
+def run_sequence(frames: list[RgbdFrame], method: str, name: str = "",
+                 config: OdometryConfig | None = None) -> SequenceRun:
     """Run ``method`` on the frames (already loaded, so reading files is not timed). Ours also gets each
-    frame's depth-minus-colour stamp offset (``meta["depth_offset_s"]``, see :func:`load_frames`)."""
-    odometry = make_odometry(method)
+    frame's depth-minus-colour stamp offset (``meta["depth_offset_s"]``, see :func:`load_frames`) and runs with
+    ``config`` (default: :class:`OdometryConfig`'s defaults)."""
+    odometry = RgbdOdometry(config) if method == "ours" else make_odometry(method)
     stamps, poses, wall, cpu = [], [], [], []
-    failures = 0
+    failures = fallbacks = 0
     for frame in frames:
         if frame.depth_m is None:
             raise QuadlinkError(f"{name}: frame {frame.seq} has no depth")
@@ -86,11 +93,12 @@ def run_sequence(frames: list[RgbdFrame], method: str, name: str = "") -> Sequen
                                                   **extra)
         wall.append(time.perf_counter() - t0)
         cpu.append(time.process_time() - c0)
-        failures += 0 if result.ok else 1
+        fallbacks += 1 if result.fallback else 0
+        failures += 0 if result.ok or result.fallback else 1
         stamps.append(frame.stamp_s)
         poses.append(result.T_c0_ck)
     return SequenceRun(name, method, np.asarray(stamps), np.asarray(poses), failures,
-                       np.asarray(wall[1:] or wall) * 1e3, np.asarray(cpu[1:] or cpu) * 1e3)
+                       np.asarray(wall[1:] or wall) * 1e3, np.asarray(cpu[1:] or cpu) * 1e3, fallbacks)
 
 
 def ground_truth_at(folder: Path, stamps_s: NDArray[np.float64], max_gap_s: float = GT_MAX_GAP_S
@@ -128,12 +136,38 @@ def load_frames(path: Path, overrides: dict[str, float | None] | None = None, ma
     return frames
 
 
+def leave_one_out_report(paths: list[Path], progress: Callable[[str], None] | None = None) -> str:
+    """Issue 33's held-out table (:mod:`perception.odometry_loo`) for three or more TUM folders: each sequence
+    held out in turn, ours with its parameters chosen on the others, OpenCV and Open3D on the same frames."""
+    from perception import odometry_loo as loo
+
+    if len(paths) < 3:
+        raise QuadlinkError("--leave-one-out needs at least three sequences (choose on two, score on the third)")
+    sequences, peers = [], {}
+    for path in paths:
+        frames = load_frames(path)
+        stamps = np.array([f.stamp_s for f in frames])
+        gt = ground_truth_at(path, stamps)
+        if gt is None:
+            raise QuadlinkError(f"{path}: --leave-one-out needs groundtruth.txt")
+        seq = loo.EvalSequence(path.name, frames, *gt)
+        sequences.append(seq)
+        peers[seq.name] = {p: loo.run_scored(seq, p) for p in loo.PEERS}
+        if progress:
+            progress(f"{path.name}: {len(frames)} frames, peers done")
+    results = loo.leave_one_out(sequences, peers, progress=progress)
+    grid = "; ".join(f"{k} in {{{', '.join(map(str, v))}}}" for k, v in loo.GRID.items())
+    ship = ", ".join(f"{k}={v}" for k, v in loo.consensus(results).items())
+    return (f"Searched (each split, each variant): {grid}; every other parameter at its default.\n"
+            f"Majority of the splits for ours (the shipping rule): {ship}.\n\n" + loo.markdown_table(results, peers))
+
+
 def _fmt(x: float, spec: str) -> str:
     return "-" if not math.isfinite(x) else format(x, spec)
 
 
 HEADER = (f"{'sequence':20s} {'method':7s} {'frames':>8s} {'RPE1s m':>8s} {'RPE1s deg':>9s} {'pairs':>5s} "
-          f"{'ATE m':>7s} {'RPEfr mm':>8s} {'RPEfr deg':>9s} {'ms/fr':>6s} {'CPU ms':>6s} {'fails':>5s}")
+          f"{'ATE m':>7s} {'RPEfr mm':>8s} {'RPEfr deg':>9s} {'ms/fr':>6s} {'CPU ms':>6s} {'fails':>5s} {'fallb':>5s}")
 
 
 def table_row(run: SequenceRun, m: SequenceMetrics | None) -> str:
@@ -144,7 +178,7 @@ def table_row(run: SequenceRun, m: SequenceMetrics | None) -> str:
             f"{_fmt(r1.rot_rmse_deg if r1 else nan, '9.3f')} {r1.pairs if r1 else 0:5d} "
             f"{_fmt(a.rmse_m if a else nan, '7.4f')} {_fmt(rf.trans_rmse_m * 1e3 if rf else nan, '8.2f')} "
             f"{_fmt(rf.rot_rmse_deg if rf else nan, '9.3f')} {float(np.median(run.wall_ms)):6.1f} "
-            f"{float(np.median(run.cpu_ms)):6.1f} {run.failures:5d}")
+            f"{float(np.median(run.cpu_ms)):6.1f} {run.failures:5d} {run.fallbacks:5d}")
 
 
 @click.command(help=__doc__)
@@ -161,11 +195,21 @@ def table_row(run: SequenceRun, m: SequenceMetrics | None) -> str:
               show_default=True, help="odometry method (repeat for several)")
 @click.option("--max-frames", type=int, default=None, help="use only the first N frames")
 @click.option("--threads", type=int, default=1, show_default=True, help="OpenCV threads (timing is per thread)")
+@click.option("--leave-one-out", "loo", is_flag=True,
+              help="issue 33's held-out table: each sequence held out in turn, ours with its parameters chosen on "
+                   "the others (a small grid, perception/odometry_loo.py), beside OpenCV and Open3D; needs three or "
+                   "more sequences with ground truth (the other options but --threads are ignored)")
 def command(paths: tuple[Path, ...], out: Path | None, fx: float | None, fy: float | None, cx: float | None,
             cy: float | None, depth_scale: float | None, methods: tuple[str, ...], max_frames: int | None,
-            threads: int) -> None:
+            threads: int, loo: bool) -> None:
     cv2.setNumThreads(threads)
     os.environ.setdefault("OMP_NUM_THREADS", str(threads))
+    if loo:
+        try:
+            click.echo(leave_one_out_report(list(paths), progress=lambda msg: log.info("%s", msg)))
+        except QuadlinkError as exc:
+            raise click.ClickException(str(exc)) from exc
+        return
     overrides = {"fx": fx, "fy": fy, "cx": cx, "cy": cy, "depth_scale": depth_scale}
     several = len(paths) * len(methods) > 1
     if out is not None and several:

@@ -50,13 +50,19 @@ __all__ = ["Image", "Mat4", "OdometryConfig", "OdometryResult", "PairResult", "P
 
 @dataclass(frozen=True)
 class OdometryResult:
-    """Chained camera pose ``T_c0_ck`` (camera k in the first camera frame) and the last pair's quality."""
+    """Chained camera pose ``T_c0_ck`` (camera k in the first camera frame) and the last pair's quality.
+
+    ``ok``: the frame was aligned. A frame whose alignment failed or was refused is not ok; its motion
+    ``T_ckm1_ck`` is then the motion prior's when there is one (``fallback``: the gyro's rotation and the
+    constant-velocity translation, or the constant-velocity motion alone), else the identity (the pose holds).
+    """
 
     stamp_s: float
     T_c0_ck: Mat4
     T_ckm1_ck: Mat4
     ok: bool
     fitness: float
+    fallback: bool = False
 
 
 _MIN_DEPTH_OFFSET_S = 1e-3  # depth-colour offsets below this count as synchronised (2 rad/s: 0.5 px at QVGA)
@@ -129,6 +135,9 @@ class RgbdOdometry:
         self.rejected_jumps = 0                  # alignments refused by max_translation_jump_m
         self.refined_keyframes = 0               # keyframes fused with a second alignment (keyframe_refinement)
         self.rejected_refinements = 0            # fusions refused by the step gate (see _refine)
+        self.fallbacks = 0                       # frames not aligned, bridged by the motion prior
+        self.lost = 0                            # frames not aligned and without a motion prior (pose held)
+        self._bridged = 0                        # consecutive bridged frames (the constant velocity's age)
 
     def reset(self) -> None:
         self._kf = self._prev = self._kf_prev = None
@@ -137,6 +146,7 @@ class RgbdOdometry:
         self._kf_frames = 0
         self._T_c0_ck = np.eye(4)
         self._last_motion = None
+        self._bridged = 0
 
     @property
     def T_c0_ck(self) -> Mat4:
@@ -150,8 +160,12 @@ class RgbdOdometry:
         (the gyro's, else the last motion's), see :func:`rotate_depth`.
 
         If the alignment against the keyframe fails, the previous frame is tried as the reference (when it is
-        not the keyframe). A failed alignment keeps the last pose (turned by the gyro's rotation, if any) and
-        reports ``ok=False``; the frame becomes the keyframe. The first frame defines C0.
+        not the keyframe). A frame whose alignment fails or is refused (fast rotation, blur, little depth) reports
+        ``ok=False`` and moves by the motion prior (``fallback=True``, counted in ``fallbacks``): the gyro's
+        rotation when given, and the constant-velocity prediction of the last aligned motion (its rotation too
+        without a gyro), for at most ``max_bridged_frames`` frames in a row; without either the pose holds
+        (counted in ``lost``). So the velocity the poses imply does not jump. The frame becomes the keyframe and
+        tracking re-initialises from it. The first frame defines C0.
         """
         cfg = self.config
         # an unsynchronised depth image is turned to the colour instant once the rotation rate is known; a frame
@@ -171,8 +185,10 @@ class RgbdOdometry:
         T_pred = self._predict(dt_s)                  # T_ck_ckm1 guess
         T_ckm1_kf = inv_T(self._T_kf_ckm1)
         R_kf_ck_prior = None if R_ckm1_ck_prior is None else self._T_kf_ckm1[:3, :3] @ R_ckm1_ck_prior
-        pair = self.align(self._kf, cur, R_kf_ck_prior, T_ckm1_kf if T_pred is None else T_pred @ T_ckm1_kf,
-                          self._T_kf_ckm1)
+        T_start = T_ckm1_kf if T_pred is None else T_pred @ T_ckm1_kf
+        # the constant-velocity prediction is a prior only when it comes from aligned frames
+        T_mp = T_start if T_pred is not None and self._bridged == 0 else None
+        pair = self.align(self._kf, cur, R_kf_ck_prior, T_start, self._T_kf_ckm1, T_mp)
         T_kf_ck: Mat4 | None = None
         if pair.ok:
             T_kf_ck = inv_T(pair.T_ck_ckm1)
@@ -180,7 +196,7 @@ class RgbdOdometry:
         elif self._prev is not None and self._prev is not self._kf:
             pair = self.align(self._prev, cur, R_ckm1_ck_prior, T_pred)
             T_ckm1_ck = inv_T(pair.T_ck_ckm1)
-        if pair.ok and T_pred is not None and cfg.max_translation_jump_m > 0.0:
+        if pair.ok and T_pred is not None and self._bridged == 0 and cfg.max_translation_jump_m > 0.0:
             # a multirotor cannot change its velocity by more than a few g: a per-frame translation far from the
             # constant-velocity one is an alignment in a wrong basin, however good its photometric fit
             t_pred = inv_T(T_pred)[:3, 3]
@@ -188,18 +204,26 @@ class RgbdOdometry:
                 self.rejected_jumps += 1
                 pair = dataclasses.replace(pair, ok=False)
                 T_kf_ck = None
-        if not pair.ok:
-            T_ckm1_ck = np.eye(4)
-            if R_ckm1_ck_prior is not None:
-                T_ckm1_ck[:3, :3] = R_ckm1_ck_prior
-        self._last_motion = (inv_T(T_ckm1_ck), dt_s) if pair.ok else None
+        bridged = False
+        if pair.ok:
+            self._bridged = 0
+            self._last_motion = (inv_T(T_ckm1_ck), dt_s)
+        else:
+            T_ckm1_ck, bridged = self._motion_prior(T_pred, R_ckm1_ck_prior)
+            if bridged:
+                self.fallbacks += 1
+                self._bridged += 1
+            else:
+                self.lost += 1
+            # the constant velocity carries on through bridged frames (and ends with them)
+            self._last_motion = (inv_T(T_ckm1_ck), dt_s) if bridged and T_pred is not None else None
         self._prev = cur
         self._stamp_s = stamp_s
         self._kf_frames += 1
         if T_kf_ck is not None:
             self._T_c0_ck = self._T_c0_kf @ T_kf_ck
             self._T_kf_ckm1 = T_kf_ck
-            if self._keyframe_is_due(T_kf_ck, pair.fitness):
+            if self._keyframe_is_due(T_kf_ck, pair.fitness) and self._has_depth(cur):
                 cov_kf_ck = _covariance(pair.information)
                 if cfg.keyframe_refinement and self._kf_prev is not None and cov_kf_ck is not None:
                     T_kf_ck = self._refine(cur, T_kf_ck, cov_kf_ck, T_ckm1_kf, R_ckm1_ck_prior)
@@ -207,9 +231,15 @@ class RgbdOdometry:
                     self._T_c0_ck = self._T_c0_kf @ T_kf_ck
                     self._last_motion = (inv_T(T_ckm1_ck), dt_s)
                 self._set_keyframe(cur, T_kf_ck, cov_kf_ck)
-        else:   # the keyframe failed: this frame, whatever its own pose's quality, becomes the next one
+        else:
+            # the keyframe failed: this frame, whatever its own pose's quality, becomes the next one (tracking
+            # re-initialises from it), unless it lacks the depth to be a reference (a dropout, a frame facing
+            # beyond the sensor's range): then the keyframe stays and the bridged pose is this frame's in it
             self._T_c0_ck = self._T_c0_ck @ T_ckm1_ck
-            self._set_keyframe(cur)
+            if self._has_depth(cur):
+                self._set_keyframe(cur)
+            else:
+                self._T_kf_ckm1 = inv_T(self._T_c0_kf) @ self._T_c0_ck
         if register and not cur.depth_at_colour_instant and self._last_motion is not None:
             # the rate is known now (at the start, after a failure): this frame, turned, becomes the keyframe
             rate = self._rotation_rate(0.0, None)
@@ -218,7 +248,22 @@ class RgbdOdometry:
                 cur.depth_at_colour_instant = True
                 self._prev = cur
                 self._set_keyframe(cur)
-        return OdometryResult(stamp_s, self._T_c0_ck.copy(), T_ckm1_ck, pair.ok, pair.fitness)
+        return OdometryResult(stamp_s, self._T_c0_ck.copy(), T_ckm1_ck, pair.ok, pair.fitness, bridged)
+
+    def _motion_prior(self, T_pred: Mat4 | None, R_ckm1_ck_prior: NDArray[np.float64] | None
+                      ) -> tuple[Mat4, bool]:
+        """``T_ckm1_ck`` of a frame that could not be aligned, and whether a motion prior gave it: the gyro's
+        rotation (when given) and the constant-velocity prediction (its translation; its rotation too without a
+        gyro) while the bridge is at most ``max_bridged_frames`` long; the identity without either."""
+        T = np.eye(4)
+        bridged = False
+        if T_pred is not None and self._bridged < self.config.max_bridged_frames:
+            T = inv_T(T_pred)
+            bridged = True
+        if R_ckm1_ck_prior is not None:
+            T[:3, :3] = R_ckm1_ck_prior
+            bridged = True
+        return T, bridged
 
     def _rotation_rate(self, dt_s: float, R_ckm1_ck_prior: NDArray[np.float64] | None
                        ) -> NDArray[np.float64] | None:
@@ -294,6 +339,11 @@ class RgbdOdometry:
         self._kf_frames = 0
         self.keyframes += 1
 
+    def _has_depth(self, frame: PreparedFrame) -> bool:
+        """Whether a frame has the valid depth a reference needs (``min_reference_points`` at the finest level):
+        a frame without is never made the keyframe, every frame aligned against it would fail."""
+        return int(np.count_nonzero(frame.levels[0].depth)) >= self.config.min_reference_points
+
     def _keyframe_is_due(self, T_kf_ck: Mat4, fitness: float) -> bool:
         """Whether the current frame should replace the keyframe: enough frames, motion (the overlap shrinks
         and the warp's linearisation about the keyframe degrades) or a fitness drop (occlusions, exposure)."""
@@ -316,7 +366,8 @@ class RgbdOdometry:
         T[:3, 3] = T_last[:3, 3] * f
         return T
     def align(self, ref: PreparedFrame, cur: PreparedFrame, R_ckm1_ck_prior: NDArray[np.float64] | None = None,
-              T_init: Mat4 | None = None, T_ref_ckm1: Mat4 | None = None) -> PairResult:
+              T_init: Mat4 | None = None, T_ref_ckm1: Mat4 | None = None, T_motion_prior: Mat4 | None = None
+              ) -> PairResult:
         """Estimate ``T_ck_ckm1`` between two prepared frames with this odometry's configuration
         (:func:`perception.odometry_align.align_pair`)."""
-        return align_pair(ref, cur, self.config, R_ckm1_ck_prior, T_init, T_ref_ckm1)
+        return align_pair(ref, cur, self.config, R_ckm1_ck_prior, T_init, T_ref_ckm1, T_motion_prior)

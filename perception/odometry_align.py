@@ -43,6 +43,10 @@ class PairResult:
 
 
 _I3 = np.eye(3)
+
+
+def _skew(v: NDArray[np.float64]) -> NDArray[np.float64]:
+    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
 _INLIER_INTENSITY = 0.06   # photometric error (0..1) below which a finest-level point counts for fitness
 
 
@@ -72,13 +76,17 @@ def se3_exp(xi: NDArray[np.float64]) -> Mat4:
 
 def align_pair(ref: PreparedFrame, cur: PreparedFrame, config: OdometryConfig,
                R_ckm1_ck_prior: NDArray[np.float64] | None = None, T_init: Mat4 | None = None,
-               T_ref_ckm1: Mat4 | None = None) -> PairResult:
+               T_ref_ckm1: Mat4 | None = None, T_motion_prior: Mat4 | None = None) -> PairResult:
     """Estimate ``T_ck_ckm1`` between two prepared frames (coarse to fine Gauss-Newton); the reference
     ``ref`` plays frame k-1 (it is the keyframe in :meth:`perception.odometry.RgbdOdometry.process`, the names
     are those of a pair).
 
     ``T_ref_ckm1`` (the previous frame in a keyframe reference) makes the per-frame sanity bounds apply to
     the motion since the previous frame, ``T_ck_ref · T_ref_ckm1``, instead of the motion from ``ref``.
+
+    ``T_motion_prior`` (a prediction of the result ``T_ck_ref``, the constant-velocity one) adds DVO's motion
+    prior on the translation: ``|t(T T_prior^-1)|^2 / motion_prior_sigma_m^2`` (Kerl, Sturm, Cremers 2013, the
+    prior term of their MAP estimate; here on the translation only, which the photometric term pins least).
 
     Inverse compositional (Baker & Matthews 2004): the Jacobians are those of the reference frame's
     points and gradients, fixed per level, and an increment ``xi`` updates ``T <- T exp(xi)^-1``. The
@@ -96,6 +104,8 @@ def align_pair(ref: PreparedFrame, cur: PreparedFrame, config: OdometryConfig,
         R_prior = (U @ Vt).T   # rotation of T_ck_ckm1
         T[:3, :3] = R_prior   # the gyro's rotation is a better start than any guess
     info_prior = 1.0 / cfg.imu_prior_sigma_rad**2
+    T_mp = T_motion_prior if T_motion_prior is not None and cfg.motion_prior_sigma_m > 0.0 else None
+    info_motion = 1.0 / cfg.motion_prior_sigma_m**2 if T_mp is not None else 0.0
     # brightness I_k = gain I_km1 + bias (auto exposure), estimated with the motion (as DSO's affine model)
     gain, bias = 1.0, 0.0
     info_ab = 1.0 / cfg.brightness_prior_sigma**2
@@ -213,6 +223,14 @@ def align_pair(ref: PreparedFrame, cur: PreparedFrame, config: OdometryConfig,
                 r_p = so3_log(T[:3, :3] @ R_prior.T)
                 H[3:, 3:] += info_prior * _I3
                 g[3:] += info_prior * (T[:3, :3].T @ r_p)
+            if T_mp is not None:
+                # translation of E = T T_mp^-1 moves under T <- T exp(xi)^-1 = exp(-Ad_T xi) T by -A xi, A the
+                # translation rows of Ad_T: [R, [t]x R]
+                R_T, t_T = T[:3, :3], T[:3, 3]
+                r_m = t_T - R_T @ T_mp[:3, :3].T @ T_mp[:3, 3]
+                A = np.hstack([R_T, _skew(t_T) @ R_T])
+                H[:6, :6] += info_motion * (A.T @ A)
+                g[:6] += info_motion * (A.T @ r_m)
             # symmetric positive definite: Cholesky (cv2.solve is far cheaper than numpy's per call)
             solved, sol = cv2.solve(H, g.reshape(nj, 1), flags=cv2.DECOMP_CHOLESKY)
             if not solved:

@@ -1,4 +1,4 @@
-"""Shared pytest setup: the test tiers, paths to the shared data, a deterministic random generator.
+"""Shared pytest setup: the test tiers, the committed real-data clips, a deterministic random generator.
 
 Tests live in tiers, one folder each, and every test is marked with its folder's name so markers select
 them (``pytest -m unit``, ``-m "not sitl"``):
@@ -25,8 +25,10 @@ if str(TESTS) not in sys.path:
     sys.path.insert(0, str(TESTS))
 
 REPO = TESTS.parent
-SHARED = REPO.parent / "shared"
-TUM_HEAD = SHARED / "data" / "tum_fr1_xyz_head"
+# real RGB-D frames committed with the tests (scripts/make_tum_fixture.py cut them from the TUM RGB-D benchmark):
+# ten frames each of a slow hand-held pass (fr3_teddy) and of the fastest rotation of fr1_rpy
+TUM_DATA = TESTS / "data" / "tum"
+TUM_CLIPS = ("fr3_teddy", "fr1_rpy")
 
 
 @pytest.fixture(scope="session")
@@ -42,11 +44,23 @@ def rng() -> np.random.Generator:
     return np.random.default_rng(20261123)
 
 
+def tum_clip_path(name: str) -> Path:
+    """A committed TUM clip's folder (``tests/data/tum/<name>``); missing data is an error, not a skip."""
+    folder = TUM_DATA / name
+    assert (folder / "rgb.txt").is_file(), f"test data missing: {folder} (scripts/make_tum_fixture.py makes it)"
+    return folder
+
+
 @pytest.fixture
-def tum_head() -> Path:
-    if not (TUM_HEAD / "rgb.txt").is_file():
-        pytest.skip(f"shared test data not found at {TUM_HEAD}")
-    return TUM_HEAD
+def tum_clip() -> Path:
+    """Ten real frames of TUM fr3_teddy with motion-capture truth (a slow hand-held pass)."""
+    return tum_clip_path("fr3_teddy")
+
+
+@pytest.fixture(params=TUM_CLIPS)
+def any_tum_clip(request: pytest.FixtureRequest) -> Path:
+    """Each committed TUM clip in turn: fr3_teddy (slow) and fr1_rpy (fast rotation, dropped frames)."""
+    return tum_clip_path(request.param)
 
 
 # Fuzzing (issue 16): property tests marked ``fuzz`` take their example count from the active hypothesis

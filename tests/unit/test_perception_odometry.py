@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import importlib.util
 import math
 from pathlib import Path
 
@@ -11,7 +12,7 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from perception import metrics
+from perception import cli, metrics
 from perception.cli import command as vo_eval
 from perception.odometry import (
     OdometryConfig,
@@ -77,6 +78,30 @@ def test_imu_rotation_prior_rescues_a_fast_rotation() -> None:
     assert err_prior < 2e-3
     assert err_r < 0.1
     assert err_no > 10 * err_prior
+
+
+def test_constant_velocity_prior_term_pulls_the_translation_by_its_weight() -> None:
+    """DVO's motion prior on the translation: a prediction 5 mm off the true motion. Without the term the
+    alignment finds the truth; with a tiny sigma it returns the prediction's translation (the term's Jacobian has
+    the right sign and frame, or it would diverge); in between, the smaller the sigma the nearer the prediction."""
+    T0 = pose(R_from_euler(0.05, -0.1, 0.2), [0.1, 0.2, -0.1])
+    T1 = T0 @ pose(R_from_euler(-0.01, 0.012, -0.02), [-0.015, 0.01, 0.02])
+    truth = inv_T(T1) @ T0                       # T_c1_c0
+    off = truth.copy()
+    off[:3, 3] += [0.004, -0.003, 0.0]           # the prediction: 5 mm off
+    f0, f1 = render(T0, K), render(T1, K)
+    errors = {}
+    for sigma in (0.0, 2e-4, 3e-5, 1e-7):
+        cfg = OdometryConfig(motion_prior_sigma_m=sigma)
+        res = RgbdOdometry(cfg).align(prepare_frame(*f0, K, cfg), prepare_frame(*f1, K, cfg), T_init=truth,
+                                      T_motion_prior=off)
+        assert res.ok
+        errors[sigma] = (float(np.linalg.norm(res.T_ck_ckm1[:3, 3] - truth[:3, 3])),
+                         float(np.linalg.norm(res.T_ck_ckm1[:3, 3] - off[:3, 3])))
+    assert errors[0.0][0] < 2e-4
+    assert errors[1e-7][1] < 1e-4
+    to_truth = [errors[s][0] for s in (0.0, 2e-4, 3e-5, 1e-7)]
+    assert to_truth == sorted(to_truth) and to_truth[1] > 1.5 * to_truth[0] and to_truth[2] > 10 * to_truth[1]
 
 
 def test_brightness_change_recovered_by_the_affine_model() -> None:
@@ -230,6 +255,101 @@ def test_a_jump_no_multirotor_can_make_is_refused_and_tracking_resumes() -> None
     assert odo2.rejected_jumps == 0
 
 
+def _fast_yaw(t: float) -> np.ndarray:
+    """A fast pan: yaw rate rising to 3 rad/s in 0.1 s, then steady (5.7 degrees a frame at 30 Hz), while moving
+    at 0.3 m/s."""
+    yaw = 15.0 * t * t if t < 0.1 else 0.15 + 3.0 * (t - 0.1)
+    return pose(R_from_euler(0.02, yaw, 0.0), [0.3 * t, 0.0, 0.05 * t])
+
+
+@pytest.mark.parametrize("gyro", [False, True])
+def test_a_frame_that_cannot_be_aligned_is_bridged_by_the_motion_prior(gyro: bool) -> None:
+    """Fast yaw; frame 6 is blurred beyond use and frame 7 blank (over-exposed), both without depth: neither can
+    be aligned. Each moves by the motion prior (the gyro's rotation, else the constant-velocity rotation, and the
+    constant-velocity translation), is counted, and is not ok; the motion per frame (what the velocity estimate
+    differentiates) stays that of the truth, and tracking resumes at frame 8 against the last keyframe (a frame
+    without depth never becomes one)."""
+    odo = RgbdOdometry()
+    dt = 1 / 30
+    for k in range(12):
+        t = k * dt
+        rgb, depth = render(_fast_yaw(t), K)
+        if k in (6, 7):
+            depth = np.zeros_like(depth)
+            rgb = cv2.GaussianBlur(rgb, (0, 0), 8.0) if k == 6 else np.full_like(rgb, 250)
+        prior = (inv_T(_fast_yaw(t - dt)) @ _fast_yaw(t))[:3, :3] if gyro and k > 0 else None
+        res = odo.process(t, rgb, depth, K, prior)
+        assert res.ok == (k not in (6, 7)), k
+        assert res.fallback == (k in (6, 7)), k
+        step = inv_T(_fast_yaw(t - dt)) @ _fast_yaw(t)
+        if k > 0:
+            E = inv_T(step) @ res.T_ckm1_ck
+            # an aligned step is accurate to a millimetre; a bridged one to the constant velocity's accuracy: the
+            # rotation rate is steady, but the camera-frame direction of the 10 mm step turns with the camera
+            # (5.7 degrees a frame: 1 mm more for each frame since the last aligned one); the first aligned step
+            # after the bridge takes back the bridge's error (at most 1 + 2 mm here)
+            bridge_m = 0.12 * float(np.linalg.norm(step[:3, 3]))
+            bound_m = {6: bridge_m, 7: 2 * bridge_m, 8: 3 * bridge_m}.get(k, 1e-3)
+            assert np.linalg.norm(E[:3, 3]) < bound_m, k
+            assert math.degrees(np.linalg.norm(so3_log(E[:3, :3]))) < 0.05, k
+        # the chained pose: exact while aligned, off by the bridge's error while bridged, exact again after it
+        E = inv_T(inv_T(_fast_yaw(0.0)) @ _fast_yaw(t)) @ res.T_c0_ck
+        bound_m = 4e-3 if k in (6, 7) else 1e-3
+        assert np.linalg.norm(E[:3, 3]) < bound_m and math.degrees(np.linalg.norm(so3_log(E[:3, :3]))) < 0.1, k
+    assert odo.fallbacks == 2 and odo.lost == 0
+
+
+def test_the_bridge_ends_after_max_bridged_frames_and_the_pose_then_holds() -> None:
+    """The constant velocity is not carried on for ever: past max_bridged_frames failed frames in a row the
+    pose holds (counted as lost). The next frame, 23 degrees from the keyframe with no motion to start from, is
+    lost too and becomes the keyframe: tracking re-initialises from it."""
+    odo = RgbdOdometry(OdometryConfig(max_bridged_frames=2))
+    dt = 1 / 30
+    flags = []
+    for k in range(8):
+        rgb, depth = render(_fast_yaw(k * dt), K)
+        if 3 <= k <= 5:   # the lens covered
+            rgb, depth = np.zeros_like(rgb), np.zeros_like(depth)
+        res = odo.process(k * dt, rgb, depth, K)
+        flags.append((res.ok, res.fallback))
+        if k == 5:
+            assert np.allclose(res.T_ckm1_ck, np.eye(4))
+    assert flags == [(True, False)] * 3 + [(False, True)] * 2 + [(False, False)] * 2 + [(True, False)]
+    assert odo.fallbacks == 2 and odo.lost == 2
+
+
+def test_a_real_frame_without_depth_is_bridged_on_fast_rotation() -> None:
+    """The fr1_rpy clip (up to 7 degrees a frame, hand-held) with its fifth frame blanked (colour and depth: the
+    lens covered): that frame is bridged by the constant velocity (no gyro in TUM), no frame is lost, the bridged
+    frame's rotation is within a third of its true rotation, and the clip's per-frame error stays within twice the
+    undisturbed run's. A frame with colour but without depth is still aligned (photometrically)."""
+    from conftest import tum_clip_path
+
+    folder = tum_clip_path("fr1_rpy")
+    frames = cli.load_frames(folder)
+    gs, gp = read_tum_trajectory(folder / "groundtruth.txt")
+    stamps = np.array([f.stamp_s for f in frames])
+    ok, gt = metrics.interpolate_poses(gs, gp, stamps)
+    assert ok.all()
+    errors = {}
+    for drop in (None, 4):
+        odo = RgbdOdometry()
+        poses = []
+        for k, f in enumerate(frames):
+            rgb, depth = (np.zeros_like(f.rgb), np.zeros_like(f.depth_m)) if k == drop else (f.rgb, f.depth_m)
+            res = odo.process(f.stamp_s, rgb, depth, f.intrinsics, depth_offset_s=f.meta["depth_offset_s"])
+            assert res.ok == (k != drop) and res.fallback == (k == drop), k
+            poses.append(res.T_c0_ck)
+            if k == drop:
+                true_step = inv_T(gt[k - 1]) @ gt[k]
+                E = inv_T(true_step) @ res.T_ckm1_ck
+                assert np.linalg.norm(so3_log(E[:3, :3])) < np.linalg.norm(so3_log(true_step[:3, :3])) / 3
+        assert odo.lost == 0 and odo.fallbacks == (drop is not None)
+        errors[drop] = metrics.rpe_window(stamps, np.array(poses), gt, float(np.median(np.diff(stamps))))
+    assert errors[4].rot_rmse_deg < 2 * errors[None].rot_rmse_deg
+    assert errors[4].trans_rmse_m < 2 * errors[None].trans_rmse_m
+
+
 def _flight_frames(n: int) -> list[np.ndarray]:
     """Camera poses T_w_ck of a smooth synthetic flight at 30 Hz: ~1.2 deg and ~9 mm per frame."""
     return [pose(R_from_euler(0.05 * math.sin(3 * k / 30), 0.2 * k / 30, 0.6 * k / 30),
@@ -286,7 +406,8 @@ def test_keyframe_refinement_cuts_the_drift_of_noisy_frames() -> None:
         frames.append((rgb, (depth * (1.0 + rng.normal(0.0, 0.01, depth.shape))).astype(np.float32)))
     final_error_m = {}
     for refine in (False, True):
-        odo = RgbdOdometry(OdometryConfig(keyframe_refinement=refine))
+        # eight frames a keyframe at most: the keyframes follow the rotation (the case the window is for)
+        odo = RgbdOdometry(OdometryConfig(keyframe_refinement=refine, keyframe_max_frames=8))
         results = [odo.process(k / 30, rgb, depth, K) for k, (rgb, depth) in enumerate(frames)]
         assert all(r.ok for r in results)
         assert (odo.refined_keyframes > 0) == refine
@@ -414,33 +535,63 @@ def test_unsynchronised_depth_is_registered_to_the_colour_instant() -> None:
     assert odo._kf is not None and odo._kf.depth_at_colour_instant
 
 
-def test_tum_frames_against_ground_truth(tum_head: Path) -> None:
-    src = TumSequence(tum_head, resize_to=(320, 240))
-    assert len(src) == 10
-    odo = RgbdOdometry()
-    st, est = [], []
-    for f in src.frames():
-        res = odo.process(f.stamp_s, f.rgb, f.depth_m, f.intrinsics)
-        assert res.ok
-        st.append(f.stamp_s)
-        est.append(res.T_c0_ck)
-    gs, gp = read_tum_trajectory(tum_head / "groundtruth.txt")
-    ie, ig = metrics.associate_stamps(np.array(st), gs)
-    assert len(ie) == 10
-    gt_rel = np.array([inv_T(gp[ig[0]]) @ gp[j] for j in ig])
-    est = np.array(est)[ie]
-    # 7.6 cm of real motion in 0.3 s; ground-truth stamps are approximate (README): a few mm per frame
-    travelled_gt = np.linalg.norm(gt_rel[-1][:3, 3])
-    travelled_est = np.linalg.norm(est[-1][:3, 3])
-    assert travelled_est == pytest.approx(travelled_gt, rel=0.15)
-    cos = est[-1][:3, 3] @ gt_rel[-1][:3, 3] / (travelled_est * travelled_gt)
-    assert cos > 0.97
-    r = metrics.rpe(np.array(st)[ie], est, gt_rel)
-    assert r.trans_rmse_m_s < 0.2 and r.rot_rmse_deg_s < 10.0
-    assert metrics.ate(est, gt_rel).rmse_m < 0.01
-    # a motionless estimate is much worse: the metric discriminates
-    still = np.repeat(np.eye(4)[None], len(est), axis=0)
-    assert metrics.rpe(np.array(st)[ie], still, gt_rel).trans_rmse_m_s > 0.2
+def _clip_runs(folder: Path, methods: tuple[str, ...], passes: int = 1
+               ) -> dict[str, tuple[cli.SequenceRun, cli.SequenceMetrics]]:
+    """Each method on a committed TUM clip, one thread, in this process (as ``quadlink vo-eval``): the run of the
+    pass with the lowest median CPU time (the machine is shared; the trajectories are deterministic) and its TUM
+    metrics against the truth interpolated at the colour stamps."""
+    frames = cli.load_frames(folder)
+    threads = cv2.getNumThreads()
+    cv2.setNumThreads(1)
+    try:
+        out = {}
+        for method in methods:
+            runs = [cli.run_sequence(frames, method, folder.name) for _ in range(passes)]
+            run = min(runs, key=lambda r: float(np.median(r.cpu_ms)))
+            gt = cli.ground_truth_at(folder, run.stamps_s)
+            assert gt is not None
+            assert gt[0].all(), "every frame of a clip has ground truth"
+            out[method] = (run, cli.evaluate(run, *gt))
+        return out
+    finally:
+        cv2.setNumThreads(threads)
+
+
+def test_tum_clip_accuracy_against_ground_truth_and_the_peers(any_tum_clip: Path) -> None:
+    """Issue 33's accuracy targets on real frames, against OpenCV and Open3D run on the same frames here:
+    per-frame translational RPE <= 0.8x the better peer's, rotational no worse than the better peer's, ATE no
+    worse, no failed frame. And against the truth alone: the error of the clip's dominant motion (fr3_teddy:
+    15 mm a frame; fr1_rpy: 2.9 degrees a frame) is under a fifth of that motion."""
+    methods = ("ours", "opencv") + (("open3d",) if importlib.util.find_spec("open3d") else ())
+    runs = _clip_runs(any_tum_clip, methods)
+    run, ours = runs["ours"]
+    assert run.failures == 0 and ours.frames_evaluated == len(run.stamps_s) == 10
+    peers = [m for name, (_, m) in runs.items() if name != "ours"]
+    best_t = min(m.rpe_frame.trans_rmse_m for m in peers)
+    best_r = min(m.rpe_frame.rot_rmse_deg for m in peers)
+    assert ours.rpe_frame.trans_rmse_m <= 0.8 * best_t, (ours.rpe_frame, best_t)
+    assert ours.rpe_frame.rot_rmse_deg <= best_r, (ours.rpe_frame, best_r)
+    assert ours.ate.rmse_m <= min(m.ate.rmse_m for m in peers)
+    # a motionless estimate's error is the truth's own motion between frames
+    ok, gt = cli.ground_truth_at(any_tum_clip, run.stamps_s)  # type: ignore[misc]
+    still = metrics.rpe_window(run.stamps_s, np.repeat(np.eye(4)[None], len(gt), 0), gt,
+                               ours.rpe_frame.delta_s)
+    checked = 0
+    if still.trans_rmse_m > 0.005:
+        assert ours.rpe_frame.trans_rmse_m < 0.2 * still.trans_rmse_m
+        checked += 1
+    if still.rot_rmse_deg > 1.5:
+        assert ours.rpe_frame.rot_rmse_deg < 0.2 * still.rot_rmse_deg
+        checked += 1
+    assert checked >= 1, "the clip moves"
+
+
+def test_tum_clip_time_per_frame_is_under_half_of_opencvs(tum_clip: Path) -> None:
+    """Issue 33's speed target as a ratio measured here, both on one thread: median CPU time per frame of ours at
+    most half of OpenCV's RGBD odometry's on the same real frames (best of three passes each)."""
+    runs = _clip_runs(tum_clip, ("ours", "opencv"), passes=3)
+    ratio = float(np.median(runs["ours"][0].cpu_ms)) / float(np.median(runs["opencv"][0].cpu_ms))
+    assert ratio <= 0.5, ratio
 
 
 def test_metrics_horn_alignment_and_rpe() -> None:
@@ -506,12 +657,12 @@ def test_tum_folder_source_camera_yaml_jpeg_and_overrides(tmp_path: Path) -> Non
         TumSequence(tmp_path / "missing")
 
 
-def test_vo_eval_cli_prints_metrics_and_writes_trajectory(tum_head: Path, tmp_path: Path) -> None:
+def test_vo_eval_cli_prints_metrics_and_writes_trajectory(tum_clip: Path, tmp_path: Path) -> None:
     out = tmp_path / "traj.txt"
-    res = CliRunner().invoke(vo_eval, [str(tum_head), "--out", str(out), "--max-frames", "5"])
+    res = CliRunner().invoke(vo_eval, [str(tum_clip), "--out", str(out), "--max-frames", "5"])
     assert res.exit_code == 0, res.output
     assert "RPE1s" in res.output and "ATE" in res.output and "CPU ms" in res.output
-    row = [line for line in res.output.splitlines() if line.startswith("tum_fr1_xyz_head")]
+    row = [line for line in res.output.splitlines() if line.startswith("fr3_teddy")]
     assert len(row) == 1
     fields = row[0].split()
     assert fields[1] == "ours" and fields[2] == "5/5" and fields[3] == "-"   # 0.13 s: no pair 1 s apart
@@ -520,7 +671,7 @@ def test_vo_eval_cli_prints_metrics_and_writes_trajectory(tum_head: Path, tmp_pa
     assert len(s) == 5 and np.allclose(p[0], np.eye(4))
 
 
-def test_vo_eval_cli_several_sequences_and_methods(tum_head: Path, tmp_path: Path) -> None:
+def test_vo_eval_cli_several_sequences_and_methods(tum_clip: Path, tmp_path: Path) -> None:
     """Two sequences (the shared head and a synthetic one with truth) and two methods in one call: one table
     row each, one trajectory file each; the synthetic sequence's metrics come from its interpolated truth."""
     seq = tmp_path / "synth"
@@ -530,17 +681,17 @@ def test_vo_eval_cli_several_sequences_and_methods(tum_head: Path, tmp_path: Pat
     gt = [f"{t:.6f} {0.3 * t:.6f} 0 0 0 0 0 1" for t in np.arange(-0.02, 0.1, 0.01)]
     (seq / "groundtruth.txt").write_text("\n".join(gt) + "\n")
     out = tmp_path / "trajs"
-    res = CliRunner().invoke(vo_eval, [str(tum_head), str(seq), "--method", "ours", "--method", "opencv",
+    res = CliRunner().invoke(vo_eval, [str(tum_clip), str(seq), "--method", "ours", "--method", "opencv",
                                        "--max-frames", "3", "--out", str(out)])
     assert res.exit_code == 0, res.output
-    rows = [line.split() for line in res.output.splitlines() if line.startswith(("tum_fr1", "synth"))]
-    assert [(r[0], r[1]) for r in rows] == [("tum_fr1_xyz_head", "ours"), ("tum_fr1_xyz_head", "opencv"),
+    rows = [line.split() for line in res.output.splitlines() if line.startswith(("fr3_teddy", "synth"))]
+    assert [(r[0], r[1]) for r in rows] == [("fr3_teddy", "ours"), ("fr3_teddy", "opencv"),
                                             ("synth", "ours"), ("synth", "opencv")]
     ours_synth = rows[2]
     assert ours_synth[2] == "3/3"
     assert float(ours_synth[6]) < 1e-3 and float(ours_synth[7]) < 1.0   # ATE m, per-frame RPE mm
-    assert sorted(p.name for p in out.iterdir()) == ["synth_opencv.txt", "synth_ours.txt",
-                                                     "tum_fr1_xyz_head_opencv.txt", "tum_fr1_xyz_head_ours.txt"]
+    assert sorted(p.name for p in out.iterdir()) == ["fr3_teddy_opencv.txt", "fr3_teddy_ours.txt",
+                                                     "synth_opencv.txt", "synth_ours.txt"]
 
 
 def test_vo_eval_cli_without_groundtruth_and_bad_path(tmp_path: Path) -> None:
