@@ -6,7 +6,7 @@ Run: ``.venv/bin/python benchmarks/bench_perception.py [--passes N] [--synthetic
 
 * Odometry, held out (issue 33): every tunable parameter of a small grid chosen on two of the three shared TUM
   sequences and scored on the third, for each split and each method variant (:mod:`perception.odometry_loo`), beside
-  OpenCV and Open3D on the same frames in this process, one thread: the markdown table of ``docs/odometry.md``
+  OpenCV and Open3D on the same frames in this process, one thread: the markdown table of ``docs/reference/odometry.md``
   (``--markdown FILE`` writes it to FILE too). This is the odometry's figure; the table below it is not held out.
 * Odometry, on the same frames in one run, 640×480 in and 320×240 inside, on one thread
   (``cv2.setNumThreads(1)``, ``OMP_NUM_THREADS=1``): ours (perception.odometry, DVO-style) vs OpenCV's

@@ -9,7 +9,7 @@ from dataclasses import dataclass
 
 @dataclass(frozen=True)
 class OdometryConfig:
-    """Parameters of the direct RGB-D odometry (QVGA). docs/odometry.md chooses ``keyframe_max_frames``,
+    """Parameters of the direct RGB-D odometry (QVGA). docs/reference/odometry.md chooses ``keyframe_max_frames``,
     ``gradient_fraction`` and ``motion_prior_sigma_m`` on two TUM sequences and scores them on the third
     (perception/odometry_loo.py): ``gradient_fraction`` 0.2 is every split's choice; the splits' majority for
     ``keyframe_max_frames`` (4) quadrupled the SITL flight's largest velocity error and the prior term biases

@@ -32,7 +32,7 @@ from perception import cli
 from perception.odometry import OdometryConfig
 from quadlink.camera import RgbdFrame
 
-# the searched values (the shipped defaults among them; what ships and why: docs/odometry.md); other parameters
+# the searched values (the shipped defaults among them; what ships and why: docs/reference/odometry.md); other parameters
 # keep their documented defaults. depth_weight is not searched: 1 is the maximum-likelihood weight of two
 # terms each normalised by its robust scale (DVO), and 0.5, which two of three TUM splits preferred in an earlier
 # run, loses the re-initialisation from rest at 3 rad/s of yaw (test_the_bridge_ends_after_max_bridged_frames...)
@@ -44,7 +44,7 @@ GRID: dict[str, tuple[Any, ...]] = {
 
 # method variants, each a change of the method measured leave-one-out (its overrides beat the grid's values):
 # "ours" is the shipped method, its searched parameters chosen per split (no constant-velocity prior term: it biases
-# accelerating flight, docs/odometry.md);
+# accelerating flight, docs/reference/odometry.md);
 # the others switch one part off, or (the prior term) on
 NO_PRIOR = {"motion_prior_sigma_m": 0.0}
 VARIANTS: dict[str, dict[str, Any]] = {
