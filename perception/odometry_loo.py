@@ -32,7 +32,7 @@ from perception import cli
 from perception.odometry import OdometryConfig
 from quadlink.camera import RgbdFrame
 
-# the searched values (the shipped defaults among them; what ships and why: docs/reference/odometry.md); other parameters
+# the searched values (the shipped defaults among them; what ships and why: docs/reference/odometry.md); others
 # keep their documented defaults. depth_weight is not searched: 1 is the maximum-likelihood weight of two
 # terms each normalised by its robust scale (DVO), and 0.5, which two of three TUM splits preferred in an earlier
 # run, loses the re-initialisation from rest at 3 rad/s of yaw (test_the_bridge_ends_after_max_bridged_frames...)
