@@ -93,6 +93,7 @@ class FlightSpec:
     settle_s: float = 0.0  # run_demo's settle_s: how long the vehicle may fly on after the operator's session
     room_height_error_m: float | None = ROOM_HEIGHT_ENTRY_ERROR_M  # the operator's entry - the truth; None: not entered
     companion_config: str | None = None  # the companion's YAML (None: the nominal one with the room's height entry)
+    board: str | None = None  # the SITL's board: model (Python) or avr (the firmware binary in simavr); None: config
 
     def resolve(self, folder: Path) -> FlightSpec:
         def r(p: str | None) -> str | None:
@@ -106,7 +107,8 @@ class FlightSpec:
 
         return FlightSpec(r(self.scenario) or self.scenario, r(self.script) or self.script, self.duration_s,
                           self.operator, r(self.sitl_config), self.lockstep, self.speed, self.view,
-                          self.deterministic, self.settle_s, self.room_height_error_m, r(self.companion_config))
+                          self.deterministic, self.settle_s, self.room_height_error_m, r(self.companion_config),
+                          self.board)
 
 
 def write_companion_config(out_dir: Path, **sections: object) -> Path:
@@ -146,7 +148,7 @@ def build_specs(scenario: str, script: Path, out_dir: Path, ports: Ports, lockst
                 teleop_config: Path | None = None, signing_key: Path | None = None,
                 companion_config: Path | None = None, deterministic: bool = False,
                 settle_s: float = 0.0, room_height_error_m: float | None = ROOM_HEIGHT_ENTRY_ERROR_M,
-                ) -> list[ProcessSpec]:
+                board: str | None = None) -> list[ProcessSpec]:
     """The parts of a flight in start order. ``view=False`` runs headless: no operator image stream from the
     companion, no view or web page in the ground station (neither feeds back into the flight: the haptic
     cue's pan-scan estimate comes from TELEOP_FEEDBACK, not from the images), which saves their CPU.
@@ -177,6 +179,8 @@ def build_specs(scenario: str, script: Path, out_dir: Path, ports: Ports, lockst
             "--duration", f"{duration_s:g}" if deterministic else f"{duration_s + SITL_DURATION_MARGIN_S:.0f}"]
     if sitl_config is not None:
         sitl += ["--config", sitl_config]
+    if board is not None:   # model | avr: the firmware binary in simavr (sim_sitl/avr_board.py)
+        sitl += ["--board", board]
     stepped: tuple[str, ...] = ()
     if deterministic:
         sitl += ["--lockstep-port", str(ports.lockstep), "--end-after-operator", f"{settle_s:g}"]
@@ -231,7 +235,7 @@ def run_demo(scenario: str, duration_s: float, out_dir: Path, script: Path, lock
              passivity: bool | None = None, signing_key: Path | None = None,
              settle_s: float = 0.0, deterministic: bool = False,
              room_height_error_m: float | None = ROOM_HEIGHT_ENTRY_ERROR_M,
-             companion_config: Path | None = None) -> dict[str, object]:
+             companion_config: Path | None = None, board: str | None = None) -> dict[str, object]:
     """Fly the demo; returns the report. Raises :class:`ProcessDied` if a part dies.
 
     Writes ``out_dir/flight.json`` (the :class:`FlightSpec`, what ``--replay`` re-flies) and
@@ -256,7 +260,7 @@ def run_demo(scenario: str, duration_s: float, out_dir: Path, script: Path, lock
     out_dir.mkdir(parents=True, exist_ok=True)
     spec = FlightSpec(str(scenario), str(script), float(duration_s), operator, sitl_config, lockstep, speed, view,
                       deterministic, settle_s, room_height_error_m,
-                      str(companion_config) if companion_config is not None else None)
+                      str(companion_config) if companion_config is not None else None, board)
     (out_dir / "flight.json").write_text(json.dumps(dataclasses.asdict(spec), indent=2) + "\n")
     ports = Ports(port_offset, port_base)
     stack = Stack(out_dir / "logs")
@@ -280,7 +284,7 @@ def run_demo(scenario: str, duration_s: float, out_dir: Path, script: Path, lock
     specs = build_specs(scenario, Path(script), out_dir, ports, lockstep, speed, duration_s, record_frames,
                         sitl_config, operator, view, via_netem=link is not None, teleop_config=teleop_config,
                         signing_key=signing_key, deterministic=deterministic, settle_s=settle_s,
-                        room_height_error_m=room_height_error_m, companion_config=companion_config)
+                        room_height_error_m=room_height_error_m, companion_config=companion_config, board=board)
     operator_name = specs[-1].name
     try:
         for part in specs:
@@ -413,7 +417,8 @@ def replay_flight(flight_dir: Path, out_dir: Path | None = None, port_offset: in
                       progress_every_s, port_base=port_base, sitl_config=spec.sitl_config, operator=spec.operator,
                       view=spec.view, settle_s=spec.settle_s, deterministic=spec.deterministic,
                       room_height_error_m=spec.room_height_error_m,
-                      companion_config=Path(spec.companion_config) if spec.companion_config else None)
+                      companion_config=Path(spec.companion_config) if spec.companion_config else None,
+                      board=spec.board)
     return report, out
 
 
@@ -470,10 +475,13 @@ def compare_reports(original: dict[str, Any], replay: dict[str, Any]) -> list[tu
 @click.option("--deterministic", is_flag=True,
               help="The deterministic lock-step (quadlink/lockstep.py; needs --no-view, no --link-*): every part steps "
                    "with the SITL and the SITL ends the flight, so the same flight re-flies bit for bit (--replay).")
+@click.option("--board", type=click.Choice(["model", "avr"]), default=None,
+              help="The SITL's flight controller: model (the Python board) or avr (the firmware binary, "
+                   "firmware/build/quadlink-fc.elf, in simavr); default: configs/sitl.yaml.")
 def command(scenario: str, duration_s: float, out_dir: Path | None, script: Path, lockstep: bool, speed: float,
             port_offset: int, port_base: int | None, replay_dir: Path | None, view: bool, record_frames: bool,
             link_delay_ms: float | None, link_jitter_ms: float | None, link_loss: float | None, link_seed: int,
-            passivity: bool | None, signing_key: Path | None, deterministic: bool) -> None:
+            passivity: bool | None, signing_key: Path | None, deterministic: bool, board: str | None) -> None:
     """Fly the paper's experiment in the SITL (take off, drive, rotate, approach and push the obstacle, land)."""
     try:
         impaired = any(v is not None for v in (link_delay_ms, link_jitter_ms, link_loss))
@@ -487,7 +495,7 @@ def command(scenario: str, duration_s: float, out_dir: Path | None, script: Path
             out_dir = out_dir or Path("flight-report")
             report = run_demo(scenario, duration_s, out_dir, script, lockstep, speed, port_offset,
                               record_frames=record_frames, port_base=port_base, view=view, link=link,
-                              passivity=passivity, signing_key=signing_key, deterministic=deterministic)
+                              passivity=passivity, signing_key=signing_key, deterministic=deterministic, board=board)
     except ProcessDied as exc:
         click.echo(f"quadlink demo: {exc}", err=True)
         raise SystemExit(1) from exc
