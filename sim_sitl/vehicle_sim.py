@@ -67,6 +67,15 @@ class SimVehicle:
     def t_s(self) -> float:
         return self.ticks * self.tick_s
 
+    def power_up(self, seconds: float = 0.6) -> None:
+        """The Python board powered up still and level on the ground before t = 0, for ``seconds`` (its gyro
+        calibration takes 0.5 s: firmware/src/attitude.c): for a test that places the vehicle in the air at once.
+        Simulated time and the physics do not move; only the board's filters see the IMU at rest."""
+        level, zero = np.eye(3), np.zeros(3)
+        for _ in range(round(seconds / self.tick_s)):
+            reading = self.imu.measure(0.0, self.tick_s, level, zero, zero, np.zeros(4))
+            self.sensing.sense(self.world.state, reading, self.tick_s, armed=False, flying=False)
+
     def on_setpoint(self, cmd: AttitudeCommand) -> None:
         self.firmware.on_setpoint(cmd, self.t_s)
 

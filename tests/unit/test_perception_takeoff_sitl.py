@@ -28,6 +28,7 @@ def _world_tilt_after_takeoff_deg(odometry: OdometryConfig, seed: int) -> float:
     veh = load_vehicle()
     cfg = load_sitl_config()
     sim = SimVehicle(veh, cfg, load_scenario("empty"), np.random.default_rng(seed))
+    sim.power_up()
     cam = RgbdCamera(sim.world, veh.camera, cfg.camera_noise, np.random.default_rng(seed + 1))
     pipe = PerceptionPipeline(PerceptionConfig(odometry=odometry), cam.intrinsics, cam.R_qc, np.asarray(cam.p_qc_m),
                               np.random.default_rng(seed + 2))
@@ -66,5 +67,8 @@ def test_a_take_off_is_not_tracked_on_a_sliver_of_floor(seed: int) -> None:
     untracked frames."""
     tilt = _world_tilt_after_takeoff_deg(OdometryConfig(), seed)
     before = _world_tilt_after_takeoff_deg(dataclasses.replace(OdometryConfig(), min_reference_points=100), seed)
-    assert tilt < 0.5, (tilt, before)
-    assert before > 2.0, (tilt, before)   # the take-off still shows the failure the gate is for
+    # the board now flies on its own attitude estimate (issue 29), so the take-off itself is not exactly level:
+    # measured 0.77/0.78 deg with the gate and 1.84/2.94 deg without it (seeds 0/1; 0.2-0.7 and > 2 on the true
+    # attitude); the bound widened from 0.5 deg to 1.0 with them, and the gate must still take off > 1 deg
+    assert tilt < 1.0, (tilt, before)
+    assert before - tilt > 1.0, (tilt, before)   # the take-off still shows the failure the gate is for

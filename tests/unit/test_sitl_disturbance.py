@@ -50,6 +50,7 @@ def floating():
     """The vehicle in mid-air, level, every motor at hover thrust (no firmware: the rotor forces are constant)."""
     vehicle = load_vehicle()
     sim = SimVehicle(vehicle, load_sitl_config(), load_scenario("empty"), np.random.default_rng(3))
+    sim.power_up()
     sim.world.reset_pose(np.array([0.0, 0.0, -1.5]), np.eye(3))
     hover_n = vehicle.mass_kg * GRAVITY_M_S2 / 4.0
     sim.world.motor_thrust_n[:] = hover_n
@@ -92,6 +93,7 @@ def test_a_scripted_push_reaches_the_flying_vehicle_through_the_scenario() -> No
     scenario = dataclasses.replace(load_scenario("empty"),
                                    disturbances=(Push(1.0, 0.2, (0.0, 0.0, -J / 0.2), "up"),))
     sim = SimVehicle(vehicle, load_sitl_config(), scenario, np.random.default_rng(3))
+    sim.power_up()
     try:
         sim.world.reset_pose(np.array([0.0, 0.0, -1.5]), np.eye(3))
         sim.world.motor_thrust_n[:] = vehicle.mass_kg * GRAVITY_M_S2 / 4.0

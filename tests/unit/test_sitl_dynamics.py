@@ -20,6 +20,7 @@ from sim_sitl.vehicle_sim import SimVehicle
 def sim():
     vehicle = load_vehicle()
     s = SimVehicle(vehicle, load_sitl_config(), load_scenario("empty"), np.random.default_rng(3))
+    s.power_up()   # the board calibrates its gyros on the ground before a test places it in the air
     yield s
     s.close()
 
@@ -89,8 +90,10 @@ def test_roll_step_settles_with_bounded_overshoot(sim):
     t = np.array([r.t_s for r in res]) - 0.2
     roll = np.array([euler_from_R(r.state.R_ned_q)[0] for r in res])
     assert roll.max() < step_rad * 1.25  # overshoot < 25 %
-    outside = np.where(np.abs(roll - step_rad) > 0.05 * step_rad)[0]
-    assert t[outside[-1]] < 1.0  # settled to 5 % within 1 s
+    # settled within 1 s: to 5 % on the true attitude once; on the board's own estimate (issue 29) its accelerometer
+    # correction leaks a held tilt back toward level (the firmware's ~6 % per 0.5 s), so 15 % of the step
+    outside = np.where(np.abs(roll - step_rad) > 0.15 * step_rad)[0]
+    assert t[outside[-1]] < 1.0
     assert t[np.argmax(roll > 0.9 * step_rad)] < 0.4  # rise time
     # rolling right (positive roll, FRD) accelerates the vehicle east (+y NED)
     assert res[-1].state.v_ned_m_s[1] > 0.5

@@ -34,6 +34,7 @@ def _fly(scenario_name: str, start_ned_m: np.ndarray, target_at, seconds: float,
         scenario = dataclasses.replace(scenario, disturbances=tuple(
             dataclasses.replace(p, start_s=p.start_s - push_shift_s) for p in scenario.disturbances))
     sim = SimVehicle(vehicle, load_sitl_config(), scenario, np.random.default_rng(5))
+    sim.power_up()
     try:
         sim.world.reset_pose(start_ned_m, np.eye(3))
         sim.world.motor_thrust_n[:] = vehicle.mass_kg * GRAVITY_M_S2 / 4.0
@@ -101,7 +102,9 @@ def test_oval_tracking_errors_on_the_sitl_physics(tmp_path: Path, drag_ff_1_s: f
     rmse_v = np.sqrt(np.mean((v - v_d) ** 2, axis=0))
     print(f"SITL oval (true state, drag ff {drag_ff_1_s:.2f} 1/s): position RMSE {np.round(rmse_p, 4)} m, "
           f"velocity RMSE {np.round(rmse_v, 4)} m/s, max position error {np.linalg.norm(p - p_d, axis=1).max():.3f} m")
-    assert np.all(rmse_p <= (0.05 if drag_ff_1_s == 0.0 else 0.025)), rmse_p  # issue 19: 0.05 (on the estimate)
+    # issue 19: 0.05 (on the estimate); with drag feed-forward 0.025 while the board flew on the true attitude, on its
+    # own estimate (issue 29) 0.017/0.029/0.002 m measured: widened to 0.035 with them
+    assert np.all(rmse_p <= (0.05 if drag_ff_1_s == 0.0 else 0.035)), rmse_p
     assert np.all(rmse_v <= 0.06), rmse_v
     assert rmse_p[:2].max() > 1e-3  # it is a real flight, not a replay of the reference
     # the report pieces the full-stack demo will use: the same figures, and the plots
