@@ -8,6 +8,7 @@ from pathlib import Path
 from typing import Literal
 
 from companion.arbiter import ArbiterParams
+from companion.blocked_hold import BlockedHoldParams
 from companion.landing_spot import LandingSpotParams
 from companion.latency import LatencyParams
 from companion.modes import ModeParams
@@ -105,6 +106,8 @@ class CompanionConfig:
     arbiter: ArbiterParams = field(default_factory=ArbiterParams)   # sources of motion (companion.arbiter)
     landing_spot: LandingSpotParams = field(default_factory=LandingSpotParams)   # commanded landings over objects
     latency: LatencyParams = field(default_factory=LatencyParams)   # late data: what the safety law pays for it
+    # where the safety layer blocked the command, hold the place (companion.blocked_hold), not just v = 0
+    blocked_hold: BlockedHoldParams = field(default_factory=BlockedHoldParams)
     # signing and the sender allowlist on the ground-station endpoint (the autopilot link is internal)
     security: SecurityConfig = field(default_factory=SecurityConfig)
     vehicle: str = "vehicle"  # vehicle config (camera mount R_qc, p_qc) by name or path
