@@ -52,7 +52,8 @@ class ReferenceParams:
     ``out_of_band_3d``: points outside the height band (a box top below the vehicle, a ceiling point
     above it) constrain the motion by their 3D distance instead of being ignored. Vertical limits
     (:mod:`companion.vertical_limits`): ``max_height_m`` above the take-off floor (an altitude fence),
-    ``room_height_m`` (the ceiling, kept ``safe_distance_m`` away), ``floor_min_height_m`` (the lowest
+    ``room_height_m`` (the ceiling as the operator entered it, kept ``safe_distance_m`` away and
+    ``room_height_error_m`` more, the entry's possible error), ``floor_min_height_m`` (the lowest
     height the reference descends to; take-off and landing are the autopilot's). ``takeoff_height_m``:
     height of the vehicle's origin above the floor when it stands on it (its landing gear):
     :func:`companion.reference.reference_velocity`'s ``height_m`` is the odometry's, counted from the
@@ -83,6 +84,7 @@ class ReferenceParams:
     out_of_band_3d: bool = True
     max_height_m: float | None = None
     room_height_m: float | None = None
+    room_height_error_m: float = 0.10
     floor_min_height_m: float = 0.3
     takeoff_height_m: float = 0.0
     floor_height_time_constant_s: float = 0.5
@@ -94,4 +96,4 @@ class ReferenceParams:
         the closing-speed law."""
         return VerticalParams(self.max_height_m, self.room_height_m, self.safe_distance_m, self.floor_min_height_m,
                               self.approach_gain_per_s if math.isfinite(self.approach_gain_per_s) else 1.2,
-                              self.stopping_time_s)
+                              self.stopping_time_s, self.room_height_error_m)

@@ -36,9 +36,11 @@ from quadlink.safety import SAFE_DISTANCE_M
 class VerticalParams:
     """Configured vertical limits (m, above the take-off floor) and the law's gain and stopping time.
 
-    ``max_height_m``: the altitude fence (None = none). ``room_height_m``: the ceiling's height (None =
-    unknown); the vehicle keeps ``safe_distance_m`` below it. ``floor_min_height_m``: the lowest height
-    the reference flies to (the descent slows toward it from ``floor_min_height_m + max_descent / gain``).
+    ``max_height_m``: the altitude fence (None = none). ``room_height_m``: the ceiling's height as the operator
+    entered it (None = unknown); the vehicle keeps ``safe_distance_m`` below it, and ``room_height_error_m`` more:
+    an entry is a tape measure's reading or a guess, and one 0.10 m high put a campaign flight 0.34 m from a
+    2.10 m ceiling. ``floor_min_height_m``: the lowest height the reference flies to (the descent slows toward it
+    from ``floor_min_height_m + max_descent / gain``).
     """
 
     max_height_m: float | None = None
@@ -47,6 +49,7 @@ class VerticalParams:
     floor_min_height_m: float = 0.3
     gain_per_s: float = 1.2
     stopping_time_s: float = 0.8
+    room_height_error_m: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -69,12 +72,13 @@ class VerticalLimits:
 
 
 def ceiling_height_m(params: VerticalParams) -> float:
-    """The highest height the vehicle's centre may reach: the fence, the room's ceiling minus the margin."""
+    """The highest height the vehicle's centre may reach: the fence, the room's ceiling as entered minus its possible
+    error and the safe distance."""
     limits = [math.inf]
     if params.max_height_m is not None:
         limits.append(params.max_height_m)
     if params.room_height_m is not None:
-        limits.append(params.room_height_m - params.safe_distance_m)
+        limits.append(params.room_height_m - max(params.room_height_error_m, 0.0) - params.safe_distance_m)
     return min(limits)
 
 

@@ -199,8 +199,20 @@ def test_a_full_climb_stops_below_the_ceiling_with_a_lagging_loop() -> None:
         vz_up += (pending.pop(0) - vz_up) * dt / 0.3
         h += vz_up * dt
         highest = max(highest, h)
-    assert out.vertical_limits is not None and out.vertical_limits.ceiling_height_m == pytest.approx(2.55)
-    assert 2.45 <= highest <= 2.55 + 0.01
+    # 3.0 m as entered, less its possible error (0.10 m) and the safe distance
+    assert out.vertical_limits is not None and out.vertical_limits.ceiling_height_m == pytest.approx(2.45)
+    assert 2.35 <= highest <= 2.45 + 0.01
+
+
+def test_the_ceiling_limit_counts_the_room_height_entry_error() -> None:
+    """A room 2.10 m high entered as 2.20 m (campaign flight 7 of seed 2031: 0.34 m from the ceiling): the limit
+    keeps the safe distance below the lowest ceiling the entry allows."""
+    from companion.vertical_limits import ceiling_height_m
+
+    entered = ReferenceParams(room_height_m=2.20, max_height_m=None, room_height_error_m=0.10)
+    assert 2.10 - ceiling_height_m(entered.vertical()) >= entered.safe_distance_m - 1e-9
+    exact = ReferenceParams(room_height_m=2.20, max_height_m=None, room_height_error_m=0.0)
+    assert ceiling_height_m(exact.vertical()) == pytest.approx(2.20 - exact.safe_distance_m)
 
 
 def test_a_scripted_command_replaces_the_operator_and_obeys_the_same_constraints() -> None:
