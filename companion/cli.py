@@ -105,6 +105,7 @@ def _start_and_run(stop: threading.Event, config_path: str, autopilot: str | Non
     from quadlink.lockstep import LockstepError
     from quadlink.mavlink.connection import open_mavlink
     from quadlink.mavlink.tlog import TlogWriter
+    from quadlink.realtime import set_nice
     from quadlink.vehicle import load_vehicle
 
     cfg = load_companion_config(config_path)
@@ -125,6 +126,7 @@ def _start_and_run(stop: threading.Event, config_path: str, autopilot: str | Non
         log.warning("camera %s: timing.camera_stamps 'local' (the config says %r)", links.camera,
                     cfg.timing.camera_stamps)
         cfg = dataclasses.replace(cfg, timing=dataclasses.replace(cfg.timing, camera_stamps="local"))
+    set_nice(cfg.timing.nice)   # before the threads start: they inherit it
     vehicle = load_vehicle(cfg.vehicle)
     factory = default_pipeline_factory(cfg, cfg.seed)
     ident = cfg.identity

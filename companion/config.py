@@ -60,6 +60,9 @@ class TimingConfig:
     camera_timeout_s: float = 0.3  # no frame for this long (wall): obstacle data stale, odometry failed
     fallback_setpoint_rate_hz: float = 10.0  # setpoints sent while the camera is silent
     poll_s: float = 0.004  # main loop wait per iteration
+    # the process's niceness (quadlink.realtime.set_nice; 0: leave it; below 0 needs CAP_SYS_NICE): on a board the
+    # companion shares, -5 keeps perception ahead of the rest, behind the bridge's SCHED_FIFO
+    nice: int = 0
 
 
 @dataclass(frozen=True)

@@ -6,6 +6,10 @@ work cannot keep it waiting for a CPU. Threads started afterwards inherit the po
 process starts its threads. It needs ``CAP_SYS_NICE`` (root, ``setcap cap_sys_nice+ep`` on the interpreter, or
 the systemd unit); without it, or on a system with no ``SCHED_FIFO``, it logs why and the process runs on at
 normal priority: a missing privilege must not stop the flight stack.
+
+``set_nice(n)`` is the milder request for a process that computes a lot (the companion's perception): a real-time
+policy on a CPU-bound process would take whole cores from everything else, so it asks the normal scheduler for a
+larger share (``nice`` -20..19; below 0 needs the same privilege), below the bridge's ``SCHED_FIFO``.
 """
 
 from __future__ import annotations
@@ -41,4 +45,31 @@ def set_realtime_priority(priority: int) -> bool:
         log.warning("real-time priority %d failed (%s): normal priority", priority, exc)
         return False
     log.info("running under SCHED_FIFO, priority %d", priority)
+    return True
+
+
+MIN_NICE, MAX_NICE = -20, 19
+
+
+def set_nice(nice: int) -> bool:
+    """This process's niceness to ``nice`` (0 leaves it alone); True if it applied. Never raises for a missing
+    privilege or an old kernel: it logs why and the process runs on."""
+    if not MIN_NICE <= nice <= MAX_NICE:
+        raise ConfigError(f"nice {nice}: must be in {MIN_NICE}..{MAX_NICE} (0: leave it)")
+    if nice == 0:
+        return False
+    setter, getter = getattr(os, "setpriority", None), getattr(os, "getpriority", None)
+    which = getattr(os, "PRIO_PROCESS", None)
+    if setter is None or getter is None or which is None:
+        log.warning("nice %d requested but this system has no setpriority: normal priority", nice)
+        return False
+    try:
+        setter(which, 0, nice)
+    except PermissionError:
+        log.warning("nice %d refused (a negative nice needs CAP_SYS_NICE or an RLIMIT_NICE): normal priority", nice)
+        return False
+    except OSError as exc:
+        log.warning("nice %d failed (%s): normal priority", nice, exc)
+        return False
+    log.info("running at nice %d", getter(which, 0))
     return True
