@@ -114,6 +114,13 @@ class FlightControlService:
 
         if s.mode == FlightMode.OFFBOARD and s.att_sp is not None:
             return self._finish(self._attitude_command(s.att_sp, est))
+        if s.mode == FlightMode.LAND and self._level_landing():
+            # the landing's last part is flown as the blind descent: level, on the barometer, down to the ground
+            # contact test. Near the floor the camera has nothing in range to track: campaign seed 2031 flight 1
+            # sat bouncing on the floor in LAND for 5 s (its odometry's vertical speed never quiet enough for the
+            # touchdown test), then its odometry's velocity went to garbage and the tracker, chasing it, threw the
+            # vehicle across the room at 4 m/s into a wall (0.24 m)
+            return self._blind_step(now_s, dt, est)
 
         v_ref = np.zeros(3)
         yaw_rate = 0.0
@@ -234,6 +241,12 @@ class FlightControlService:
                 abs(s.vertical.estimate.accel_z_m_s2) < GROUND_CONTACT_ACCEL_M_S2
             self._detect_touchdown(now_s, cmd, abs(vz_est), ground_contact=ground)
         return self._finish(cmd)
+
+    def _level_landing(self) -> bool:
+        """In LAND: the barometer-fused height is below BRG_LAND_LVL_ALT (0: never), so the rest is flown level."""
+        s = self.state
+        floor_m = s.params["BRG_LAND_LVL_ALT"]
+        return floor_m > 0.0 and s.vertical.estimate.baro_fused and s.vertical.height_m < floor_m
 
     def _heading_hold(self, dt: float, yaw_rate_ref: float, yaw_rad: float) -> float:
         """Yaw rate tracked through a heading setpoint (like PX4's yaw control): the setpoint integrates the

@@ -63,6 +63,10 @@ PARAM_SPECS: tuple[ParamSpec, ...] = (
     ParamSpec("BRG_TKO_THR_MRG", 0.25, 0.05, 0.6, "fraction", "take-off phase 1: thrust ceiling above hover, fraction"),
     ParamSpec("BRG_TKO_RAMP_T", 1.0, 0.0, 5.0, "s", "take-off phase 1: thrust ramp from idle"),
     ParamSpec("BRG_OL_LAND_SPD", 0.5, 0.1, 1.0, "m/s", "landing without odometry: descent rate (ArduPilot LAND_SPEED)"),
+    ParamSpec("BRG_ODOM_VGATE", 0.6, 0.0, 5.0, "m/s",
+              "odometry velocity further than this from the IMU's prediction is refused (0: off)"),
+    ParamSpec("BRG_LAND_LVL_ALT", 0.3, 0.0, 2.0, "m",
+              "LAND: below this baro height, descend level on the baro (0: off)"),
 ) + GEOMETRIC_PARAM_SPECS  # BRG_TRACKER (0 PID, 1 geometric) and the geometric tracker's gains (issue 19)
 
 SPECS_BY_NAME: dict[str, ParamSpec] = {p.name: p for p in PARAM_SPECS}

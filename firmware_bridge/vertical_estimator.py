@@ -144,7 +144,13 @@ class VerticalEstimator:
             self._vz -= k2 * e * dt_s        # w = -vz gains k2 e
             self._bias += k3 * e * dt_s      # the estimate lags low: the downward acceleration read too large
         self._vz = min(max(self._vz + a_z * dt_s, -self.max_climb_m_s), self.max_descent_m_s)
-        self._h = max(self._h - self._vz * dt_s, 0.0)
+        h = self._h - self._vz * dt_s
+        if h < 0.0 and self._fused and self._vz > 0.0:
+            # at the ground on the barometer: the floor has stopped the descent. With the height held at 0 the
+            # baro's innovation is 0 too, and a descent rate the accelerometer did not see end (a soft touchdown)
+            # would stay in the estimate for good, and the touchdown test (|vz| small) never pass
+            self._vz = 0.0
+        self._h = max(h, 0.0)
 
     @property
     def estimate(self) -> VerticalEstimate:

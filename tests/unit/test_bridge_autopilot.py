@@ -51,6 +51,8 @@ class Sim:
         self.yaw_drift_rad_s = 0.0  # the board's rate loop does not hold the heading perfectly
         self.odom_z_offset_m = 0.0  # the odometry's z error (a drifting odometry on the ground)
         self.accel_bias_q = np.zeros(3)  # the IMU's accelerometer bias (body FRD, m/s^2)
+        self.baro = False  # the board's Z frames at 50 Hz (the truth's altitude, no noise)
+        self.odom_velocity_error_n = np.zeros(3)  # added to the odometry's velocity (NED): garbage near the floor
 
     @property
     def t(self) -> float:
@@ -99,8 +101,10 @@ class Sim:
                                             board_time_ms=self.k * 2, imu_sample_count=self.k,
                                             last_setpoint_seq=0)
                     self._collect(self.ap.on_board_status(self.t, status))
+                if self.baro and self.k % 10 == 0:
+                    self.ap.on_board_baro(100.0 - float(self.p[2]), True)
             if self.odom and self.k % 17 == 0:
-                v_q = R.T @ self.v
+                v_q = R.T @ (self.v + self.odom_velocity_error_n)
                 q = quat_wxyz_from_euler(self.roll, self.pitch, self.yaw)
                 self.send(GCS.odometry_encode(self.k * 2000, mavlink.MAV_FRAME_LOCAL_FRD, mavlink.MAV_FRAME_BODY_FRD,
                                               *(self.p + np.array([0.0, 0.0, self.odom_z_offset_m])), q, *v_q,
@@ -661,3 +665,65 @@ def test_sys_status_claims_only_the_vehicles_sensors_and_is_consistent():
     s = sim.ap.sys_status(sim.t + 5.0)
     imu = mavlink.MAV_SYS_STATUS_SENSOR_3D_GYRO | mavlink.MAV_SYS_STATUS_SENSOR_3D_ACCEL | mavlink.MAV_SYS_STATUS_AHRS
     assert not s.onboard_control_sensors_health & imu
+
+
+def test_the_last_part_of_a_landing_is_flown_level_on_the_baro_whatever_the_odometry_says():
+    """Campaign seed 2031 flight 1: on the floor in LAND (touchdown not yet seen), the odometry's velocity went to
+    garbage (metres per second) and the tracker chasing it threw the vehicle across the room at 4 m/s into a wall.
+    Below BRG_LAND_LVL_ALT on the barometer the landing is flown level and ends on the touchdown test: the same
+    garbage, from 0.25 m up, no longer moves the vehicle."""
+    for lvl_alt, expect_level in ((0.3, True), (0.0, False)):
+        sim = Sim(ParamTable({"BRG_LAND_LVL_ALT": lvl_alt, "BRG_ODOM_VGATE": 0.0}))   # the gate would refuse it too
+        sim.baro = True
+        fly_to_hover(sim)
+        assert sim.command(mavlink.MAV_CMD_NAV_LAND)[0] == mavlink.MAV_RESULT_ACCEPTED
+        while -sim.p[2] > 0.25:
+            sim.step(0.02)
+        assert sim.ap.state.vertical.estimate.baro_fused
+        sim.odom_velocity_error_n[:] = (3.0, -2.5, 0.0)      # the odometry now reads 3.9 m/s that is not there
+        start = sim.p.copy()
+        tilts = []
+        for _ in range(300):                                   # 6 s
+            sim.step(0.02)
+            tilts.append(math.hypot(sim.ap.last_board_command.roll_rad, sim.ap.last_board_command.pitch_rad))
+        moved = float(np.linalg.norm(sim.p[:2] - start[:2]))
+        if expect_level:
+            assert moved < 0.05, f"moved {moved:.2f} m on the odometry's garbage"
+            assert max(tilts[-200:]) == 0.0
+            assert not sim.ap.armed_cmd and any("Landed" in t for t in sim.statustext)
+        else:   # the old behaviour, kept as the control: the garbage drives the vehicle sideways
+            assert moved > 0.3, f"the control case moved only {moved:.2f} m"
+
+
+def test_an_odometry_velocity_the_imu_did_not_feel_is_refused_and_a_lasting_one_is_a_loss():
+    """The velocity gate (BRG_ODOM_VGATE): a demo flight under load landed beside the column and, from 0.46 m up,
+    its odometry read -1.7 m/s with the vehicle still; the tracker flew it 3 m at 2 m/s to 0.21 m of a box. Refused
+    against the IMU's prediction, the garbage moves nothing; lasting, it is an odometry loss (level, descend)."""
+    for gate, expect_refused in ((0.6, True), (0.0, False)):
+        sim = Sim(ParamTable({"BRG_ODOM_VGATE": gate, "BRG_LAND_LVL_ALT": 0.0}))
+        fly_to_hover(sim)
+        sim.step(1.0)
+        start = sim.p.copy()
+        sim.odom_velocity_error_n[:] = (-1.7, 0.0, 0.0)
+        sim.step(0.4)                                   # within BRG_ODOM_LOSS_T (0.5 s): refused, still "ok"
+        moved = float(np.linalg.norm(sim.p[:2] - start[:2]))
+        if expect_refused:
+            assert moved < 0.03, f"moved {moved:.2f} m on a velocity the IMU did not feel"
+            assert sim.ap.state.counters["odometry_gated"] > 5
+            assert any("Odometry velocity refused" in t for t in sim.statustext)
+            sim.step(1.0)                               # it lasts: odometry lost, level descent, no slide
+            assert sim.ap.failsafe_reason == "odometry lost"
+            assert float(np.linalg.norm(sim.p[:2] - start[:2])) < 0.05
+        else:   # the control: without the gate the same garbage drives the vehicle
+            assert moved > 0.1, f"the control case moved only {moved:.2f} m"
+
+
+def test_the_gate_passes_a_real_acceleration():
+    """A commanded dash (0 -> 1.5 m/s) is felt by the IMU: nothing of the odometry is refused."""
+    sim = Sim(ParamTable({"BRG_ODOM_VGATE": 0.6}))
+    fly_to_hover(sim)
+    sim.step(1.0, setpoint=velocity_body(0, 0, 0))
+    assert sim.command(mavlink.MAV_CMD_DO_SET_MODE, 1, 6, 0)[0] == mavlink.MAV_RESULT_ACCEPTED
+    sim.step(3.0, setpoint=velocity_body(1.5, 0, 0))
+    assert np.linalg.norm(sim.v[:2]) > 1.3
+    assert sim.ap.state.counters["odometry_gated"] == 0
