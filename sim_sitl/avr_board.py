@@ -38,7 +38,7 @@ log = logging.getLogger(__name__)
 
 DEFAULT_ELF = REPO_ROOT / "firmware" / "build" / "quadlink-fc.elf"
 BATTERY_DIVIDER = 4.0
-CH_GYRO, CH_ACCEL, CH_PRESSURE, CH_BATTERY = 0, 3, 6, 7
+CH_GYRO, CH_ACCEL, CH_PRESSURE, CH_BATTERY = 0, 3, 6, 7  # AvrBoard.control drives them in this order
 PIN_LOOP_BUSY, PIN_LED = 0, 1
 MOTOR_BYTE_FULL = 255
 IMU_COUNTER_MODULO = 4096
@@ -127,6 +127,7 @@ class LoopTiming:
     keep: int = 100_000
     busy_cycles: deque[int] = field(default_factory=deque)
     starts: int = 0
+    busy_max: int = 0  # the worst loop since the start (busy_cycles keeps only the last ``keep``)
     _rise: int | None = None
 
     def on_edge(self, cycle: int, level: int) -> None:
@@ -134,7 +135,10 @@ class LoopTiming:
             self._rise = cycle
             self.starts += 1
         elif self._rise is not None:
-            self.busy_cycles.append(cycle - self._rise)
+            busy = cycle - self._rise
+            self.busy_cycles.append(busy)
+            if busy > self.busy_max:
+                self.busy_max = busy
             if len(self.busy_cycles) > self.keep:
                 self.busy_cycles.popleft()
             self._rise = None
@@ -174,19 +178,20 @@ class AvrBoard:
         """Sensors of tick ``ticks`` to the pins, run the tick's cycles, the motor bytes as thrust commands."""
         cfg = self.imu_cfg
         mcu = self.mcu
-        for axis in range(3):
-            mcu.set_adc_count(CH_GYRO + axis, adc_count(imu_volts(float(imu.gyro_q_rad_s[axis]), cfg.gyro_lsb_rad_s,
-                                                                  cfg.zero_count)))
-            mcu.set_adc_count(CH_ACCEL + axis, adc_count(imu_volts(float(imu.accel_q_m_s2[axis]),
-                                                                   cfg.accel_lsb_m_s2, cfg.zero_count)))
+        gyro, accel = imu.gyro_q_rad_s.tolist(), imu.accel_q_m_s2.tolist()
+        zero = cfg.zero_count
+        # ADC0..7 in channel order (CH_GYRO 0..2, CH_ACCEL 3..5, CH_PRESSURE 6, CH_BATTERY 7), one shim call
         height_m = -float(state.p_ned_m[2])  # arena NED: the floor at z = 0
-        mcu.set_adc_count(CH_PRESSURE, adc_count(self.baro.measure(height_m, self.tick_s)))
-        mcu.set_adc_count(CH_BATTERY, adc_count(battery_mv / 1000.0 / BATTERY_DIVIDER))
+        mcu.set_adc_counts([adc_count(imu_volts(g, cfg.gyro_lsb_rad_s, zero)) for g in gyro]
+                           + [adc_count(imu_volts(a, cfg.accel_lsb_m_s2, zero)) for a in accel]
+                           + [adc_count(self.baro.measure(height_m, self.tick_s)),
+                              adc_count(battery_mv / 1000.0 / BATTERY_DIVIDER)])
         self.ticks += 1
         mcu.run_until(self.ticks * self.cycles_per_tick)
+        on_edge = self.loop.on_edge
         for edge in mcu.take_edges():
             if edge.pin == PIN_LOOP_BUSY:
-                self.loop.on_edge(edge.cycle, edge.level)
+                on_edge(edge.cycle, edge.level)
         out1, out2 = self._left(0), self._left(1)
         self._out = [out1, out2]
         self.imu_stream.feed(*out2)

@@ -31,7 +31,7 @@ _SIGNATURES: dict[str, tuple[object, list[object]]] = {
     "ql_mk_encode": (ctypes.c_uint8, [c_u8p, ctypes.c_uint8, ctypes.c_char, c_u8p, ctypes.c_uint8]),
     "qlh_decoder_size": (ctypes.c_size_t, []),
     "ql_mk_decoder_init": (None, [vp]),
-    "qlh_decoder_feed": (ctypes.c_int, [vp, c_u8p, ctypes.c_int, c_u8p, ctypes.c_int]),
+    "qlh_decoder_feed": (ctypes.c_int, [vp, c_u8p, ctypes.c_int, c_u8p, ctypes.c_int, ctypes.c_int]),
     "qlh_decoder_stats": (None, [vp, c_u32p]),
     "qlh_pack_imu": (ctypes.c_int, [c_u8p, c_u16p, c_u16p, ctypes.c_uint16]),
     "qlh_unpack_imu": (ctypes.c_int, [c_u8p, ctypes.c_int, c_u16p]),
@@ -133,19 +133,21 @@ def c_encode(lib: ctypes.CDLL, address: int, command: str, payload: bytes) -> by
 
 
 class CDecoder:
-    """``ql_mk_decoder_t`` fed byte by byte; frames come back as (address, command, payload)."""
+    """``ql_mk_decoder_t`` fed byte by byte (``batch=0``) or in chunks of ``batch`` bytes through
+    ``ql_mk_decoder_feed_buf`` (the firmware's main loop: 32); frames come back as (address, command, payload)."""
 
     STAT_NAMES = ("frames_ok", "bad_checksum", "overlong", "invalid_chars", "malformed", "truncated",
                   "garbage_bytes", "dropped_bytes", "pending_bytes")
 
-    def __init__(self, lib: ctypes.CDLL) -> None:
+    def __init__(self, lib: ctypes.CDLL, batch: int = 0) -> None:
         self.lib = lib
+        self.batch = batch
         self.state = blob(lib, "qlh_decoder_size")
         lib.ql_mk_decoder_init(self.state)
 
     def feed(self, data: bytes) -> list[tuple[int, str, bytes]]:
         out = (ctypes.c_uint8 * (len(data) + 64))()
-        n = self.lib.qlh_decoder_feed(self.state, u8(data), len(data), out, len(out))
+        n = self.lib.qlh_decoder_feed(self.state, u8(data), len(data), out, len(out), self.batch)
         frames, pos = [], 0
         for _ in range(n):
             addr, cmd, length = out[pos], chr(out[pos + 1]), out[pos + 2]

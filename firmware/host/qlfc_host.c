@@ -28,13 +28,25 @@ const int qlh_params_image_len = QL_PARAMS_IMAGE_LEN;
 size_t qlh_decoder_size(void) { return sizeof(ql_mk_decoder_t); }
 
 /* Feed n bytes; completed frames are written to out as [address, command, len, payload...]; returns the number
- * of frames (stops writing, but keeps decoding, when out is full). */
-int qlh_decoder_feed(ql_mk_decoder_t *dec, const uint8_t *data, int n, uint8_t *out, int cap)
+ * of frames (stops writing, but keeps decoding, when out is full). batch 0: byte by byte (ql_mk_decoder_feed);
+ * batch k: in chunks of at most k bytes through ql_mk_decoder_feed_buf (the firmware's main loop takes 32). */
+int qlh_decoder_feed(ql_mk_decoder_t *dec, const uint8_t *data, int n, uint8_t *out, int cap, int batch)
 {
     static ql_mk_frame_t f;
     int frames = 0, pos = 0;
-    for (int i = 0; i < n; i++) {
-        if (ql_mk_decoder_feed(dec, data[i], &f)) {
+    int chunk_end = 0;
+    for (int i = 0; i < n;) {
+        uint8_t got;
+        if (batch <= 0) {
+            got = ql_mk_decoder_feed(dec, data[i++], &f);
+        } else {
+            if (i >= chunk_end) {
+                chunk_end = i + (batch > 255 ? 255 : batch);
+            }
+            int left = (chunk_end < n ? chunk_end : n) - i;
+            i += ql_mk_decoder_feed_buf(dec, data + i, (uint8_t)left, &got, &f);
+        }
+        if (got) {
             frames++;
             if (pos + 3 + f.len <= cap) {
                 out[pos++] = f.address;
@@ -299,8 +311,8 @@ void qlh_board_set_room(qlh_board_t *b, int port, int room) { b->room[port] = ro
 
 void qlh_board_rx(qlh_board_t *b, const uint8_t *data, int n)
 {
-    for (int i = 0; i < n; i++) {
-        ql_fc_rx_byte(&b->fc, data[i]);
+    for (int i = 0; i < n; i += 255) { /* the main loop's batch path */
+        ql_fc_rx_bytes(&b->fc, data + i, (uint8_t)(n - i > 255 ? 255 : n - i));
     }
 }
 

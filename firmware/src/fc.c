@@ -147,6 +147,19 @@ void ql_fc_rx_byte(ql_fc_t *fc, uint8_t byte)
     }
 }
 
+void ql_fc_rx_bytes(ql_fc_t *fc, const uint8_t *data, uint8_t n)
+{
+    while (n != 0u) {
+        uint8_t got;
+        uint8_t used = ql_mk_decoder_feed_buf(&fc->dec, data, n, &got, &fc->frame);
+        if (got) {
+            on_frame(fc, &fc->frame);
+        }
+        data += used;
+        n = (uint8_t)(n - used);
+    }
+}
+
 static int16_t sat16u(uint32_t v) { return (int16_t)(v > 32767u ? 32767u : v); }
 
 static uint16_t error_flags(const ql_fc_t *fc)

@@ -83,6 +83,8 @@ typedef struct {
 /* image: the EEPROM's parameter image (NULL or a bad CRC loads the defaults). */
 void ql_fc_init(ql_fc_t *fc, const uint8_t *image, uint16_t image_len, ql_tx_fn tx, void *tx_ctx);
 void ql_fc_rx_byte(ql_fc_t *fc, uint8_t byte);
+/* The same for n bytes at once (the main loop's path: one call per batch, ql_mk_decoder_feed_buf). */
+void ql_fc_rx_bytes(ql_fc_t *fc, const uint8_t *data, uint8_t n);
 void ql_fc_tick(ql_fc_t *fc, const ql_adc_sweep_t *adc);
 const char *ql_fc_label(uint8_t index); /* NULL beyond the board's labels */
 

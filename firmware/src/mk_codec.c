@@ -13,23 +13,28 @@ uint8_t ql_mk_encode(uint8_t *out, uint8_t address, char command, const uint8_t 
     if (address > QL_MK_ADDR_MAX || !is_letter((uint8_t)command) || len > QL_MK_MAX_PAYLOAD) {
         return 0;
     }
+    /* the checksum (from '#' through the last data character, modulo 4096) summed as the bytes are written:
+     * no second pass over the frame */
     uint8_t n = 0;
+    uint8_t head0 = (uint8_t)('a' + address);
+    uint16_t sum = (uint16_t)(QL_MK_FRAME_START + head0 + (uint8_t)command);
     out[n++] = QL_MK_FRAME_START;
-    out[n++] = (uint8_t)('a' + address);
+    out[n++] = head0;
     out[n++] = (uint8_t)command;
     for (uint8_t i = 0; i < len; i = (uint8_t)(i + 3u)) {
         /* a short last group is zero-padded */
         uint8_t a = payload[i];
         uint8_t b = (uint8_t)(i + 1u < len ? payload[i + 1u] : 0u);
         uint8_t c = (uint8_t)(i + 2u < len ? payload[i + 2u] : 0u);
-        out[n++] = (uint8_t)(QL_MK_CHAR_OFFSET + (a >> 2));
-        out[n++] = (uint8_t)(QL_MK_CHAR_OFFSET + (((a & 3u) << 4) | (b >> 4)));
-        out[n++] = (uint8_t)(QL_MK_CHAR_OFFSET + (((b & 15u) << 2) | (c >> 6)));
-        out[n++] = (uint8_t)(QL_MK_CHAR_OFFSET + (c & 63u));
-    }
-    uint16_t sum = 0;
-    for (uint8_t i = 0; i < n; i++) {
-        sum = (uint16_t)(sum + out[i]);
+        uint8_t e0 = (uint8_t)(QL_MK_CHAR_OFFSET + (a >> 2));
+        uint8_t e1 = (uint8_t)(QL_MK_CHAR_OFFSET + (((a & 3u) << 4) | (b >> 4)));
+        uint8_t e2 = (uint8_t)(QL_MK_CHAR_OFFSET + (((b & 15u) << 2) | (c >> 6)));
+        uint8_t e3 = (uint8_t)(QL_MK_CHAR_OFFSET + (c & 63u));
+        out[n++] = e0;
+        out[n++] = e1;
+        out[n++] = e2;
+        out[n++] = e3;
+        sum = (uint16_t)(sum + e0 + e1 + e2 + e3);
     }
     sum &= 0x0FFFu; /* modulo 4096 */
     out[n++] = (uint8_t)(QL_MK_CHAR_OFFSET + (sum >> 6));
@@ -136,4 +141,66 @@ uint8_t ql_mk_decoder_feed(ql_mk_decoder_t *dec, uint8_t byte, ql_mk_frame_t *ou
         dec->discarding = 1;
     }
     return 0;
+}
+
+uint8_t ql_mk_decoder_feed_buf(ql_mk_decoder_t *dec, const uint8_t *data, uint8_t n, uint8_t *got,
+                               ql_mk_frame_t *out)
+{
+    ql_mk_stats_t *s = &dec->stats;
+    uint8_t i = 0;
+    *got = 0;
+    while (i < n) {
+        uint8_t len = dec->len;
+        uint8_t start = i;
+        /* runs of bytes the byte rules would only count, counted once per run (a flood of junk costs the loop
+         * per byte what a frame does) */
+        if (len == 0u) { /* outside a frame: garbage, or the rest of an overlong frame, up to a '#' (or '\r') */
+            if (dec->discarding) {
+                while (i < n && data[i] != QL_MK_FRAME_START && data[i] != QL_MK_FRAME_END) {
+                    i++;
+                }
+                if (i != start) {
+                    s->dropped_bytes += (uint8_t)(i - start);
+                }
+            } else {
+                while (i < n && data[i] != QL_MK_FRAME_START) {
+                    i++;
+                }
+                if (i != start) {
+                    s->garbage_bytes += (uint8_t)(i - start);
+                }
+            }
+        } else if (len == 1u) { /* '#' then more '#': each one truncates the one-byte frame before it */
+            while (i < n && data[i] == QL_MK_FRAME_START) {
+                i++;
+            }
+            if (i != start) {
+                s->truncated += (uint8_t)(i - start);
+                s->dropped_bytes += (uint8_t)(i - start);
+            }
+        }
+        if (i == n) {
+            break;
+        }
+        if (len != 0u) { /* inside a frame (never while discarding): copy plain bytes without the byte rules */
+            uint8_t *buf = dec->buf;
+            while (i < n) {
+                uint8_t b = data[i];
+                if (b == QL_MK_FRAME_START || b == QL_MK_FRAME_END || len >= QL_MK_MAX_FRAME_LEN - 1u) {
+                    break; /* ends or restarts the frame, or makes it overlong: the byte rules below decide */
+                }
+                buf[len++] = b;
+                i++;
+            }
+            dec->len = len;
+            if (i == n) {
+                break;
+            }
+        }
+        if (ql_mk_decoder_feed(dec, data[i++], out)) {
+            *got = 1;
+            break;
+        }
+    }
+    return i;
 }

@@ -53,6 +53,12 @@ typedef struct {
 void ql_mk_decoder_init(ql_mk_decoder_t *dec);
 /* Feed one byte. Returns 1 and fills *out when the byte completes a valid frame, else 0. Never fails. */
 uint8_t ql_mk_decoder_feed(ql_mk_decoder_t *dec, uint8_t byte, ql_mk_frame_t *out);
+/* Feed bytes until one completes a valid frame or data[0..n) is used up; returns the bytes consumed (>= 1 when
+ * n > 0), *got = 1 and *out filled when the last of them completed a frame. The same result and counters as
+ * ql_mk_decoder_feed byte by byte, at a fraction of its cycles per byte inside a frame (one call, no byte rules
+ * for the frame's plain characters). */
+uint8_t ql_mk_decoder_feed_buf(ql_mk_decoder_t *dec, const uint8_t *data, uint8_t n, uint8_t *got,
+                               ql_mk_frame_t *out);
 /* Frames rejected so far (every drop counter but garbage bytes). */
 uint32_t ql_mk_frames_dropped(const ql_mk_stats_t *s);
 

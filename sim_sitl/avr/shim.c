@@ -50,6 +50,8 @@
 #define QS_RX_CAP 65536        /* bytes queued for USART0's receiver */
 #define QS_EDGE_CAP 4096       /* PB edges kept between two takes */
 #define QS_MOTORS 4
+#define QS_ADC_CHANNELS 8
+#define QS_AVCC_MV 5000
 #define QS_MOTOR_BASE_ADDR 0x52 /* 8-bit write address of motor 1; motor k at 0x52 + 2k */
 
 typedef struct {
@@ -98,6 +100,7 @@ typedef struct qs_sim {
 	uint64_t motor_cycle[QS_MOTORS];
 	uint32_t twi_nacked;        /* addresses nobody answered */
 	avr_irq_t *twi_in;
+	avr_irq_t *adc_in[QS_ADC_CHANNELS]; /* ADC0..7 inputs, looked up once */
 	/* pins */
 	qs_edges_t edges;
 	uint64_t target;            /* end of the chunk being run */
@@ -376,6 +379,8 @@ qs_sim_t *qs_new(const char *elf_path, const char *mmcu, uint32_t frequency_hz, 
 	avr_irq_register_notify(s->uart[0]->io.irq + UART_IRQ_OUT_XOFF, qs_rx_xoff, s);
 	avr_irq_register_notify(avr_io_getirq(avr, AVR_IOCTL_TWI_GETIRQ(0), TWI_IRQ_OUTPUT), qs_twi_out, s);
 	s->twi_in = avr_io_getirq(avr, AVR_IOCTL_TWI_GETIRQ(0), TWI_IRQ_INPUT);
+	for (int c = 0; c < QS_ADC_CHANNELS; c++)
+		s->adc_in[c] = avr_io_getirq(avr, AVR_IOCTL_ADC_GETIRQ, ADC_IRQ_ADC0 + c);
 	avr_irq_register_notify(avr_io_getirq(avr, AVR_IOCTL_IOPORT_GETIRQ('B'), IOPORT_IRQ_PIN0), qs_pb0, s);
 	avr_irq_register_notify(avr_io_getirq(avr, AVR_IOCTL_IOPORT_GETIRQ('B'), IOPORT_IRQ_PIN1), qs_pb1, s);
 	return s;
@@ -460,7 +465,17 @@ int qs_profile_take(qs_sim_t *s, uint32_t *out, int max)
 
 void qs_set_adc_mv(qs_sim_t *s, int channel, uint32_t millivolts)
 {
-	avr_raise_irq(avr_io_getirq(s->avr, AVR_IOCTL_ADC_GETIRQ, ADC_IRQ_ADC0 + channel), millivolts);
+	avr_raise_irq(s->adc_in[channel], millivolts);
+}
+
+/* ADC0..n-1 at once (one call per tick): each channel driven with the smallest input simavr's converter
+ * (count = mV * 1023 / AVCC) reads as counts[c], counts clamped to 0..1023 (sim.py's mv_for_count) */
+void qs_set_adc_counts(qs_sim_t *s, const uint16_t *counts, int n)
+{
+	for (int c = 0; c < n && c < QS_ADC_CHANNELS; c++) {
+		uint32_t count = counts[c] > 1023 ? 1023 : counts[c];
+		avr_raise_irq(s->adc_in[c], (count * QS_AVCC_MV + 1022) / 1023);
+	}
 }
 
 /* ------------------------------------------------------------------ UARTs */

@@ -27,6 +27,7 @@ CPU_CRASHED = 7
 CPU_STOPPED = 1
 
 _u8p = ctypes.POINTER(ctypes.c_uint8)
+_u16p = ctypes.POINTER(ctypes.c_uint16)
 _u32p = ctypes.POINTER(ctypes.c_uint32)
 _u64p = ctypes.POINTER(ctypes.c_uint64)
 
@@ -38,6 +39,7 @@ _SIGNATURES: dict[str, tuple[object, list[object]]] = {
     "qs_state": (ctypes.c_int, [ctypes.c_void_p]),
     "qs_run_until": (ctypes.c_int, [ctypes.c_void_p, ctypes.c_uint64]),
     "qs_set_adc_mv": (None, [ctypes.c_void_p, ctypes.c_int, ctypes.c_uint32]),
+    "qs_set_adc_counts": (None, [ctypes.c_void_p, _u16p, ctypes.c_int]),
     "qs_uart_take": (ctypes.c_int, [ctypes.c_void_p, ctypes.c_int, _u8p, _u64p, ctypes.c_int]),
     "qs_uart_tx_overflow": (ctypes.c_uint32, [ctypes.c_void_p, ctypes.c_int]),
     "qs_uart_cycles_per_byte": (ctypes.c_uint32, [ctypes.c_void_p, ctypes.c_int]),
@@ -116,6 +118,11 @@ class AvrSim:
         self._buf64 = (ctypes.c_uint64 * 16384)()
         self._pins = (ctypes.c_uint8 * 4096)()
         self._levels = (ctypes.c_uint8 * 4096)()
+        # per-tick exchanges reuse these (no ctypes allocation per call)
+        self._counts = (ctypes.c_uint16 * ADC_CHANNELS)()
+        self._motor_bytes = (ctypes.c_uint8 * MOTORS)()
+        self._motor_writes = (ctypes.c_uint32 * MOTORS)()
+        self._motor_cycles = (ctypes.c_uint64 * MOTORS)()
 
     def __enter__(self) -> AvrSim:
         return self
@@ -163,10 +170,19 @@ class AvrSim:
         """Drive the channel with the voltage an ideal 10-bit converter reads as ``count``."""
         self.set_adc_mv(channel, mv_for_count(count))
 
+    def set_adc_counts(self, counts: list[int]) -> None:
+        """ADC0..len(counts)-1 at once (one call): as :meth:`set_adc_count` on each channel."""
+        if len(counts) > ADC_CHANNELS:
+            raise ValueError(f"{len(counts)} ADC channels (0..7)")
+        buf = self._counts
+        for channel, count in enumerate(counts):
+            buf[channel] = min(max(int(count), 0), 1023)
+        self._lib.qs_set_adc_counts(self.handle, buf, len(counts))
+
     def take_edges(self) -> list[Edge]:
         """PB0/PB1 edges since the last call, oldest first."""
         n = self._lib.qs_edges_take(self.handle, self._buf64, self._pins, self._levels, len(self._pins))
-        return [Edge(int(self._buf64[i]), int(self._pins[i]), int(self._levels[i])) for i in range(n)]
+        return [Edge(c, p, v) for c, p, v in zip(self._buf64[:n], self._pins[:n], self._levels[:n], strict=True)]
 
     @property
     def edges_lost(self) -> int:
@@ -179,7 +195,7 @@ class AvrSim:
     def take_tx(self, port: int) -> tuple[bytes, list[int]]:
         """Bytes USART``port`` sent since the last call and the cycle each one's stop bit left the pin."""
         n = self._lib.qs_uart_take(self.handle, port, self._buf8, self._buf64, len(self._buf8))
-        return bytes(self._buf8[:n]), [int(c) for c in self._buf64[:n]]
+        return ctypes.string_at(self._buf8, n), self._buf64[:n]
 
     def tx_lost(self, port: int) -> int:
         return int(self._lib.qs_uart_tx_overflow(self.handle, port))
@@ -207,9 +223,7 @@ class AvrSim:
 
     # ------------------------------------------------------------------ TWI
     def motors(self) -> Motors:
-        b = (ctypes.c_uint8 * MOTORS)()
-        w = (ctypes.c_uint32 * MOTORS)()
-        c = (ctypes.c_uint64 * MOTORS)()
+        b, w, c = self._motor_bytes, self._motor_writes, self._motor_cycles
         self._lib.qs_motors(self.handle, b, w, c)
         return Motors(tuple(b), tuple(w), tuple(c))  # type: ignore[arg-type]
 

@@ -190,3 +190,67 @@ def test_hostile_port1_never_disturbs_the_imu_stream(rig: Rig) -> None:
     versions = rig.messages(Version)
     assert len(versions) >= sent_v - 2  # the well-formed requests among the junk are still answered
     assert any(s.error_flags & BoardError.RX_FRAMES_DROPPED for s in rig.messages(BoardStatus))
+
+
+SOAK_S = float(os.environ.get("QUADLINK_AVR_SOAK_S", "600"))  # issue 32: "a 10-minute simavr soak"
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(3600)
+def test_soak_10_min_imu_stream_and_loop_under_setpoints_and_hostile_port1(rig: Rig) -> None:
+    """600 s of simulated time (QUADLINK_AVR_SOAK_S): armed, setpoints at 50 Hz (roll/pitch steps, so the loop's
+    arithmetic moves), the IMU pins dithered every 20 ms, a ``v`` request now and then, and every 5 s one of the
+    hostile port-1 bursts of the test above (garbage, a corrupt armed setpoint, an overlong frame, runs of ``#``
+    and ``\\r``, a truncated frame) or a 2000-byte flood (0.18 s of the line, under the 0.5 s setpoint timeout).
+    Asserts: no ``I`` sample lost or late over the whole run, 500 Hz, the loop's worst tick within 60 % of its
+    budget, the board armed and flying the setpoints throughout (no failsafe), the junk counted as dropped."""
+    rng = np.random.default_rng(int(os.environ.get("QUADLINK_SEED", "11")))
+    bad_crc = bytearray(encode_message(AttitudeSetpoint(0.3, 0.0, 0.0, 0.9, True, 1)))
+    bad_crc[-2] ^= 1
+    good_frame = encode_message(AttitudeSetpoint(0.0, 0.0, 0.0, 0.4, True, 0))
+    bursts = [lambda: bytes(rng.integers(0, 256, 300, dtype=np.uint8)), lambda: bytes(bad_crc),
+              lambda: b"#bs" + b"=" * 400 + b"\r", lambda: b"#" * 50, lambda: b"\r" * 50,
+              lambda: good_frame[:12], lambda: bytes(rng.integers(0, 256, 2000, dtype=np.uint8))]
+    rig.run_s(1.0)  # still and disarmed: the gyro offsets
+    start_cycle = rig.mcu.cycle
+    steps = round(SOAK_S * 50)
+    seq, v_sent, bursts_sent, motors_stopped = 0, 0, 0, 0
+    for k in range(steps):
+        phase = (k // 25) % 4  # a 0.5 s step each: roll +, roll -, pitch +, pitch -
+        roll = (0.15, -0.15, 0.0, 0.0)[phase]
+        pitch = (0.0, 0.0, 0.15, -0.15)[phase]
+        rig.send(AttitudeSetpoint(roll, pitch, 0.0, 0.45, True, seq & 0xFF))
+        seq += 1
+        if k % 250 == 125:  # every 5 s, between two setpoints
+            rig.mcu.send_port1(bursts[bursts_sent % len(bursts)]())
+            bursts_sent += 1
+        if k % 1500 == 700:  # every 30 s
+            rig.send(VersionRequest())
+            v_sent += 1
+        for axis in range(3):  # the IMU's noise on the pins, +-3 counts around a level board
+            rig.mcu.set_adc_count(axis, 512 + int(rng.integers(-3, 4)))
+        rig.run_ticks(10)
+        motors_stopped += min(rig.mcu.motors().bytes) == 0
+    rig.run_ticks(50)
+    seconds = (rig.mcu.cycle - start_cycle) / 20e6
+    s = rig.monitor.stats
+    worst = rig.loop.busy_max
+    busy = np.array(rig.loop.busy_cycles)
+    print(f"\nsoak {seconds:.1f} s simulated: I frames {s.frames}, lost {s.lost}, late {s.late}, bad {s.bad_frames}, "
+          f"worst lag {s.max_lag_cycles} cycles; loop busy max {worst} cycles ({100 * worst / TICK:.1f} %), "
+          f"p99 of the last {busy.size} {np.percentile(busy, 99):.0f}; hostile bursts {bursts_sent}, "
+          f"v requests {v_sent}; motors stopped after {motors_stopped} of {steps} setpoints; "
+          f"uart tx lost {rig.mcu.tx_lost(0)}/{rig.mcu.tx_lost(1)}, edges lost {rig.mcu.edges_lost}")
+    check_imu_stream(rig, seconds)
+    assert s.frames >= SOAK_S * 500
+    assert rig.mcu.tx_lost(0) == rig.mcu.tx_lost(1) == 0 and rig.mcu.edges_lost == 0
+    assert rig.loop.starts >= (SOAK_S + 1.0) * 500 - 2  # every tick ran (PB0 rose)
+    assert worst <= LOOP_BUDGET * TICK, f"the loop's worst tick: {worst} cycles ({100 * worst / TICK:.1f} %)"
+    # mobility: armed and flying the setpoints throughout, never in failsafe, every request answered
+    assert motors_stopped == 0 and rig.mcu.portb(1) == 1
+    statuses = rig.messages(BoardStatus, since_cycle=start_cycle)
+    assert len(statuses) >= SOAK_S * 10 - 2
+    assert all(st.armed and not st.failsafe for st in statuses[5:])
+    assert not any(st.error_flags & BoardError.SETPOINT_TIMEOUT for st in statuses)
+    assert len(rig.messages(Version, since_cycle=start_cycle)) == v_sent
+    assert any(st.error_flags & BoardError.RX_FRAMES_DROPPED for st in statuses)

@@ -82,6 +82,22 @@ def test_adc_reads_every_count_exactly(mcu: AvrSim) -> None:
     assert mv_for_count(1023) == 5000 and mv_for_count(0) == 0
 
 
+def test_adc_counts_at_once_read_as_each_channel_alone(mcu: AvrSim) -> None:
+    """``set_adc_counts`` (one shim call per tick, the SITL's path) drives every channel as ``set_adc_count``
+    does: ADC0 comes back in the frame, ADC1 / 4 in the motor bytes; counts outside 0..1023 are clamped."""
+    mcu.run_until(TICK)
+    for adc0, adc1 in ((0, 4), (513, 800), (1023, 1023), (-5, 2000)):
+        mcu.set_adc_counts([adc0, adc1, 0, 0, 0, 0, 0, 0])
+        mcu.run_for(2 * TICK)
+        data, _ = mcu.take_tx(1)
+        last = next(data[i:i + FRAME] for i in range(len(data) - FRAME, -1, -1)
+                    if data[i] == ord("I") and data[i + FRAME - 1] == 0x0D)
+        assert int.from_bytes(last[2:4], "little") == min(max(adc0, 0), 1023)
+        assert mcu.motors().bytes == (max(min(max(adc1, 0), 1023) // 4, 1),) * 4
+    with pytest.raises(ValueError):
+        mcu.set_adc_counts([0] * 9)
+
+
 def test_port1_bytes_arrive_at_the_line_rate_and_are_all_received(mcu: AvrSim) -> None:
     mcu.run_until(TICK)
     mcu.take_tx(0)

@@ -135,12 +135,14 @@ _chunk = st.one_of(
 
 
 @FUZZ
+@pytest.mark.parametrize("batch", [0, 1, 7, 32, 255])  # byte by byte, and the batch path in chunks (main: 32)
 @given(chunks=st.lists(_chunk, max_size=12))
-def test_decoder_rules_match_python_on_hostile_streams(firmware_lib: ctypes.CDLL, chunks: list[bytes]) -> None:
+def test_decoder_rules_match_python_on_hostile_streams(firmware_lib: ctypes.CDLL, batch: int,
+                                                       chunks: list[bytes]) -> None:
     stream = b"".join(chunks)
     py = FrameDecoder()
     py_frames = [(f.address, f.command, f.payload) for f in py.feed(stream)]
-    c = CDecoder(firmware_lib)
+    c = CDecoder(firmware_lib, batch)
     c_frames = c.feed(stream)
     assert c_frames == py_frames
     stats = c.stats()
@@ -151,15 +153,16 @@ def test_decoder_rules_match_python_on_hostile_streams(firmware_lib: ctypes.CDLL
     assert stats["garbage_bytes"] + stats["dropped_bytes"] + frame_bytes + pending == len(stream)
 
 
+@pytest.mark.parametrize("batch", [0, 32, 255])
 @pytest.mark.parametrize("extra", [0, 1, 2])
-def test_frame_length_limit(firmware_lib: ctypes.CDLL, extra: int) -> None:
+def test_frame_length_limit(firmware_lib: ctypes.CDLL, extra: int, batch: int) -> None:
     """The largest valid frame (218 bytes, 53 groups) is accepted; 222 and 226 are overlong (over 220), and the
     decoder resynchronises on the next frame."""
     head = b"#bx" + b"=" * (212 + 4 * extra)
     crc = sum(head) % 4096
     frame = head + bytes((61 + crc // 64, 61 + crc % 64, 13))
     stream = frame + encode_frame(1, "v")
-    c = CDecoder(firmware_lib)
+    c = CDecoder(firmware_lib, batch)
     frames = c.feed(stream)
     py = FrameDecoder()
     assert frames == [(f.address, f.command, f.payload) for f in py.feed(stream)]

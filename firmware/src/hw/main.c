@@ -80,9 +80,10 @@ int main(void)
         sei();
         PORTB |= (uint8_t)(1u << PIN_BUSY);
 
-        uint8_t byte;
-        while (uart0_rx_pop(&byte)) {
-            ql_fc_rx_byte(&fc, byte);
+        uint8_t rx[32]; /* port-1 bytes in batches: one call per batch, not three per byte */
+        uint8_t n;
+        while ((n = uart0_rx_take(rx, sizeof(rx))) != 0u) {
+            ql_fc_rx_bytes(&fc, rx, n);
         }
         ql_adc_sweep_t sweep;
         adc_take_sweep(&sweep);

@@ -84,15 +84,17 @@ ISR(USART0_RX_vect)
     rx0_ring.head = next;
 }
 
-uint8_t uart0_rx_pop(uint8_t *byte)
+uint8_t uart0_rx_take(uint8_t *out, uint8_t max)
 {
     uint8_t tail = rx0_ring.tail;
-    if (tail == rx0_ring.head) {
-        return 0;
+    uint8_t head = rx0_ring.head; /* bytes the interrupt adds meanwhile wait for the next call */
+    uint8_t n = 0;
+    while (tail != head && n < max) {
+        out[n++] = rx0_ring.buf[tail];
+        tail = (uint8_t)(tail + 1u);
     }
-    *byte = rx0_ring.buf[tail];
-    rx0_ring.tail = (uint8_t)(tail + 1u);
-    return 1;
+    rx0_ring.tail = tail;
+    return n;
 }
 
 uint16_t uart0_rx_overflows(void)

@@ -8,8 +8,8 @@
 void uart_init(void);
 /* port 0 = USART0, 1 = USART1. Returns 1 if the whole frame was queued. */
 uint8_t uart_send(uint8_t port, const uint8_t *data, uint8_t len);
-/* Next received port-1 byte; returns 0 when none is waiting. */
-uint8_t uart0_rx_pop(uint8_t *byte);
+/* Moves up to max received port-1 bytes (oldest first) to out; returns how many (0: none is waiting). */
+uint8_t uart0_rx_take(uint8_t *out, uint8_t max);
 uint16_t uart0_rx_overflows(void);
 
 #endif
