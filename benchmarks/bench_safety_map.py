@@ -3,7 +3,7 @@
 Measured on a full obstacle map (``max_particles``, 20,000 particles within 5 m, a tenth of them on a 0.75 m
 desk top under and around the vehicle), the vehicle moving at 0.3 m/s and yawing with the pan-scan:
 
-* the obstacle map's time update (eq. 14) with the near-field keep (particles within 0.9 m live 20 s, not 8 s)
+* the obstacle map's time update (eq. 14) with the near-field keep (particles within 1.5 m live 20 s, not 8 s)
   and without it (``near_field_max_age_s`` = ``max_age_s``): the keep's cost is the difference;
 * ``BelowMemory.observe`` (the tops under the vehicle kept in the odometry's world), ``BelowMemory.points_h`` and
   ``object_below`` (the landing check, asked on a ground station's LAND and at a failsafe landing).

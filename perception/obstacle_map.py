@@ -20,8 +20,13 @@
   camera looks 45 deg right and down: a wall the vehicle slides along on its left, or one it is too close to
   see (the minimum range), is not seen again however long the vehicle stays beside it, and forgetting it
   after ``max_age_s`` let a pushed vehicle close to 0.30 m of it (issue 14, the corner push: the wall ahead
-  had been seen 8 s before, from 1 m east). What the camera does see again still replaces it (carving and
-  overwriting), and a held particle that leaves the near field goes at once if it is older than ``max_age_s``.
+  had been seen 8 s before, from 1 m east). The near field reaches past the repulsion's influence distance by
+  what the vehicle may drift toward a surface it no longer sees while the memory lasts: with only the
+  influence distance, a wall seen from 1.2-1.7 m went at 8 s while still 1.0-1.2 m away, the vehicle, turning
+  to the column, drifted to 0.89 m of it, and the map's nearest point was a later sighting 0.5 m along the
+  wall, 8-18 cm farther than the wall (issue 29, the fresh-clone demo). What the camera does see again still
+  replaces it (carving and overwriting), and a held particle that leaves the near field goes at once if it is
+  older than ``max_age_s``.
 * **Sector summary** like MAVLink ``OBSTACLE_DISTANCE``: 72 sectors of 5° about the z axis of H (sector 0
   centred on the heading, clockwise positive as NED yaw), the nearest horizontal distance of the
   particles within ``z_band_m`` of the vehicle; ``inf`` where the sector was observed within
@@ -48,8 +53,9 @@ class ObstacleMapConfig:
     max_particles: int = 20000
     radius_m: float = 5.0             # particles farther than this are dropped
     max_age_s: float = 8.0            # ... and older than this
-    near_field_m: float = 0.9         # ... but within this horizontal distance of the vehicle (the repulsion's
-    near_field_max_age_s: float = 20.0  # influence distance) only older than this
+    near_field_m: float = 1.5         # ... but within this horizontal distance of the vehicle only older than
+    near_field_max_age_s: float = 20.0  # this: the repulsion's influence distance (0.9 m) plus what a vehicle
+                                        # holding still drifts in the 12 s more (0.6 m at 0.05 m/s; issue 29)
     velocity_noise_m_s: float = 0.1   # std of n_v per axis (eq. 14): white per frame, so that the spread after 1 s
                                       # matches the drift of a 0.02 m/s velocity error that persists that long
     yaw_rate_noise_rad_s: float = 0.02  # std of n_psi (eq. 14)
