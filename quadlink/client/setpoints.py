@@ -7,7 +7,7 @@ arbiter, the bridge's trackers) share one rule.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Iterable
 from dataclasses import dataclass
 
 from quadlink.mavlink import mavlink
@@ -48,10 +48,14 @@ def velocity_ned(north_m_s: float, east_m_s: float, down_m_s: float, yaw_rad: fl
                           vz_m_s=down_m_s, yaw_rad=yaw_rad)
 
 
-def position_velocity_accel_ned(p_ned_m: Sequence[float], v_ned_m_s: Sequence[float], a_ned_m_s2: Sequence[float],
+def position_velocity_accel_ned(p_ned_m: Iterable[float], v_ned_m_s: Iterable[float], a_ned_m_s2: Iterable[float],
                                 yaw_rad: float) -> PositionTarget:
-    """Position, velocity, acceleration in local NED and a heading: a PX4 trajectory setpoint."""
-    return PositionTarget(mavlink.MAV_FRAME_LOCAL_NED, TM_POSITION_VELOCITY_ACCEL_YAW,
-                          float(p_ned_m[0]), float(p_ned_m[1]), float(p_ned_m[2]),
-                          float(v_ned_m_s[0]), float(v_ned_m_s[1]), float(v_ned_m_s[2]),
-                          float(a_ned_m_s2[0]), float(a_ned_m_s2[1]), float(a_ned_m_s2[2]), yaw_rad=float(yaw_rad))
+    """Position, velocity, acceleration in local NED (three numbers each) and a heading: a PX4 trajectory setpoint."""
+    (x, y, z), (vx, vy, vz), (ax, ay, az) = _xyz(p_ned_m), _xyz(v_ned_m_s), _xyz(a_ned_m_s2)
+    return PositionTarget(mavlink.MAV_FRAME_LOCAL_NED, TM_POSITION_VELOCITY_ACCEL_YAW, x, y, z, vx, vy, vz, ax, ay, az,
+                          yaw_rad=float(yaw_rad))
+
+
+def _xyz(v: Iterable[float]) -> tuple[float, float, float]:
+    x, y, z = (float(c) for c in v)
+    return x, y, z
