@@ -47,6 +47,7 @@ HEARTBEAT_PERIOD_S = 1.0        # a ground station's HEARTBEAT, as QGroundContro
 DEFAULT_TIMEOUT_S = 3.0         # a blocking call's wait for its answer
 POLL_S = 0.01                   # longest sleep of a wait between two reads (a real link wakes it on data)
 US = 1_000_000                  # microseconds per second (COMMAND_STAMP.time_usec)
+S_PER_US = 1e-6
 MANUAL_CONTROL_MSG_ID = mavlink.MAVLINK_MSG_ID_MANUAL_CONTROL
 RESULT_NAMES = {v: k.removeprefix("MAV_RESULT_") for k, v in vars(mavlink).items()
                 if k.startswith("MAV_RESULT_") and isinstance(v, int) and k != "MAV_RESULT_ENUM_END"}
@@ -143,7 +144,7 @@ class GroundClient:
         if kind == "HEARTBEAT" and msg.type != mavlink.MAV_TYPE_GCS:
             self.state.heartbeat_s = self._clock()
         elif kind == "TELEOP_FEEDBACK":
-            self.state.time_s = msg.time_usec / US
+            self.state.time_s = msg.time_usec * S_PER_US   # (not / US: the lock-step plans' times, to the ulp)
             self.state.teleop_mode, self.state.teleop_flags = msg.mode, msg.flags
 
     # ---- sending (never blocks) --------------------------------------------------------------
