@@ -22,15 +22,8 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
-from quadlink.client.commands import (
-    CommandLong,
-    arm_command,
-    command_name,
-    disarm_command,
-    land_command,
-    set_px4_mode_command,
-    takeoff_command,
-)
+from quadlink.client import commands
+from quadlink.client.commands import CommandLong, command_name
 from quadlink.client.setpoints import TIME_BOOT_MS_MASK, PositionTarget
 from quadlink.errors import LinkTimeout, ProtocolError
 from quadlink.ids import COMPANION_COMPONENT_ID, GROUND_COMPONENT_ID, GROUND_SYSTEM_ID, VEHICLE_SYSTEM_ID
@@ -251,19 +244,19 @@ class GroundClient:
             raise CommandRejected(cmd.command, ack.result, target)
 
     def arm(self, timeout_s: float = DEFAULT_TIMEOUT_S) -> None:
-        self.command(arm_command(), timeout_s)
+        self.command(commands.arm_command(), timeout_s)
 
     def disarm(self, timeout_s: float = DEFAULT_TIMEOUT_S) -> None:
-        self.command(disarm_command(), timeout_s)
+        self.command(commands.disarm_command(), timeout_s)
 
     def takeoff(self, altitude_m: float, timeout_s: float = DEFAULT_TIMEOUT_S) -> None:
-        self.command(takeoff_command(altitude_m), timeout_s)
+        self.command(commands.takeoff_command(altitude_m), timeout_s)
 
     def land(self, timeout_s: float = DEFAULT_TIMEOUT_S) -> None:
-        self.command(land_command(), timeout_s)
+        self.command(commands.land_command(), timeout_s)
 
     def set_px4_mode(self, mode: Px4Mode, timeout_s: float = DEFAULT_TIMEOUT_S) -> None:
-        self.command(set_px4_mode_command(mode), timeout_s)
+        self.command(commands.set_px4_mode_command(mode), timeout_s)
 
     def wait_teleop_mode(self, modes: tuple[int, ...], timeout_s: float) -> int:
         """Wait until the companion reports one of ``modes`` (QUADLINK_TELEOP_MODE, TELEOP_FEEDBACK); that mode."""
