@@ -13,7 +13,7 @@ The stream carries the trajectory's *position* in the odometry's local NED frame
 file (or ``--relative``) shifts it so it starts at the vehicle's current position, read from the link's
 LOCAL_POSITION_NED or ODOMETRY. ``--dry-run`` prints the trajectory (peak speed, a CSV with ``--csv``) and
 sends nothing. ``--offboard`` asks for OFFBOARD (PX4 custom mode) once the stream runs, as MAVSDK's
-``offboard.start()`` does; arming and take-off stay the operator's.
+``offboard.start()`` does; arming and take-off stay the operator's. The link is a :class:`quadlink.client.GroundClient`.
 """
 
 from __future__ import annotations
@@ -30,16 +30,16 @@ from typing import Any
 import click
 import numpy as np
 
+from quadlink.client import GroundClient, PositionTarget, position_velocity_accel_ned, set_px4_mode_command
 from quadlink.config import load_config
-from quadlink.errors import ConfigError, LinkTimeout
-from quadlink.mavlink import mavlink
+from quadlink.errors import ConfigError
+from quadlink.ids import GROUND_COMPONENT_ID
+from quadlink.px4_modes import OFFBOARD
 from quadlink.trajectory.minsnap import MinSnapTrajectory, TrajectoryError, TrajectorySample, minimum_snap
 
 log = logging.getLogger(__name__)
 
-#: SET_POSITION_TARGET_LOCAL_NED type_mask: position + velocity + acceleration + yaw (yaw rate ignored)
-TYPE_MASK_PVA_YAW = mavlink.POSITION_TARGET_TYPEMASK_YAW_RATE_IGNORE
-MAV_FRAME_LOCAL_NED = mavlink.MAV_FRAME_LOCAL_NED
+OFFBOARD_AFTER_S = 0.5  # PX4 wants a setpoint stream before OFFBOARD
 
 
 @dataclass(frozen=True)
@@ -79,14 +79,9 @@ def load_trajectory_file(path: str | Path) -> tuple[TrajectoryFile, MinSnapTraje
     return cfg, traj
 
 
-def setpoint_fields(sample: TrajectorySample, offset_ned_m: np.ndarray, yaw_rad: float) -> dict[str, Any]:
-    """The SET_POSITION_TARGET_LOCAL_NED fields for one sample (position shifted by ``offset_ned_m``)."""
-    p = sample.p_m + offset_ned_m
-    return {"coordinate_frame": MAV_FRAME_LOCAL_NED, "type_mask": TYPE_MASK_PVA_YAW,
-            "x": float(p[0]), "y": float(p[1]), "z": float(p[2]),
-            "vx": float(sample.v_m_s[0]), "vy": float(sample.v_m_s[1]), "vz": float(sample.v_m_s[2]),
-            "afx": float(sample.a_m_s2[0]), "afy": float(sample.a_m_s2[1]), "afz": float(sample.a_m_s2[2]),
-            "yaw": float(yaw_rad), "yaw_rate": 0.0}
+def trajectory_target(sample: TrajectorySample, offset_ned_m: np.ndarray, yaw_rad: float) -> PositionTarget:
+    """The setpoint for one sample (position shifted by ``offset_ned_m``; type_mask 2048, MAV_FRAME_LOCAL_NED)."""
+    return position_velocity_accel_ned(sample.p_m + offset_ned_m, sample.v_m_s, sample.a_m_s2, yaw_rad)
 
 
 def schedule(traj: MinSnapTrajectory, rate_hz: float, hold_s: float) -> Iterator[tuple[float, TrajectorySample]]:
@@ -97,26 +92,28 @@ def schedule(traj: MinSnapTrajectory, rate_hz: float, hold_s: float) -> Iterator
         yield t, traj.sample(t)
 
 
-def _wait_position(conn: Any, timeout_s: float, clock: Callable[[], float]) -> np.ndarray:
-    deadline = clock() + timeout_s
-    while clock() < deadline:
-        msg = conn.recv_match(type=["LOCAL_POSITION_NED", "ODOMETRY"], blocking=True, timeout=0.2)
-        if msg is not None:
-            p = np.array([msg.x, msg.y, msg.z], dtype=float)
-            if np.all(np.isfinite(p)):
-                return p
-    raise LinkTimeout(f"no LOCAL_POSITION_NED or ODOMETRY within {timeout_s:.0f} s (needed for a relative start)")
+def _position(msg: Any) -> np.ndarray | None:
+    """A finite position from LOCAL_POSITION_NED or ODOMETRY, else None."""
+    if msg.get_type() not in ("LOCAL_POSITION_NED", "ODOMETRY"):
+        return None
+    p = np.array([msg.x, msg.y, msg.z], dtype=float)
+    return p if np.all(np.isfinite(p)) else None
 
 
-def stream(conn: Any, traj: MinSnapTrajectory, rate_hz: float, hold_s: float, offset_ned_m: np.ndarray,
-           yaw_rad: float, target_system: int, target_component: int, offboard: bool,
-           clock: Callable[[], float] = time.monotonic, sleep: Callable[[float], None] = time.sleep,
-           progress: Callable[[float], None] | None = None) -> int:
-    """Send the setpoints on time (absolute deadlines: no drift); returns how many were sent.
+def _wait_position(client: GroundClient, timeout_s: float) -> np.ndarray:
+    msg = client.wait_message(lambda m: _position(m) is not None, timeout_s,
+                              "LOCAL_POSITION_NED or ODOMETRY (needed for a relative start)")
+    p = _position(msg)
+    assert p is not None
+    return p
+
+
+def stream(client: GroundClient, traj: MinSnapTrajectory, rate_hz: float, hold_s: float, offset_ned_m: np.ndarray,
+           yaw_rad: float, offboard: bool, clock: Callable[[], float] = time.monotonic,
+           sleep: Callable[[float], None] = time.sleep, progress: Callable[[float], None] | None = None) -> int:
+    """Send the setpoints on time (absolute deadlines: no drift) to the client's target; returns how many were sent.
 
     ``time_boot_ms`` carries the sample's trajectory time (ms since the stream started)."""
-    from quadlink.px4_modes import OFFBOARD
-
     start = clock()
     sent = 0
     asked_offboard = False
@@ -124,15 +121,10 @@ def stream(conn: Any, traj: MinSnapTrajectory, rate_hz: float, hold_s: float, of
         delay = start + t - clock()
         if delay > 0:
             sleep(delay)
-        f = setpoint_fields(sample, offset_ned_m, yaw_rad)
-        conn.mav.set_position_target_local_ned_send(
-            round(t * 1000) & 0xFFFFFFFF, target_system, target_component, f["coordinate_frame"],
-            f["type_mask"], f["x"], f["y"], f["z"], f["vx"], f["vy"], f["vz"], f["afx"], f["afy"], f["afz"],
-            f["yaw"], f["yaw_rate"])
+        client.send_position_target(trajectory_target(sample, offset_ned_m, yaw_rad), round(t * 1000))
         sent += 1
-        if offboard and not asked_offboard and t >= 0.5:  # PX4 wants a stream before OFFBOARD
-            conn.mav.command_long_send(target_system, target_component, mavlink.MAV_CMD_DO_SET_MODE, 0,
-                                       mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, int(OFFBOARD.main), 0, 0, 0, 0, 0)
+        if offboard and not asked_offboard and t >= OFFBOARD_AFTER_S:
+            client.send_command_long(set_px4_mode_command(OFFBOARD))
             asked_offboard = True
         if progress is not None and sent % max(1, int(rate_hz)) == 0:
             progress(t)
@@ -169,22 +161,23 @@ def command(file: Path, url: str, target_system: int, target_component: int, sys
                     out.write(",".join(f"{v:.6f}" for v in (t, *s.p_m, *s.v_m_s, *s.a_m_s2)) + "\n")
             click.echo(f"wrote {csv_path}")
         return
-    from quadlink.mavlink.connection import open_mavlink
+    from quadlink.client import connect
 
-    conn = open_mavlink(url, source_system=sysid, source_component=mavlink.MAV_COMP_ID_MISSIONPLANNER)  # as MAVSDK
+    client = connect(url, system_id=sysid, component_id=GROUND_COMPONENT_ID, target_system=target_system,
+                     target_component=target_component)
     try:
         offset = np.zeros(3)
         if cfg.relative if relative is None else relative:
-            p0 = _wait_position(conn, 5.0, time.monotonic)
+            p0 = _wait_position(client, 5.0)
             offset = p0 - traj.sample(0.0).p_m
             click.echo(f"relative start at {np.round(p0, 3).tolist()} (offset {np.round(offset, 3).tolist()})")
         click.echo(f"streaming to {url} at {cfg.rate_hz:g} Hz (Ctrl-C stops)")
         try:
-            sent = stream(conn, traj, cfg.rate_hz, hold_s, offset, yaw, target_system, target_component, offboard,
+            sent = stream(client, traj, cfg.rate_hz, hold_s, offset, yaw, offboard,
                           progress=lambda t: log.info("t = %.1f / %.1f s", t, traj.duration_s + hold_s))
         except KeyboardInterrupt:
             click.echo("stopped", err=True)
             sys.exit(130)
         click.echo(f"done: {sent} setpoints sent")
     finally:
-        conn.close()
+        client.close()

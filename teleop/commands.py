@@ -12,11 +12,10 @@ from __future__ import annotations
 
 from dataclasses import dataclass, replace
 
+from quadlink.client import RESULT_NAMES as ACK_RESULT_NAMES
+from quadlink.client import CommandLong, arm_command, disarm_command, land_command, takeoff_command
 from quadlink.mavlink import mavlink
 from teleop.config import CommandsConfig
-
-ACK_RESULT_NAMES = {v: k.removeprefix("MAV_RESULT_") for k, v in vars(mavlink).items()
-                    if k.startswith("MAV_RESULT_") and isinstance(v, int) and k != "MAV_RESULT_ENUM_END"}
 
 
 @dataclass(frozen=True)
@@ -56,19 +55,12 @@ class CommandTracker:
 
     def build(self, button: str, pan_scan_on: bool | None = None) -> OutgoingCommand | None:
         c = self.cfg
-        ap = (c.autopilot_system, c.command_component)
-        if button == "arm":
-            return OutgoingCommand("arm", "command_long", *ap, mavlink.MAV_CMD_COMPONENT_ARM_DISARM,
-                                   (1.0, 0, 0, 0, 0, 0, 0))
-        if button == "disarm":
-            return OutgoingCommand("disarm", "command_long", *ap, mavlink.MAV_CMD_COMPONENT_ARM_DISARM,
-                                   (0.0, 0, 0, 0, 0, 0, 0))
-        if button == "takeoff":
-            return OutgoingCommand("takeoff", "command_long", *ap, mavlink.MAV_CMD_NAV_TAKEOFF,
-                                   (0, 0, 0, float("nan"), float("nan"), float("nan"), c.takeoff_altitude_m))
-        if button == "land":
-            return OutgoingCommand("land", "command_long", *ap, mavlink.MAV_CMD_NAV_LAND,
-                                   (0, 0, 0, float("nan"), float("nan"), float("nan"), 0.0))
+        commands: dict[str, CommandLong] = {"arm": arm_command(), "disarm": disarm_command(),
+                                            "takeoff": takeoff_command(c.takeoff_altitude_m), "land": land_command()}
+        if button in commands:
+            cmd = commands[button]
+            return OutgoingCommand(button, "command_long", c.autopilot_system, c.command_component, cmd.command,
+                                   cmd.params)
         if button in ("pan_scan_on", "pan_scan_off", "pan_scan_toggle"):
             on = button == "pan_scan_on" or (button == "pan_scan_toggle" and not pan_scan_on)
             return OutgoingCommand("pan_scan_on" if on else "pan_scan_off", "param_set", c.autopilot_system,

@@ -16,9 +16,10 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from quadlink.client import CommandLong, GroundClient
 from quadlink.mavlink import mavlink
 from quadlink.mavlink.statustext import StatusTextAssembler
-from quadlink.mavlink.timesync import NS, TimesyncConfig, TimesyncEstimator, answer_fields, is_request, request_fields
+from quadlink.mavlink.timesync import NS, TimesyncConfig, TimesyncEstimator
 from teleop.commands import OutgoingCommand
 from teleop.delay import link_delay
 from teleop.force import VehicleMotion
@@ -38,14 +39,14 @@ TIMESYNC_PERIOD_S = 0.5      # TIMESYNC requests to the companion (the round tri
 TIMESYNC_MAX_RTT_S = 2.0     # a ground link through the internet: round trips above this are stalled samples
 
 
-def send_command(conn: Any, out: OutgoingCommand) -> None:
-    """A COMMAND_LONG or PARAM_SET of the command tracker on the link."""
+def send_command(client: GroundClient, out: OutgoingCommand) -> None:
+    """A COMMAND_LONG or PARAM_SET of the command tracker on the link (never waits: the tracker sees the acks)."""
     if out.kind == "command_long":
-        conn.mav.command_long_send(out.target_system, out.target_component, out.command, out.confirmation,
-                                   *out.params)
+        client.send_command_long(CommandLong(out.command, out.params), out.confirmation, out.target_system,
+                                 out.target_component)
     else:
-        conn.mav.param_set_send(out.target_system, out.target_component, out.param_id.encode(),
-                                out.param_value, mavlink.MAV_PARAM_TYPE_REAL32)
+        client.send_param_set(out.param_id, out.param_value, mavlink.MAV_PARAM_TYPE_REAL32, out.target_system,
+                              out.target_component)
 
 
 class VehicleLink:
@@ -59,23 +60,23 @@ class VehicleLink:
         self.estimator = make_estimator(station.cfg)
         self.sync = TimesyncEstimator(TimesyncConfig(max_rtt_s=TIMESYNC_MAX_RTT_S))
         self.statustexts = StatusTextAssembler()   # the vehicle's long texts come in chunks
-        self.next_heartbeat = -math.inf            # on the station's clock (the first tick sends)
-        self.next_timesync = -math.inf
+        self.next_timesync = -math.inf             # on the station's clock (the first tick sends)
         self.receive_limited = False               # the last _receive stopped at its message limit
 
     def run(self) -> None:
         """The wall-clock loop (its own thread): receive, then one :meth:`tick`, every 1/rate_hz."""
         st, cfg = self.station, self.cfg
         period = 1.0 / cfg.mapping.rate_hz
-        conn = st._conn
+        client = st.client
+        assert client is not None, "the station's link is opened by start()"
         csv_log = CsvLog(st.log_csv) if st.log_csv else None
         t0 = st.clock()
         next_t = t0
         try:
             while not st.stop_event.is_set():
                 t = st.clock()
-                tel = self._receive(conn, st.telemetry, t)
-                self.tick(conn, t, tel, csv_log, t0)
+                tel = self._receive(client, st.telemetry, t)
+                self.tick(client, t, tel, csv_log, t0)
                 next_t += period
                 if st.clock() - next_t > 10 * period:
                     next_t = st.clock()
@@ -84,52 +85,39 @@ class VehicleLink:
             if csv_log is not None:
                 csv_log.close()
 
-    def tick(self, conn: Any, t: float, tel: Telemetry, csv_log: CsvLog | None, t0: float) -> None:
+    def tick(self, client: GroundClient, t: float, tel: Telemetry, csv_log: CsvLog | None, t0: float) -> None:
         """One tick of the link at time ``t`` (the station's clock): buttons -> commands, MANUAL_CONTROL (with its
         COMMAND_STAMP), the 1 Hz HEARTBEAT, the TIMESYNC request, the published state and the CSV row."""
         st, cfg = self.station, self.cfg
-        self._buttons(conn, tel, t)
-        # operator command, eqs. (2)-(3)
+        self._buttons(client, tel, t)
+        # operator command, eqs. (2)-(3), after its send time (COMMAND_STAMP, issue 18)
         force = st.force
         q = force.device.q_m if force else np.zeros(3)
         cmd = map_device_to_command(q, cfg.mapping, cfg.device)
-        # its send time first (COMMAND_STAMP, issue 18: the very next packet is the command it stamps)
-        conn.mav.command_stamp_send(int(st.clock() * 1e6), mavlink.MAVLINK_MSG_ID_MANUAL_CONTROL,
-                                    cfg.mapping.target_system, cfg.commands.companion_component)
-        conn.mav.manual_control_send(cfg.mapping.target_system, cmd.x, cmd.y, cmd.z, cmd.r, cmd.buttons)
+        client.send_manual_control(cmd.x, cmd.y, cmd.z, cmd.r, cmd.buttons)
         st.manual_control_sent += 1
-        if t >= self.next_heartbeat:
-            self.next_heartbeat = t + 1.0
-            conn.mav.heartbeat_send(mavlink.MAV_TYPE_GCS, mavlink.MAV_AUTOPILOT_INVALID, 0, 0,
-                                    mavlink.MAV_STATE_ACTIVE)
+        client.heartbeat_if_due(t)
         if t >= self.next_timesync:
             self.next_timesync = t + TIMESYNC_PERIOD_S
-            conn.mav.timesync_send(*request_fields(int(st.clock() * NS)))
+            client.send_timesync_request()
         delay = link_delay(self.sync)
         st._set_link_state(tel, cmd, t, delay)
         if csv_log is not None:
             csv_log.write(csv_row(t - t0, force, cmd, tel, st._motion, delay))
 
-    def _receive(self, conn: Any, tel: Telemetry, t: float) -> Telemetry:
+    def _receive(self, client: GroundClient, tel: Telemetry, t: float) -> Telemetry:
         """Handle the messages readable now (at most MAX_MESSAGES_PER_TICK), received at ``t``."""
         cfg = self.cfg
         ap = (cfg.commands.autopilot_system, cfg.commands.autopilot_component)
         self.receive_limited = True
         for _ in range(MAX_MESSAGES_PER_TICK):
-            try:
-                msg = conn.recv_match(blocking=False)
-            except (OSError, ValueError) as exc:   # a bad datagram or a transient socket error
-                log.debug("MAVLink receive: %s", exc)
-                self.receive_limited = False
-                break
+            msg = client.receive()   # never waits; a socket error reads as nothing
             if msg is None:
                 self.receive_limited = False
                 break
             mtype = msg.get_type()
-            if mtype == "BAD_DATA":
-                continue
             if mtype == "TIMESYNC":
-                self._on_timesync(conn, msg)
+                self._on_timesync(client, msg)
                 continue
             if mtype == "STATUSTEXT":
                 text = self.statustexts.add(msg)
@@ -149,15 +137,13 @@ class VehicleLink:
                 self.station._ack(self.station.commands.on_param_value(pid.rstrip("\x00"), msg.param_value, t))
         return tel
 
-    def _on_timesync(self, conn: Any, msg: Any) -> None:
+    def _on_timesync(self, client: GroundClient, msg: Any) -> None:
         """TIMESYNC with the companion only (the autopilot's, routed through it, are not our peer's clock)."""
         if msg.get_srcComponent() != self.cfg.commands.companion_component:
             return
-        now_ns = int(self.station.clock() * NS)
-        if is_request(msg.tc1):   # the companion ages our commands with its estimate of our clock
-            conn.mav.timesync_send(*answer_fields(msg.ts1, now_ns))
-        else:
-            self.sync.on_response(msg.tc1, msg.ts1, now_ns)
+        # a request: the companion ages our commands with its estimate of our clock (the stamps' clock)
+        if not client.answer_timesync(msg):
+            self.sync.on_response(msg.tc1, msg.ts1, int(self.station.clock() * NS))
 
     def _on_feedback(self, fb: Feedback, t: float) -> None:
         st, cfg = self.station, self.cfg
@@ -171,7 +157,7 @@ class VehicleLink:
         if st._force_proc is not None:
             st._force_proc.set_motion(st._motion, fb.time_usec * 1e-6)
 
-    def _buttons(self, conn: Any, tel: Telemetry, t: float) -> None:
+    def _buttons(self, client: GroundClient, tel: Telemetry, t: float) -> None:
         st = self.station
         presses = st._force_proc.buttons() if st._force_proc is not None else []
         while True:
@@ -187,10 +173,10 @@ class VehicleLink:
             out = st.commands.build(button, tel.feedback.pan_scan_on if tel.feedback else False)
             if out is not None:
                 log.info("button %s -> %s", button, out.name)
-                send_command(conn, st.commands.submit(out, t))
+                send_command(client, st.commands.submit(out, t))
         resend, failed = st.commands.poll(t)
         for out in resend:
-            send_command(conn, out)
+            send_command(client, out)
         for result in failed:
             st._ack(result)
 

@@ -40,10 +40,10 @@ import numpy as np
 from numpy.typing import NDArray
 
 from quadlink.camera import CameraStreamClient
+from quadlink.client import GroundClient, Signing, connect
 from quadlink.errors import ConfigError, ProtocolError, QuadlinkError
 from quadlink.lockstep import DEFAULT_INPUT_TIMEOUT_S, CountedMavlink, LockstepClient, wait_for_units
-from quadlink.mavlink.connection import open_mavlink
-from quadlink.mavlink.security import enable_signing, read_key
+from quadlink.mavlink.security import read_key
 from teleop.commands import CommandResult, CommandTracker
 from teleop.config import TeleopConfig
 from teleop.delay import LinkDelay
@@ -124,7 +124,8 @@ class Station:
         self.commands = CommandTracker(cfg.commands)
         self.hub = ViewHub()
         self.server: ViewServer | None = None
-        self._conn: Any = None
+        self.client: GroundClient | None = None   # the vehicle link (opened by start / start_lockstep)
+        self._conn: Any = None                    # its pymavlink mavfile (counted in the lock-step)
         self._threads: list[threading.Thread] = []
         self._switch_interval = sys.getswitchinterval()
         self.manual_control_sent = 0
@@ -151,10 +152,17 @@ class Station:
             self._spawn("view-loop", self._view_loop)
 
     def _open_link(self) -> None:
-        self._conn = open_mavlink(self.vehicle_url, self.cfg.network.source_system, self.cfg.network.source_component)
         net = self.cfg.network
-        if net.signing_key_file is not None:   # everything this station sends is signed; what it gets may not be
-            enable_signing(self._conn.mav, read_key(net.signing_key_file), require=False, link_id=net.signing_link_id)
+        # everything this station sends is signed; what it gets may not be
+        signing = None if net.signing_key_file is None else Signing(read_key(net.signing_key_file), net.signing_link_id)
+        # the client's clock is the station's (late-bound: the lock-step replaces it): its COMMAND_STAMPs and its
+        # TIMESYNC answers are on the same clock
+        self.client = connect(self.vehicle_url, net.source_system, net.source_component,
+                              target_system=self.cfg.mapping.target_system,
+                              target_component=self.cfg.commands.companion_component,
+                              signing=signing, clock=lambda: self.clock())
+        self._conn = self.client.conn
+        if signing is not None:
             log.info("vehicle link signed (key %s, link id %d)", net.signing_key_file, net.signing_link_id)
         log.info("vehicle link %s (MANUAL_CONTROL at %.0f Hz to sysid %d)", self.vehicle_url, self.cfg.mapping.rate_hz,
                  self.cfg.mapping.target_system)
@@ -178,9 +186,9 @@ class Station:
         """Answer STEPs until stopped (Ctrl-C, quit button, script end, ``duration_s`` of simulated time); the
         last step is answered before returning. :class:`quadlink.lockstep.LockstepError`: the coordinator is
         gone or an announced datagram did not come."""
-        client, counted, conn = self._lockstep, self._counted, self._conn
-        assert client is not None and counted is not None and isinstance(self.device, HapticDevice), \
-            "start_lockstep() first"
+        client, counted, ground = self._lockstep, self._counted, self.client
+        assert client is not None and counted is not None and ground is not None and \
+            isinstance(self.device, HapticDevice), "start_lockstep() first"
         force = ForceLoop(self.device, self.cfg, _ThreadIO(self))
         link = VehicleLink(self)
         csv_log = CsvLog(self.log_csv) if self.log_csv else None
@@ -209,7 +217,7 @@ class Station:
                                          input_timeout_s)
                 # the link's ticks due at t (MANUAL_CONTROL, commands, HEARTBEAT, TIMESYNC)
                 while t_first + n_link * link_period <= t + _EPS_S:
-                    link.tick(conn, t, tel, csv_log, t_first)
+                    link.tick(ground, t, tel, csv_log, t_first)
                     n_link += 1
                 # the script's end once its last presses went out (they wait for the link's next tick)
                 finished = ((duration_s is not None and t - t_first >= duration_s)
@@ -233,15 +241,15 @@ class Station:
     def _receive_step(self, link: VehicleLink, tel: Telemetry, t: float, allow: int | None, what: str,
                       input_timeout_s: float) -> Telemetry:
         """Handle the companion's datagrams up to the step's count ``allow`` (None: what is there), at ``t``."""
-        counted = self._counted
-        assert counted is not None
+        counted, ground = self._counted, self.client
+        assert counted is not None and ground is not None
         counted.allow = allow
         state = [tel]
 
         def receive() -> None:
-            state[0] = link._receive(self._conn, state[0], t)
+            state[0] = link._receive(ground, state[0], t)
             while link.receive_limited:
-                state[0] = link._receive(self._conn, state[0], t)
+                state[0] = link._receive(ground, state[0], t)
 
         def pump(block_s: float) -> None:
             counted.wait_readable(block_s)
@@ -311,8 +319,8 @@ class Station:
             self.server.close()
         if self._lockstep is not None:   # after the last DONE: the coordinator sees the operator leave
             self._lockstep.close()
-        if self._conn is not None:
-            self._conn.close()
+        if self.client is not None:
+            self.client.close()
 
     # ---- snapshots -------------------------------------------------------------------------
     def vehicle_time_s(self) -> float | None:

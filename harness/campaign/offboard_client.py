@@ -22,7 +22,7 @@ The plan (written by :func:`harness.campaign.sessions.generate_session`)::
       - {frame: ned, north_m_s: 0.2, east_m_s: 0.0, down_m_s: 0.0, yaw_deg: 90.0, duration_s: 2.0}
 
 Whether the companion shapes these setpoints with its safety layer is the companion's business (issue
-14); this client only speaks the protocol.
+14); this client only speaks the protocol, through :class:`quadlink.client.GroundClient`.
 
 With ``--lockstep tcp://HOST:PORT`` the client is the ``operator`` participant of the SITL's deterministic
 lock-step (:mod:`quadlink.lockstep`): it sends nothing until the coordinator's first STEP, then, per step,
@@ -40,58 +40,45 @@ import math
 import sys
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import click
 import yaml
 
+from quadlink.client import (
+    CommandLong,
+    GroundClient,
+    PositionTarget,
+    arm_command,
+    connect,
+    land_command,
+    takeoff_command,
+    velocity_body,
+    velocity_ned,
+)
 from quadlink.errors import ConfigError, QuadlinkError
-from quadlink.ids import COMPANION_COMPONENT_ID, GROUND_COMPONENT_ID, GROUND_SYSTEM_ID
 from quadlink.lockstep import DEFAULT_INPUT_TIMEOUT_S, CountedMavlink, LockstepClient, LockstepError, wait_for_units
 from quadlink.mavlink import mavlink
-from quadlink.px4_modes import Px4MainMode, encode_custom_mode
+from quadlink.px4_modes import OFFBOARD
 
 log = logging.getLogger("harness.campaign.offboard")
 
 SETPOINT_PERIOD_S = 0.05  # MAVSDK streams offboard setpoints at 20 Hz
-COMPANION_COMPONENT = COMPANION_COMPONENT_ID
-VEHICLE_SYSTEM = 1
-HEARTBEAT_PERIOD_S = 1.0
+TAKEOFF_HEIGHT_M = 1.0
+#: DO_SET_MODE OFFBOARD as this client has always sent it, to the companion (191): param2 carries the whole
+#: custom_mode (6 << 16) where PX4 reads the main mode (6, :func:`quadlink.client.set_px4_mode_command`). The companion
+#: refuses it (DENIED: param2 outside 0..255), so the stream's first setpoint is what engages offboard; kept as
+#: flown so that the campaigns' figures stay comparable (docs/limits.md)
+OFFBOARD_AS_FLOWN = CommandLong(mavlink.MAV_CMD_DO_SET_MODE, (float(mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED),
+                                                              float(OFFBOARD.custom_mode), 0.0, 0.0, 0.0, 0.0, 0.0))
 LOCKSTEP_NAME = "operator"
 LINK_IN = "companion>operator"     # datagrams the companion sends us (lock-step input link)
 LINK_OUT = "operator>companion"    # datagrams we send the companion (lock-step output link)
 MAX_MESSAGES_PER_DRAIN = 100_000   # a runaway parse cannot hang a step
-# type_mask (POSITION_TARGET_TYPEMASK): velocity only, with the yaw or the yaw rate
-_M = mavlink
-_IGNORE_POS = _M.POSITION_TARGET_TYPEMASK_X_IGNORE | _M.POSITION_TARGET_TYPEMASK_Y_IGNORE | \
-    _M.POSITION_TARGET_TYPEMASK_Z_IGNORE
-_IGNORE_ACC = _M.POSITION_TARGET_TYPEMASK_AX_IGNORE | _M.POSITION_TARGET_TYPEMASK_AY_IGNORE | \
-    _M.POSITION_TARGET_TYPEMASK_AZ_IGNORE
-_IGNORE_YAW = _M.POSITION_TARGET_TYPEMASK_YAW_IGNORE
-_IGNORE_YAW_RATE = _M.POSITION_TARGET_TYPEMASK_YAW_RATE_IGNORE
-TYPE_MASK_VELOCITY_YAW_RATE = _IGNORE_POS | _IGNORE_ACC | _IGNORE_YAW
-TYPE_MASK_VELOCITY_YAW = _IGNORE_POS | _IGNORE_ACC | _IGNORE_YAW_RATE
 
 
-@dataclass(frozen=True)
-class VelocitySetpoint:
-    """One SET_POSITION_TARGET_LOCAL_NED velocity setpoint (frame: MAV_FRAME_BODY_NED or LOCAL_NED)."""
-
-    frame: int
-    vx_m_s: float
-    vy_m_s: float
-    vz_m_s: float
-    yaw_rad: float
-    yaw_rate_rad_s: float
-    type_mask: int
-
-
-HOVER = VelocitySetpoint(mavlink.MAV_FRAME_BODY_NED, 0.0, 0.0, 0.0, 0.0, 0.0, TYPE_MASK_VELOCITY_YAW_RATE)
-
-
-def setpoint_at(plan: dict[str, Any], t_s: float) -> VelocitySetpoint | None:
+def setpoint_at(plan: dict[str, Any], t_s: float) -> PositionTarget | None:
     """The plan's setpoint at vehicle time ``t_s`` (pure); None before take-off-plus-offboard and after."""
     t = plan["takeoff_s"]
     if t_s < t:
@@ -99,12 +86,10 @@ def setpoint_at(plan: dict[str, Any], t_s: float) -> VelocitySetpoint | None:
     for seg in plan["segments"]:
         if t_s < t + seg["duration_s"]:
             if seg.get("frame", "body") == "body":
-                return VelocitySetpoint(mavlink.MAV_FRAME_BODY_NED, seg.get("forward_m_s", 0.0),
-                                        seg.get("right_m_s", 0.0), seg.get("down_m_s", 0.0), 0.0,
-                                        math.radians(seg.get("yawspeed_deg_s", 0.0)), TYPE_MASK_VELOCITY_YAW_RATE)
-            return VelocitySetpoint(mavlink.MAV_FRAME_LOCAL_NED, seg.get("north_m_s", 0.0), seg.get("east_m_s", 0.0),
-                                    seg.get("down_m_s", 0.0), math.radians(seg.get("yaw_deg", 0.0)), 0.0,
-                                    TYPE_MASK_VELOCITY_YAW)
+                return velocity_body(seg.get("forward_m_s", 0.0), seg.get("right_m_s", 0.0), seg.get("down_m_s", 0.0),
+                                     math.radians(seg.get("yawspeed_deg_s", 0.0)))
+            return velocity_ned(seg.get("north_m_s", 0.0), seg.get("east_m_s", 0.0), seg.get("down_m_s", 0.0),
+                                math.radians(seg.get("yaw_deg", 0.0)))
         t += seg["duration_s"]
     return None
 
@@ -124,63 +109,47 @@ def load_plan(path: Path) -> dict[str, Any]:
 
 
 class OffboardClient:
-    """The I/O side: one pymavlink connection, driven by :meth:`run` (wall clock) or :meth:`run_lockstep`.
+    """The I/O side: one ground client (commands and setpoints to the companion), driven by :meth:`run` (wall
+    clock) or :meth:`run_lockstep`.
 
     The timers are split from the I/O so that both modes share them: :meth:`handle` takes one received
     message, :meth:`heartbeat` runs the 1 Hz GCS heartbeat on a given clock (wall or simulated) and
     :meth:`plan_tick` sends what the plan asks at the vehicle time received so far.
     """
 
-    def __init__(self, conn: Any, plan: dict[str, Any]) -> None:
-        self.conn = conn
+    def __init__(self, client: GroundClient, plan: dict[str, Any]) -> None:
+        self.client = client
         self.plan = plan
-        self.vehicle_t_s: float | None = None
         self.origin_s: float | None = None  # vehicle time when the plan started
-        self._last_hb_s = -math.inf          # on the heartbeat's clock (wall, or the step's simulated time)
         self._done: set[str] = set()
         self._next_sp_s = 0.0                # plan time of the next setpoint
         self.end_s = plan_end_s(plan)
         self.total_s = float(plan.get("duration_s", self.end_s + plan.get("landing_s", 8.0)))
 
-    def _command(self, command: int, params: tuple[float, ...]) -> None:
-        self.conn.mav.command_long_send(VEHICLE_SYSTEM, COMPANION_COMPONENT, command, 0, *params)
-
-    def _send_setpoint(self, sp: VelocitySetpoint) -> None:
-        ms = int((self.vehicle_t_s or 0.0) * 1000) & 0xFFFFFFFF
-        self.conn.mav.set_position_target_local_ned_send(
-            ms, VEHICLE_SYSTEM, COMPANION_COMPONENT, sp.frame, sp.type_mask, 0.0, 0.0, 0.0, sp.vx_m_s, sp.vy_m_s,
-            sp.vz_m_s, 0.0, 0.0, 0.0, sp.yaw_rad, sp.yaw_rate_rad_s)
+    @property
+    def vehicle_t_s(self) -> float | None:
+        """The plan's clock: the vehicle time of the latest TELEOP_FEEDBACK (the client's state), s."""
+        return self.client.state.time_s
 
     def handle(self, msg: Any) -> None:
-        """One received message (the plan's clock is the vehicle time of the latest TELEOP_FEEDBACK)."""
-        if msg.get_type() == "TELEOP_FEEDBACK":
-            self.vehicle_t_s = msg.time_usec * 1e-6
-        elif msg.get_type() == "STATUSTEXT":
+        """One received message (TELEOP_FEEDBACK already moved the client's vehicle time)."""
+        if msg.get_type() == "STATUSTEXT":
             log.info("vehicle: %s", msg.text)
 
     def _pump(self, timeout_s: float) -> None:
-        msg = self.conn.recv_match(blocking=True, timeout=timeout_s)
-        while msg is not None:
-            self.handle(msg)
-            msg = self.conn.recv_match(blocking=False)
+        self.client.wait_readable(timeout_s)
+        self.drain()
 
     def drain(self) -> int:
         """Handle every message readable now (in lock-step: up to the step's allowance); how many."""
-        n = 0
-        while n < MAX_MESSAGES_PER_DRAIN:
-            msg = self.conn.recv_match(blocking=False)
-            if msg is None:
-                break
+        messages = self.client.drain(MAX_MESSAGES_PER_DRAIN)
+        for msg in messages:
             self.handle(msg)
-            n += 1
-        return n
+        return len(messages)
 
     def heartbeat(self, now_s: float) -> None:
         """The 1 Hz GCS heartbeat, on the caller's clock (the first call sends)."""
-        if now_s - self._last_hb_s >= HEARTBEAT_PERIOD_S:
-            self._last_hb_s = now_s
-            self.conn.mav.heartbeat_send(mavlink.MAV_TYPE_GCS, mavlink.MAV_AUTOPILOT_INVALID, 0, 0,
-                                         mavlink.MAV_STATE_ACTIVE)
+        self.client.heartbeat_if_due(now_s)
 
     def _once(self, name: str, due: bool) -> bool:
         if due and name not in self._done:
@@ -202,20 +171,18 @@ class OffboardClient:
         if t is None:
             return False
         if self._once("arm", t >= 2.0):
-            self._command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, (1.0, 0, 0, 0, 0, 0, 0))
+            self.client.send_command_long(arm_command())
         if self._once("takeoff", t >= 3.0):
-            self._command(mavlink.MAV_CMD_NAV_TAKEOFF, (0, 0, 0, math.nan, math.nan, math.nan, 1.0))
+            self.client.send_command_long(takeoff_command(TAKEOFF_HEIGHT_M))
         sp = setpoint_at(self.plan, t)
         if sp is not None and t >= self._next_sp_s:
             self._next_sp_s = t + SETPOINT_PERIOD_S
-            self._send_setpoint(sp)
+            self.client.send_position_target(sp, int((self.vehicle_t_s or 0.0) * 1000))
             # PX4 wants setpoints streaming before the switch (MAVSDK offboard.start() sends one first)
             if self._once("offboard", True):
-                self._command(mavlink.MAV_CMD_DO_SET_MODE,
-                              (mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED,
-                               float(encode_custom_mode(Px4MainMode.OFFBOARD)), 0, 0, 0, 0, 0))
+                self.client.send_command_long(OFFBOARD_AS_FLOWN)
         if self._once("land", t >= self.end_s):
-            self._command(mavlink.MAV_CMD_NAV_LAND, (0, 0, 0, math.nan, math.nan, math.nan, 0.0))
+            self.client.send_command_long(land_command())
         return t >= self.total_s
 
     def run(self, wall_timeout_s: float) -> int:
@@ -281,22 +248,20 @@ def open_lockstep(conn: Any, url: str) -> tuple[LockstepClient, CountedMavlink]:
               help="join the SITL's deterministic lock-step as the 'operator' participant (quadlink.lockstep)")
 def main(vehicle: str, plan_path: Path, wall_timeout: float, lockstep_url: str | None) -> None:
     """Fly an offboard velocity plan through the companion (pymavlink, MAVSDK-style setpoints)."""
-    from quadlink.mavlink.connection import open_mavlink
-
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname).1s %(name)s: %(message)s")
     try:
         plan = load_plan(plan_path)
-        conn = open_mavlink(vehicle, source_system=GROUND_SYSTEM_ID, source_component=GROUND_COMPONENT_ID)
+        ground = connect(vehicle)   # 255/190 to the companion, 1/191
     except QuadlinkError as exc:
         click.echo(f"offboard_client: error: {exc}", err=True)
         sys.exit(2)
     client: LockstepClient | None = None
     try:
-        offboard = OffboardClient(conn, plan)
+        offboard = OffboardClient(ground, plan)
         if lockstep_url is None:
             code = offboard.run(wall_timeout)
         else:
-            client, counted = open_lockstep(conn, lockstep_url)
+            client, counted = open_lockstep(ground.conn, lockstep_url)
             code = offboard.run_lockstep(client, counted)
     except LockstepError as exc:   # the coordinator is gone (the SITL ended or died) or a datagram never came
         log.error("lock-step: %s", exc)
@@ -307,7 +272,7 @@ def main(vehicle: str, plan_path: Path, wall_timeout: float, lockstep_url: str |
     finally:
         if client is not None:
             client.close()
-        conn.close()
+        ground.close()
     sys.exit(code)
 
 

@@ -50,19 +50,18 @@ from harness.demo.paper003 import (
     resample,
     tables,
 )
-from harness.trajectory_cli import load_trajectory_file, setpoint_fields
+from harness.trajectory_cli import load_trajectory_file, trajectory_target
+from quadlink.client import connect, land_command, takeoff_command
 from quadlink.errors import ConfigError
 from quadlink.frames import Rz
-from quadlink.ids import COMPANION_COMPONENT_ID, GROUND_COMPONENT_ID
+from quadlink.ids import AUTOPILOT_COMPONENT_ID, COMPANION_COMPONENT_ID
 from quadlink.mavlink import mavlink
 from quadlink.trajectory.minsnap import MinSnapTrajectory
 
 log = logging.getLogger("quadlink.paper003")
 
-COMPANION_COMPID = COMPANION_COMPONENT_ID
-GCS_COMPID = GROUND_COMPONENT_ID
 SETPOINT_RATE_HZ = 50.0
-FEEDBACK_CAMERA_FRESH = 8      # TELEOP_FEEDBACK flags bit3: obstacle data fresh (camera frames flow)
+FEEDBACK_CAMERA_FRESH = mavlink.QUADLINK_TELEOP_FLAGS_OBSTACLES_FRESH   # camera frames flow at the companion
 MODE_TELEOP = mavlink.QUADLINK_TELEOP_MODE_TELEOP
 MODE_HOLD = mavlink.QUADLINK_TELEOP_MODE_HOLD                  # TELEOP with no live source of motion (no script yet)
 TAKEOFF_HEIGHT_M = 1.0
@@ -119,21 +118,33 @@ class Recording:
 
 
 class Client:
-    """The ground station on the companion's endpoint, the truth listener, and the vehicle's clock."""
+    """The ground station on the companion's endpoint (a :class:`quadlink.client.GroundClient`: commands to the
+    companion, setpoints to the autopilot through it, a 1 Hz heartbeat on the wall clock), the truth listener, and
+    the vehicle's clock."""
 
     def __init__(self, ports: Ports, stack: Stack) -> None:
         from quadlink.mavlink.connection import open_mavlink
 
         self.stack = stack
-        self.gcs = open_mavlink(f"udpout:127.0.0.1:{ports.vehicle}", 255, GCS_COMPID)
+        self.gcs = connect(f"udpout:127.0.0.1:{ports.vehicle}", target_component=COMPANION_COMPONENT_ID)
         self.truth = open_mavlink(f"udpin:127.0.0.1:{ports.truth}", 255, 0)
         self.rec = Recording()
-        self.t_s = math.nan          # the vehicle's clock as the companion reports it (TELEOP_FEEDBACK)
         self.truth_t_s = math.nan
-        self.mode = 0
-        self.flags = 0
         self.height_m = 0.0
-        self._hb_wall = 0.0
+
+    @property
+    def t_s(self) -> float:
+        """The vehicle's clock as the companion reports it (TELEOP_FEEDBACK), s; NaN before the first."""
+        t = self.gcs.state.time_s
+        return math.nan if t is None else t
+
+    @property
+    def mode(self) -> int:
+        return self.gcs.state.teleop_mode or 0
+
+    @property
+    def flags(self) -> int:
+        return self.gcs.state.teleop_flags
 
     def close(self) -> None:
         self.gcs.close()
@@ -144,21 +155,16 @@ class Client:
             if m.get_type() == "LOCAL_POSITION_NED":
                 self.truth_t_s = m.time_boot_ms / 1e3
                 self.rec.truth.append((self.truth_t_s, m.x, m.y, m.z, m.vx, m.vy, m.vz))
-        while (m := self.gcs.recv_msg()) is not None:
+        while (m := self.gcs.receive()) is not None:   # TELEOP_FEEDBACK: the client's state (t_s, mode, flags)
             kind = m.get_type()
-            if kind == "TELEOP_FEEDBACK":
-                self.t_s = m.time_usec / 1e6
-                self.mode, self.flags = m.mode, m.flags
-            elif kind == "LOCAL_POSITION_NED" and m.get_srcComponent() == COMPANION_COMPID:
+            if kind == "LOCAL_POSITION_NED" and m.get_srcComponent() == COMPANION_COMPONENT_ID:
                 self.rec.estimate.append((m.time_boot_ms / 1e3, m.x, m.y, m.z, m.vx, m.vy, m.vz))
                 self.height_m = -m.z
             elif kind == "STATUSTEXT":
                 text = f"{self.t_s:.1f} {m.text}"
                 self.rec.statustexts.append(text)
                 log.info("vehicle: %s", m.text)
-        if time.monotonic() - self._hb_wall > 1.0:
-            self._hb_wall = time.monotonic()
-            self.gcs.mav.heartbeat_send(mavlink.MAV_TYPE_GCS, mavlink.MAV_AUTOPILOT_INVALID, 0, 0, 0)
+        self.gcs.heartbeat_if_due()
 
     def wait(self, until: Callable[[], bool], wall_timeout_s: float, what: str,
              each: Callable[[], None] | None = None) -> None:
@@ -175,8 +181,7 @@ class Client:
 
     def take_off(self) -> None:
         self.wait(lambda: bool(self.flags & FEEDBACK_CAMERA_FRESH), 180.0, "camera frames at the companion")
-        self.gcs.mav.command_long_send(1, COMPANION_COMPID, mavlink.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, 0, 0, 0,
-                                       TAKEOFF_HEIGHT_M)
+        self.gcs.send_command_long(takeoff_command(TAKEOFF_HEIGHT_M))
         self.wait(lambda: self.mode in (MODE_TELEOP, MODE_HOLD) and self.height_m > AIRBORNE_M, 240.0,
                   "take-off to teleop")
         log.info("airborne at vehicle time %.1f s, height %.2f m", self.t_s, self.height_m)
@@ -200,15 +205,13 @@ class Client:
             s = traj.sample(min(max(self.t_s - t0_s, 0.0), traj.duration_s))
             if self.t_s < t0_s or self.t_s > t0_s + traj.duration_s:     # lead-in and hold: rest at the point
                 s = type(s)(s.t_s, s.p_m, zero, zero, zero)
-            f = setpoint_fields(s, zero, yaw_rad)
-            self.gcs.mav.set_position_target_local_ned_send(
-                int(self.t_s * 1e3) & 0xFFFFFFFF, 1, 1, f["coordinate_frame"], f["type_mask"], f["x"], f["y"], f["z"],
-                f["vx"], f["vy"], f["vz"], f["afx"], f["afy"], f["afz"], f["yaw"], f["yaw_rate"])
+            self.gcs.send_position_target(trajectory_target(s, zero, yaw_rad), int(self.t_s * 1e3),
+                                          target_component=AUTOPILOT_COMPONENT_ID)
 
         self.wait(lambda: self.t_s >= until_s, wall_timeout_s, f"vehicle time {until_s:.0f} s", each=send)
 
     def land(self) -> None:
-        self.gcs.mav.command_long_send(1, COMPANION_COMPID, mavlink.MAV_CMD_NAV_LAND, 0, 0, 0, 0, 0, 0, 0, 0)
+        self.gcs.send_command_long(land_command())
 
 
 def _series(rec: Recording, traj: MinSnapTrajectory, t0_s: float, start_yaw_rad: float = 0.0, align_s: float = 1.0

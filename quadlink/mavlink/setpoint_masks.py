@@ -1,7 +1,8 @@
 """SET_POSITION_TARGET_LOCAL_NED / SET_ATTITUDE_TARGET type-mask groups and frame families, defined once.
 
 A set bit in a POSITION_TARGET_TYPEMASK means "ignore this field". The groups below are built from the
-dialect's enum entries; the bridge, the companion's arbiter and the trajectory tools import them.
+dialect's enum entries; the bridge, the companion's arbiter and the ground client (:mod:`quadlink.client`) import
+them.
 """
 
 from __future__ import annotations
@@ -24,6 +25,10 @@ TM_YAW_RATE = mavlink.POSITION_TARGET_TYPEMASK_YAW_RATE_IGNORE
 TM_VELOCITY_YAW_RATE = TM_POSITION | TM_ACCEL | TM_YAW
 #: velocity + acceleration + yaw rate: the acceleration bits of 1479 cleared
 TM_VELOCITY_ACCEL_YAW_RATE = TM_POSITION | TM_YAW
+#: velocity + yaw (MAVSDK's set_velocity_ned): 2503
+TM_VELOCITY_YAW = TM_POSITION | TM_ACCEL | TM_YAW_RATE
+#: position + velocity + acceleration + yaw (a PX4 trajectory setpoint, ``quadlink trajectory``): 2048
+TM_POSITION_VELOCITY_ACCEL_YAW = TM_YAW_RATE
 
 #: frames whose velocity is rotated by yaw only (PX4's and ArduPilot's reading for velocity setpoints)
 BODY_FRAMES = (mavlink.MAV_FRAME_BODY_NED, mavlink.MAV_FRAME_BODY_OFFSET_NED, mavlink.MAV_FRAME_BODY_FRD)

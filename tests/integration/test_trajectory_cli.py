@@ -12,6 +12,7 @@ import pytest
 from firmware_bridge.geometric_tracker import decode_trajectory_setpoint
 from harness.trajectory_cli import load_trajectory_file, schedule, stream
 from quadlink import CONFIG_DIR
+from quadlink.client import GroundClient
 from quadlink.errors import ConfigError
 from quadlink.mavlink.connection import open_mavlink
 from quadlink.trajectory import minimum_snap
@@ -60,8 +61,9 @@ def test_stream_sends_px4_style_setpoints_the_tracker_decodes() -> None:
         tx = open_mavlink(f"udpout:127.0.0.1:{port}", source_system=255, source_component=190)
         now = [100.0]
         try:
-            sent = stream(tx, traj, 50.0, 0.2, np.array([0.5, 0.0, 0.0]), 0.3, 1, 1, offboard=True,
-                          clock=lambda: now[0], sleep=lambda s: now.__setitem__(0, now[0] + s))
+            sent = stream(GroundClient(tx, target_system=1, target_component=1), traj, 50.0, 0.2,
+                          np.array([0.5, 0.0, 0.0]), 0.3, offboard=True, clock=lambda: now[0],
+                          sleep=lambda s: now.__setitem__(0, now[0] + s))
         finally:
             tx.close()
         assert sent == len(list(schedule(traj, 50.0, 0.2))) == 61

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from harness.campaign.draws import CAMERA_TILT_DEG, draw_flight, write_flight_files
-from harness.campaign.offboard_client import TYPE_MASK_VELOCITY_YAW_RATE, plan_end_s, setpoint_at
+from harness.campaign.offboard_client import plan_end_s, setpoint_at
 from harness.campaign.report import summarize, summary_text
 from harness.campaign.runner import CampaignOptions, FlightResult, flight_ports, progress_line
 from harness.campaign.safety import envelope, read_truth
@@ -20,6 +20,7 @@ from harness.campaign.sessions import MOTION_OFFSET_RAD, generate_session
 from harness.demo.cli import PORT_BLOCK_SIZE, PORT_NAMES, FlightSpec, Ports, compare_reports
 from quadlink.config import load_config
 from quadlink.mavlink import mavlink
+from quadlink.mavlink.setpoint_masks import TM_VELOCITY_YAW_RATE
 from quadlink.mavlink.tlog import TlogWriter
 from quadlink.vehicle import load_vehicle
 from sim_sitl.config import RoomConfig, ScenarioConfig, SceneObject, StartPose, load_scenario, load_sitl_config
@@ -165,12 +166,12 @@ def test_offboard_plan_timeline_and_masks() -> None:
     assert sp.yaw_rate_rad_s == pytest.approx(math.radians(first["yawspeed_deg_s"]))
     assert setpoint_at(plan, plan_end_s(plan) + 1e-3) is None
     # velocity and yaw rate used, position, acceleration and yaw ignored (what MAVSDK's set_velocity_body sends)
-    assert TYPE_MASK_VELOCITY_YAW_RATE == 0b0000_0101_1100_0111
+    assert TM_VELOCITY_YAW_RATE == 0b0000_0101_1100_0111
     mav = mavlink.MAVLink(None, srcSystem=255, srcComponent=190)
     buf = mav.set_position_target_local_ned_encode(0, 1, 191, sp.frame, sp.type_mask, 0, 0, 0, sp.vx_m_s,
                                                    sp.vy_m_s, sp.vz_m_s, 0, 0, 0, 0, sp.yaw_rate_rad_s).pack(mav)
     msg = mavlink.MAVLink(None).parse_char(buf)
-    assert msg.coordinate_frame == mavlink.MAV_FRAME_BODY_NED and msg.type_mask == TYPE_MASK_VELOCITY_YAW_RATE
+    assert msg.coordinate_frame == mavlink.MAV_FRAME_BODY_NED and msg.type_mask == TM_VELOCITY_YAW_RATE
 
 
 def _truth_log(path: Path, heights_m: list[float], obstacle_m: list[float]) -> None:
