@@ -91,7 +91,10 @@ class FlightControlService:
             v_ref = np.array([0.0, 0.0, s.params["MPC_LAND_SPEED"]])
             # not while resting on something: thrust below the touchdown test's (campaign 4, flight 14 sat in LAND
             # on the floor, its odometry's velocity garbage, and a brake on it skidded the vehicle 0.16 m)
-            resting = s.last_board_command.thrust < s.params["LNDMC_THR_MAX"] * s.tracker.hover_thrust_fraction
+            # ... nor at the floor on the barometer (campaign seed 2031 flight 13: on the floor in LAND, thrust still
+            # near hover, the odometry lost: the brake on a garbage velocity slid the vehicle 0.9 m into a column)
+            resting = s.last_board_command.thrust < s.params["LNDMC_THR_MAX"] * s.tracker.hover_thrust_fraction \
+                or self._level_landing()
             braking = s.odom_lost_s is not None and now_s - s.odom_lost_s < ODOM_LOST_BRAKE_S and not resting
             if resting:
                 s.odom_lost_s = None   # no brake later in this loss either
@@ -243,7 +246,8 @@ class FlightControlService:
         return self._finish(cmd)
 
     def _level_landing(self) -> bool:
-        """In LAND: the barometer-fused height is below BRG_LAND_LVL_ALT (0: never), so the rest is flown level."""
+        """The barometer-fused height is below BRG_LAND_LVL_ALT (0: never): a landing flies the rest level, and a
+        brake on a lost odometry's last velocity is not started (the vehicle is at the floor, perhaps on it)."""
         s = self.state
         floor_m = s.params["BRG_LAND_LVL_ALT"]
         return floor_m > 0.0 and s.vertical.estimate.baro_fused and s.vertical.height_m < floor_m

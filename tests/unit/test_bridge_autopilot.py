@@ -727,3 +727,24 @@ def test_the_gate_passes_a_real_acceleration():
     sim.step(3.0, setpoint=velocity_body(1.5, 0, 0))
     assert np.linalg.norm(sim.v[:2]) > 1.3
     assert sim.ap.state.counters["odometry_gated"] == 0
+
+
+def test_odometry_lost_at_the_floor_on_the_baro_does_not_brake_whatever_the_thrust():
+    """Campaign seed 2031 flight 13: on the floor in LAND with the thrust still near hover (the touchdown not yet
+    seen), the odometry lost, a brake on its last (garbage) velocity slid the vehicle 0.9 m into a column. Below
+    BRG_LAND_LVL_ALT on the barometer there is no brake: level."""
+    sim = Sim()
+    sim.baro = True
+    fly_to_hover(sim)
+    assert sim.command(mavlink.MAV_CMD_NAV_LAND)[0] == mavlink.MAV_RESULT_ACCEPTED
+    while -sim.p[2] > 0.1:
+        sim.step(0.02)
+    state = sim.ap.state
+    state.v_h_dead_reckoned[:2] = (0.0, -0.6)                 # the garbage velocity it last saw
+    sim.odom = False
+    commands = []
+    for _ in range(750):                                        # 1.5 s: past the odometry timeout and the brake's
+        sim.step(0.002)
+        commands.append(state.last_board_command)
+    assert sim.ap.failsafe_reason == "odometry lost" or not sim.ap.armed_cmd
+    assert all(c.roll_rad == 0.0 and c.pitch_rad == 0.0 for c in commands)
