@@ -8,11 +8,11 @@ from pathlib import Path
 from typing import Literal
 
 from companion.arbiter import ArbiterParams
-from companion.blocked_hold import BlockedHoldParams
 from companion.landing_spot import LandingSpotParams
 from companion.latency import LatencyParams
 from companion.modes import ModeParams
 from companion.pan_scan import PanScanParams
+from companion.position_hold import PositionHoldParams
 from companion.reference_params import ReferenceParams
 from quadlink.config import find_config, load_config
 from quadlink.ids import COMPANION_COMPONENT_ID
@@ -109,8 +109,8 @@ class CompanionConfig:
     arbiter: ArbiterParams = field(default_factory=ArbiterParams)   # sources of motion (companion.arbiter)
     landing_spot: LandingSpotParams = field(default_factory=LandingSpotParams)   # commanded landings over objects
     latency: LatencyParams = field(default_factory=LatencyParams)   # late data: what the safety law pays for it
-    # where the safety layer blocked the command, hold the place (companion.blocked_hold), not just v = 0
-    blocked_hold: BlockedHoldParams = field(default_factory=BlockedHoldParams)
+    # where the reference stops the vehicle, hold the place (companion.position_hold), not just v = 0
+    position_hold: PositionHoldParams = field(default_factory=PositionHoldParams)
     # signing and the sender allowlist on the ground-station endpoint (the autopilot link is internal)
     security: SecurityConfig = field(default_factory=SecurityConfig)
     vehicle: str = "vehicle"  # vehicle config (camera mount R_qc, p_qc) by name or path

@@ -65,7 +65,6 @@ from numpy.typing import NDArray
 from companion import messages as msgs
 from companion.arbiter import Arbiter, Pose, Source
 from companion.autopilot_input import AutopilotInput, is_autopilot_heartbeat
-from companion.blocked_hold import BlockedHold
 from companion.cameras import CameraInput
 from companion.command_clock import GcsCommandClock
 from companion.commands import CommandQueue
@@ -98,6 +97,7 @@ from companion.outbound import AutopilotAck, GcsReply, Outbox, Output, ToAutopil
 from companion.pan_scan import PanScanParams
 from companion.params import PARAM_NAMES, CompanionParams, ParamService
 from companion.perception_stage import PerceptionStage
+from companion.position_hold import PositionHold
 from companion.recording import FrameRecording
 from companion.reference import ReferenceOutput
 from companion.reference_params import ReferenceParams
@@ -191,7 +191,7 @@ class Companion:
         self.progress = ProgressLine(PROGRESS_EVERY_S)
         self.time = AutopilotTime(self.timesync, t.camera_stamps, clock())   # stamps what we send
         self.latency = LatencyGuard(cfg.latency)   # the age of each frame's data, paid for by the safety law
-        self.blocked_hold = BlockedHold(cfg.blocked_hold)   # stay where the safety layer stopped the vehicle
+        self.position_hold = PositionHold(cfg.position_hold)   # stay where the reference stops the vehicle
         self._last_seq: int | None = None
 
     # ------------------------------------------------------------------ parameters (companion.params)
@@ -522,7 +522,7 @@ class Companion:
         height = st.height.update(stamp, height_m(out), None if out is None else out.floor_height_m)
         if self.modes.mode == Mode.IDLE:
             self.below.clear()   # a new flight, a new odometry world
-            self.blocked_hold.reset()
+            self.position_hold.reset()
         elif out is not None and out.odometry_ok:
             self.below.observe(out.obstacle_points_h_m, self._height_above_floor_m(), self.ref_params.floor_margin_m,
                                out.position_m, out.yaw_rad)
@@ -542,7 +542,7 @@ class Companion:
                           command_yaw_rate_rad_s=clearing[1] if clearing is not None else cmd.yaw_rate_rad_s,
                           height_above_takeoff_m=height,
                           height_verified=st.height.verified(stamp), command_into_unknown=ob.scripts_into_unknown)
-        held = self.blocked_hold.step(stamp, step.ref, None if out is None else out.position_m,
+        held = self.position_hold.step(stamp, step.ref, None if out is None else out.position_m,
                                       math.nan if out is None else out.yaw_rad, out is not None and out.odometry_ok,
                                       self.modes.in_control)
         if held is not step.ref:

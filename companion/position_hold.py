@@ -1,4 +1,4 @@
-"""Hold the place where the safety layer stopped the vehicle (pure state machine, no clock, no I/O).
+"""Hold the place where the reference stops the vehicle (pure state machine, no clock, no I/O).
 
 The reference is a velocity: when the safety constraints cut a push to zero (the vehicle at the safe distance, or
 squeezed between map points so that no velocity meets every constraint), the autopilot is asked for v = 0, and a
@@ -7,15 +7,16 @@ flying on its own attitude estimate (~0.5-1 deg off) the CI corner push crept 3-
 six seconds with a zero reference and came to 0.36 m of it (0.19-0.52 m over eight runs): the repulsion did not
 act because it never pushes toward sectors the map has not looked at, and a squeezed projection has nothing else.
 
-PX4 and ArduPilot hold a position when the sticks are centred. Here the hold is narrower: it engages only where the
-safety layer has blocked the command (``constrained`` and a reference slower than ``engage_below_m_s``), anchors
-the odometry's position there, and adds ``-gain (p - anchor)`` (at most ``max_speed_m_s``) to the reference; the
-anchor moves on with what is left of the reference (a slow way out of the safe distance is followed, not fought).
-The anchor is a place the vehicle occupied a moment ago, so going back to it needs no map: it is the one motion that
-is safe toward a sector the camera has not looked at. The hold lets go as soon as the layer passes a command again
-(a reference faster than ``release_above_m_s``, or nothing constrained), and re-anchors if the vehicle is more than
-``max_offset_m`` from the anchor (an odometry reset or a push it could not resist: going back that far is a move,
-not a hold).
+The same creep with no command at all: a falsification finding (an offboard script that had stopped, 0.6 m from a
+partition the camera did not see) crept 2-4 cm/s for six seconds to 0.27 m of it. PX4's position mode and
+ArduPilot's LOITER hold a position when the sticks are centred; so does this: whenever the reference (after the
+safety layer) is slower than ``engage_below_m_s`` horizontally, whatever the reason (blocked, nothing commanded,
+HOLD), it anchors the odometry's position and adds ``-gain (p - anchor)`` (at most ``max_speed_m_s``) to the
+reference; the anchor moves on with what is left of the reference (a slow way out of the safe distance is followed,
+not fought). The anchor is a place the vehicle occupied a moment ago, so going back to it needs no map: it is the
+one motion that is safe toward a sector the camera has not looked at. The hold lets go as soon as the reference is
+faster than ``release_above_m_s``, and re-anchors if the vehicle is more than ``max_offset_m`` from the anchor (an
+odometry reset or a push it could not resist: going back that far is a move, not a hold).
 
 Frames: the odometry's world (levelled, NED-like, yaw ``yaw_rad`` from the world x axis); the correction is added in
 H (x along the heading), like every reference velocity.
@@ -34,12 +35,12 @@ from companion.reference import ReferenceOutput
 
 
 @dataclass(frozen=True)
-class BlockedHoldParams:
+class PositionHoldParams:
     enabled: bool = True
     gain_per_s: float = 1.0           # m/s of correction per m of offset from the anchor
     max_speed_m_s: float = 0.15       # the correction's limit (a creep of a few cm/s needs far less)
-    engage_below_m_s: float = 0.02    # a constrained reference slower than this is a blocked one
-    release_above_m_s: float = 0.05   # the layer passes a command again: let go
+    engage_below_m_s: float = 0.02    # a reference slower than this (horizontally) holds the place
+    release_above_m_s: float = 0.05   # a reference faster than this lets go
     max_offset_m: float = 0.5         # farther from the anchor than this: re-anchor where the vehicle is
 
     def __post_init__(self) -> None:
@@ -66,11 +67,11 @@ def h_to_world(v_h: NDArray[np.float64], yaw_rad: float) -> NDArray[np.float64]:
     return np.array([c * v_h[0] - s * v_h[1], s * v_h[0] + c * v_h[1]])
 
 
-class BlockedHold:
-    """Anchors where the safety layer blocked the command and pulls the reference back to it (see module doc)."""
+class PositionHold:
+    """Anchors where the reference stops the vehicle and pulls it back to that place (see module doc)."""
 
-    def __init__(self, params: BlockedHoldParams | None = None) -> None:
-        self.params = params or BlockedHoldParams()
+    def __init__(self, params: PositionHoldParams | None = None) -> None:
+        self.params = params or PositionHoldParams()
         self._anchor_w_m: NDArray[np.float64] | None = None
         self._stamp_s: float | None = None
 
@@ -99,7 +100,7 @@ class BlockedHold:
         fresh = self._stamp_s is not None and math.isfinite(stamp_s)
         dt_s = min(max(stamp_s - self._stamp_s, 0.0), 0.2) if fresh and self._stamp_s is not None else 0.0
         self._stamp_s = stamp_s if math.isfinite(stamp_s) else self._stamp_s
-        if not usable or not ref.constrained or speed > (p.release_above_m_s if self.holding else p.engage_below_m_s):
+        if not usable or speed > (p.release_above_m_s if self.holding else p.engage_below_m_s):
             self._anchor_w_m = None
             return ref
         assert pos is not None

@@ -1,4 +1,4 @@
-"""companion.blocked_hold: where the safety layer blocked the command, the vehicle holds the place."""
+"""companion.position_hold: where the reference stops the vehicle (blocked, or nothing commanded), it holds."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from companion.blocked_hold import BlockedHold, BlockedHoldParams, h_to_world, world_to_h
+from companion.position_hold import PositionHold, PositionHoldParams, h_to_world, world_to_h
 from companion.reference import ReferenceOutput
 
 
@@ -24,15 +24,24 @@ def test_world_and_h_are_inverse_rotations() -> None:
     np.testing.assert_allclose(world_to_h(np.array([1.0, 0.0]), math.pi / 2), [0.0, -1.0], atol=1e-12)
 
 
-def test_an_unconstrained_reference_passes_untouched() -> None:
-    hold = BlockedHold()
-    ref = _ref(0.0, 0.0, constrained=False)
+def test_a_moving_reference_passes_untouched() -> None:
+    hold = PositionHold()
+    ref = _ref(0.3, 0.0, constrained=False)
     assert hold.step(0.0, ref, [0.0, 0.0, -1.0], 0.0, True, True) is ref
     assert not hold.holding
 
 
+def test_nothing_commanded_holds_too() -> None:
+    """A script that stopped, an operator who let go, HOLD: the zero reference holds the place (PX4's position mode
+    with centred sticks), not only a reference the safety layer cut."""
+    hold = PositionHold()
+    hold.step(0.0, _ref(constrained=False), [0.0, 0.0, -1.0], 0.0, True, True)
+    out = hold.step(0.1, _ref(constrained=False), [0.05, 0.0, -1.0], 0.0, True, True)
+    np.testing.assert_allclose(out.v_ref_h_m_s[:2], [-0.05, 0.0], atol=1e-12)
+
+
 def test_a_blocked_command_anchors_and_the_creep_is_pulled_back() -> None:
-    hold = BlockedHold(BlockedHoldParams(gain_per_s=1.0, max_speed_m_s=0.15))
+    hold = PositionHold(PositionHoldParams(gain_per_s=1.0, max_speed_m_s=0.15))
     assert hold.step(0.0, _ref(), [1.0, 2.0, -1.0], 0.0, True, True).v_ref_h_m_s[0] == 0.0
     assert hold.holding
     np.testing.assert_allclose(hold.anchor_w_m, [1.0, 2.0])
@@ -42,25 +51,25 @@ def test_a_blocked_command_anchors_and_the_creep_is_pulled_back() -> None:
 
 
 def test_the_correction_is_limited() -> None:
-    hold = BlockedHold(BlockedHoldParams(gain_per_s=1.0, max_speed_m_s=0.15, max_offset_m=0.5))
+    hold = PositionHold(PositionHoldParams(gain_per_s=1.0, max_speed_m_s=0.15, max_offset_m=0.5))
     hold.step(0.0, _ref(), [0.0, 0.0, -1.0], 0.0, True, True)
     out = hold.step(0.1, _ref(), [0.4, 0.0, -1.0], 0.0, True, True)
     np.testing.assert_allclose(out.v_ref_h_m_s, [-0.15, 0.0, 0.0], atol=1e-12)
 
 
 def test_far_from_the_anchor_it_re_anchors() -> None:
-    hold = BlockedHold(BlockedHoldParams(max_offset_m=0.5))
+    hold = PositionHold(PositionHoldParams(max_offset_m=0.5))
     hold.step(0.0, _ref(), [0.0, 0.0, -1.0], 0.0, True, True)
     out = hold.step(0.1, _ref(), [0.8, 0.0, -1.0], 0.0, True, True)   # an odometry reset, or a gust
     np.testing.assert_allclose(out.v_ref_h_m_s, 0.0)
     np.testing.assert_allclose(hold.anchor_w_m, [0.8, 0.0])
 
 
-@pytest.mark.parametrize("why", ["released", "unconstrained", "odometry", "not in control"])
+@pytest.mark.parametrize("why", ["released", "odometry", "not in control"])
 def test_it_lets_go(why: str) -> None:
-    hold = BlockedHold(BlockedHoldParams(release_above_m_s=0.05))
+    hold = PositionHold(PositionHoldParams(release_above_m_s=0.05))
     hold.step(0.0, _ref(), [0.0, 0.0, -1.0], 0.0, True, True)
-    ref = {"released": _ref(0.1), "unconstrained": _ref(constrained=False)}.get(why, _ref())
+    ref = {"released": _ref(0.1)}.get(why, _ref())
     out = hold.step(0.1, ref, [0.1, 0.0, -1.0], 0.0, why != "odometry", why != "not in control")
     assert out is ref
     assert not hold.holding
@@ -69,7 +78,7 @@ def test_it_lets_go(why: str) -> None:
 def test_a_slow_way_out_is_followed_not_fought() -> None:
     """Inside the safe distance the layer sends the vehicle out slowly (k (d_safe - d), ~1 cm/s near it): the anchor
     moves with that reference, so a vehicle that follows it gets no correction against it."""
-    hold = BlockedHold(BlockedHoldParams(engage_below_m_s=0.02, release_above_m_s=0.05))
+    hold = PositionHold(PositionHoldParams(engage_below_m_s=0.02, release_above_m_s=0.05))
     p = np.zeros(3)
     for k in range(101):
         out = hold.step(0.1 * k, _ref(-0.015), p, 0.0, True, True)
@@ -79,7 +88,7 @@ def test_a_slow_way_out_is_followed_not_fought() -> None:
 
 
 def test_non_finite_input_is_no_hold() -> None:
-    hold = BlockedHold()
+    hold = PositionHold()
     ref = _ref()
     assert hold.step(0.0, ref, [math.nan, 0.0, -1.0], 0.0, True, True) is ref
     assert hold.step(0.1, ref, [0.0, 0.0, -1.0], math.nan, True, True) is ref
@@ -87,7 +96,7 @@ def test_non_finite_input_is_no_hold() -> None:
     assert not hold.holding
 
 
-def _creep(hold: BlockedHold | None, seconds: float = 10.0, creep_m_s: float = 0.05) -> float:
+def _creep(hold: PositionHold | None, seconds: float = 10.0, creep_m_s: float = 0.05) -> float:
     """A velocity loop that follows its reference with a steady error of ``creep_m_s`` (the corner push's 3-6 cm/s
     toward the wall), the reference 0 (blocked), 30 Hz: the farthest the vehicle gets from where it was blocked."""
     dt, p, far = 1.0 / 30.0, np.zeros(3), 0.0
@@ -103,4 +112,4 @@ def _creep(hold: BlockedHold | None, seconds: float = 10.0, creep_m_s: float = 0
 
 def test_the_hold_bounds_the_creep_a_zero_velocity_lets_grow() -> None:
     assert _creep(None) > 0.45                          # 5 cm/s for 10 s
-    assert _creep(BlockedHold(BlockedHoldParams(gain_per_s=1.0))) < 0.06   # the offset creep / gain, 5 cm
+    assert _creep(PositionHold(PositionHoldParams(gain_per_s=1.0))) < 0.06   # the offset creep / gain, 5 cm
