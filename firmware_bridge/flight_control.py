@@ -18,7 +18,7 @@ from firmware_bridge.modes import FlightMode
 from firmware_bridge.offboard import OffboardService
 from firmware_bridge.state import AttitudeSetpoint, BoardCommand, BridgeState
 from firmware_bridge.velocity_tracker import AttitudeCommand
-from quadlink.frames import wrap_pi
+from quadlink.frames import R_hq, wrap_pi
 from quadlink.mavlink import mavlink
 from quadlink.mk.flags import BoardFlightState
 
@@ -32,6 +32,7 @@ BLIND_DESCENT_EXTRA_S = 3.0  # the blind descent probes for the ground after hei
 # to 0.21 m of a box. Longer, and the accelerometer's bias (~0.05 m/s^2) would steer it instead.
 ODOM_LOST_BRAKE_S = 1.0
 ODOM_LOST_BRAKE_TILT_RAD = 0.15   # ~1.5 m/s^2: 0.4 m/s braked in under 0.3 s
+DRAG_HOLD_TILT_RAD = 0.1          # the hold on the drag's velocity corrects a slide of tenths of m/s: ~1 m/s^2 is ample
 CONTROL_DT_S = 0.01  # nominal step (every 5th IMU sample); the measured dt is bounded to [1 ms, 100 ms]
 YAW_TRACK_GAIN_1_S = 2.0  # an absolute yaw target is tracked through the yaw-rate command
 
@@ -101,6 +102,9 @@ class FlightControlService:
             if s.blind and not braking:
                 return self._blind_step(now_s, dt, est)
             v_est = s.v_h_dead_reckoned.copy()
+            drag = None if resting else self._drag_velocity_h(est)
+            if drag is not None:   # the brake acts on what the drag says (no tilt error in it)
+                v_est[:2] = drag[:2]
             if not (braking and np.all(np.isfinite(v_est[:2]))):
                 v_est[:2] = 0.0
             if s.vertical.estimate.baro_fused:   # the barometer keeps the vertical speed from drifting (issue 30)
@@ -228,10 +232,17 @@ class FlightControlService:
         if s.vertical.estimate.pinned:
             s.pid_tracker.reset()  # the ground carries the vehicle while the thrust ramps: nothing to integrate
         yaw_rate = self._heading_hold(dt, 0.0, est.yaw_rad)
-        cmd = s.pid_tracker.update(dt, np.array([0.0, 0.0, vz_ref]), yaw_rate, np.array([0.0, 0.0, vz_est]),
-                                   est.roll_rad, est.pitch_rad)
+        # horizontally: level, or, once the drag's velocity has been learnt in this flight, a hold on it (the
+        # board's level is ~0.5-1 deg off its own estimate: 0.1-0.3 m/s of slide), never on or at the ground
+        drag = None if s.vertical.estimate.pinned or self._level_landing() else self._drag_velocity_h(est)
+        v_est = np.array([0.0, 0.0, vz_est]) if drag is None else np.array([drag[0], drag[1], vz_est])
+        cmd = s.pid_tracker.update(dt, np.array([0.0, 0.0, vz_ref]), yaw_rate, v_est, est.roll_rad, est.pitch_rad)
         thrust = min(cmd.thrust_fraction, ceiling)
-        cmd = AttitudeCommand(0.0, 0.0, cmd.yaw_rate_rad_s, thrust, cmd.a_des_h_m_s2,
+        roll = pitch = 0.0
+        if drag is not None:
+            roll = min(max(cmd.roll_rad, -DRAG_HOLD_TILT_RAD), DRAG_HOLD_TILT_RAD)
+            pitch = min(max(cmd.pitch_rad, -DRAG_HOLD_TILT_RAD), DRAG_HOLD_TILT_RAD)
+        cmd = AttitudeCommand(roll, pitch, cmd.yaw_rate_rad_s, thrust, cmd.a_des_h_m_s2,
                               cmd.saturated or thrust < cmd.thrust_fraction)
         if s.mode == FlightMode.TAKEOFF and not s.vertical.estimate.pinned:
             # what the climb needs, tilt-compensated: the descent's thrust ceiling
@@ -244,6 +255,16 @@ class FlightControlService:
                 abs(s.vertical.estimate.accel_z_m_s2) < GROUND_CONTACT_ACCEL_M_S2
             self._detect_touchdown(now_s, cmd, abs(vz_est), ground_contact=ground)
         return self._finish(cmd)
+
+    def _drag_velocity_h(self, est: Any) -> np.ndarray | None:
+        """The horizontal velocity in H from the drag (firmware_bridge.drag_velocity), if BRG_DRAG_HOLD and learnt."""
+        s = self.state
+        if s.params["BRG_DRAG_HOLD"] <= 0.0:
+            return None
+        v_q = s.drag.velocity_q_xy()
+        if v_q is None:
+            return None
+        return R_hq(est.roll_rad, est.pitch_rad) @ np.array([v_q[0], v_q[1], 0.0])
 
     def _level_landing(self) -> bool:
         """The barometer-fused height is below BRG_LAND_LVL_ALT (0: never): a landing flies the rest level, and a

@@ -78,6 +78,16 @@ class OffboardService:
             s.v_h_dead_reckoned += a_h * dt - s.v_h_dead_reckoned * (dt / DEAD_RECKONING_LEAK_TAU_S)
         board = s.last_board_command
         s.vertical.update(dt, float(a_h[2]), board.thrust if board.armed else 0.0, on_ground=not s.in_air)
+        # the drag's velocity is learnt from the odometry while it is good and fresh (in the air only)
+        learn = s.in_air and s.odom_ok and s.odom_time_s is not None and \
+            now_s - s.odom_time_s <= IMU_PREDICTION_HORIZON_S
+        v_q = R_hq(est.roll_rad, est.pitch_rad).T @ (s.v_h_odom + s.dv_h_imu) if learn else None
+        s.drag.update(dt, s.last_accel_q[:2], None if v_q is None else v_q[:2])
+        if learn and not s.drag_told:
+            c = s.drag.coefficients()
+            if c is not None:
+                s.drag_told = True
+                s.event(mavlink.MAV_SEVERITY_INFO, f"Drag learnt: k {c[0][0]:.2f}/{c[1][0]:.2f} 1/s")
         return est
 
     def v_est_h(self, now_s: float) -> np.ndarray:

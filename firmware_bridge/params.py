@@ -65,6 +65,8 @@ PARAM_SPECS: tuple[ParamSpec, ...] = (
     ParamSpec("BRG_OL_LAND_SPD", 0.5, 0.1, 1.0, "m/s", "landing without odometry: descent rate (ArduPilot LAND_SPEED)"),
     ParamSpec("BRG_ODOM_VGATE", 0.6, 0.0, 5.0, "m/s",
               "odometry velocity further than this from the IMU's prediction is refused (0: off)"),
+    ParamSpec("BRG_DRAG_HOLD", 1.0, 0.0, 1.0, "bool",
+              "without odometry, hold on the drag-learnt velocity instead of flying level (0: off)"),
     ParamSpec("BRG_LAND_LVL_ALT", 0.3, 0.0, 2.0, "m",
               "LAND: below this baro height, descend level on the baro (0: off)"),
 ) + GEOMETRIC_PARAM_SPECS  # BRG_TRACKER (0 PID, 1 geometric) and the geometric tracker's gains (issue 19)

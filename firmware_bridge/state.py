@@ -21,6 +21,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from firmware_bridge.attitude_filter import BridgeAttitude
+from firmware_bridge.drag_velocity import DragVelocity
 from firmware_bridge.geometric_tracker import GeometricTracker, TrackerKind, make_tracker
 from firmware_bridge.modes import FlightMode, TakeoffPhase
 from firmware_bridge.params import ParamTable
@@ -165,6 +166,9 @@ class BridgeState:
         self.odom_lost_s: float | None = None   # when the odometry was lost in the air (None: not lost)
         self.odom_reset_counter: int | None = None
         self.odom_p_ned_m: np.ndarray | None = None  # the odometry's position (its local frame), if finite
+        # the horizontal velocity the accelerometer's drag reading gives, learnt while the odometry is good
+        self.drag = DragVelocity()
+        self.drag_told = False   # the STATUSTEXT when the fit is first trusted
         # flight without odometry (take-off phase 1 and the landing after it): accelerometer-only vertical
         self.vertical = VerticalEstimator(vehicle.hover_thrust_fraction, params["MPC_Z_VEL_MAX_UP"],
                                           params["MPC_Z_VEL_MAX_DN"])

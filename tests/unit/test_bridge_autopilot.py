@@ -52,6 +52,7 @@ class Sim:
         self.odom_z_offset_m = 0.0  # the odometry's z error (a drifting odometry on the ground)
         self.accel_bias_q = np.zeros(3)  # the IMU's accelerometer bias (body FRD, m/s^2)
         self.baro = False  # the board's Z frames at 50 Hz (the truth's altitude, no noise)
+        self.level_error_rad = (0.0, 0.0)  # the board flies its own estimate: (roll, pitch) it holds for "level"
         self.odom_velocity_error_n = np.zeros(3)  # added to the odometry's velocity (NED): garbage near the floor
 
     @property
@@ -73,8 +74,8 @@ class Sim:
             a = 1.0 - math.exp(-dt / 0.05)
             cmd = self.ap.last_board_command
             armed = cmd.armed
-            self.roll += a * (cmd.roll_rad - self.roll)
-            self.pitch += a * (cmd.pitch_rad - self.pitch)
+            self.roll += a * (cmd.roll_rad + self.level_error_rad[0] - self.roll)
+            self.pitch += a * (cmd.pitch_rad + self.level_error_rad[1] - self.pitch)
             self.yaw += (cmd.yaw_rate_rad_s + self.yaw_drift_rad_s) * dt
             self.thrust = cmd.thrust if armed else 0.0
             R = R_from_euler(self.roll, self.pitch, self.yaw)
@@ -748,3 +749,31 @@ def test_odometry_lost_at_the_floor_on_the_baro_does_not_brake_whatever_the_thru
         commands.append(state.last_board_command)
     assert sim.ap.failsafe_reason == "odometry lost" or not sim.ap.armed_cmd
     assert all(c.roll_rad == 0.0 and c.pitch_rad == 0.0 for c in commands)
+
+
+@pytest.mark.parametrize("drag_hold", [1.0, 0.0])
+def test_without_odometry_the_drag_learnt_in_flight_holds_what_a_level_command_lets_slide(drag_hold):
+    """The board flies its own estimate of level, 1 deg off: with the odometry the velocity loop takes it out; once
+    the odometry is lost, "level" slides (the companion-less landing drifted ~0.5 m, a failed take-off 0.2 m/s
+    into a wall). The accelerometer's body x/y reading is the drag, proportional to the velocity and blind to the
+    tilt: learnt from the odometry while it was good (the flight moves about a little), it holds the vehicle."""
+    sim = Sim(ParamTable({"BRG_DRAG_HOLD": drag_hold}))
+    sim.baro = True
+    sim.level_error_rad = (math.radians(1.0), math.radians(-1.0))
+    fly_to_hover(sim)
+    sim.step(0.5, setpoint=velocity_body(0, 0, 0))
+    assert sim.command(mavlink.MAV_CMD_DO_SET_MODE, 1, 6, 0)[0] == mavlink.MAV_RESULT_ACCEPTED
+    for vx, vy in ((0.4, 0.0), (0.0, 0.4), (-0.4, 0.0), (0.0, -0.4), (0.0, 0.0)):   # 12.5 s of moving about
+        sim.step(2.5, setpoint=velocity_body(vx, vy, 0))
+    assert sim.ap.state.drag.learnt
+    (kx, _), (ky, _) = sim.ap.state.drag.coefficients()
+    k_true = np.asarray(sim.vehicle.linear_drag_n_s_m)[:2] / sim.vehicle.mass_kg
+    assert kx == pytest.approx(k_true[0], rel=0.2) and ky == pytest.approx(k_true[1], rel=0.2)
+    start = sim.p.copy()
+    sim.odom = False
+    sim.step(4.0)                                          # lost: brake, then the blind descent
+    moved = float(np.linalg.norm(sim.p[:2] - start[:2]))
+    if drag_hold:
+        assert moved < 0.1, f"slid {moved:.2f} m holding on the drag"     # 0.05 m
+    else:
+        assert moved > 0.15, f"the control case slid only {moved:.2f} m"   # 0.25 m before it touched down
