@@ -53,7 +53,10 @@ class ReferenceParams:
     above it) constrain the motion by their 3D distance instead of being ignored. Vertical limits
     (:mod:`companion.vertical_limits`): ``max_height_m`` above the take-off floor (an altitude fence),
     ``room_height_m`` (the ceiling as the operator entered it, kept ``safe_distance_m`` away and
-    ``room_height_error_m`` more, the entry's possible error), ``floor_min_height_m`` (the lowest
+    ``room_height_error_m`` more, the entry's possible error; with no entry, ``assumed_room_height_m``, the lowest
+    ceiling the stack assumes: the camera looks down and never sees the ceiling, and a 2.0 m altitude fence in a
+    2.0-2.1 m room left the falsifier's vehicles 0.10 m from it; None relies on the fence alone),
+    ``floor_min_height_m`` (the lowest
     height the reference descends to; take-off and landing are the autopilot's). ``takeoff_height_m``:
     height of the vehicle's origin above the floor when it stands on it (its landing gear):
     :func:`companion.reference.reference_velocity`'s ``height_m`` is the odometry's, counted from the
@@ -85,6 +88,7 @@ class ReferenceParams:
     max_height_m: float | None = None
     room_height_m: float | None = None
     room_height_error_m: float = 0.10
+    assumed_room_height_m: float | None = None   # configs/companion.yaml ships 2.0
     floor_min_height_m: float = 0.3
     takeoff_height_m: float = 0.0
     floor_height_time_constant_s: float = 0.5
@@ -94,6 +98,9 @@ class ReferenceParams:
     def vertical(self) -> VerticalParams:
         """The vertical limits' parameters (:mod:`companion.vertical_limits`), sharing the safe distance and
         the closing-speed law."""
-        return VerticalParams(self.max_height_m, self.room_height_m, self.safe_distance_m, self.floor_min_height_m,
+        # no entry: the lowest ceiling assumed (a lower bound, so no entry error on it)
+        entered = self.room_height_m is not None
+        room = self.room_height_m if entered else self.assumed_room_height_m
+        return VerticalParams(self.max_height_m, room, self.safe_distance_m, self.floor_min_height_m,
                               self.approach_gain_per_s if math.isfinite(self.approach_gain_per_s) else 1.2,
-                              self.stopping_time_s, self.room_height_error_m)
+                              self.stopping_time_s, self.room_height_error_m if entered else 0.0)

@@ -284,3 +284,17 @@ def test_drifted_toward_moves_each_point_in_by_its_age_horizontally_and_at_most_
     np.testing.assert_array_equal(drifted_toward(points, ages[:3], 0.01), points)   # mismatched ages: unchanged
     np.testing.assert_array_equal(drifted_toward(points, ages, 0.0), points)       # off
     assert drifted_toward(None, ages, 0.01) is None
+
+
+def test_with_no_room_height_entered_the_lowest_assumed_ceiling_limits_the_climb() -> None:
+    """Falsification (seed 2, on b1df712): rooms 2.02-2.11 m high, no entry, the 2.0 m altitude fence: six flights
+    0.10 m from the ceiling the camera, looking down, never saw. With no entry the stack assumes the lowest ceiling
+    (configs/companion.yaml: 2.0 m) and keeps the safe distance below it; an entry replaces the assumption."""
+    from companion.vertical_limits import ceiling_height_m
+
+    none = ReferenceParams(room_height_m=None, max_height_m=2.0, assumed_room_height_m=2.0)
+    assert ceiling_height_m(none.vertical()) == pytest.approx(2.0 - none.safe_distance_m)
+    entered = ReferenceParams(room_height_m=3.0, max_height_m=2.0, assumed_room_height_m=2.0)
+    assert ceiling_height_m(entered.vertical()) == pytest.approx(2.0)            # the fence, below 3.0 - 0.1 - 0.45
+    fence_only = ReferenceParams(room_height_m=None, max_height_m=2.0, assumed_room_height_m=None)
+    assert ceiling_height_m(fence_only.vertical()) == pytest.approx(2.0)
