@@ -18,7 +18,7 @@ from firmware_bridge.modes import FlightMode
 from firmware_bridge.offboard import OffboardService
 from firmware_bridge.state import AttitudeSetpoint, BoardCommand, BridgeState
 from firmware_bridge.velocity_tracker import AttitudeCommand
-from quadlink.frames import R_hq, wrap_pi
+from quadlink.frames import R_hq, Rz, wrap_pi
 from quadlink.mavlink import mavlink
 from quadlink.mk.flags import BoardFlightState
 
@@ -32,6 +32,9 @@ BLIND_DESCENT_EXTRA_S = 3.0  # the blind descent probes for the ground after hei
 # to 0.21 m of a box. Longer, and the accelerometer's bias (~0.05 m/s^2) would steer it instead.
 ODOM_LOST_BRAKE_S = 1.0
 ODOM_LOST_BRAKE_TILT_RAD = 0.15   # ~1.5 m/s^2: 0.4 m/s braked in under 0.3 s
+LAND_HOLD_GAIN_1_S = 1.0          # LAND's position hold: m/s back per m away from where it began
+LAND_HOLD_MAX_M_S = 0.15
+LAND_HOLD_REANCHOR_M = 0.5        # farther than this from the anchor (an odometry reset): a new anchor
 DRAG_HOLD_TILT_RAD = 0.1          # the hold on the drag's velocity corrects a slide of tenths of m/s: ~1 m/s^2 is ample
 CONTROL_DT_S = 0.01  # nominal step (every 5th IMU sample); the measured dt is bounded to [1 ms, 100 ms]
 YAW_TRACK_GAIN_1_S = 2.0  # an absolute yaw target is tracked through the yaw-rate command
@@ -155,6 +158,7 @@ class FlightControlService:
                 v_ref[2] = 0.0
         elif s.mode == FlightMode.LAND:
             v_ref[2] = s.params["MPC_LAND_SPEED"]
+            v_ref[:2] = self._land_position_hold(est.yaw_rad)
         elif s.fs_hover_until_s is not None and now_s >= s.fs_hover_until_s:
             s.fs_hover_until_s = None
             s.event(mavlink.MAV_SEVERITY_WARNING, "Failsafe: hover done, landing")
@@ -255,6 +259,22 @@ class FlightControlService:
                 abs(s.vertical.estimate.accel_z_m_s2) < GROUND_CONTACT_ACCEL_M_S2
             self._detect_touchdown(now_s, cmd, abs(vz_est), ground_contact=ground)
         return self._finish(cmd)
+
+    def _land_position_hold(self, yaw_rad: float) -> np.ndarray:
+        """LAND on odometry holds the place where it began (PX4's land holds its position), not only v = 0: a velocity
+        loop asked for zero creeps (3-8 cm/s seen), and a vertical descent beside a box came 0.10 m nearer it
+        (campaign seed 2031 flight 22). In H, at most LAND_HOLD_MAX_M_S; re-anchored after a jump."""
+        s = self.state
+        p = s.odom_p_ned_m
+        if p is None or not np.all(np.isfinite(p[:2])):
+            s.land_anchor_ned_m = None
+            return np.zeros(2)
+        if s.land_anchor_ned_m is None or float(np.linalg.norm(p[:2] - s.land_anchor_ned_m)) > LAND_HOLD_REANCHOR_M:
+            s.land_anchor_ned_m = p[:2].copy()
+        e_ned = np.array([p[0] - s.land_anchor_ned_m[0], p[1] - s.land_anchor_ned_m[1], 0.0])
+        v_h = -LAND_HOLD_GAIN_1_S * (Rz(-yaw_rad) @ e_ned)[:2]
+        speed = float(np.linalg.norm(v_h))
+        return v_h * (LAND_HOLD_MAX_M_S / speed) if speed > LAND_HOLD_MAX_M_S else v_h
 
     def _drag_velocity_h(self, est: Any) -> np.ndarray | None:
         """The horizontal velocity in H from the drag (firmware_bridge.drag_velocity), if BRG_DRAG_HOLD and learnt."""
