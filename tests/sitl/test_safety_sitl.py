@@ -47,9 +47,10 @@ def _assert_clear(f: Flight, since_s: float) -> float:
 # The finding of this round's honest board (issue 29): with the board on its own attitude estimate the slide came to
 # 0.216 m (CI), 0.348, 0.364, 0.477, 0.501 m (Xtion camera) and 0.186, 0.192, 0.522 m (basic camera) from the wall;
 # a failing run's log (0.36 m) showed the reference cut to zero for 6 s while the velocity loop crept 3-6 cm/s toward
-# the wall. Fixed by holding the place where the safety layer blocks the push (companion/position_hold.py): 0.495-0.630 m
-# over seven runs (six runs of the code before the fix, on the same day and machine, 0.47-0.56 m: the creep did not
-# come every time, so these runs alone do not prove the fix; the hold's unit test bounds the creep). docs/changelog.md.
+# the wall. Fixed by holding the place where the safety layer blocks the push (companion/position_hold.py):
+# 0.495-0.630 m over seven runs (six runs of the code before the fix, on the same day and machine, 0.47-0.56 m: the
+# creep did not come every time, so these runs alone do not prove the fix; the hold's unit test bounds the creep).
+# docs/changelog.md.
 def test_operator_pushes_along_the_south_wall_into_the_corner(tmp_path: Path) -> None:
     """The case of issue 14 (0.30 m before): x = 700 forward at 50 Hz for 30 s from the start. alpha points
     south-west: the vehicle reaches the south wall obliquely, slides west along it, ends in the corner.
