@@ -96,11 +96,11 @@ def test_the_vertical_limits_reach_the_station_overlay() -> None:
     meta = operator_image_meta(1.0, Out(), ref, scan, params, np.zeros(3), Mode.TELEOP, None, np.eye(3),
                                np.zeros(3))
     got = OperatorImageMeta.from_wire(_wire(meta))
-    assert got.vertical.ceiling_height_m == pytest.approx(3.0 - 0.45)     # the ceiling minus d_safe
+    assert got.vertical.ceiling_height_m == pytest.approx(3.0 - 0.10 - 0.45)  # the entry minus its error and d_safe
     assert got.vertical.floor_height_m == pytest.approx(0.3) and got.vertical.height_m == pytest.approx(1.2)
     status = {"battery_v": None, "min_obstacle_m": None, "link": "ok", "mode": "TELEOP", "armed": True,
               "force_n": [0.0, 0.0, 0.0], "warnings": []}
-    assert "height 1.20 m  floor 0.30  ceiling 2.55" in overlay(TeleopConfig(), status, got).status_lines
+    assert "height 1.20 m  floor 0.30  ceiling 2.45" in overlay(TeleopConfig(), status, got).status_lines
     unknown = reference_velocity(OperatorInput(), np.eye(3), scan, None, ReferenceParams())   # no height known
     none = OperatorImageMeta.from_wire(_wire(operator_image_meta(1.0, Out(), unknown, scan, params, np.zeros(3),
                                                                  Mode.TELEOP, None, np.eye(3), np.zeros(3))))
