@@ -25,8 +25,8 @@ autopilot only flies on this for a bounded time and height (``BRG_TKO_OL_T``, ``
 
 **With the board's barometer** (the ``Z`` frame: MPX4115A altitude, 50 Hz; issue 30) the estimate no longer
 drifts: a third-order complementary filter pulls the height toward the baro height (relative to the baro's
-reading where the estimator was last pinned on the ground), the vertical speed with it, and learns the
-accelerometer's bias in the air::
+reading averaged over ``BARO_GROUND_TAU_S`` while the estimator was pinned on the ground), the vertical
+speed with it, and learns the accelerometer's bias in the air::
 
     e = h_baro - h;   h += (w + k1 e) dt;   w += (u + k2 e) dt;   b += k3 e dt     (w = -v_z up, u = -a_z up)
 
@@ -46,6 +46,8 @@ DEFAULT_LIFTOFF_FRACTION_OF_HOVER = 0.7  # no vehicle within 30 % of its configu
 ACCEL_LOWPASS_TAU_S = 0.1  # the vertical acceleration the ground-contact test looks at
 DEFAULT_BARO_BANDWIDTH_RAD_S = 1.0  # the fused filter's triple pole: the baro's noise is cut above ~0.2 Hz
 BARO_STALE_S = 0.2                  # a baro reading older than this (10 frames at 50 Hz) is not fused
+BARO_GROUND_TAU_S = 1.0             # the ground's baro reference is averaged over this while pinned (one 'Z'
+                                    # frame carries ~0.15 m of noise and quantisation; 50 frames ~2 cm)
 
 
 @dataclass(frozen=True)
@@ -92,8 +94,8 @@ class VerticalEstimator:
             return
         self._baro_alt_m = float(altitude_m)
         self._baro_t_s = self._t_s
-        if self._pinned:
-            self._baro_ground_m = self._baro_alt_m
+        if self._pinned and self._baro_ground_m is None:
+            self._baro_ground_m = self._baro_alt_m   # the first reading; averaged from here while pinned
 
     def _baro_height_m(self) -> float | None:
         """The baro's height above where the estimator was last pinned, if fresh."""
@@ -130,7 +132,12 @@ class VerticalEstimator:
             self._vz = 0.0
             self._h = 0.0
             if self._baro_alt_m is not None and self._t_s - self._baro_t_s <= BARO_STALE_S:
-                self._baro_ground_m = self._baro_alt_m   # the ground's baro reading follows the weather
+                # the ground's baro reading, averaged (a single frame's noise became the take-off's height
+                # error: 0.11-0.15 m at the odometry's hand-over 0.2 m up), follows the weather
+                if self._baro_ground_m is None:
+                    self._baro_ground_m = self._baro_alt_m
+                self._baro_ground_m += (self._baro_alt_m - self._baro_ground_m) * min(
+                    1.0, dt_s / BARO_GROUND_TAU_S)
             self._fused = False
             return
         self._pinned = False
