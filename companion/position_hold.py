@@ -32,6 +32,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from companion.reference import ReferenceOutput
+from quadlink.frames import Rz
 
 
 @dataclass(frozen=True)
@@ -56,15 +57,13 @@ class PositionHoldParams:
 
 
 def world_to_h(e_w_m: NDArray[np.float64], yaw_rad: float) -> NDArray[np.float64]:
-    """A horizontal world vector in H (x along the heading ``yaw_rad``, y to its right)."""
-    c, s = math.cos(yaw_rad), math.sin(yaw_rad)
-    return np.array([c * e_w_m[0] + s * e_w_m[1], -s * e_w_m[0] + c * e_w_m[1]])
+    """A horizontal world vector in H (x along the heading ``yaw_rad``, y to its right): Rz(yaw)^T e."""
+    return (Rz(yaw_rad)[:2, :2].T @ np.asarray(e_w_m, dtype=float)[:2]).astype(float)
 
 
 def h_to_world(v_h: NDArray[np.float64], yaw_rad: float) -> NDArray[np.float64]:
-    """A horizontal vector in H in the world (the inverse of :func:`world_to_h`)."""
-    c, s = math.cos(yaw_rad), math.sin(yaw_rad)
-    return np.array([c * v_h[0] - s * v_h[1], s * v_h[0] + c * v_h[1]])
+    """A horizontal vector in H in the world (the inverse of :func:`world_to_h`): Rz(yaw) v."""
+    return (Rz(yaw_rad)[:2, :2] @ np.asarray(v_h, dtype=float)[:2]).astype(float)
 
 
 class PositionHold:
