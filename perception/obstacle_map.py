@@ -188,22 +188,29 @@ class ObstacleMap:
         else:
             self._set_particles(np.compress(keep, p, axis=1), np.compress(keep, ages))
 
-    def measure(self, stamp_s: float, obs: SectorObservation, rng: np.random.Generator | None = None) -> None:
+    def measure(self, stamp_s: float, obs: SectorObservation, rng: np.random.Generator | None = None,
+                unseen_points_h_m: NDArray[np.float64] | None = None) -> None:
         """Measurement step: carve free space, overwrite the measured cells, record observed sectors.
 
         With ``rng`` the ``copies`` of a measured point are drawn around it with the measurement noise
         (``measurement_noise_per_m`` x its distance), as a particle filter samples its measurement model;
-        the nearest of them then errs on the near side, the safe one. Without, the copies sit on the point."""
+        the nearest of them then errs on the near side, the safe one. Without, the copies sit on the point.
+        ``unseen_points_h_m`` (K x 3, H): objects this frame did not see but inferred
+        (:mod:`perception.hidden_floor`), measured as the seen points are."""
         self._last_stamp = stamp_s
-        if len(self) or obs.points_h_m.shape[0]:
-            self._measure_points(obs, rng)
+        points_h_m = obs.points_h_m
+        if unseen_points_h_m is not None and unseen_points_h_m.shape[0]:
+            points_h_m = np.concatenate([points_h_m, np.asarray(unseen_points_h_m, dtype=float).reshape(-1, 3)])
+        if len(self) or points_h_m.shape[0]:
+            self._measure_points(obs, points_h_m, rng)
         self._mark_observed(stamp_s, obs)
 
-    def _measure_points(self, obs: SectorObservation, rng: np.random.Generator | None = None) -> None:
+    def _measure_points(self, obs: SectorObservation, points_h_m: NDArray[np.float64],
+                        rng: np.random.Generator | None = None) -> None:
         cfg = self.config
-        n, k = len(self), obs.points_h_m.shape[0]
+        n, k = len(self), points_h_m.shape[0]
         # the particles and the measured points side by side: each vectorised step runs once for both
-        p = np.concatenate([self._p, obs.points_h_m.T], axis=1) if k else self._p
+        p = np.concatenate([self._p, points_h_m.T], axis=1) if k else self._p
         az, horiz = _polar(p[0], p[1]) if k else self._polar_of_particles()
         remove = np.zeros(n, dtype=bool)
         if n:

@@ -20,6 +20,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from perception.floor import FloorConfig, measure_floor
+from perception.hidden_floor import HiddenFloorConfig, hidden_floor_points_h
 from perception.level import LevelConfig, OdometryLevel
 from perception.obstacle_map import ObstacleMap, ObstacleMapConfig, ObstacleSectors
 from perception.obstacles import ObstacleConfig, extract_obstacles
@@ -54,6 +55,7 @@ class PerceptionConfig:
     obstacles: ObstacleConfig = field(default_factory=ObstacleConfig)
     obstacle_map: ObstacleMapConfig = field(default_factory=ObstacleMapConfig)
     floor: FloorConfig = field(default_factory=FloorConfig)   # the height above the floor seen in depth
+    hidden_floor: HiddenFloorConfig = field(default_factory=HiddenFloorConfig)  # objects that return nothing
     level: LevelConfig = field(default_factory=LevelConfig)   # the roll and pitch that level the floor's depth
 
 
@@ -188,19 +190,23 @@ class PerceptionPipeline:
                 self._map.predict(dt, self._prev_v_h, v_h, self._prev_yaw_rate, yaw_rate, self._rng)
         self._prev_frame_stamp = frame.stamp_s
         self._prev_v_h, self._prev_yaw_rate = v_h, yaw_rate
+        floor = None
         if frame.depth_m is not None:
-            obs = extract_obstacles(frame.depth_m, K, self.R_qc, self.p_qc_m, roll, pitch, cfg.obstacles)
-            self._map.measure(frame.stamp_s, obs, self._rng)
-            points_c = obs.points_c_m
             floor = measure_floor(frame.depth_m, K, self.R_qc, self.p_qc_m, *level_rp, cfg.floor)
-        else:
-            points_c = np.zeros((0, 3))
-            floor = None
         if floor is not None:
             self._floor_seen = (frame.stamp_s, floor.height_m)
         floor_drop_m = None
         if self._floor_seen is not None and 0.0 <= frame.stamp_s - self._floor_seen[0] <= FLOOR_FRESH_S:
             floor_drop_m = self._floor_seen[1]
+        if frame.depth_m is not None:
+            obs = extract_obstacles(frame.depth_m, K, self.R_qc, self.p_qc_m, roll, pitch, cfg.obstacles)
+            # objects that return nothing (dark, specular), found by the floor they hide (issue 29)
+            unseen = hidden_floor_points_h(frame.depth_m, K, self.R_qc, self.p_qc_m, *level_rp, floor_drop_m,
+                                           cfg.obstacles.min_range_m, cfg.obstacles.max_range_m, cfg.hidden_floor)
+            self._map.measure(frame.stamp_s, obs, self._rng, unseen)
+            points_c = obs.points_c_m
+        else:
+            points_c = np.zeros((0, 3))
         sectors = self._map.sectors(frame.stamp_s, floor_drop_m)
         self.frames += 1
         return PerceptionOutput(

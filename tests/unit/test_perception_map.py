@@ -372,3 +372,20 @@ def test_the_floor_does_not_make_a_sector_known() -> None:
     # the margin: 0.1 m above the floor is floor, 0.2 m above it is an obstacle
     assert np.all(np.isnan(m.sectors(5.0, floor_drop_m=height_m + 0.1).distances_m[behind]))
     assert np.all(np.isfinite(m.sectors(5.0, floor_drop_m=height_m + 0.2).distances_m[behind]))
+
+
+def test_unseen_points_enter_the_map_as_measured_points_and_the_summary_holds_them() -> None:
+    """perception.hidden_floor's points (an object that returns nothing): a sector seen free now reads the
+    object's distance; a frame whose returns are all nearer than the point does not carve it."""
+    m = ObstacleMap(ObstacleMapConfig(copies=3))
+    obs = extract_obstacles(_wall_depth(6.0), K, R_QC_FWD, np.zeros(3), 0.0, 0.0, ObstacleConfig(rows=2, cols=4))
+    m.measure(0.0, obs)
+    assert np.isinf(m.sectors(0.0).distances_m[0])              # seen free: nothing returned within range
+    m.measure(0.1, obs, unseen_points_h_m=np.array([[1.2, 0.0, 0.0]]))
+    assert len(m) == 3
+    assert m.sectors(0.1).distances_m[0] == pytest.approx(1.2, abs=0.01)
+    near_floor = extract_obstacles(_wall_depth(1.0), K, R_QC_FWD, np.zeros(3), 0.0, 0.0,
+                                   ObstacleConfig(rows=2, cols=4))
+    m2 = ObstacleMap(ObstacleMapConfig(copies=1, max_particles=100))
+    m2.measure(0.0, near_floor, unseen_points_h_m=np.array([[1.5, 0.0, 0.0]]))
+    assert len(m2) == 8 + 1                                       # the wall's 8 sector points and the unseen one

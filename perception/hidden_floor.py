@@ -1,0 +1,141 @@
+"""Objects the depth camera cannot see, found by the floor they hide (pure; issue 29).
+
+A structured-light camera gets no return from a dark surface (it absorbs the pattern) or a specular one (it
+mirrors the pattern away): such an object leaves a hole in the depth image, and the sector rule of
+:mod:`perception.obstacles` (the nearest *valid* pixel) reports what lies beside or behind it — the floor in
+front of it, the wall behind it — so the map calls its azimuth free (campaign seed 2031: a script flew into a
+dark column to 0.25 m, a landing came down 0.10 m from a specular box). A hole alone says nothing: the driver
+also reports 0 beyond its range, so a far wall looks the same.
+
+**The floor tells them apart.** Where the floor is known (its depth ``floor_drop_m`` below the body, H z down,
+from :mod:`perception.floor`), every pixel whose ray meets the floor inside the sensor's valid range, at an
+incidence the sensor returns, *should* return the floor, or something nearer. A pixel that returns nothing
+there is hiding the floor behind an object that gives no return, and that object stands between the camera and
+the floor point. An object standing on the floor at horizontal distance ``D`` hides the floor beyond ``D`` along
+its azimuth and leaves the floor in front of it visible; so per azimuth bin, the nearest hidden floor point is
+where the object's foot is (or nearer). It is reported when the hidden pixels are many and dense beyond it
+(``min_pixels``, ``min_fraction`` of the expected floor pixels within ``depth_window_m`` past it): isolated
+dropouts and the thin IR-shadow slivers beside a visible edge are not an object.
+
+The points are placed at the foot's horizontal distance (less ``margin_m``), on the bin's azimuth, at the
+vehicle's level (no higher than ``foot_clearance_m`` above the floor): the obstacle map carries them as it
+carries what the camera sees, so the safety layer keeps its distance from an object it never saw. What this
+cannot find: a non-returning object that does not stand on floor in view (a dark box on a desk, a black wall
+whose foot is nearer than the camera's lowest ray), a dark or shiny floor (it reads as an object's foot), and
+glass (it returns the floor behind it).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from functools import lru_cache
+
+import numpy as np
+from numpy.typing import NDArray
+
+from quadlink.camera import CameraIntrinsics
+from quadlink.frames import R_hq
+
+
+@dataclass(frozen=True)
+class HiddenFloorConfig:
+    """How hidden floor is read as an unseen object (see the module's docstring)."""
+
+    enabled: bool = True
+    stride_px: int = 3                 # grid spacing of the sampled pixels
+    range_margin_m: float = 0.1        # the floor must be this far inside the valid range to be expected
+    max_incidence_deg: float = 72.0    # the floor is expected only where the sensor returns it (the SITL's
+                                       # grazing limit is 78 deg; real sensors fade earlier)
+    floor_tolerance_m: float = 0.05    # a return within this (+ the depth noise) of the expected floor is floor
+    azimuth_bins: int = 144            # 2.5 deg: a 0.3 m column at 3 m spans two
+    min_pixels: int = 12               # hidden pixels in a bin, at least
+    min_fraction: float = 0.6          # ... and this share of the expected floor just past the foot
+    depth_window_m: float = 0.5        # "just past": the foot's horizontal distance + this
+    margin_m: float = 0.05             # the point is put this much nearer than the nearest hidden floor
+    foot_clearance_m: float = 0.3      # the point's height above the floor at most (within the map's band)
+
+    def __post_init__(self) -> None:
+        if self.stride_px < 1:
+            raise ValueError(f"stride_px must be >= 1, got {self.stride_px}")
+        if not 0.0 < self.max_incidence_deg < 90.0:
+            raise ValueError(f"max_incidence_deg must be in (0, 90), got {self.max_incidence_deg}")
+        if self.azimuth_bins < 8 or self.min_pixels < 1 or not 0.0 < self.min_fraction <= 1.0:
+            raise ValueError("azimuth_bins >= 8, min_pixels >= 1 and min_fraction in (0, 1] are required")
+
+
+@lru_cache(maxsize=8)
+def _pixel_rays(K: CameraIntrinsics, height: int, width: int, stride: int
+                ) -> tuple[NDArray[np.intp], NDArray[np.float64]]:
+    """Flat indices of the sampled pixels and their rays (x/z, y/z, 1) in the camera frame (3 x N)."""
+    v, u = np.mgrid[stride // 2: height: stride, stride // 2: width: stride]
+    u, v = u.ravel(), v.ravel()
+    rays = np.vstack([(u - K.cx) / K.fx, (v - K.cy) / K.fy, np.ones(u.size)])
+    return v * width + u, rays
+
+
+def hidden_floor_points_h(depth_m: NDArray[np.floating], K: CameraIntrinsics, R_qc: NDArray[np.float64],
+                          p_qc_m: NDArray[np.float64], roll_rad: float, pitch_rad: float,
+                          floor_drop_m: float | None, min_range_m: float = 0.5, max_range_m: float = 3.5,
+                          config: HiddenFloorConfig | None = None) -> NDArray[np.float64]:
+    """Points (K x 3, H: level, origin at the body, z down) standing for objects that hide the floor; none when
+    the floor's depth below the body is unknown or the check is off. ``min_range_m``, ``max_range_m``: the depth
+    (optical axis) the sensor reports, as :class:`perception.obstacles.ObstacleConfig` has it."""
+    cfg = config or HiddenFloorConfig()
+    empty = np.zeros((0, 3))
+    if not cfg.enabled or floor_drop_m is None or not math.isfinite(floor_drop_m) or floor_drop_m <= 0.0:
+        return empty
+    h, w = depth_m.shape[:2]
+    idx, rays_c = _pixel_rays(K, h, w, cfg.stride_px)
+    R_hc = R_hq(roll_rad, pitch_rad) @ R_qc
+    p_hc = R_hq(roll_rad, pitch_rad) @ p_qc_m
+    r = R_hc @ rays_c                                 # rays in H with unit camera depth
+    drop = floor_drop_m - float(p_hc[2])              # the floor's depth below the camera
+    if drop <= 0.0:
+        return empty
+    down = r[2] > 1e-6
+    t = np.where(down, drop / np.where(down, r[2], 1.0), np.inf)   # camera depth of the floor on each ray
+    norm = np.sqrt(np.einsum("ij,ij->j", r, r))
+    sin_depression = np.where(down, r[2] / norm, 0.0)
+    expected = down & (t >= min_range_m + cfg.range_margin_m) & (t <= max_range_m - cfg.range_margin_m) \
+        & (sin_depression >= math.cos(math.radians(cfg.max_incidence_deg)))
+    if not expected.any():
+        return empty
+    sel = expected.nonzero()[0]
+    z = np.asarray(depth_m, dtype=float).ravel()[idx[sel]]
+    t_sel = t[sel]
+    valid = np.isfinite(z) & (z >= min_range_m) & (z <= max_range_m)
+    tol = cfg.floor_tolerance_m + 0.01 * t_sel * t_sel   # structured light: the error grows with z^2
+    hidden = ~valid
+    # a return nearer than the floor is a seen object (the map has it); farther, a hole in the floor: neither
+    # is hidden floor. Only pixels that returned the floor or nothing take part.
+    counted = hidden | (valid & (np.abs(z - t_sel) <= tol))
+    if hidden.sum() < cfg.min_pixels:
+        return empty
+    rx, ry = r[0, sel] * t_sel, r[1, sel] * t_sel
+    horiz = np.hypot(rx + p_hc[0], ry + p_hc[1])           # horizontal distance of the floor point from the body
+    az = np.arctan2(ry + p_hc[1], rx + p_hc[0])
+    n = cfg.azimuth_bins
+    b = (np.floor((az + math.pi) / (2.0 * math.pi) * n).astype(np.intp)) % n
+    out = []
+    for k in np.unique(b[hidden]):
+        in_bin = (b == k) & counted
+        order = np.argsort(horiz[in_bin], kind="stable")
+        d_all = horiz[in_bin][order]
+        is_hidden = hidden[in_bin][order]
+        if np.count_nonzero(is_hidden) < cfg.min_pixels:
+            continue
+        # the foot: the nearest hidden floor with dense hidden floor just past it (a lone dropout nearer does
+        # not set it); counts over [foot, foot + window] from the sorted distances
+        cum_hidden = np.concatenate(([0], np.cumsum(is_hidden)))
+        feet = d_all[is_hidden]
+        lo = np.searchsorted(d_all, feet, side="left")
+        hi = np.searchsorted(d_all, feet + cfg.depth_window_m, side="right")
+        n_hidden = cum_hidden[hi] - cum_hidden[lo]
+        ok = (n_hidden >= cfg.min_pixels) & (n_hidden >= cfg.min_fraction * (hi - lo))
+        if ok.any():
+            foot = float(feet[int(np.argmax(ok))])
+            a = -math.pi + (k + 0.5) * 2.0 * math.pi / n
+            d = max(foot - cfg.margin_m, 0.0)
+            out.append((d * math.cos(a), d * math.sin(a), min(0.0, floor_drop_m - cfg.foot_clearance_m)))
+    return np.array(out, dtype=float).reshape(-1, 3) if out else empty
