@@ -20,7 +20,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from perception.floor import FloorConfig, measure_floor
-from perception.hidden_floor import HiddenFloorConfig, hidden_floor_points_h
+from perception.hidden_floor import HiddenFloorConfig, HiddenFloorConfirm, hidden_floor_points_h
 from perception.level import LevelConfig, OdometryLevel
 from perception.obstacle_map import ObstacleMap, ObstacleMapConfig, ObstacleSectors
 from perception.obstacles import ObstacleConfig, extract_obstacles
@@ -98,6 +98,7 @@ class PerceptionPipeline:
         self._map = ObstacleMap(config.obstacle_map)
         self._level = OdometryLevel(config.level)
         self._floor_seen: tuple[float, float] | None = None   # (stamp, floor depth below the body) last seen
+        self._hidden_confirm = HiddenFloorConfirm()               # objects that return nothing: two frames running
         self._last_imu_stamp: float | None = None
         self._prev_R_wq: NDArray[np.float64] | None = None  # attitude at the previous frame
         self._imu_since_frame = False
@@ -201,8 +202,9 @@ class PerceptionPipeline:
         if frame.depth_m is not None:
             obs = extract_obstacles(frame.depth_m, K, self.R_qc, self.p_qc_m, roll, pitch, cfg.obstacles)
             # objects that return nothing (dark, specular), found by the floor they hide (issue 29)
-            unseen = hidden_floor_points_h(frame.depth_m, K, self.R_qc, self.p_qc_m, *level_rp, floor_drop_m,
-                                           cfg.obstacles.min_range_m, cfg.obstacles.max_range_m, cfg.hidden_floor)
+            unseen = self._hidden_confirm.update(hidden_floor_points_h(
+                frame.depth_m, K, self.R_qc, self.p_qc_m, *level_rp, floor_drop_m, cfg.obstacles.min_range_m,
+                cfg.obstacles.max_range_m, cfg.hidden_floor))
             self._map.measure(frame.stamp_s, obs, self._rng, unseen)
             points_c = obs.points_c_m
         else:
