@@ -293,7 +293,7 @@ def flight(out_dir: Path, scenario: str = "paper-arena", offset: int = 4000, loc
             f.log.save_csv(out_dir / "truth_clearance.csv")
 
 
-def companion_config_with(out_dir: Path, **sections: dict[str, object]) -> Path:
+def companion_config_with(out_dir: Path, **sections: object) -> Path:
     """configs/companion.yaml with some keys replaced, in ``out_dir`` (the demo's writer)."""
     from harness.demo.cli import write_companion_config
 

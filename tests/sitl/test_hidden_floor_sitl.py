@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from perception.floor import measure_floor
-from perception.hidden_floor import hidden_floor_points_h
+from perception.hidden_floor import HiddenFloorConfig, hidden_floor_points_h
 from quadlink.camera import CameraIntrinsics
 from quadlink.config import from_dict
 from quadlink.frames import Rz
@@ -49,7 +49,8 @@ def _hidden_at(scenario: ScenarioConfig, xy_m: tuple[float, float], yaw_deg: flo
         R_qc, p_qc = np.array(c.R_qc), np.array(c.p_qc_m)
         floor = measure_floor(frame.depth_m, K, R_qc, p_qc, 0.0, 0.0)
         assert floor is not None and abs(floor.height_m - 1.15) < 0.05
-        return hidden_floor_points_h(frame.depth_m, K, R_qc, p_qc, 0.0, 0.0, floor.height_m)
+        return hidden_floor_points_h(frame.depth_m, K, R_qc, p_qc, 0.0, 0.0, floor.height_m,
+                                     config=HiddenFloorConfig(enabled=True))
     finally:
         world.close()
 

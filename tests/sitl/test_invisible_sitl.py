@@ -13,7 +13,7 @@ import os
 from pathlib import Path
 
 import pytest
-from flight_harness import flight
+from flight_harness import LOADED_MACHINE, companion_config_with, flight
 
 pytestmark = [pytest.mark.sitl, pytest.mark.timeout(900)]
 
@@ -28,7 +28,11 @@ OFFSET = 4750 + (os.getpid() % 10) * 20
 
 
 def test_operator_pushing_at_a_dark_partition_stops_short_of_it(tmp_path: Path) -> None:
-    with flight(tmp_path, scenario="dark-column", offset=OFFSET) as f:
+    # the hidden floor is off by default (docs/limits.md): this flight turns it on, as a user would
+    perception = tmp_path / "perception.yaml"
+    perception.write_text("hidden_floor:\n  enabled: true\n")
+    config = companion_config_with(tmp_path, perception_config=str(perception), **LOADED_MACHINE)
+    with flight(tmp_path, scenario="dark-column", offset=OFFSET, companion_config=config) as f:
         f.take_off()
         t0, x0 = f.t_s, float(f.p_arena[0])
         f.run_for(25.0, lambda: f.manual(700))

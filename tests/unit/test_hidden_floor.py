@@ -68,7 +68,10 @@ def render(height_m: float, columns: list[tuple[float, float, float, bool]], rng
     return depth.astype(np.float32)
 
 
-def hidden(depth: NDArray[np.float32], height_m: float, cfg: HiddenFloorConfig | None = None) -> NDArray[np.float64]:
+ON = HiddenFloorConfig(enabled=True)
+
+
+def hidden(depth: NDArray[np.float32], height_m: float, cfg: HiddenFloorConfig = ON) -> NDArray[np.float64]:
     return hidden_floor_points_h(depth, K, R_QC, P_QC_M, 0.0, 0.0, height_m, config=cfg)
 
 
@@ -183,8 +186,9 @@ def test_a_thin_sliver_of_no_return_is_not_an_object(rng: np.random.Generator) -
 
 def test_unknown_floor_or_off_gives_nothing(rng: np.random.Generator) -> None:
     depth = render(1.0, [column_at(1.5)], rng)
-    assert hidden_floor_points_h(depth, K, R_QC, P_QC_M, 0.0, 0.0, None).shape == (0, 3)
-    assert hidden_floor_points_h(depth, K, R_QC, P_QC_M, 0.0, 0.0, math.nan).shape == (0, 3)
+    assert hidden_floor_points_h(depth, K, R_QC, P_QC_M, 0.0, 0.0, None, config=ON).shape == (0, 3)
+    assert hidden_floor_points_h(depth, K, R_QC, P_QC_M, 0.0, 0.0, math.nan, config=ON).shape == (0, 3)
+    assert hidden_floor_points_h(depth, K, R_QC, P_QC_M, 0.0, 0.0, 1.0).shape == (0, 3)   # off by default
     assert hidden(depth, 1.0, HiddenFloorConfig(enabled=False)).shape == (0, 3)
     # a camera that returns nothing at all shows no floor in front of any foot: not an object (its floor is not
     # seen either, so the pipeline has no floor to expect)
@@ -197,7 +201,7 @@ def test_the_body_tilt_is_taken_from_the_attitude(rng: np.random.Generator) -> N
     roll, pitch = math.radians(3.0), math.radians(5.0)
     R_h = R_hq(roll, pitch)
     depth = render(height_m, [col], rng, R_hc=R_h @ R_QC, p_hc_m=R_h @ P_QC_M)
-    pts = hidden_floor_points_h(depth, K, R_QC, P_QC_M, roll, pitch, height_m)
+    pts = hidden_floor_points_h(depth, K, R_QC, P_QC_M, roll, pitch, height_m, config=ON)
     assert pts.shape[0] >= 1
     assert 1.8 - 0.15 - 0.25 <= float(np.min(np.hypot(pts[:, 0], pts[:, 1]))) <= 1.8 - 0.15 + 0.02
     # and read with the wrong attitude (level), the floor it expects is not where the rays meet it: still found
