@@ -300,6 +300,104 @@ def companion_config_with(out_dir: Path, **sections: object) -> Path:
     return write_companion_config(out_dir, **sections)
 
 
+# ---------------------------------------------------------------- client scripts beside the flight
+def free_port(kind: int = socket.SOCK_STREAM) -> int:
+    with socket.socket(socket.AF_INET, kind) as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+@contextlib.contextmanager
+def mavsdk_server(system_url: str, log_path: Path) -> Iterator[int]:
+    """The classic API's ``mavsdk_server`` (the one mavsdk_grpc ships), started here rather than by
+    ``System.connect``: on a free gRPC port, its output in ``log_path``, and stopped when the flight ends (a server
+    left running holds its port and keeps talking to the companion). Yields the gRPC port for
+    ``System(mavsdk_server_address="127.0.0.1", port=...)``."""
+    import subprocess
+    from importlib.resources import files
+
+    binary = files("mavsdk_grpc") / "bin" / "mavsdk_server"
+    port = free_port()
+    with open(log_path, "wb") as log:
+        proc = subprocess.Popen([str(binary), "-p", str(port), system_url], stdout=log, stderr=subprocess.STDOUT)
+    try:
+        yield port
+    finally:
+        proc.terminate()
+        try:
+            proc.wait(5.0)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait(5.0)
+
+
+class ClientScript:
+    """A ground-station script (MAVSDK, either API) in its own thread and event loop while the harness flies on.
+
+    The script names its steps (``script.step("takeoff")``); a step that lasts longer than ``step_budget_sim_s`` of
+    simulated time (or ``step_budget_wall_s`` of wall time, should the simulation stall) fails the test with the
+    step's name, the steps so far and the tails of ``logs`` -- rather than a hung call outliving the SITL.
+    """
+
+    def __init__(self, f: Flight, step_budget_sim_s: float = 60.0, step_budget_wall_s: float = 240.0,
+                 logs: tuple[Path, ...] = ()) -> None:
+        self.f = f
+        self.step_budget_sim_s = step_budget_sim_s
+        self.step_budget_wall_s = step_budget_wall_s
+        self.logs = logs
+        self.steps: list[tuple[float, str]] = []
+        self._began_sim_s = f.t_s
+        self._began_wall_s = time.monotonic()
+
+    def step(self, name: str) -> None:
+        self.steps.append((self.f.t_s, name))
+        self._began_sim_s, self._began_wall_s = self.f.t_s, time.monotonic()
+
+    async def sim_wait(self, seconds: float) -> None:
+        import asyncio
+
+        t0 = self.f.t_s
+        while self.f.t_s - t0 < seconds:
+            await asyncio.sleep(0.05)
+
+    def run(self, script: Callable[[ClientScript], object], control: Callable[[], None] | None = None) -> None:
+        """Run ``script(self)`` (a coroutine function) to its end; the harness's ``control`` every step meanwhile.
+        Re-raises what the script raised."""
+        import asyncio
+        import threading
+
+        outcome: dict[str, BaseException] = {}
+
+        def target() -> None:
+            try:
+                asyncio.run(script(self))  # type: ignore[arg-type]
+            except BaseException as exc:  # reported to the test thread
+                outcome["error"] = exc
+
+        self.step("start")
+        thread = threading.Thread(target=target, daemon=True, name="client-script")
+        thread.start()
+        while thread.is_alive():
+            self.f.run_for(0.5, control, wall_s=1.0)
+            stuck_sim_s = self.f.t_s - self._began_sim_s
+            stuck_wall_s = time.monotonic() - self._began_wall_s
+            if stuck_sim_s > self.step_budget_sim_s or stuck_wall_s > self.step_budget_wall_s:
+                raise AssertionError(f"client script stuck in step {self.steps[-1][1]!r} for {stuck_sim_s:.0f} s "
+                                     f"simulated ({stuck_wall_s:.0f} s wall); {self._report()}")
+        if "error" in outcome:
+            raise AssertionError(f"client script failed in step {self.steps[-1][1]!r}: {outcome['error']!r}; "
+                                 f"{self._report()}") from outcome["error"]
+
+    def _report(self) -> str:
+        steps = ", ".join(f"{t:.1f} {name}" for t, name in self.steps)
+        tails = []
+        for path in self.logs:
+            with contextlib.suppress(OSError):
+                lines = path.read_text(errors="replace").splitlines()[-8:]
+                tails.append(f"{path.name}: " + " | ".join(lines))
+        return f"steps: {steps}; status: {self.f.log.statustexts[-6:]}; " + "; ".join(tails)
+
+
 # ---------------------------------------------------------------- command line
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])

@@ -16,14 +16,20 @@ from __future__ import annotations
 
 import asyncio
 import os
-import threading
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 import pytest
 import yaml
-from flight_harness import LOADED_MACHINE, MODE_TELEOP, Flight, companion_config_with, flight
+from flight_harness import (
+    LOADED_MACHINE,
+    MODE_TELEOP,
+    ClientScript,
+    Flight,
+    companion_config_with,
+    flight,
+    mavsdk_server,
+)
 
 from quadlink.mavlink import mavlink
 
@@ -86,53 +92,52 @@ def _land_ack(f: Flight, target_compid: int, timeout_s: float = 5.0) -> int:
     return acks[0][1]
 
 
-def _mavsdk_land(f: Flight, api: str) -> str:
+def _mavsdk_land(f: Flight, api: str, out_dir: Path) -> str:
     """MAVSDK's ``action.land()`` (a LAND to the autopilot) from a second ground station: its result's name."""
     url = f"udpout://127.0.0.1:{f.ports.vehicle}"
-    seen: dict[str, Any] = {}
+    seen: dict[str, str] = {}
 
-    async def native() -> str:
+    async def native(script: ClientScript) -> None:
         from mavsdk.asyncio import ComponentType, Configuration, Mavsdk
         from mavsdk.asyncio.plugins.action.action import ActionAsync, ActionError
 
+        script.step("connect")
         async with Mavsdk(Configuration.create_with_component_type(ComponentType.GROUND_STATION)) as m:
             await m.add_any_connection(url)
             system = await m.first_autopilot(timeout_s=30.0)
             assert system is not None, "MAVSDK did not find the vehicle behind the companion"
+            script.step("land")
             try:
                 await ActionAsync(system).land()
+                seen["result"] = "SUCCESS"
             except ActionError as exc:
-                return str(exc)
-            return "SUCCESS"
+                seen["result"] = str(exc)
 
-    async def classic() -> str:
+    async def classic(script: ClientScript) -> None:
         from mavsdk_grpc import System
         from mavsdk_grpc.action import ActionError
 
-        drone = System(port=31000 + os.getpid() % 400)
-        await drone.connect(system_address=url)
+        script.step("connect")
+        drone = System(mavsdk_server_address="127.0.0.1", port=grpc_port)
+        await asyncio.wait_for(drone.connect(), 60.0)
         async for state in drone.core.connection_state():
             if state.is_connected:
                 break
+        script.step("land")
         try:
             await drone.action.land()
+            seen["result"] = "SUCCESS"
         except ActionError as exc:
-            return str(exc)
-        return "SUCCESS"
+            seen["result"] = str(exc)
 
-    def target() -> None:
-        try:
-            seen["result"] = asyncio.run(asyncio.wait_for(native() if api == "native" else classic(), 120.0))
-        except BaseException as exc:  # reported to the test thread
-            seen["error"] = exc
-
-    thread = threading.Thread(target=target, daemon=True)
-    thread.start()
-    while thread.is_alive():   # the harness's operator holds the vehicle meanwhile
-        f.run_for(0.5, lambda: f.manual(0), wall_s=1.0)
-    if "error" in seen:
-        raise seen["error"]
-    return str(seen["result"])
+    hold = lambda: f.manual(0)  # noqa: E731   the harness's operator holds the vehicle meanwhile
+    if api == "native":
+        ClientScript(f).run(native, hold)
+    else:
+        log = out_dir / "mavsdk_server.log"
+        with mavsdk_server(url, log) as grpc_port:
+            ClientScript(f, logs=(log,)).run(classic, hold)
+    return seen["result"]
 
 
 def _assert_landed_on_the_floor(f: Flight, since_s: float) -> None:
@@ -155,9 +160,9 @@ def test_a_ground_station_land_over_a_box_is_refused_and_accepted_beside_it(tmp_
         assert any("land refused: object below" in t for t in f.log.statustexts), f.log.statustexts[-5:]
         results = {}
         if _has("mavsdk.asyncio"):
-            results["native"] = _mavsdk_land(f, "native")
+            results["native"] = _mavsdk_land(f, "native", tmp_path)
         if _has("mavsdk_grpc"):
-            results["classic"] = _mavsdk_land(f, "classic")
+            results["classic"] = _mavsdk_land(f, "classic", tmp_path)
         print(f"MAVSDK action.land() over the box: {results}")
         assert results, "no MAVSDK API installed"
         assert all("DENIED" in r.upper() for r in results.values()), results

@@ -10,14 +10,22 @@ from __future__ import annotations
 
 import asyncio
 import os
-import threading
 import time
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pytest
-from flight_harness import LOADED_MACHINE, MODE_HOLD, MODE_TELEOP, Flight, companion_config_with, flight
+from flight_harness import (
+    LOADED_MACHINE,
+    MODE_HOLD,
+    MODE_TELEOP,
+    ClientScript,
+    Flight,
+    companion_config_with,
+    flight,
+    mavsdk_server,
+)
 
 from quadlink.mavlink import mavlink
 
@@ -135,105 +143,88 @@ def test_script_stops_sending_and_the_operator_overrides_it(tmp_path: Path) -> N
 
 
 # ---------------------------------------------------------------- MAVSDK through the companion
-def _fly_mavsdk(f: Flight, api: str, grpc_port: int) -> dict[str, Any]:
+def _fly_mavsdk(f: Flight, api: str, out_dir: Path) -> dict[str, Any]:
     """arm, takeoff, offboard set_velocity_body(0.5, 0, 0, 0) for 20 s toward the wall 2 m ahead; backward
     0.4 m/s for 3 s (the camera's blind side: held); turn round at 36 deg/s for 5 s, forward 0.4 m/s for 5 s
-    into the open space the camera swept; offboard.stop(), land — in a thread with its own event loop."""
+    into the open space the camera swept; offboard.stop(), land -- in a thread with its own event loop
+    (flight_harness.ClientScript: each step has a deadline in simulated time)."""
     seen: dict[str, Any] = {}
     url = f"udpout://127.0.0.1:{f.ports.vehicle}"
 
-    def sim_wait(seconds: float) -> Any:
-        async def wait() -> None:
-            t0 = f.t_s
-            while f.t_s - t0 < seconds:
-                await asyncio.sleep(0.05)
-        return wait()
-
-    async def native() -> None:
+    async def native(script: ClientScript) -> None:
         from mavsdk.asyncio import ComponentType, Configuration, Mavsdk
         from mavsdk.asyncio.plugins.action.action import ActionAsync
         from mavsdk.asyncio.plugins.offboard.offboard import OffboardAsync, VelocityBodyYawspeed
         from mavsdk.asyncio.plugins.telemetry.telemetry import FlightMode, TelemetryAsync
 
+        script.step("connect")
         async with Mavsdk(Configuration.create_with_component_type(ComponentType.GROUND_STATION)) as m:
             await m.add_any_connection(url)
             system = await m.first_autopilot(timeout_s=30.0)
             assert system is not None, "MAVSDK did not find the vehicle behind the companion"
             tel, action, off = TelemetryAsync(system), ActionAsync(system), OffboardAsync(system)
-            await action.arm()
-            await action.takeoff()
-            await _until(tel.subscribe_flight_mode(), lambda mode: mode == FlightMode.HOLD, 120.0)
-            await _until_true(lambda: f.mode in (MODE_TELEOP, MODE_HOLD), 60.0)   # hold: no source yet
-            await off.set_velocity_body(VelocityBodyYawspeed(0.0, 0.0, 0.0, 0.0))
-            await off.start()
-            seen["mode"] = await _until(tel.subscribe_flight_mode(), lambda mode: mode == FlightMode.OFFBOARD, 10.0)
-            seen["t_wall0"], seen["p_wall0"] = f.t_s, f.p_arena.copy()
-            await off.set_velocity_body(VelocityBodyYawspeed(0.5, 0.0, 0.0, 0.0))
-            await sim_wait(20.0)
-            seen["p_wall1"] = f.p_arena.copy()
-            seen["offboard_still"] = await off.is_active()
-            await off.set_velocity_body(VelocityBodyYawspeed(-0.4, 0.0, 0.0, 0.0))   # blind side: held
-            await sim_wait(3.0)
-            seen["p_blind"] = f.p_arena.copy()
-            await off.set_velocity_body(VelocityBodyYawspeed(0.0, 0.0, 0.0, 36.0))   # turn round: 180 deg
-            await sim_wait(5.0)
-            seen["t_free0"], seen["p_free0"] = f.t_s, f.p_arena.copy()
-            await off.set_velocity_body(VelocityBodyYawspeed(0.4, 0.0, 0.0, 0.0))
-            await sim_wait(5.0)
-            seen["p_free1"], seen["t_free1"] = f.p_arena.copy(), f.t_s
-            await off.stop()
-            seen["stop_mode"] = await _until(tel.subscribe_flight_mode(), lambda mode: mode == FlightMode.HOLD, 10.0)
-            await action.land()
+            await _flight_plan(script, seen, f, tel.subscribe_flight_mode, FlightMode, action, off,
+                               VelocityBodyYawspeed)
 
-    async def classic() -> None:
+    async def classic(script: ClientScript) -> None:
         from mavsdk_grpc import System
         from mavsdk_grpc.offboard import VelocityBodyYawspeed
         from mavsdk_grpc.telemetry import FlightMode
 
-        drone = System(port=grpc_port)
-        await drone.connect(system_address=url)
+        script.step("connect")
+        drone = System(mavsdk_server_address="127.0.0.1", port=grpc_port)
+        await asyncio.wait_for(drone.connect(), 60.0)
         await asyncio.wait_for(_first(drone.core.connection_state(), lambda s: s.is_connected), 60.0)
-        await drone.action.arm()
-        await drone.action.takeoff()
-        await _until(drone.telemetry.flight_mode(), lambda mode: mode == FlightMode.HOLD, 120.0)
-        await _until_true(lambda: f.mode in (MODE_TELEOP, MODE_HOLD), 60.0)   # hold: no source yet
-        await drone.offboard.set_velocity_body(VelocityBodyYawspeed(0.0, 0.0, 0.0, 0.0))
-        await drone.offboard.start()
-        seen["mode"] = await _until(drone.telemetry.flight_mode(), lambda mode: mode == FlightMode.OFFBOARD, 10.0)
-        seen["t_wall0"], seen["p_wall0"] = f.t_s, f.p_arena.copy()
-        await drone.offboard.set_velocity_body(VelocityBodyYawspeed(0.5, 0.0, 0.0, 0.0))
-        await sim_wait(20.0)
-        seen["p_wall1"] = f.p_arena.copy()
-        seen["offboard_still"] = await drone.offboard.is_active()
-        await drone.offboard.set_velocity_body(VelocityBodyYawspeed(-0.4, 0.0, 0.0, 0.0))   # blind side: held
-        await sim_wait(3.0)
-        seen["p_blind"] = f.p_arena.copy()
-        await drone.offboard.set_velocity_body(VelocityBodyYawspeed(0.0, 0.0, 0.0, 36.0))   # turn round: 180 deg
-        await sim_wait(5.0)
-        seen["t_free0"], seen["p_free0"] = f.t_s, f.p_arena.copy()
-        await drone.offboard.set_velocity_body(VelocityBodyYawspeed(0.4, 0.0, 0.0, 0.0))
-        await sim_wait(5.0)
-        seen["p_free1"], seen["t_free1"] = f.p_arena.copy(), f.t_s
-        await drone.offboard.stop()
-        seen["stop_mode"] = await _until(drone.telemetry.flight_mode(), lambda mode: mode == FlightMode.HOLD, 10.0)
-        await drone.action.land()
+        await _flight_plan(script, seen, f, drone.telemetry.flight_mode, FlightMode, drone.action, drone.offboard,
+                           VelocityBodyYawspeed)
 
-    def target() -> None:
-        try:
-            asyncio.run(asyncio.wait_for(native() if api == "native" else classic(), 900.0))
-        except BaseException as exc:  # reported to the test thread
-            seen["error"] = exc
-
-    thread = threading.Thread(target=target, daemon=True)
-    thread.start()
     # the harness's own ground station keeps sending heartbeats (so it keeps receiving TELEOP_FEEDBACK):
     # MAVSDK shares the companion's endpoint with it, as with any second ground station
-    while thread.is_alive():
-        f.run_for(0.5, None, wall_s=1.0)
-    if "error" in seen:
-        raise seen["error"]
+    if api == "native":
+        ClientScript(f).run(native)
+    else:
+        with mavsdk_server(url, out_dir / "mavsdk_server.log") as grpc_port:
+            ClientScript(f, logs=(out_dir / "mavsdk_server.log",)).run(classic)
     f.run_for(3.0, None)
     return seen
+
+
+async def _flight_plan(script: ClientScript, seen: dict[str, Any], f: Flight, flight_modes: Any, FlightMode: Any,
+                       action: Any, off: Any, Velocity: Any) -> None:
+    """The same plan in both APIs (their action, offboard and flight-mode calls have the same shape)."""
+    script.step("arm")
+    await action.arm()
+    script.step("takeoff")
+    await action.takeoff()
+    await _until(flight_modes(), lambda mode: mode == FlightMode.HOLD, 120.0)
+    await _until_true(lambda: f.mode in (MODE_TELEOP, MODE_HOLD), 60.0)   # hold: no source yet
+    script.step("offboard.start")
+    await off.set_velocity_body(Velocity(0.0, 0.0, 0.0, 0.0))
+    await off.start()
+    seen["mode"] = await _until(flight_modes(), lambda mode: mode == FlightMode.OFFBOARD, 10.0)
+    script.step("toward the wall")
+    seen["t_wall0"], seen["p_wall0"] = f.t_s, f.p_arena.copy()
+    await off.set_velocity_body(Velocity(0.5, 0.0, 0.0, 0.0))
+    await script.sim_wait(20.0)
+    seen["p_wall1"] = f.p_arena.copy()
+    seen["offboard_still"] = await off.is_active()
+    script.step("backward (blind side)")
+    await off.set_velocity_body(Velocity(-0.4, 0.0, 0.0, 0.0))   # blind side: held
+    await script.sim_wait(3.0)
+    seen["p_blind"] = f.p_arena.copy()
+    script.step("turn round")
+    await off.set_velocity_body(Velocity(0.0, 0.0, 0.0, 36.0))   # turn round: 180 deg
+    await script.sim_wait(5.0)
+    script.step("forward (free)")
+    seen["t_free0"], seen["p_free0"] = f.t_s, f.p_arena.copy()
+    await off.set_velocity_body(Velocity(0.4, 0.0, 0.0, 0.0))
+    await script.sim_wait(5.0)
+    seen["p_free1"], seen["t_free1"] = f.p_arena.copy(), f.t_s
+    script.step("offboard.stop")
+    await off.stop()
+    seen["stop_mode"] = await _until(flight_modes(), lambda mode: mode == FlightMode.HOLD, 10.0)
+    script.step("land")
+    await action.land()
 
 
 async def _first(gen: Any, pred: Any) -> Any:
@@ -279,14 +270,14 @@ def _check_mavsdk(f: Flight, seen: dict[str, Any]) -> None:
 def test_mavsdk_native_offboard_into_a_wall_through_the_companion(tmp_path: Path) -> None:
     pytest.importorskip("mavsdk.asyncio")
     with flight(tmp_path, offset=_offset(3)) as f:
-        seen = _fly_mavsdk(f, "native", 30000 + os.getpid() % 500)
+        seen = _fly_mavsdk(f, "native", tmp_path)
         _check_mavsdk(f, seen)
 
 
 def test_mavsdk_classic_offboard_into_a_wall_through_the_companion(tmp_path: Path) -> None:
     pytest.importorskip("mavsdk_grpc")
     with flight(tmp_path, offset=_offset(4)) as f:
-        seen = _fly_mavsdk(f, "classic", 30500 + os.getpid() % 400)
+        seen = _fly_mavsdk(f, "classic", tmp_path)
         _check_mavsdk(f, seen)
 
 
@@ -304,52 +295,44 @@ def test_operator_push_in_real_time(tmp_path: Path) -> None:
         assert gap <= 0.65, f"stopped {gap:.2f} m from the nearest surface (the wall is reachable to ~0.5 m)"
 
 
-def _land_beside_the_wall_classic(f: Flight, grpc_port: int) -> dict[str, Any]:
+def _land_beside_the_wall_classic(f: Flight, out_dir: Path) -> dict[str, Any]:
     """Issue 30, as a scripted user flew it: MAVSDK classic, body-forward toward the south wall until it rests near
     it, offboard.stop(), action.land(): the LAND must be accepted (a wall beside the vehicle is not below it)."""
     seen: dict[str, Any] = {}
     url = f"udpout://127.0.0.1:{f.ports.vehicle}"
 
-    async def sim_wait(seconds: float) -> None:
-        t0 = f.t_s
-        while f.t_s - t0 < seconds:
-            await asyncio.sleep(0.05)
-
-    async def classic() -> None:
+    async def classic(script: ClientScript) -> None:
         from mavsdk_grpc import System
         from mavsdk_grpc.offboard import VelocityBodyYawspeed
         from mavsdk_grpc.telemetry import FlightMode
 
-        drone = System(port=grpc_port)
-        await drone.connect(system_address=url)
+        script.step("connect")
+        drone = System(mavsdk_server_address="127.0.0.1", port=grpc_port)
+        await asyncio.wait_for(drone.connect(), 60.0)
         await asyncio.wait_for(_first(drone.core.connection_state(), lambda s: s.is_connected), 60.0)
+        script.step("arm")
         await drone.action.arm()
+        script.step("takeoff")
         await drone.action.takeoff()
         await _until(drone.telemetry.flight_mode(), lambda mode: mode == FlightMode.HOLD, 120.0)
         await _until_true(lambda: f.mode in (MODE_TELEOP, MODE_HOLD), 60.0)
+        script.step("offboard.start")
         await drone.offboard.set_velocity_body(VelocityBodyYawspeed(0.0, 0.0, 0.0, 0.0))
         await drone.offboard.start()
+        script.step("toward the wall")
         await drone.offboard.set_velocity_body(VelocityBodyYawspeed(0.5, 0.0, 0.0, 0.0))
-        await sim_wait(20.0)
+        await script.sim_wait(20.0)
         seen["p_rest"] = f.p_arena.copy()
+        script.step("offboard.stop")
         await drone.offboard.stop()
         await _until(drone.telemetry.flight_mode(), lambda mode: mode == FlightMode.HOLD, 10.0)
+        script.step("land")
         seen["t_land"] = f.t_s
         await drone.action.land()   # raises ActionError on COMMAND_DENIED
         seen["land_accepted"] = True
 
-    def target() -> None:
-        try:
-            asyncio.run(asyncio.wait_for(classic(), 600.0))
-        except BaseException as exc:  # reported to the test thread
-            seen["error"] = exc
-
-    thread = threading.Thread(target=target, daemon=True)
-    thread.start()
-    while thread.is_alive():
-        f.run_for(0.5, None, wall_s=1.0)
-    if "error" in seen:
-        raise AssertionError(f"{seen['error']!r}; status: {f.log.statustexts[-6:]}")
+    with mavsdk_server(url, out_dir / "mavsdk_server.log") as grpc_port:
+        ClientScript(f, logs=(out_dir / "mavsdk_server.log",)).run(classic)
     f.run_for(20.0, None, until=lambda: f.log.touchdown(seen["t_land"]) is not None and f.t_s > seen["t_land"] + 2)
     return seen
 
@@ -360,7 +343,7 @@ def test_mavsdk_land_beside_a_wall_is_accepted_and_lands(tmp_path: Path, run: in
     ``-m slow`` flies the other nine (the issue's 10 of 10)."""
     pytest.importorskip("mavsdk_grpc")
     with flight(tmp_path, offset=_offset(6) + run % 4) as f:
-        seen = _land_beside_the_wall_classic(f, 31000 + (os.getpid() + 7 * run) % 500)
+        seen = _land_beside_the_wall_classic(f, tmp_path)
         gap = float(seen["p_rest"][0] - POSTER_FACE_X_M)
         print(f"run {run}: rested {gap:.2f} m from the poster; {f.log.summary()}")
         assert seen.get("land_accepted"), "LAND refused"
