@@ -12,7 +12,9 @@ import os
 import signal
 import subprocess
 import sys
+import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -71,6 +73,24 @@ class ProcessDied(RuntimeError):
         self.returncode = returncode
 
 
+def _die_with_parent() -> Callable[[], None] | None:
+    """On Linux, a part gets SIGTERM when the process that started it dies, however it dies: a runner killed by
+    SIGTERM or SIGKILL (no ``finally`` runs) left a bridge and a companion flying on, on the same ports as the next
+    run. Only from the main thread: the signal follows the thread that forked."""
+    if not sys.platform.startswith("linux") or threading.current_thread() is not threading.main_thread():
+        return None
+    import ctypes
+
+    libc = ctypes.CDLL(None, use_errno=True)
+    parent = os.getpid()
+
+    def set_pdeathsig() -> None:
+        libc.prctl(1, signal.SIGTERM)   # PR_SET_PDEATHSIG
+        if os.getppid() != parent:      # the parent died before the prctl
+            os._exit(1)
+    return set_pdeathsig
+
+
 def _tail(path: Path, lines: int = 3) -> str:
     try:
         text = path.read_text(errors="replace").strip().splitlines()
@@ -93,7 +113,7 @@ class Stack:
         env = {**os.environ, "PYTHONUNBUFFERED": "1", **spec.env}
         with open(log_path, "wb") as out:
             popen = subprocess.Popen(argv, stdout=out, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-                                     env=env, start_new_session=True)
+                                     env=env, start_new_session=True, preexec_fn=_die_with_parent())
         running = Running(spec, popen, log_path)
         self.running.append(running)
         # each part leads its own process group: a supervisor whose runner died kills them by these ids
