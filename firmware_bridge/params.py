@@ -63,8 +63,11 @@ PARAM_SPECS: tuple[ParamSpec, ...] = (
     ParamSpec("BRG_TKO_THR_MRG", 0.25, 0.05, 0.6, "fraction", "take-off phase 1: thrust ceiling above hover, fraction"),
     ParamSpec("BRG_TKO_RAMP_T", 1.0, 0.0, 5.0, "s", "take-off phase 1: thrust ramp from idle"),
     ParamSpec("BRG_OL_LAND_SPD", 0.5, 0.1, 1.0, "m/s", "landing without odometry: descent rate (ArduPilot LAND_SPEED)"),
-    ParamSpec("BRG_ODOM_VGATE", 0.6, 0.0, 5.0, "m/s",
+    ParamSpec("BRG_ODOM_VGATE", 0.3, 0.0, 5.0, "m/s",
               "odometry velocity further than this from the IMU's prediction is refused (0: off)"),
+    ParamSpec("BRG_ODOM_VGATE_K", 0.3, 0.05, 1.0, "fraction",
+              "the gate's reference takes this share of an accepted odometry velocity, the rest from the IMU "
+              "(1: the last accepted velocity)"),
     ParamSpec("BRG_DRAG_HOLD", 1.0, 0.0, 1.0, "bool",
               "without odometry, hold on the drag-learnt velocity instead of flying level (0: off)"),
     ParamSpec("BRG_LAND_LVL_ALT", 0.3, 0.0, 2.0, "m",

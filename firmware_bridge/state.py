@@ -163,6 +163,9 @@ class BridgeState:
         # the velocity in H from the last odometry on, integrated from the IMU (leaky): with the odometry lost
         # in the air it brakes the slide (x, y) and paces the descent (z) (firmware_bridge.flight_control)
         self.v_h_dead_reckoned = np.zeros(3)
+        # the velocity gate's reference: the IMU's prediction, pulled a share (BRG_ODOM_VGATE_K) toward each accepted
+        # odometry velocity -- a ramp of odometry error cannot walk it along, as it walks the last accepted sample
+        self.v_h_gate_ref = np.zeros(3)
         self.odom_lost_s: float | None = None   # when the odometry was lost in the air (None: not lost)
         self.odom_reset_counter: int | None = None
         self.odom_p_ned_m: np.ndarray | None = None  # the odometry's position (its local frame), if finite
