@@ -94,28 +94,32 @@ class DragVelocity:
             fit.add(float(self._v_lp[axis]), float(self._f_lp[axis]), dt_s, decay)
         self._fit_time_s += dt_s
 
-    def coefficients(self) -> tuple[tuple[float, float], tuple[float, float]] | None:
-        """((k_x, b_x), (k_y, b_y)) once both axes are fitted on enough motion, else None."""
+    def coefficients(self, nominal_k_1_s: float = 0.0) -> tuple[tuple[float, float], tuple[float, float]] | None:
+        """((k_x, b_x), (k_y, b_y)) once both axes are fitted on enough motion. Without that motion (a take-off and
+        a hover teach too little: the companion killed at 1.9 m drifted 0.56-0.63 m on the way down), an axis takes
+        ``nominal_k_1_s`` (> 0: the vehicle's identified drag, as PX4's EKF2_MCOEF) with its bias from the flight so
+        far -- in a hover the mean force is the bias. None before MIN_FIT_TIME_S of flight, or with neither."""
         if self._fit_time_s < MIN_FIT_TIME_S:
             return None
         out = []
         for fit in self._axes:
             r = fit.fit()
-            if r is None:
+            if r is not None and r[2] >= MIN_SPEED_SPREAD_M_S and K_RANGE_1_S[0] <= r[0] <= K_RANGE_1_S[1]:
+                out.append((r[0], r[1]))
+            elif nominal_k_1_s > 0.0 and fit.n > 0.0:
+                out.append((nominal_k_1_s, (fit.f + nominal_k_1_s * fit.v) / fit.n))
+            else:
                 return None
-            k, b, spread = r
-            if spread < MIN_SPEED_SPREAD_M_S or not K_RANGE_1_S[0] <= k <= K_RANGE_1_S[1]:
-                return None
-            out.append((k, b))
         return out[0], out[1]
 
     @property
     def learnt(self) -> bool:
         return self.coefficients() is not None
 
-    def velocity_q_xy(self) -> NDArray[np.float64] | None:
-        """The body x, y velocity the drag says (m/s), or None before the fit is trusted."""
-        c = self.coefficients()
+    def velocity_q_xy(self, nominal_k_1_s: float = 0.0) -> NDArray[np.float64] | None:
+        """The body x, y velocity the drag says (m/s), or None before the fit is trusted (see :meth:`coefficients`
+        for ``nominal_k_1_s``)."""
+        c = self.coefficients(nominal_k_1_s)
         if c is None:
             return None
         (kx, bx), (ky, by) = c

@@ -238,7 +238,10 @@ class FlightControlService:
         yaw_rate = self._heading_hold(dt, 0.0, est.yaw_rad)
         # horizontally: level, or, once the drag's velocity has been learnt in this flight, a hold on it (the
         # board's level is ~0.5-1 deg off its own estimate: 0.1-0.3 m/s of slide), never on or at the ground
-        drag = None if s.vertical.estimate.pinned or self._level_landing() else self._drag_velocity_h(est)
+        # nor while resting on something (thrust under the touchdown test's: a tilt there skids the vehicle)
+        resting = s.last_board_command.thrust < s.params["LNDMC_THR_MAX"] * s.tracker.hover_thrust_fraction
+        drag = None if s.vertical.estimate.pinned or self._level_landing() or resting \
+            else self._drag_velocity_h(est)
         v_est = np.array([0.0, 0.0, vz_est]) if drag is None else np.array([drag[0], drag[1], vz_est])
         cmd = s.pid_tracker.update(dt, np.array([0.0, 0.0, vz_ref]), yaw_rate, v_est, est.roll_rad, est.pitch_rad)
         thrust = min(cmd.thrust_fraction, ceiling)
@@ -277,11 +280,12 @@ class FlightControlService:
         return v_h * (LAND_HOLD_MAX_M_S / speed) if speed > LAND_HOLD_MAX_M_S else v_h
 
     def _drag_velocity_h(self, est: Any) -> np.ndarray | None:
-        """The horizontal velocity in H from the drag (firmware_bridge.drag_velocity), if BRG_DRAG_HOLD and learnt."""
+        """The horizontal velocity in H from the drag (firmware_bridge.drag_velocity), if BRG_DRAG_HOLD and learnt in
+        this flight, or on BRG_DRAG_K_NOM where the flight has not moved enough to learn it."""
         s = self.state
         if s.params["BRG_DRAG_HOLD"] <= 0.0:
             return None
-        v_q = s.drag.velocity_q_xy()
+        v_q = s.drag.velocity_q_xy(s.params["BRG_DRAG_K_NOM"])
         if v_q is None:
             return None
         return R_hq(est.roll_rad, est.pitch_rad) @ np.array([v_q[0], v_q[1], 0.0])

@@ -70,6 +70,9 @@ PARAM_SPECS: tuple[ParamSpec, ...] = (
               "(1: the last accepted velocity)"),
     ParamSpec("BRG_DRAG_HOLD", 1.0, 0.0, 1.0, "bool",
               "without odometry, hold on the drag-learnt velocity instead of flying level (0: off)"),
+    ParamSpec("BRG_DRAG_K_NOM", 0.45, 0.0, 5.0, "1/s",
+              "the drag coefficient held on before the flight has moved enough to learn it (the 'Drag learnt' "
+              "message gives the vehicle's; PX4's EKF2_MCOEF; 0: none)"),
     ParamSpec("BRG_LAND_LVL_ALT", 0.3, 0.0, 2.0, "m",
               "LAND: below this baro height, descend level on the baro (0: off)"),
 ) + GEOMETRIC_PARAM_SPECS  # BRG_TRACKER (0 PID, 1 geometric) and the geometric tracker's gains (issue 19)
