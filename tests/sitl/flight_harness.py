@@ -346,12 +346,15 @@ class ClientScript:
         self.step_budget_wall_s = step_budget_wall_s
         self.logs = logs
         self.steps: list[tuple[float, str]] = []
-        self._began_sim_s = f.t_s
+        self._began_sim_s: float | None = None
         self._began_wall_s = time.monotonic()
 
     def step(self, name: str) -> None:
         self.steps.append((self.f.t_s, name))
-        self._began_sim_s, self._began_wall_s = self.f.t_s, time.monotonic()
+        # before the harness has heard the SITL's clock (t = 0) the step's start is taken at the first reading: CI
+        # once counted the simulated time the SITL had run before the script began as the step's (60 s in 29 s)
+        self._began_sim_s = self.f.t_s if self.f.t_s > 0.0 else None
+        self._began_wall_s = time.monotonic()
 
     async def sim_wait(self, seconds: float) -> None:
         import asyncio
@@ -374,12 +377,15 @@ class ClientScript:
             except BaseException as exc:  # reported to the test thread
                 outcome["error"] = exc
 
+        self.f.pump()
         self.step("start")
         thread = threading.Thread(target=target, daemon=True, name="client-script")
         thread.start()
         while thread.is_alive():
             self.f.run_for(0.5, control, wall_s=1.0)
-            stuck_sim_s = self.f.t_s - self._began_sim_s
+            if self._began_sim_s is None and self.f.t_s > 0.0:
+                self._began_sim_s = self.f.t_s
+            stuck_sim_s = 0.0 if self._began_sim_s is None else self.f.t_s - self._began_sim_s
             stuck_wall_s = time.monotonic() - self._began_wall_s
             if stuck_sim_s > self.step_budget_sim_s or stuck_wall_s > self.step_budget_wall_s:
                 raise AssertionError(f"client script stuck in step {self.steps[-1][1]!r} for {stuck_sim_s:.0f} s "
