@@ -97,7 +97,7 @@ class FlightControlService:
             # on the floor, its odometry's velocity garbage, and a brake on it skidded the vehicle 0.16 m)
             # ... nor at the floor on the barometer (campaign seed 2031 flight 13: on the floor in LAND, thrust still
             # near hover, the odometry lost: the brake on a garbage velocity slid the vehicle 0.9 m into a column)
-            resting = s.last_board_command.thrust < s.params["LNDMC_THR_MAX"] * s.tracker.hover_thrust_fraction \
+            resting = self._resting_thrust() \
                 or self._level_landing()
             braking = s.odom_lost_s is not None and now_s - s.odom_lost_s < ODOM_LOST_BRAKE_S and not resting
             if resting:
@@ -239,8 +239,7 @@ class FlightControlService:
         # horizontally: level, or, once the drag's velocity has been learnt in this flight, a hold on it (the
         # board's level is ~0.5-1 deg off its own estimate: 0.1-0.3 m/s of slide), never on or at the ground
         # nor while resting on something (thrust under the touchdown test's: a tilt there skids the vehicle)
-        resting = s.last_board_command.thrust < s.params["LNDMC_THR_MAX"] * s.tracker.hover_thrust_fraction
-        drag = None if s.vertical.estimate.pinned or self._level_landing() or resting \
+        drag = None if s.vertical.estimate.pinned or self._level_landing() or self._resting_thrust() \
             else self._drag_velocity_h(est)
         v_est = np.array([0.0, 0.0, vz_est]) if drag is None else np.array([drag[0], drag[1], vz_est])
         cmd = s.pid_tracker.update(dt, np.array([0.0, 0.0, vz_ref]), yaw_rate, v_est, est.roll_rad, est.pitch_rad)
@@ -289,6 +288,11 @@ class FlightControlService:
         if v_q is None:
             return None
         return R_hq(est.roll_rad, est.pitch_rad) @ np.array([v_q[0], v_q[1], 0.0])
+
+    def _resting_thrust(self) -> bool:
+        """The last thrust is under the touchdown test's (LNDMC_THR_MAX x hover): resting on something."""
+        s = self.state
+        return s.last_board_command.thrust < s.params["LNDMC_THR_MAX"] * s.tracker.hover_thrust_fraction
 
     def _level_landing(self) -> bool:
         """The barometer-fused height is below BRG_LAND_LVL_ALT (0: never): a landing flies the rest level, and a
