@@ -91,7 +91,7 @@ from companion.link_reader import CodecReader
 from companion.lockstep_links import AUTOPILOT_IN, CAMERA_IN, GCS_IN, LockstepLinks
 from companion.modes import AutopilotRequest, Mode, ModeMachine, StatusText
 from companion.motion import Motion
-from companion.obstacle_points import select_points
+from companion.obstacle_points import select_points, with_open_tops
 from companion.operator_input import camera_yaw_rad
 from companion.outbound import AutopilotAck, GcsReply, Outbox, Output, ToAutopilot
 from companion.pan_scan import PanScanParams
@@ -430,7 +430,7 @@ class Companion:
         out = self.state.last_output
         if out is None:
             return None
-        points = map_points_h_m(out, self.ref_params)
+        points = map_points_h_m(out, self.ref_params, self._height_above_floor_m())
         if not out.odometry_ok:   # no pose to place the memory with: the map alone
             return points
         remembered = self.below.points_h(out.position_m, out.yaw_rad, self._height_above_floor_m())
@@ -454,7 +454,8 @@ class Companion:
         if refusal is None:
             return None
         ref = self.ref_params
-        band = select_points(out.obstacle_points_h_m, ref, self._height_above_floor_m(), ref.influence_distance_m)
+        band = select_points(map_points_h_m(out, ref, self._height_above_floor_m()), ref, self._height_above_floor_m(),
+                             ref.influence_distance_m)
         room_m = ref.safe_distance_m - 0.05
 
         def room(az_h: float) -> bool:
@@ -507,8 +508,9 @@ class Companion:
     def _process_frame(self, frame: RgbdFrame) -> None:
         t_in = self._stopwatch()
         self.stats.frames += 1
-        if self._last_seq is not None and frame.seq > self._last_seq + 1:
-            self.stats.frames_skipped += frame.seq - self._last_seq - 1   # dropped at the source, or skipped
+        seq_gap = 1 if self._last_seq is None else frame.seq - self._last_seq
+        if seq_gap > 1:
+            self.stats.frames_skipped += seq_gap - 1   # dropped at the source, or skipped
         self._last_seq = frame.seq
         st = self.state
         st.R_qc = np.asarray(frame.R_qc, dtype=float)
@@ -524,7 +526,10 @@ class Companion:
             self.below.clear()   # a new flight, a new odometry world
             self.position_hold.reset()
         elif out is not None and out.odometry_ok:
-            self.below.observe(out.obstacle_points_h_m, self._height_above_floor_m(), self.ref_params.floor_margin_m,
+            # with the walls seen from below extended up to the vehicle: beside it, not below it
+            self.below.observe(with_open_tops(out.obstacle_points_h_m, out.obstacle_open_top,
+                                              self._height_above_floor_m(), self.ref_params.floor_margin_m),
+                               self._height_above_floor_m(), self.ref_params.floor_margin_m,
                                out.position_m, out.yaw_rad)
         self._emit(self.modes.update(self.clock(), self.vehicle.status(), st.odometry_ok, self._failsafe_refusal))
         cmd = self.motion.command(self._pose())
@@ -533,7 +538,7 @@ class Companion:
         clearing = self._clearing_command(out)
         v_command = clearing[0] if clearing is not None else cmd.v_h_m_s if scripted else None
         ob = self.cfg.obstacles
-        ref_params, operator_enabled = self._latency_law(stamp)
+        ref_params, operator_enabled = self._latency_law(stamp, seq_gap)
         if self.latency.holding and clearing is None:
             v_command, operator_enabled = None, False   # late data: no commanded motion, the repulsion still acts
         step = frame_step(out, op, st.R_qc, st.scan(self.modes.mode, stamp, self.scan_params), ref_params,
@@ -563,12 +568,15 @@ class Companion:
             self._publish_image(frame, out, step.ref)
         self.recording.write(frame)
 
-    def _latency_law(self, stamp_s: float) -> tuple[ReferenceParams, bool]:
+    def _latency_law(self, stamp_s: float, seq_gap: int = 1) -> tuple[ReferenceParams, bool]:
         """This frame's age on the autopilot's clock (companion.latency), the reference law's parameters that pay
-        for it (stopping time, speed limit) and whether the operator may move the vehicle; the hold is told."""
+        for it (stopping time, speed limit, and the map's drift margin for the frames skipped, ``seq_gap`` since the
+        last one processed) and whether the operator may move the vehicle; the hold is told."""
         ref = self.ref_params
         age_s = self.time.estimate_s(self.clock()) - stamp_s
-        v = self.latency.on_frame(self.clock(), age_s, ref.stopping_time_s, ref.max_speed_m_s)
+        v = self.latency.on_frame(self.clock(), age_s, ref.stopping_time_s, ref.max_speed_m_s, seq_gap)
+        if v.drift_scale > 1.0:
+            ref = dataclasses.replace(ref, map_drift_m_s=ref.map_drift_m_s * v.drift_scale)
         self.stats.data_ages_s.append(v.age_s)
         if v.changed:
             text = (f"companion: data {v.age_s * 1e3:.0f} ms old: holding" if v.holding

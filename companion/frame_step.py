@@ -18,7 +18,7 @@ from numpy.typing import NDArray
 
 from companion import messages as msgs
 from companion.modes import Mode
-from companion.obstacle_points import avoidance_points, drifted_toward, nearest_obstacle
+from companion.obstacle_points import avoidance_points, drifted_toward, nearest_obstacle, with_open_tops
 from companion.operator_input import OperatorInput, camera_yaw_rad
 from companion.pan_scan import PanScanParams, PanScanState
 from companion.reference import ReferenceOutput, reference_velocity
@@ -63,12 +63,19 @@ def height_m(out: PerceptionOutput | None) -> float | None:
     return -z if math.isfinite(z) else None
 
 
-def map_points_h_m(out: PerceptionOutput | None, params: ReferenceParams) -> NDArray[np.float64] | None:
+def map_points_h_m(out: PerceptionOutput | None, params: ReferenceParams,
+                   height_m: float | None = None) -> NDArray[np.float64] | None:
     """Perception's map points as the avoidance takes them: each moved toward the vehicle by the odometry's drift
-    since it was seen (``params.map_drift_m_s``, :func:`companion.obstacle_points.drifted_toward`)."""
+    since it was seen (``params.map_drift_m_s``, :func:`companion.obstacle_points.drifted_toward`), and those
+    below the vehicle whose top the camera never saw over extended up to its level
+    (:func:`companion.obstacle_points.with_open_tops`; ``height_m`` above the floor keeps the floor out)."""
     if out is None:
         return None
-    return drifted_toward(out.obstacle_points_h_m, out.obstacle_ages_s, params.map_drift_m_s)
+    p = drifted_toward(out.obstacle_points_h_m, out.obstacle_ages_s, params.map_drift_m_s)
+    if p is None:
+        return None
+    return with_open_tops(np.asarray(p, dtype=float).reshape(-1, 3), out.obstacle_open_top, height_m,
+                          params.floor_margin_m)
 
 
 def frame_step(out: PerceptionOutput | None, op: OperatorInput, R_qc: NDArray[np.float64], scan: PanScanState,
@@ -82,7 +89,7 @@ def frame_step(out: PerceptionOutput | None, op: OperatorInput, R_qc: NDArray[np
     ``height_above_takeoff_m``: the vehicle's height (None = unknown; default: the odometry's);
     ``height_verified``: checked against the floor lately (otherwise no climb toward a configured ceiling)."""
     h = height_m(out) if isinstance(height_above_takeoff_m, HeightFrom) else height_above_takeoff_m
-    points = map_points_h_m(out, params)
+    points = map_points_h_m(out, params, h)
     sectors, _, offset_deg = msgs.sector_arrays(None if out is None else out.sectors)
     # the operator pushing forward moves along the camera's axis (eq. 2), which is always in view; a script
     # commands any direction, and an operator pulling the handle back reverses away from the camera: neither
@@ -108,12 +115,12 @@ def fallback_step(last_out: PerceptionOutput | None, op: OperatorInput, R_qc: ND
                   height_verified: bool = True) -> ReferenceOutput:
     """No camera: obstacle data stale -> no motion toward unknown (= all) sectors, repulsion from the last
     map kept (conservative), no pan-scan; the operator is zeroed by HOLD (``operator_enabled``)."""
-    points = map_points_h_m(last_out, params)
+    h = height_m(last_out) if isinstance(height_above_takeoff_m, HeightFrom) else height_above_takeoff_m
+    points = map_points_h_m(last_out, params, h)
     # the last velocity estimate is stale: the stopping distance uses none (the hold is the vehicle's)
     return reference_velocity(op, R_qc, NO_SCAN, points, params, sectors_m=None, block_unknown=True,
                               operator_enabled=operator_enabled, height_verified=height_verified,
-                              height_m=height_m(last_out) if isinstance(height_above_takeoff_m, HeightFrom)
-                              else height_above_takeoff_m)
+                              height_m=h)
 
 
 def setpoint_velocity(ref: ReferenceOutput, in_control: bool) -> tuple[NDArray[np.float64], float]:

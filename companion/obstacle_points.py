@@ -55,6 +55,71 @@ def drifted_toward(points_h_m: ArrayLike | None, ages_s: ArrayLike | None,
     return out
 
 
+COLUMN_GRID_M = 0.05   # one upward extension per cell of this size: a wall's particles come in copies
+TOP_NEAR_M = 0.1       # a top seen over within about this (one cell of it, or the next) horizontally caps a point
+
+
+def with_open_tops(points: ArrayLike, open_top: ArrayLike | None, height_m: float | None = None,
+                   floor_margin_m: float = 0.0) -> NDArray[np.float64]:
+    """The points, plus one at the vehicle's level (z = 0) above each point below it whose top no ray passed over
+    (``open_top``, perception's ``ObstacleMap.open_top``) and that no top seen over caps (a point the rays passed
+    over, higher, within about ``TOP_NEAR_M`` horizontally: a box's top edge above its front face): the surface it
+    samples may reach the vehicle's height, as a wall the camera saw from lower down does, so it acts on the
+    avoidance by its horizontal distance and counts as beside the vehicle, not below it
+    (:mod:`companion.landing_spot`). Not for points of the floor (within ``floor_margin_m`` of it, ``height_m`` below
+    the vehicle, when known). Thinned to one per 5 cm cell. A mismatched ``open_top``: the points unchanged."""
+    points_h_m = np.asarray(points, dtype=float).reshape(-1, 3)
+    if open_top is None:
+        return points_h_m
+    flags = np.asarray(open_top, dtype=bool).reshape(-1)
+    if flags.shape[0] != points_h_m.shape[0] or not flags.any():
+        return points_h_m
+    finite = np.isfinite(points_h_m).all(axis=1)
+    z = points_h_m[:, 2]
+    up = flags & finite & (z > 0.0)
+    if height_m is not None and math.isfinite(height_m):
+        up &= (height_m - z) > floor_margin_m
+    q = points_h_m[up]
+    if not q.shape[0]:
+        return points_h_m
+    _, first = np.unique(_cell_keys(np.floor(q[:, :2] / COLUMN_GRID_M).astype(np.int64)), return_index=True)
+    q = q[first]
+    seen = points_h_m[~flags & finite]
+    if seen.shape[0]:
+        q = q[~_capped(q, seen)]
+    columns = np.column_stack([q[:, 0], q[:, 1], np.zeros(q.shape[0])])
+    return np.concatenate([points_h_m, columns]) if columns.shape[0] else points_h_m
+
+
+def _capped(q: NDArray[np.float64], seen: NDArray[np.float64]) -> NDArray[np.bool_]:
+    """Which points of ``q`` have a seen-over point higher than them (smaller z) in their ``TOP_NEAR_M`` cell or
+    the eight around it: per cell the highest seen point, then nine sorted look-ups (no tree per frame)."""
+    # only the seen points that could cap one: higher than the lowest candidate, near the candidates' box
+    lo, hi = q[:, :2].min(axis=0) - 2 * TOP_NEAR_M, q[:, :2].max(axis=0) + 2 * TOP_NEAR_M
+    near = (seen[:, 2] < q[:, 2].max()) & (seen[:, :2] >= lo).all(axis=1) & (seen[:, :2] <= hi).all(axis=1)
+    seen = seen[near]
+    if not seen.shape[0]:
+        return np.zeros(q.shape[0], dtype=bool)
+    k = _cell_keys(np.floor(seen[:, :2] / TOP_NEAR_M).astype(np.int64))
+    order = np.argsort(k, kind="stable")
+    k, zs = k[order], seen[order, 2]
+    start = np.flatnonzero(np.r_[True, k[1:] != k[:-1]])
+    uk, highest = k[start], np.minimum.reduceat(zs, start)   # per cell, its smallest z (the highest point)
+    qc = np.floor(q[:, :2] / TOP_NEAR_M).astype(np.int64)
+    capped = np.zeros(q.shape[0], dtype=bool)
+    for di in (-1, 0, 1):
+        for dj in (-1, 0, 1):
+            kk = _cell_keys(qc + np.array([di, dj]))
+            i = np.minimum(np.searchsorted(uk, kk), uk.size - 1)
+            capped |= (uk[i] == kk) & (highest[i] < q[:, 2])
+    return capped
+
+
+def _cell_keys(ij: NDArray[np.int64]) -> NDArray[np.int64]:
+    """One int64 per 2D integer cell (each index within +-2^31)."""
+    return (ij[:, 0] << 32) + (ij[:, 1] & 0xFFFFFFFF)
+
+
 def avoidance_mask(p: NDArray[np.float64], params: ReferenceParams | None, height_m: float | None,
                    reach_m: float) -> NDArray[np.bool_] | None:
     """Which of the finite points ``p`` the avoidance acts on (None: all of them); see :func:`select_points`."""

@@ -102,6 +102,10 @@ class ObstacleMap:
         self.config = config or ObstacleMapConfig()
         self._p = np.zeros((3, 0))      # particles one row per axis: the per-axis math runs on contiguous rows
         self.ages_s = np.zeros(0)
+        # per particle: no ray passed over the point it samples (perception.obstacles.top_seen_over): a surface
+        # that may reach higher than the camera saw, as a wall seen from below does; the objects inferred from
+        # the floor they hide (perception.hidden_floor) too, their height is unknown
+        self.open_top = np.zeros(0, dtype=bool)
         self._yaw_total_rad = 0.0                                  # integral of the yaw updates
         self._observed_s = np.full(self.config.sectors, -np.inf)  # per world-azimuth sector
         self._last_stamp: float | None = None
@@ -117,6 +121,7 @@ class ObstacleMap:
     @points_h_m.setter
     def points_h_m(self, points_h_m: NDArray[np.float64]) -> None:
         self._p = np.array(np.asarray(points_h_m, dtype=float).reshape(-1, 3).T, order="C")
+        self.open_top = np.zeros(self._p.shape[1], dtype=bool)
         self._polar = None
 
     def __len__(self) -> int:
@@ -129,9 +134,9 @@ class ObstacleMap:
             self._polar = (p, az, horiz)
         return self._polar[1], self._polar[2]
 
-    def _set_particles(self, p: NDArray[np.float64], ages_s: NDArray[np.float64],
+    def _set_particles(self, p: NDArray[np.float64], ages_s: NDArray[np.float64], open_top: NDArray[np.bool_],
                        az: NDArray[np.float64] | None = None, horiz: NDArray[np.float64] | None = None) -> None:
-        self._p, self.ages_s = p, ages_s
+        self._p, self.ages_s, self.open_top = p, ages_s, open_top
         self._polar = None if az is None or horiz is None else (p, az, horiz)
 
     def cells_of(self, points_h_m: NDArray[np.float64]) -> NDArray[np.intp]:
@@ -184,9 +189,9 @@ class ObstacleMap:
             keep |= held
         keep &= np.einsum("ij,ij->j", d, d) <= cfg.radius_m**2
         if keep.all():
-            self._set_particles(p, ages)
+            self._set_particles(p, ages, self.open_top)
         else:
-            self._set_particles(np.compress(keep, p, axis=1), np.compress(keep, ages))
+            self._set_particles(np.compress(keep, p, axis=1), np.compress(keep, ages), np.compress(keep, self.open_top))
 
     def measure(self, stamp_s: float, obs: SectorObservation, rng: np.random.Generator | None = None,
                 unseen_points_h_m: NDArray[np.float64] | None = None) -> None:
@@ -199,13 +204,16 @@ class ObstacleMap:
         (:mod:`perception.hidden_floor`), measured as the seen points are."""
         self._last_stamp = stamp_s
         points_h_m = obs.points_h_m
+        open_top = obs.open_top if obs.open_top is not None else np.zeros(points_h_m.shape[0], dtype=bool)
         if unseen_points_h_m is not None and unseen_points_h_m.shape[0]:
-            points_h_m = np.concatenate([points_h_m, np.asarray(unseen_points_h_m, dtype=float).reshape(-1, 3)])
+            unseen = np.asarray(unseen_points_h_m, dtype=float).reshape(-1, 3)
+            points_h_m = np.concatenate([points_h_m, unseen])
+            open_top = np.concatenate([open_top, np.ones(unseen.shape[0], dtype=bool)])
         if len(self) or points_h_m.shape[0]:
-            self._measure_points(obs, points_h_m, rng)
+            self._measure_points(obs, points_h_m, open_top, rng)
         self._mark_observed(stamp_s, obs)
 
-    def _measure_points(self, obs: SectorObservation, points_h_m: NDArray[np.float64],
+    def _measure_points(self, obs: SectorObservation, points_h_m: NDArray[np.float64], open_top: NDArray[np.bool_],
                         rng: np.random.Generator | None = None) -> None:
         cfg = self.config
         n, k = len(self), points_h_m.shape[0]
@@ -243,17 +251,18 @@ class ObstacleMap:
         # the survivors, then `copies` new particles at each measured point
         idx = np.concatenate([(~remove).nonzero()[0], np.repeat(np.arange(n, n + k), cfg.copies)])
         ages = np.concatenate([self.ages_s, np.zeros(k)]) if k else self.ages_s
+        tops = np.concatenate([self.open_top, open_top]) if k else self.open_top
         if k and rng is not None and cfg.measurement_noise_per_m > 0.0:
             new = p[:, idx]     # a copy: the new particles are its last k * copies columns
             fresh = new[:, new.shape[1] - k * cfg.copies:]
             sigma = cfg.measurement_noise_per_m * np.sqrt(np.einsum("ij,ij->j", fresh, fresh))
             fresh += rng.standard_normal(fresh.shape) * sigma
-            self._set_particles(new, ages[idx])
+            self._set_particles(new, ages[idx], tops[idx])
         else:
-            self._set_particles(p[:, idx], ages[idx], az[idx], horiz[idx])
+            self._set_particles(p[:, idx], ages[idx], tops[idx], az[idx], horiz[idx])
         if len(self) > cfg.max_particles:  # oldest go first
             order = np.argsort(self.ages_s, kind="stable")[: cfg.max_particles]
-            self._set_particles(self._p[:, order], self.ages_s[order])
+            self._set_particles(self._p[:, order], self.ages_s[order], self.open_top[order])
 
     def _mark_observed(self, stamp_s: float, obs: SectorObservation) -> None:
         """Sectors seen by this frame (a point or free space), kept in world azimuth."""

@@ -80,6 +80,7 @@ class PerceptionOutput:
     estimator: str = "filters"
     floor_height_m: float | None = None     # body centre above the floor seen in this frame (perception.floor)
     obstacle_ages_s: NDArray[np.float64] | None = None  # M: seconds since each map particle was measured
+    obstacle_open_top: NDArray[np.bool_] | None = None  # M: no ray passed over the particle (ObstacleMap.open_top)
 
 
 class PerceptionPipeline:
@@ -218,4 +219,5 @@ class PerceptionPipeline:
             obstacle_points_h_m=self._map.points_h_m, sectors=sectors,   # a snapshot: the map never writes it
             nearest_obstacle_h_m=self._map.nearest_h(), processing_time_s=self._clock() - t_start,
             yaw_rate_rad_s=yaw_rate, estimator=cfg.estimator,
-            floor_height_m=None if floor is None else floor.height_m, obstacle_ages_s=self._map.ages_s)
+            floor_height_m=None if floor is None else floor.height_m, obstacle_ages_s=self._map.ages_s,
+            obstacle_open_top=self._map.open_top)

@@ -57,6 +57,7 @@ class FakeOutput:
     estimator: str = "filters"
     floor_height_m: float | None = None
     obstacle_ages_s: np.ndarray | None = None   # None: ages unknown, no drift margin (the map always gives them)
+    obstacle_open_top: np.ndarray | None = None   # None: every top seen over (no upward extension)
 
 
 def test_the_fake_output_has_the_fields_of_perceptions_output() -> None:

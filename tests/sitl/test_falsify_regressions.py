@@ -21,7 +21,8 @@ pytestmark = [pytest.mark.sitl, pytest.mark.slow]
 REGRESSION_DIR = Path(__file__).resolve().parents[1] / "regression_flights"
 FLIGHTS = sorted(p.parent for p in REGRESSION_DIR.glob("*/finding.json"))
 OFFSET = 4600 + (os.getpid() % 8) * 50
-MIN_MOVED_M = 0.3  # the push must still take the vehicle somewhere
+MIN_MOVED_M = 0.3  # the push must still take the vehicle somewhere ...
+HELD_NEAR_M = 0.60  # ... or the layer held it within 0.15 m of its safe distance (0.45 m): as far as the room let it
 
 
 @pytest.mark.parametrize("folder", FLIGHTS, ids=[p.name for p in FLIGHTS])
@@ -30,7 +31,9 @@ def test_regression_flight_keeps_the_envelope(folder: Path, tmp_path: Path) -> N
     result = fly_regression(folder, tmp_path / folder.name, OFFSET)
     verdict = judge(result)
     assert result.status == "ok", result.failure
-    assert verdict.moved_m > MIN_MOVED_M, f"moved only {verdict.moved_m:.2f} m"
+    assert verdict.moved_m > MIN_MOVED_M or verdict.clearance_m <= HELD_NEAR_M, (
+        f"moved only {verdict.moved_m:.2f} m and never came within {HELD_NEAR_M} m of anything "
+        f"({verdict.clearance_m:.3f} m)")
     assert verdict.clearance_m >= ENVELOPE_M, (
         f"{folder.name}: {verdict.clearance_m:.3f} m (found at {finding['clearance_m']} m by trial "
         f"{finding['source']['trial']})")

@@ -51,3 +51,26 @@ def test_bad_params_are_refused() -> None:
         LatencyParams(nominal_s=0.3, hold_s=0.2)
     with pytest.raises(ValueError):
         LatencyParams(hold_after_frames=0)
+    with pytest.raises(ValueError):
+        LatencyParams(max_drift_scale=0.5)
+
+
+def test_the_map_drift_margin_grows_with_the_frames_skipped_and_recovers() -> None:
+    g = LatencyGuard(P)
+    assert g.on_frame(0.0, 0.05, STOP_S, SPEED).drift_scale == 1.0
+    t, v = 0.0, None
+    for _ in range(40):                       # one frame in two processed: the margin tends to 2 x
+        t += 2 / 30
+        v = g.on_frame(t, 0.05, STOP_S, SPEED, seq_gap=2)
+    assert v is not None and v.drift_scale == pytest.approx(2.0, abs=0.03)
+    for _ in range(40):                       # one in five, capped at max_drift_scale
+        t += 5 / 30
+        v = g.on_frame(t, 0.05, STOP_S, SPEED, seq_gap=5)
+    assert v.drift_scale == P.max_drift_scale
+    for _ in range(60):                       # none skipped again: back to the configured margin
+        t += 1 / 30
+        v = g.on_frame(t, 0.05, STOP_S, SPEED, seq_gap=1)
+    assert v.drift_scale == pytest.approx(1.0, abs=0.01)
+    # a restarted camera (the sequence went back) counts as no gap, and a single skip moves it a little
+    assert g.on_frame(t, 0.05, STOP_S, SPEED, seq_gap=-500).drift_scale < 1.01
+    assert 1.0 < g.on_frame(t, 0.05, STOP_S, SPEED, seq_gap=2).drift_scale < 1.2

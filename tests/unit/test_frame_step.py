@@ -26,6 +26,7 @@ class _Out:
     position_m: NDArray[np.float64] = field(default_factory=lambda: np.array([0.0, 0.0, -1.0]))
     v_h_m_s: NDArray[np.float64] = field(default_factory=lambda: np.zeros(3))
     obstacle_ages_s: NDArray[np.float64] | None = None
+    obstacle_open_top: NDArray[np.bool_] | None = None
 
 
 def _front_seen_only() -> _Out:
