@@ -546,7 +546,8 @@ class Companion:
                           v_command_h_m_s=v_command,
                           command_yaw_rate_rad_s=clearing[1] if clearing is not None else cmd.yaw_rate_rad_s,
                           height_above_takeoff_m=height,
-                          height_verified=st.height.verified(stamp), command_into_unknown=ob.scripts_into_unknown)
+                          height_verified=st.height.verified(stamp), command_into_unknown=ob.scripts_into_unknown,
+                          height_uncertainty_m=st.height.uncertainty_m(stamp))
         held = self.position_hold.step(stamp, step.ref, None if out is None else out.position_m,
                                       math.nan if out is None else out.yaw_rad, out is not None and out.odometry_ok,
                                       self.modes.in_control)

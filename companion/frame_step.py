@@ -82,7 +82,8 @@ def frame_step(out: PerceptionOutput | None, op: OperatorInput, R_qc: NDArray[np
                params: ReferenceParams, operator_enabled: bool, allow_unknown_when_fresh: bool,
                v_command_h_m_s: NDArray[np.float64] | None = None, command_yaw_rate_rad_s: float = 0.0,
                height_above_takeoff_m: float | None | HeightFrom = HeightFrom.ODOMETRY,
-               command_into_unknown: bool = False, height_verified: bool = True) -> FrameStep:
+               command_into_unknown: bool = False, height_verified: bool = True,
+               height_uncertainty_m: float = 0.0) -> FrameStep:
     """The reference for a frame; ``out`` is perception's output (None: perception failed on it).
     ``v_command_h_m_s`` / ``command_yaw_rate_rad_s``: a scripted command (companion.arbiter) instead of
     the operator's handle ``op``; the measured velocity feeds the closing-speed law's stopping distance.
@@ -100,7 +101,7 @@ def frame_step(out: PerceptionOutput | None, op: OperatorInput, R_qc: NDArray[np
     ref = reference_velocity(op, R_qc, scan, points, params, sectors_m=sectors,
                              block_unknown=out is None or not allow_unknown_when_fresh or blind_side,
                              operator_enabled=operator_enabled, sector_offset_rad=math.radians(offset_deg),
-                             height_m=h, height_verified=height_verified,
+                             height_m=h, height_verified=height_verified, height_uncertainty_m=height_uncertainty_m,
                              v_est_h_m_s=None if out is None or not out.odometry_ok else out.v_h_m_s,
                              v_command_h_m_s=v_command_h_m_s, command_yaw_rate_rad_s=command_yaw_rate_rad_s)
     # the warning and the dots use the avoidance's points: the floor (within the floor margin once the height

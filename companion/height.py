@@ -36,6 +36,11 @@ class HeightParams:
     fix_max_age_s: float = 4.0
     max_rise_m: float = 0.25   # a surface this much above the tracked floor is an object's top (the landing
                                # check's min_top_m: lower tops are landed on, and count as floor here too)
+    drift_m_s: float = 0.01    # how fast the odometry's height may drift from the floor's while none is seen
+
+
+MAX_UNCERTAINTY_M = 0.3   # the drift bound stops growing here (30 s without the floor): a vehicle over a dark floor
+                          # is sent no lower than 0.3 m under its ceiling limit
 
 
 class HeightEstimator:
@@ -52,6 +57,17 @@ class HeightEstimator:
         if self.params.time_constant_s <= 0.0:
             return self.height_m is not None
         return self._last_floor_s is not None and 0.0 <= stamp_s - self._last_floor_s <= self.params.fix_max_age_s
+
+    def uncertainty_m(self, stamp_s: float) -> float:
+        """How far the height may have drifted since the floor last checked it: ``drift_m_s`` per second (the
+        odometry's vertical drift; the floor is out of range high up, in a 2.4 m room above ~1.8 m). The ceiling
+        limit keeps this much more (:func:`companion.vertical_limits.ceiling_height_m`): flying at 1.9 m with no
+        floor in view for 7 s, the odometry's height rose 1.5 cm while the vehicle rose 5 cm, and an entry 0.1 m
+        high took the vehicle to 0.392 m of the ceiling (falsify seed 4 on 601b29b: six flights at 0.392-0.399 m).
+        0 with the floor not used; never seen: 0 (nothing was learnt to drift from)."""
+        if self.params.time_constant_s <= 0.0 or self._last_floor_s is None:
+            return 0.0
+        return min(self.params.drift_m_s * max(stamp_s - self._last_floor_s, 0.0), MAX_UNCERTAINTY_M)
 
     def update(self, stamp_s: float, odometry_height_m: float | None, floor_height_m: float | None) -> float | None:
         """The height at ``stamp_s`` from the odometry's height (above its start; None = lost) and the body

@@ -57,7 +57,7 @@ def reference_velocity(op: OperatorInput, R_qc: ArrayLike, scan: PanScanState,
                        operator_enabled: bool = True, sector_offset_rad: float = 0.0,
                        height_m: float | None = None, v_est_h_m_s: ArrayLike | None = None,
                        v_command_h_m_s: ArrayLike | None = None, command_yaw_rate_rad_s: float = 0.0,
-                       height_verified: bool = True
+                       height_verified: bool = True, height_uncertainty_m: float = 0.0
                        ) -> ReferenceOutput:
     """Eqs. (2)-(8) with the safety constraints (see module doc).
 
@@ -70,7 +70,8 @@ def reference_velocity(op: OperatorInput, R_qc: ArrayLike, scan: PanScanState,
     stopping distance (None: the law without it). ``v_command_h_m_s`` / ``command_yaw_rate_rad_s``: a
     scripted command (from :mod:`companion.arbiter`) that replaces eqs. (2)-(3); everything after them
     applies to it alike. ``height_verified``: the height was checked against the floor recently
-    (:mod:`companion.vertical_limits`: otherwise no climb toward a configured ceiling).
+    (:mod:`companion.vertical_limits`: otherwise no climb toward a configured ceiling); ``height_uncertainty_m``:
+    how far it may have drifted since (kept from the room's ceiling).
     """
     alpha = camera_yaw_rad(R_qc) + scan.yaw_offset_rad  # eq. (6)
     if height_m is not None:
@@ -113,7 +114,7 @@ def reference_velocity(op: OperatorInput, R_qc: ArrayLike, scan: PanScanState,
         # safe distance is never held back.
         v_r, _ = remove_toward_unknown(v_r, sectors_m, params.unknown_sector_guard_rad, sector_offset_rad)
     v_up = None if v_est_h_m_s is None else -float(np.asarray(v_est_h_m_s, dtype=float)[2])
-    limits = vertical_limits(height_m, v_up, params.vertical(), height_verified)
+    limits = vertical_limits(height_m, v_up, params.vertical(), height_verified, height_uncertainty_m)
     v_r, vertical = apply_vertical_limits(v_r, limits)
     speed = float(np.linalg.norm(v_r))
     if speed > params.max_speed_m_s:

@@ -71,22 +71,25 @@ class VerticalLimits:
         return math.isfinite(self.max_climb_m_s) or math.isfinite(self.max_descent_m_s)
 
 
-def ceiling_height_m(params: VerticalParams) -> float:
+def ceiling_height_m(params: VerticalParams, height_uncertainty_m: float = 0.0) -> float:
     """The highest height the vehicle's centre may reach: the fence, the room's ceiling as entered minus its possible
-    error and the safe distance."""
+    error, the safe distance and how far the height may have drifted since the floor last checked it
+    (``height_uncertainty_m``, :meth:`companion.height.HeightEstimator.uncertainty_m`)."""
     limits = [math.inf]
     if params.max_height_m is not None:
         limits.append(params.max_height_m)
     if params.room_height_m is not None:
-        limits.append(params.room_height_m - max(params.room_height_error_m, 0.0) - params.safe_distance_m)
+        drift = height_uncertainty_m if math.isfinite(height_uncertainty_m) and height_uncertainty_m > 0.0 else 0.0
+        limits.append(params.room_height_m - max(params.room_height_error_m, 0.0) - params.safe_distance_m - drift)
     return min(limits)
 
 
 def vertical_limits(height_m: float | None, v_up_est_m_s: float | None, params: VerticalParams,
-                    height_verified: bool = True) -> VerticalLimits:
+                    height_verified: bool = True, height_uncertainty_m: float = 0.0) -> VerticalLimits:
     """The climb and descent bounds at ``height_m`` (above take-off) moving up at ``v_up_est_m_s``;
-    ``height_verified`` False: no climb toward a configured ceiling (see the module's docstring)."""
-    top = ceiling_height_m(params)
+    ``height_verified`` False: no climb toward a configured ceiling (see the module's docstring);
+    ``height_uncertainty_m``: the height's possible drift, kept from the room's ceiling too."""
+    top = ceiling_height_m(params, height_uncertainty_m)
     bottom = params.floor_min_height_m
     if height_m is None or not math.isfinite(height_m):
         return VerticalLimits(top, bottom, 0.0 if math.isfinite(top) else math.inf, 0.0, math.nan)

@@ -90,3 +90,30 @@ def test_the_height_is_verified_for_a_while_after_the_floor_was_seen() -> None:
     off = HeightEstimator(HeightParams(TAKEOFF_M, 0.0))
     off.update(0.0, 1.0, None)
     assert off.verified(100.0)                                # the floor not used: the odometry's is the height
+
+
+def test_the_height_may_drift_while_the_floor_is_out_of_view_and_the_ceiling_keeps_that_too() -> None:
+    """Falsify seed 4 on 601b29b: at 1.9 m in a 2.4 m room the floor was out of range for 7 s; the odometry's height
+    rose 1.5 cm while the vehicle rose 5 cm. The bound grows at drift_m_s from the last floor seen, up to 0.3 m,
+    and starts again when the floor is back; the room's ceiling limit (not the fence) keeps it."""
+    from companion.height import MAX_UNCERTAINTY_M
+    from companion.vertical_limits import VerticalParams, ceiling_height_m, vertical_limits
+
+    est = HeightEstimator(HeightParams(TAKEOFF_M, 0.5, drift_m_s=0.01))
+    assert est.uncertainty_m(0.0) == 0.0                     # nothing learnt yet
+    est.update(0.0, 1.8, 1.8 + TAKEOFF_M)
+    assert est.uncertainty_m(0.0) == 0.0
+    for k in range(1, 211):                                  # 7 s without the floor
+        est.update(k / 30, 1.8, None)
+    assert est.uncertainty_m(7.0) == pytest.approx(0.07)
+    assert est.uncertainty_m(100.0) == MAX_UNCERTAINTY_M
+    est.update(7.0 + 1 / 30, 1.8, 1.8 + TAKEOFF_M)           # the floor again
+    assert est.uncertainty_m(7.0 + 1 / 30) == 0.0
+    room = VerticalParams(max_height_m=3.0, room_height_m=2.47, room_height_error_m=0.1)
+    assert ceiling_height_m(room, 0.07) == pytest.approx(2.47 - 0.1 - 0.45 - 0.07)
+    fence = VerticalParams(max_height_m=1.5, room_height_m=None)
+    assert ceiling_height_m(fence, 0.07) == 1.5               # a fence is counted from take-off: no floor in it
+    # at the limit with the floor long gone: sent down, not up
+    at_limit = vertical_limits(ceiling_height_m(room), 0.0, room, True, 0.07)
+    assert at_limit.max_climb_m_s < 0.0
+    assert HeightEstimator(HeightParams(TAKEOFF_M, 0.0)).uncertainty_m(50.0) == 0.0
