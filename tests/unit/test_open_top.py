@@ -12,13 +12,13 @@ import math
 
 import numpy as np
 import pytest
+from depth_scenes import P_QC_M, R_QC, VIEW_AZ_RAD, K, column_at, render, render_box_with_shadow
 
 from companion.landing_spot import LandingSpotParams, object_below
 from companion.obstacle_points import select_points, with_open_tops
 from companion.reference_params import ReferenceParams
 from perception.obstacle_map import ObstacleMap, ObstacleMapConfig
 from perception.obstacles import ObstacleConfig, extract_obstacles
-from tests.unit.test_hidden_floor import P_QC_M, R_QC, VIEW_AZ_RAD, K, column_at, render, render_box_with_shadow
 
 pytestmark = pytest.mark.unit
 
