@@ -53,6 +53,9 @@ def _math_threads() -> int:
 @click.option("--record-frames", "frames_path", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="Record every camera frame received to this file (camera-stream records, ~380 kB per QVGA "
                    "frame; replay with quadlink.camera.read_frame_recording).")
+@click.option("--journal", "journal_path", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              help="Journal every input the daemon handles, with the clocks it reads and the bytes it writes "
+                   "(companion.journal; ~400 kB per frame): `quadlink replay-companion FILE` re-runs it bit for bit.")
 @click.option("--duration", type=float, default=None,
               help="Stop after this many seconds (wall; simulated seconds with --lockstep).")
 @click.option("--lockstep", "lockstep_url", default=None, metavar="tcp://HOST:PORT",
@@ -61,7 +64,7 @@ def _math_threads() -> int:
                    "SITL camera stream (--camera tcp://...). Exit status 1 when the coordinator goes away.")
 def command(config_path: str, autopilot: str | None, gcs: str | None, camera: str | None, image_port: int | None,
             image_host: str | None, signing_key: Path | None, require_signing: bool | None,
-            tlog_path: Path | None, frames_path: Path | None, duration: float | None,
+            tlog_path: Path | None, frames_path: Path | None, journal_path: Path | None, duration: float | None,
             lockstep_url: str | None) -> None:
     """Start the companion daemon: perception, reference velocity, MAVLink to autopilot and ground station."""
     stop = threading.Event()
@@ -76,7 +79,7 @@ def command(config_path: str, autopilot: str | None, gcs: str | None, camera: st
     previous = {sig: signal.signal(sig, on_stop_signal) for sig in STOP_SIGNALS}
     try:
         failure = _start_and_run(stop, config_path, autopilot, gcs, camera, image_port, image_host, signing_key,
-                                 require_signing, tlog_path, frames_path, duration, lockstep_url)
+                                 require_signing, tlog_path, frames_path, duration, lockstep_url, journal_path)
     finally:
         for sig, handler in previous.items():
             signal.signal(sig, handler)
@@ -89,7 +92,8 @@ def command(config_path: str, autopilot: str | None, gcs: str | None, camera: st
 def _start_and_run(stop: threading.Event, config_path: str, autopilot: str | None, gcs: str | None,
                    camera: str | None, image_port: int | None, image_host: str | None, signing_key: Path | None,
                    require_signing: bool | None, tlog_path: Path | None, frames_path: Path | None,
-                   duration: float | None, lockstep_url: str | None) -> Exception | None:
+                   duration: float | None, lockstep_url: str | None,
+                   journal_path: Path | None = None) -> Exception | None:
     """Open everything, run until stopped; the lock-step's end (:class:`~quadlink.lockstep.LockstepError`)
     is returned, for the command's exit status."""
     threads = _math_threads()
@@ -99,8 +103,11 @@ def _start_and_run(stop: threading.Event, config_path: str, autopilot: str | Non
     from companion.config import load_companion_config
     from companion.daemon import Companion, default_pipeline_factory
     from companion.image_publisher import OperatorImagePublisher
+    from companion.interfaces import perception_config
+    from companion.journal import JournalWriter
     from companion.lockstep_links import join_lockstep
     from quadlink.camera import FrameRecordWriter
+    from quadlink.config import to_dict
     from quadlink.errors import LinkError
     from quadlink.lockstep import LockstepError
     from quadlink.mavlink.connection import open_mavlink
@@ -156,6 +163,13 @@ def _start_and_run(stop: threading.Event, config_path: str, autopilot: str | Non
             raise LinkError(f"frame recording {frames_path}: {exc}") from exc
         if frames is not None:
             opened.append(frames)
+        try:
+            header = {"companion": to_dict(cfg), "perception": to_dict(perception_config(cfg)), "seed": cfg.seed}
+            journal = JournalWriter(journal_path, header) if journal_path else None
+        except OSError as exc:
+            raise LinkError(f"journal {journal_path}: {exc}") from exc
+        if journal is not None:
+            opened.append(journal)
         # the last: from the hello on, the coordinator waits for our steps
         lockstep = join_lockstep(lockstep_url, ap, ground, cam, stop) if lockstep_url is not None else None
     except BaseException:
@@ -170,11 +184,14 @@ def _start_and_run(stop: threading.Event, config_path: str, autopilot: str | Non
              threads, f"deterministic lock-step at {lockstep_url}" if lockstep else "wall clock")
     if frames is not None:
         log.info("recording camera frames to %s", frames_path)
+    if journal is not None:
+        log.info("journaling every input to %s (quadlink replay-companion %s)", journal_path, journal_path)
     if lockstep is None:
-        daemon = Companion(cfg, ap, ground, cam, factory, image_server=images, tlog=tlog, frame_recorder=frames)
+        daemon = Companion(cfg, ap, ground, cam, factory, image_server=images, tlog=tlog, frame_recorder=frames,
+                           journal=journal)
     else:
         daemon = Companion(cfg, ap, ground, cam, factory, image_server=images, tlog=tlog, frame_recorder=frames,
-                           clock=lockstep.client.clock, lockstep=lockstep)
+                           clock=lockstep.client.clock, lockstep=lockstep, journal=journal)
     failure: Exception | None = None
     try:
         daemon.run(stop, duration)

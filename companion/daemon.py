@@ -50,6 +50,7 @@ what is sent to the autopilot.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import itertools
 import logging
@@ -77,6 +78,7 @@ from companion.guard import ErrorCounter, non_finite_fields
 from companion.height import HeightParams
 from companion.imu_clock import ImuClock, imu_sample
 from companion.interfaces import ImageSink, MavLink, Pipeline, PipelineFactory, default_pipeline_factory
+from companion.journal import JournalWriter, Kind
 from companion.landing_spot import (
     SURVEY_YAW_RATE_RAD_S,
     BelowMemory,
@@ -135,7 +137,8 @@ class Companion:
     def __init__(self, cfg: CompanionConfig, autopilot: MavLink, gcs: MavLink, camera: CameraInput,
                  pipeline_factory: PipelineFactory, image_server: ImageSink | None = None, tlog: Any | None = None,
                  clock: Callable[[], float] = time.monotonic, wall: Callable[[], float] = time.time,
-                 frame_recorder: Any | None = None, lockstep: LockstepLinks | None = None) -> None:
+                 frame_recorder: Any | None = None, lockstep: LockstepLinks | None = None,
+                 journal: JournalWriter | None = None, stopwatch: Callable[[], float] | None = None) -> None:
         if lockstep is not None and (clock != lockstep.client.clock or lockstep.autopilot.conn is not autopilot
                                      or lockstep.gcs.conn is not gcs):
             raise ValueError("a lock-step daemon runs on the step clock (clock=lockstep.client.clock) and on the "
@@ -143,11 +146,28 @@ class Companion:
         self.lockstep = lockstep
         self._stop: threading.Event | None = None
         # times the frame-to-setpoint latency (a statistic): the step clock stands still during a step
-        self._stopwatch = clock if lockstep is None else time.monotonic
+        stopwatch = stopwatch or (clock if lockstep is None else time.monotonic)
+        # the input journal (companion.journal): every event handled, the clocks read and the bytes written in it
+        self.journal = journal
+        if journal is not None:
+            # (the wall clock only stamps the tlog and signs: neither is behaviour, and a signed link is not replayed)
+            clock, stopwatch = journal.clock(clock, Kind.CLOCK), journal.clock(stopwatch, Kind.STOPWATCH)
+        with self._event(Kind.INIT):
+            self._build(cfg, autopilot, gcs, camera, pipeline_factory, image_server, tlog, clock, wall, stopwatch,
+                        frame_recorder)
+
+    def _build(self, cfg: CompanionConfig, autopilot: MavLink, gcs: MavLink, camera: CameraInput,
+               pipeline_factory: PipelineFactory, image_server: ImageSink | None, tlog: Any | None,
+               clock: Callable[[], float], wall: Callable[[], float], stopwatch: Callable[[], float],
+               frame_recorder: Any | None) -> None:
+        self._stopwatch = stopwatch
         self.cfg = cfg
         # the autopilot link (500 Hz HIGHRES_IMU) is decoded by the dialect's codec, not mavutil's recv_msg
         self.autopilot: MavLink = CodecReader(autopilot) if hasattr(autopilot, "recv") else autopilot
         self.gcs, self.camera = gcs, camera
+        if self.journal is not None:
+            self.autopilot = self.journal.link(self.autopilot, Kind.OUT_AUTOPILOT)
+            self.gcs = self.journal.link(gcs, Kind.OUT_GCS)
         self.image_server, self.tlog = image_server, tlog
         self.recording = FrameRecording(frame_recorder)   # quadlink.camera.FrameRecordWriter: every frame received
         self.clock, self.wall = clock, wall
@@ -156,7 +176,7 @@ class Companion:
         self.errors = ErrorCounter(clock)
         self.stats = Stats()
         self.perception = PerceptionStage(pipeline_factory, self.stats, self.errors)
-        self.out = Outbox(self.autopilot, gcs, self.sysid, self.compid, self.ap_compid, self.errors, self.stats,
+        self.out = Outbox(self.autopilot, self.gcs, self.sysid, self.compid, self.ap_compid, self.errors, self.stats,
                           tlog, wall)
         self.security = GcsSecurity(cfg.security, self.sysid, self.compid, clock)
         self.security.enable_signing(self.out.gcs_codec, getattr(gcs, "mav", None), wall)
@@ -246,8 +266,41 @@ class Companion:
         frame = self.camera.read(self.cfg.timing.poll_s)
         if frame is not None:
             self._wait_for_imu(frame.stamp_s)
+            self.handle_frame(frame)
+        self.handle_periodic()
+
+    # ------------------------------------------------------------------ the handlers every event source calls
+    def _event(self, kind: Kind, payload: Callable[[], bytes] | None = None) -> contextlib.AbstractContextManager[None]:
+        """The journal's record of one event (a no-op without a journal)."""
+        if self.journal is None:
+            return contextlib.nullcontext()
+        return self.journal.event(kind, payload() if payload is not None else b"")
+
+    def handle_autopilot(self, msg: Any) -> None:
+        """One message from the autopilot (the wall-clock loop, the lock-step and a journal's replay call this)."""
+        with self._event(Kind.AUTOPILOT, msg.get_msgbuf):
+            self._guarded(f"autopilot {msg.get_type()}", self._on_autopilot, msg)
+
+    def handle_gcs(self, msg: Any) -> None:
+        """One message from a ground station."""
+        with self._event(Kind.GCS, msg.get_msgbuf):
+            self._guarded(f"ground station {msg.get_type()}", self._on_gcs, msg)
+
+    def handle_gcs_bad_data(self) -> None:
+        """Ground-station bytes that did not decode, or that signing refused (unsigned, wrong key, replayed)."""
+        with self._event(Kind.GCS_BAD):
+            self.stats.gcs_bad_data += 1
+
+    def handle_frame(self, frame: RgbdFrame) -> None:
+        """One camera frame."""
+        journal = self.journal
+        with self._event(Kind.FRAME, (lambda: journal.frame_payload(frame)) if journal is not None else None):
             self._guarded("frame", self._process_frame, frame)
-        self._guarded("periodic tasks", self._periodic)
+
+    def handle_periodic(self) -> None:
+        """One turn of the periodic tasks (heartbeat, timesync, feedback, the fallback setpoint, the status line)."""
+        with self._event(Kind.PERIODIC):
+            self._guarded("periodic tasks", self._periodic)
 
     def _guarded(self, where: str, handler: Callable[[Any], None] | Callable[[], None], *args: Any) -> None:
         """Run one message's (or one task's) handling; an unexpected exception is counted and logged, and the
@@ -291,7 +344,7 @@ class Companion:
         self._read_counted(ls.gcs, step.count(GCS_IN), self._drain_gcs, GCS_IN)
         self._read_frames(ls, ls.frames_due)
         ls.frames_due = step.count(CAMERA_IN)
-        self._guarded("periodic tasks", self._periodic)
+        self.handle_periodic()
         ls.client.done(ls.sent())
 
     def _check_stop(self) -> None:
@@ -324,7 +377,7 @@ class Companion:
             self._check_stop()
             frame = ls.camera.take(block_s)
             if frame is not None:
-                self._guarded("frame", self._process_frame, frame)
+                self.handle_frame(frame)
 
         wait_for_units(lambda: ls.camera.received, due, pump, CAMERA_IN)
 
@@ -336,7 +389,7 @@ class Companion:
             if msg is None:
                 return
             if msg.get_type() != "BAD_DATA":
-                self._guarded(f"autopilot {msg.get_type()}", self._on_autopilot, msg)
+                self.handle_autopilot(msg)
 
     def _drain_gcs(self, limit: int | None = MAX_ROUTED_PER_STEP) -> None:
         """Handle what the ground-station link has now: at most ``limit`` messages (None: until it has nothing)."""
@@ -345,9 +398,9 @@ class Companion:
             if msg is None:
                 return
             if msg.get_type() == "BAD_DATA":
-                self.stats.gcs_bad_data += 1   # includes what signing refused (unsigned, wrong key, replayed)
+                self.handle_gcs_bad_data()
             else:
-                self._guarded(f"ground station {msg.get_type()}", self._on_gcs, msg)
+                self.handle_gcs(msg)
 
     def _wait_for_imu(self, stamp_s: float) -> None:
         """Let the IMU stream catch up with the frame (bounded), if it is flowing at all (the policy:
@@ -660,7 +713,8 @@ class Companion:
                              ("gcs", self.gcs.close),
                              ("image stream", self.image_server.close if self.image_server else None),
                              ("tlog", self.tlog.close if self.tlog else None),
-                             ("frame recording", self.recording.close)):
+                             ("frame recording", self.recording.close),
+                             ("journal", self.journal.close if self.journal else None)):
             if closer is None:
                 continue
             try:

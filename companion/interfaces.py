@@ -52,16 +52,22 @@ class ImageSink(Protocol):
 PipelineFactory = Callable[[RgbdFrame], Pipeline]
 
 
+def perception_config(cfg: CompanionConfig) -> Any:
+    """The perception configuration the companion's pipeline runs with (``perception_config``, or the defaults)."""
+    from perception.pipeline import PerceptionConfig
+    from quadlink.config import load_config
+
+    return load_config(cfg.perception_config, PerceptionConfig) if cfg.perception_config else PerceptionConfig()
+
+
 def default_pipeline_factory(cfg: CompanionConfig, seed: int = 0) -> PipelineFactory:
     """Builds ``perception.pipeline.PerceptionPipeline`` on the first frame (its intrinsics and mount)."""
     try:
-        from perception.pipeline import PerceptionConfig, PerceptionPipeline
+        from perception.pipeline import PerceptionPipeline
     except ImportError as exc:
         raise QuadlinkError(f"perception pipeline not available ({exc}); the companion needs perception/pipeline.py"
                             ) from exc
-    from quadlink.config import load_config
-
-    pcfg = load_config(cfg.perception_config, PerceptionConfig) if cfg.perception_config else PerceptionConfig()
+    pcfg = perception_config(cfg)
 
     def make(frame: RgbdFrame) -> Pipeline:
         return PerceptionPipeline(pcfg, frame.intrinsics, frame.R_qc, frame.p_qc_m, np.random.default_rng(seed))

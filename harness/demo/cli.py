@@ -16,6 +16,7 @@ from typing import Any
 
 import click
 
+from harness.cpu_share import CpuShare
 from harness.demo.link import LinkImpairment, LinkProxies, teleop_config_with_passivity, write_link_stats
 from harness.demo.orchestrator import ProcessDied, ProcessSpec, Stack
 from harness.demo.recorder import Recorder
@@ -37,6 +38,8 @@ DEFAULT_SCRIPT = CONFIG_DIR / "teleop_scripts" / "paper_experiment.yaml"
 # faster than the wall while the parts start one after the other (seconds of wall time, tens of simulated
 # seconds before the operator is there). The SITL's own bound only stops a SITL left behind.
 SITL_DURATION_MARGIN_S = 300.0
+STARVED_PARTS = ("bridge", "companion")  # the parts a CPU share holds: what runs on the companion board
+JOURNAL_NAME = "companion.qljn"   # the companion's input journal (--journal): quadlink replay-companion re-runs it
 
 
 #: the demo operator's entry of the room's height is this much above the truth: the unsafe side of the +-10 cm a
@@ -148,7 +151,7 @@ def build_specs(scenario: str, script: Path, out_dir: Path, ports: Ports, lockst
                 teleop_config: Path | None = None, signing_key: Path | None = None,
                 companion_config: Path | None = None, deterministic: bool = False,
                 settle_s: float = 0.0, room_height_error_m: float | None = ROOM_HEIGHT_ENTRY_ERROR_M,
-                board: str | None = None) -> list[ProcessSpec]:
+                board: str | None = None, journal: bool = False) -> list[ProcessSpec]:
     """The parts of a flight in start order. ``view=False`` runs headless: no operator image stream from the
     companion, no view or web page in the ground station (neither feeds back into the flight: the haptic
     cue's pan-scan estimate comes from TELEOP_FEEDBACK, not from the images), which saves their CPU.
@@ -220,6 +223,7 @@ def build_specs(scenario: str, script: Path, out_dir: Path, ports: Ports, lockst
                                   "--tlog", str(out_dir / "companion.tlog"),
                                   *((*signed, "--require-signing") if signed else ()),
                                   *(("--record-frames", str(out_dir / "frames.qlcf")) if record_frames else ()),
+                                  *(("--journal", str(out_dir / JOURNAL_NAME)) if journal else ()),
                                   *stepped),
                     ready_after_s=3.0),
         operator_spec,
@@ -235,7 +239,8 @@ def run_demo(scenario: str, duration_s: float, out_dir: Path, script: Path, lock
              passivity: bool | None = None, signing_key: Path | None = None,
              settle_s: float = 0.0, deterministic: bool = False,
              room_height_error_m: float | None = ROOM_HEIGHT_ENTRY_ERROR_M,
-             companion_config: Path | None = None, board: str | None = None) -> dict[str, object]:
+             companion_config: Path | None = None, board: str | None = None,
+             cpu_share: CpuShare | None = None, journal: bool = False) -> dict[str, object]:
     """Fly the demo; returns the report. Raises :class:`ProcessDied` if a part dies.
 
     Writes ``out_dir/flight.json`` (the :class:`FlightSpec`, what ``--replay`` re-flies) and
@@ -252,6 +257,9 @@ def run_demo(scenario: str, duration_s: float, out_dir: Path, script: Path, lock
     time, and the same arguments fly the same flight, bit for bit.
     ``companion_config``: the companion's YAML (default: configs/companion.yaml with the room's height; a
     falsification flight gives one with a room-height error or the pan-scan off).
+    ``cpu_share``: the bridge and the companion run in this CPU share (:class:`harness.cpu_share.CpuShare`, entered
+    by the caller): a starved companion board (issue 30). ``journal``: the companion journals its inputs to
+    ``out_dir/companion.qljn`` (``quadlink replay-companion`` re-runs it bit for bit).
     """
     if signing_key is not None and not Path(signing_key).is_file():
         raise ConfigError(f"{signing_key}: signing key not found (create one with: quadlink keygen FILE)")
@@ -284,7 +292,8 @@ def run_demo(scenario: str, duration_s: float, out_dir: Path, script: Path, lock
     specs = build_specs(scenario, Path(script), out_dir, ports, lockstep, speed, duration_s, record_frames,
                         sitl_config, operator, view, via_netem=link is not None, teleop_config=teleop_config,
                         signing_key=signing_key, deterministic=deterministic, settle_s=settle_s,
-                        room_height_error_m=room_height_error_m, companion_config=companion_config, board=board)
+                        room_height_error_m=room_height_error_m, companion_config=companion_config, board=board,
+                        journal=journal)
     operator_name = specs[-1].name
     try:
         for part in specs:
@@ -296,6 +305,8 @@ def run_demo(scenario: str, duration_s: float, out_dir: Path, script: Path, lock
                 log.info("ground link through netem: %.0f ms one way, %.0f ms jitter, %.1f %% loss", link.delay_ms,
                          link.jitter_ms, 100 * link.loss)
             stack.start(part)
+            if cpu_share is not None and part.name in STARVED_PARTS:
+                cpu_share.add(stack.running[-1].popen.pid)
         # the flight's clock starts with the operator (the SITL ran on while the parts started)
         t_sim0 = recorder.truth.sim_time_s if math.isfinite(recorder.truth.sim_time_s) else 0.0
         log.info("all parts running at %.1f s simulated; operator view at http://127.0.0.1:%d ; logs in %s",
@@ -462,6 +473,9 @@ def compare_reports(original: dict[str, Any], replay: dict[str, Any]) -> list[tu
               help="The operator's image view (companion image stream, ground-station page); --no-view saves CPU.")
 @click.option("--record-frames", is_flag=True,
               help="Also record the companion's camera frames to OUT/frames.qlcf (~11 MB per second of flight).")
+@click.option("--journal", is_flag=True,
+              help=f"Journal every input the companion handles to OUT/{JOURNAL_NAME} (~12 MB per second of flight): "
+                   f"`quadlink replay-companion OUT/{JOURNAL_NAME}` re-runs the companion bit for bit.")
 @click.option("--link-delay-ms", type=float, default=None,
               help="Ground link through netem: one-way delay (ms, each direction) [issue 18].")
 @click.option("--link-jitter-ms", type=float, default=None, help="Ground link jitter (ms, std dev).")
@@ -481,7 +495,8 @@ def compare_reports(original: dict[str, Any], replay: dict[str, Any]) -> list[tu
 def command(scenario: str, duration_s: float, out_dir: Path | None, script: Path, lockstep: bool, speed: float,
             port_offset: int, port_base: int | None, replay_dir: Path | None, view: bool, record_frames: bool,
             link_delay_ms: float | None, link_jitter_ms: float | None, link_loss: float | None, link_seed: int,
-            passivity: bool | None, signing_key: Path | None, deterministic: bool, board: str | None) -> None:
+            passivity: bool | None, signing_key: Path | None, deterministic: bool, board: str | None,
+            journal: bool) -> None:
     """Fly the paper's experiment in the SITL (take off, drive, rotate, approach and push the obstacle, land)."""
     try:
         impaired = any(v is not None for v in (link_delay_ms, link_jitter_ms, link_loss))
@@ -493,8 +508,10 @@ def command(scenario: str, duration_s: float, out_dir: Path | None, script: Path
             report, out_dir = replay_flight(replay_dir, out_dir, port_offset, port_base)
         else:
             out_dir = out_dir or Path("flight-report")
+            if journal and record_frames:
+                raise ConfigError("--journal holds the frames already: give one of --journal and --record-frames")
             report = run_demo(scenario, duration_s, out_dir, script, lockstep, speed, port_offset,
-                              record_frames=record_frames, port_base=port_base, view=view, link=link,
+                              record_frames=record_frames, journal=journal, port_base=port_base, view=view, link=link,
                               passivity=passivity, signing_key=signing_key, deterministic=deterministic, board=board)
     except ProcessDied as exc:
         click.echo(f"quadlink demo: {exc}", err=True)

@@ -19,11 +19,14 @@ from companion.cameras import StreamCamera
 from companion.config import CompanionConfig, ModeParams, PanScanConfig, TimingConfig
 from companion.daemon import Companion
 from companion.image_publisher import OperatorImagePublisher
+from companion.journal import JournalWriter, Kind
 from companion.messages import TYPE_MASK_VELOCITY_YAW_RATE, UINT16_UNKNOWN
 from companion.modes import Mode
-from perception.pipeline import ObstacleSectors
+from companion.replay import replay_journal
+from perception.pipeline import ObstacleSectors, PerceptionConfig
 from perception.synthetic import pose, qvga_intrinsics, render
 from quadlink.camera import CameraStreamServer, FrameRecordWriter, RgbdFrame, read_frame_recording
+from quadlink.config import to_dict
 from quadlink.mavlink import mavlink
 from quadlink.mavlink.connection import open_mavlink
 from quadlink.mavlink.security import SecurityConfig
@@ -153,7 +156,7 @@ class Rig:
 
     def __init__(self, tmp_path: Path, images: OperatorImagePublisher | None = None,
                  cfg: CompanionConfig | None = None, gcs_via: Any = None,
-                 security: SecurityConfig | None = None) -> None:
+                 security: SecurityConfig | None = None, journal: Path | None = None) -> None:
         """``cfg`` replaces the default test config (its link URLs are kept ephemeral); ``gcs_via(port)``
         returns the port the fake ground station sends to instead of the daemon's (e.g. a netem proxy's)."""
         cfg = dataclasses.replace(cfg or CompanionConfig(
@@ -172,9 +175,13 @@ class Rig:
         self.tlog_path = tmp_path / "companion.tlog"
         # the vehicle's calibrated mount (the record carries none: issue 29)
         mount = StreamCamera(f"tcp://127.0.0.1:{self.server.port}", R_qc=CameraConfig().R_qc_matrix)
+        self.cfg = cfg
+        writer = JournalWriter(journal, {"companion": to_dict(cfg), "perception": to_dict(PerceptionConfig()),
+                                         "seed": 0}) if journal is not None else None
         self.daemon = Companion(cfg, ap_link, gcs_link, mount,
                                 lambda frame: self.pipeline, tlog=TlogWriter(self.tlog_path),
-                                frame_recorder=FrameRecordWriter(tmp_path / "frames.qlcf"), image_server=images)
+                                frame_recorder=FrameRecordWriter(tmp_path / "frames.qlcf"), image_server=images,
+                                journal=writer)
         self.ap = FakeAutopilot(ap_link.port.getsockname()[1])
         gcs_port = gcs_link.port.getsockname()[1]
         self.gcs = FakeGcs(gcs_via(gcs_port) if gcs_via is not None else gcs_port)
@@ -467,3 +474,53 @@ def test_scripted_offboard_goes_through_the_arbiter_not_raw(rig: Rig) -> None:
     hb = rig.gcs.of_type("HEARTBEAT", src_comp=1)
     assert (hb[-1].custom_mode >> 16) & 0xFF == 4 and (hb[-1].custom_mode >> 24) & 0xFF == 3
     assert rig.daemon.modes.mode == Mode.TELEOP
+
+
+def test_a_journaled_companion_re_runs_bit_for_bit_and_a_changed_byte_is_found(tmp_path: Path) -> None:
+    """Issue 28: the input journal (companion.journal) of a wall-clock run on real sockets — take-off, an operator's
+    push, a parameter set, the ground station gone — re-run open loop (companion.replay) writes every byte the run
+    wrote, event by event; a journal with one written byte changed, or a replay on another perception, diverges at
+    the first event that differs."""
+    path = tmp_path / "companion.qljn"
+    rig = Rig(tmp_path, journal=path)
+    try:
+        rig.take_off()
+        for _ in range(20):
+            rig.frame(manual=(400, 0, 500))
+        rig.gcs.link.mav.param_set_send(1, 191, b"PANSCAN_EN", 0.0, mavlink.MAV_PARAM_TYPE_REAL32)
+        for _ in range(10):
+            rig.frame(manual=(0, 200, 500))
+        for _ in range(25):   # the ground station goes quiet: the companion's own failsafe acts
+            rig.frame()
+    finally:
+        rig.close()
+    report = replay_journal(path, pipeline_factory=lambda frame: FakePipeline())
+    print(report.summary())
+    assert report.identical, report.summary()
+    assert report.by_kind["FRAME"] >= 60 and report.by_kind["AUTOPILOT"] > 1000 and report.by_kind["GCS"] > 50
+    assert report.writes_compared > 200
+
+    # the same journal with one byte of the 100th write changed
+    data = bytearray(path.read_bytes())
+    marker = bytes([int(Kind.OUT_AUTOPILOT)])
+    pos, seen = data.index(b"QLJN") + 8, 0
+    pos += int.from_bytes(data[4:8], "little")
+    while True:
+        kind, n = data[pos], int.from_bytes(data[pos + 1:pos + 5], "little")
+        if bytes([kind]) == marker:
+            seen += 1
+            if seen == 100:
+                data[pos + 5 + n - 1] ^= 0xFF   # the frame's last CRC byte
+                break
+        pos += 5 + n
+    (tmp_path / "changed.qljn").write_bytes(bytes(data))
+    changed = replay_journal(tmp_path / "changed.qljn", pipeline_factory=lambda frame: FakePipeline())
+    assert not changed.identical and "differs" in (changed.divergence or ""), changed.summary()
+
+    # a different perception (an obstacle 0.6 m ahead) is a different companion
+    def other(frame: RgbdFrame) -> FakePipeline:
+        p = FakePipeline()
+        p.points_h = np.array([[0.6, 0.0, 0.0]])
+        return p
+
+    assert not replay_journal(path, pipeline_factory=other).identical

@@ -1,0 +1,31 @@
+"""``quadlink replay-companion JOURNAL``: re-run a flight's companion open loop from its input journal
+(``quadlink companion --journal FILE``) and check that it writes the same bytes, event by event."""
+
+from __future__ import annotations
+
+import logging
+import sys
+from pathlib import Path
+
+import click
+
+from quadlink.errors import QuadlinkError
+
+
+@click.command(name="replay-companion")
+@click.argument("journal", type=click.Path(exists=True, dir_okay=False, path_type=Path))
+def command(journal: Path) -> None:
+    """Re-run the companion of JOURNAL (written by `quadlink companion --journal FILE`) from its recorded inputs and
+    clocks, and compare every byte it writes to the autopilot and the ground stations with the flight's. Exit
+    status 0: identical, bit for bit; 1: the first event that differs is printed; 2: not a journal."""
+    from companion.replay import replay_journal
+
+    logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(levelname).1s %(name)s: %(message)s")
+    click.echo(f"replaying {journal} ...", err=True)
+    try:
+        report = replay_journal(journal, progress=lambda n: click.echo(f"  {n} events", err=True))
+    except (QuadlinkError, KeyError, ValueError) as exc:
+        click.echo(f"quadlink replay-companion: {journal}: {exc}", err=True)
+        sys.exit(2)
+    click.echo(report.summary())
+    sys.exit(0 if report.identical else 1)

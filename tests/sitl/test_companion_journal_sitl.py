@@ -1,0 +1,53 @@
+"""Issue 28: a companion's flight re-run from its input journal. A deterministic lock-step demo flight with the
+companion journaling (``quadlink demo --journal``): the real perception on the SITL's frames, the bridge's IMU and
+the operator's MANUAL_CONTROL. ``quadlink replay-companion`` re-runs that companion open loop, alone, from the
+journal, and must write every byte the flight's companion wrote, to the autopilot and to the ground station."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from companion.replay import replay_journal
+from harness.demo.cli import JOURNAL_NAME, run_demo
+
+pytestmark = [pytest.mark.sitl, pytest.mark.timeout(600)]
+
+OFFSET = 8000 + (os.getpid() % 20) * 20   # 8000-8380: no other SITL test's offsets
+SCRIPT = """name: take off, push forward, land (a short journaled flight)
+steps:
+  - wait_s: 1.0
+  - button: arm
+  - wait_s: 0.5
+  - button: takeoff
+  - wait_s: 5.0
+  - push: forward
+    force_n: 1.0
+    duration_s: 2.5
+  - release: true
+    duration_s: 1.0
+  - button: land
+  - wait_s: 2.0
+"""
+
+
+def test_a_flights_companion_re_runs_from_its_journal_bit_for_bit(tmp_path: Path) -> None:
+    script = tmp_path / "operator.yaml"
+    script.write_text(SCRIPT)
+    report = run_demo("paper-arena", 40.0, tmp_path, script, lockstep=True, port_offset=OFFSET, view=False,
+                      plots=False, deterministic=True, settle_s=15.0, journal=True)
+    assert report.get("flying_time_s", 0.0) > 5.0, report   # it flew: take-off and the operator's drive
+    journal = tmp_path / JOURNAL_NAME
+    replay = replay_journal(journal)
+    print(replay.summary())
+    assert replay.identical, replay.summary()
+    assert replay.by_kind["FRAME"] >= 300 and replay.by_kind["AUTOPILOT"] > 5000 and replay.by_kind["GCS"] > 300
+    # the command a user runs: exit status 0 and the same verdict
+    done = subprocess.run([sys.executable, "-m", "quadlink.cli", "replay-companion", str(journal)],
+                          capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert "identical, bit for bit" in done.stdout
