@@ -183,6 +183,7 @@ def hidden_floor_points_h(depth_m: NDArray[np.floating], K: CameraIntrinsics, R_
     horiz_ret = np.hypot(end_x, end_y)
     b_ret = (np.floor((np.arctan2(end_y, end_x) + math.pi) / (2.0 * math.pi) * n).astype(np.intp)) % n
     r_xy_ret = np.hypot(r_ret[0], r_ret[1])
+    half_bin = math.pi / n
     out = []
     for k in np.unique(b[hidden]):
         in_bin = (b == k) & counted
@@ -218,7 +219,12 @@ def hidden_floor_points_h(depth_m: NDArray[np.floating], K: CameraIntrinsics, R_
                 z_pass = float(p_hc[2]) + r_ret[2, over] * (foot / r_xy_ret[over])
                 z_point = max(z_point, float(np.min(z_pass)) + cfg.over_margin_m)
             if z_point < floor_drop_m - cfg.min_top_m:
-                out.append((d * math.cos(a), d * math.sin(a), z_point))
+                # across the whole bin, not only its centre: the foot is the nearest hidden floor anywhere in the
+                # bin, so the object stands at ``d`` or farther over all of it. A point at the centre alone left an
+                # object's end unmapped by up to 4.2 deg (median 1.4; now 2.6 and -0.9: the ray-cast columns of
+                # tests/unit/test_hidden_floor.py): 15 cm at 2 m, where the dark partition's end was rounded at 0.36 m
+                for a_k in (a - half_bin, a, a + half_bin):
+                    out.append((d * math.cos(a_k), d * math.sin(a_k), z_point))
     return np.array(out, dtype=float).reshape(-1, 3) if out else empty
 
 
