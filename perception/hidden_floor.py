@@ -46,9 +46,9 @@ from quadlink.frames import R_hq
 class HiddenFloorConfig:
     """How hidden floor is read as an unseen object (see the module's docstring)."""
 
-    enabled: bool = False              # off by default: on, it found the campaign's dark and specular objects, but
-                                       # read a wall the vehicle rested 0.5 m from as an object below it and refused
-                                       # MAVSDK's LAND (CI on 91f21c5), and a low box's edge-on side as an object
+    enabled: bool = True               # on: its objects enter the map open-topped (perception.obstacles), so a wall
+                                       # the vehicle rests 0.5 m from is beside it, not below it (it was off while it
+                                       # refused MAVSDK's LAND there: CI on 91f21c5)
     stride_px: int = 4                 # grid spacing of the sampled pixels (80 x 60 of QVGA)
     range_margin_m: float = 0.1        # the floor must be this far inside the valid range to be expected
     max_incidence_deg: float = 72.0    # the floor is expected only where the sensor returns it (the SITL's

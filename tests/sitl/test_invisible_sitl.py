@@ -28,10 +28,8 @@ OFFSET = 4750 + (os.getpid() % 10) * 20
 
 
 def test_operator_pushing_at_a_dark_partition_stops_short_of_it(tmp_path: Path) -> None:
-    # the hidden floor is off by default (docs/limits.md): this flight turns it on, as a user would
-    perception = tmp_path / "perception.yaml"
-    perception.write_text("hidden_floor:\n  enabled: true\n")
-    config = companion_config_with(tmp_path, perception_config=str(perception), **LOADED_MACHINE)
+    # the shipped perception: the hidden floor is on (docs/limits.md)
+    config = companion_config_with(tmp_path, **LOADED_MACHINE)
     with flight(tmp_path, scenario="dark-column", offset=OFFSET, companion_config=config) as f:
         f.take_off()
         t0, x0 = f.t_s, float(f.p_arena[0])
