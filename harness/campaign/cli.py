@@ -3,15 +3,42 @@
 from __future__ import annotations
 
 import logging
+import math
 import time
 from pathlib import Path
 
 import click
 
+from harness.campaign.draws import CONTENTION_P, CPU_SHARE_CORES, StarvationRange
 from harness.campaign.experiments import EXPERIMENTS
 from harness.campaign.runner import CampaignCancelled, CampaignOptions, load_results, run_campaign
+from harness.cpu_share import CpuShare, CpuShareUnavailable
 
 log = logging.getLogger("harness.campaign")
+
+
+def parse_cpu_share(text: str, contention_p: float, realtime: bool, experiment: str) -> StarvationRange:
+    """``--cpu-share LO:HI`` (or one number: every flight at that share) as the range the flights draw from."""
+    if not realtime:
+        raise click.UsageError("--cpu-share needs --realtime: in lock-step the SITL waits for a starved part")
+    if experiment != "teleop":
+        raise click.UsageError("--cpu-share applies to the teleop campaign only")
+    parts = text.split(":")
+    try:
+        lo, hi = (float(parts[0]), float(parts[-1])) if len(parts) <= 2 else (math.nan, math.nan)
+        return StarvationRange(lo, hi, contention_p)
+    except ValueError as exc:
+        raise click.BadParameter(f"{text!r}: expected LO:HI in cores, e.g. 0.3:1.0 ({exc})",
+                                 param_hint="--cpu-share") from None
+
+
+def check_cpu_share() -> None:
+    """Fail before the first flight where no CPU share can be set (not root, no cgroup with the cpu controller)."""
+    try:
+        with CpuShare(1.0):
+            pass
+    except CpuShareUnavailable as exc:
+        raise click.ClickException(f"--cpu-share: {exc} (run as root, or in a delegated cgroup)") from None
 
 
 @click.command(name="campaign")
@@ -36,6 +63,16 @@ log = logging.getLogger("harness.campaign")
 @click.option("--deterministic/--no-deterministic", default=True, show_default=True,
               help="Fly in the deterministic lock-step (quadlink/lockstep.py): the same seed and index re-fly the "
                    "same flight, bit for bit; --no-deterministic: the plain lock-step of earlier campaigns.")
+@click.option("--realtime", is_flag=True,
+              help="Fly every part on the wall clock, as on the vehicle (not deterministic; one flight per two cores "
+                   "keeps the SITL in real time). What --cpu-share needs.")
+@click.option("--cpu-share", "cpu_share", default=None, metavar="LO:HI",
+              help="Starve the companion board (issue 30; with --realtime): each flight draws the bridge's and the "
+                   "companion's CPU share from U(LO, HI) cores (CFS bandwidth control, 20 ms period; needs root or a "
+                   f"delegated cgroup). The campaign's range is {CPU_SHARE_CORES[0]}:{CPU_SHARE_CORES[1]}.")
+@click.option("--contention", "contention_p", default=CONTENTION_P, show_default=True,
+              type=click.FloatRange(0.0, 1.0),
+              help="With --cpu-share: the share of flights with a busy process spinning beside the stack.")
 @click.option("--report-only", is_flag=True,
               help="Fly nothing: rebuild campaign.json and the summary from OUT's finished flights (wall time "
                    "estimated from the flights' wall times and --parallel).")
@@ -47,14 +84,19 @@ log = logging.getLogger("harness.campaign")
                    "do not apply).")
 def command(n_flights: int, seed: int, out_dir: Path, parallel: int, address: str | None, duration_s: float,
             cpus_per_flight: float, port_offset: int, offboard_share: float, fixed_share: float,
-            view: bool, deterministic: bool, report_only: bool, first_index: int, experiment: str) -> None:
+            view: bool, deterministic: bool, realtime: bool, cpu_share: str | None, contention_p: float,
+            report_only: bool, first_index: int, experiment: str) -> None:
     """Fly N randomized flights (arena, start, operator, vehicle and sensors) and report the safety envelope, or
     N flights of one of paper 003's experiments and report its figures."""
     from harness.campaign.experiment_report import experiment_summary_text, write_experiment_campaign
     from harness.campaign.report import summary_text, write_campaign
 
+    starve = parse_cpu_share(cpu_share, contention_p, realtime, experiment) if cpu_share is not None else None
+    if starve is not None and not report_only:
+        check_cpu_share()
     options = CampaignOptions(n_flights, seed, out_dir, duration_s, parallel, address, cpus_per_flight, port_offset,
-                              offboard_share, fixed_share, first_index, view, experiment, deterministic)
+                              offboard_share, fixed_share, first_index, view, experiment,
+                              deterministic and not realtime, realtime, starve)
     t0 = time.monotonic()
     cancelled = False
     if report_only:

@@ -19,6 +19,10 @@ calibration error the stack must tolerate):
   the camera sees through, is drawn only by ``configs/scenarios/xtion-hazards.yaml`` (a known limit: docs/limits);
 * the room height the operator enters into the companion (``reference.room_height_m``): the truth + U(-0.1, 0.1) m,
   or nothing at all (p = 0.15: only the altitude fence holds).
+
+A real-time campaign can also starve the companion board (issue 30, ``quadlink campaign --realtime --cpu-share``):
+the bridge's and the companion's CPU share, U(lo, hi) cores, and a busy neighbour beside the stack with a given
+probability (:class:`Starvation`, from a sixth stream: the other draws stay as they were).
 """
 
 from __future__ import annotations
@@ -45,6 +49,39 @@ HAZARD_MATERIAL_P = 0.15
 CAMPAIGN_HAZARDS = ("dark", "specular")
 ROOM_HEIGHT_ENTRY_ERROR_M = 0.10  # +- of the operator's entry of the room's height
 ROOM_HEIGHT_UNKNOWN_P = 0.15       # share of flights whose operator entered no height
+CPU_SHARE_CORES = (0.3, 1.0)       # issue 30: the companion board's CPU share, cores (the campaign's default range)
+CONTENTION_P = 0.5                 # share of starved flights with a busy process beside the stack
+
+
+@dataclass(frozen=True)
+class StarvationRange:
+    """What a starved campaign draws from: the CPU share in ``[cores_lo, cores_hi]`` cores, a busy neighbour with
+    probability ``contention_p``."""
+
+    cores_lo: float = CPU_SHARE_CORES[0]
+    cores_hi: float = CPU_SHARE_CORES[1]
+    contention_p: float = CONTENTION_P
+
+    def __post_init__(self) -> None:
+        if not 0.01 <= self.cores_lo <= self.cores_hi <= 64.0:
+            raise ValueError(f"a CPU share range of {self.cores_lo}..{self.cores_hi} cores is out of order or range "
+                             "(0.01..64)")
+        if not 0.0 <= self.contention_p <= 1.0:
+            raise ValueError(f"a contention probability of {self.contention_p} is not in 0..1")
+
+
+@dataclass(frozen=True)
+class Starvation:
+    """One flight's starved board: the bridge and the companion share ``cores`` of CPU (CFS bandwidth control,
+    :class:`harness.cpu_share.CpuShare`), and ``busy_neighbours`` processes spin beside the stack."""
+
+    cores: float
+    busy_neighbours: int
+
+
+def draw_starvation(rng: np.random.Generator, spread: StarvationRange) -> Starvation:
+    cores = round(float(rng.uniform(spread.cores_lo, spread.cores_hi)), 3)
+    return Starvation(cores, int(rng.random() < spread.contention_p))
 
 
 def draw_room_height_error(rng: np.random.Generator) -> float | None:
@@ -80,12 +117,14 @@ class FlightDraws:
     sitl: dict[str, Any]  # the SITL config (YAML data), without the file paths
     record: dict[str, Any]  # draws.json
     room_height_error_m: float | None = None  # the companion's room height entry - the truth; None: not entered
+    starvation: Starvation | None = None  # a starved companion board (a real-time campaign's draw); None: not starved
 
 
 def draw_flight(campaign_seed: int, index: int, duration_s: float, offboard_share: float = 0.0,
-                fixed_share: float = 0.2) -> FlightDraws:
+                fixed_share: float = 0.2, starve: StarvationRange | None = None) -> FlightDraws:
     seq = np.random.SeedSequence(campaign_seed, spawn_key=(index,))
-    arena_ss, operator_ss, vehicle_ss, sitl_ss, entry_ss = seq.spawn(5)  # a new stream leaves the others as they were
+    # a new stream leaves the others as they were (spawn(n)'s first children do not depend on n)
+    arena_ss, operator_ss, vehicle_ss, sitl_ss, entry_ss, starve_ss = seq.spawn(6)
     arena = generate_scenario(np.random.default_rng(arena_ss), f"campaign-{campaign_seed}-{index:04d}", fixed_share,
                               HAZARD_MATERIAL_P, CAMPAIGN_HAZARDS)
     op_rng = np.random.default_rng(operator_ss)
@@ -99,7 +138,11 @@ def draw_flight(campaign_seed: int, index: int, duration_s: float, offboard_shar
     }
     room_height_error_m = draw_room_height_error(np.random.default_rng(entry_ss))
     record["room_height_entry_error_m"] = room_height_error_m
-    return FlightDraws(index, campaign_seed, arena.scenario, session, vehicle, sitl, record, room_height_error_m)
+    starvation = draw_starvation(np.random.default_rng(starve_ss), starve) if starve is not None else None
+    if starvation is not None:
+        record["starvation"] = {"cpu_cores": starvation.cores, "busy_neighbours": starvation.busy_neighbours}
+    return FlightDraws(index, campaign_seed, arena.scenario, session, vehicle, sitl, record, room_height_error_m,
+                       starvation)
 
 
 def draw_vehicle_and_sensors(vehicle_ss: np.random.SeedSequence, sitl_ss: np.random.SeedSequence,

@@ -50,8 +50,44 @@ def flight_row(r: FlightResult) -> dict[str, Any]:
         "sim_duration_s": rep.get("sim_duration_s", math.nan),
         "flying_time_s": rep.get("flying_time_s", math.nan),
         "max_height_m": env.get("max_height_m", math.nan),
+        "cpu_share_cores": draws.get("starvation", {}).get("cpu_cores", math.nan),
+        "busy_neighbours": draws.get("starvation", {}).get("busy_neighbours"),
+        "data_age_p50_ms": rep.get("data_age_ms", {}).get("p50", math.nan),
+        "data_age_max_ms": rep.get("data_age_ms", {}).get("max", math.nan),
         "replay": f"quadlink demo --replay {r.folder}",
     }
+
+
+CPU_SHARE_BINS = (0.0, 0.45, 0.6, 0.8, 64.0)  # cores: the rows of the clearance-and-latency-vs-CPU-share table
+
+
+def by_cpu_share(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """Issue 30: clearance and the companion's data age by the flights' CPU share (starved flights only)."""
+    out = []
+    for lo, hi in zip(CPU_SHARE_BINS[:-1], CPU_SHARE_BINS[1:]):
+        sel = [r for r in rows if lo <= r.get("cpu_share_cores", math.nan) < hi]
+        if not sel:
+            continue
+        d, age50, agemax = (_finite(sel, k) for k in ("min_nonfloor_distance_m", "data_age_p50_ms", "data_age_max_ms"))
+        out.append({"cores_from": lo, "cores_to": hi, "flights": len(sel),
+                    "with_busy_neighbour": sum(bool(r.get("busy_neighbours")) for r in sel),
+                    "min_nonfloor_distance_m": float(d.min()) if d.size else math.nan,
+                    "median_nonfloor_distance_m": float(np.median(d)) if d.size else math.nan,
+                    "below_target": int(np.sum(d < TARGET_M)),
+                    "data_age_p50_ms_median": float(np.median(age50)) if age50.size else math.nan,
+                    "data_age_max_ms": float(agemax.max()) if agemax.size else math.nan})
+    return out
+
+
+def by_cpu_share_text(table: list[dict[str, Any]]) -> str:
+    lines = [f"{'CPU share (cores)':<18} {'flights':>7} {'busy':>4} {'min d':>6} {'median d':>8} {'<0.40':>5} "
+             f"{'age p50':>8} {'age max':>8}"]
+    for b in table:
+        span = f"{b['cores_from']:.2f}-{b['cores_to']:.2f}" if b["cores_to"] < 64 else f">= {b['cores_from']:.2f}"
+        lines.append(f"{span:<18} {b['flights']:>7} {b['with_busy_neighbour']:>4} {b['min_nonfloor_distance_m']:6.3f} "
+                     f"{b['median_nonfloor_distance_m']:8.3f} {b['below_target']:>5} "
+                     f"{b['data_age_p50_ms_median']:6.0f}ms {b['data_age_max_ms']:6.0f}ms")
+    return "\n".join(lines)
 
 
 def _finite(rows: list[dict[str, Any]], key: str) -> np.ndarray:
@@ -92,6 +128,8 @@ def summarize(results: list[FlightResult], options: CampaignOptions, wall_s: flo
                        "replay": w["replay"]} for w in worst],
             # issue 29: by manoeuvre x direction of motion relative to the camera (an unseen flank is a row)
             "by_manoeuvre_and_direction": by_manoeuvre,
+            # issue 30: a starved campaign's clearance and latency by CPU share (empty when nothing was starved)
+            "by_cpu_share": by_cpu_share(rows),
         },
     }
 
@@ -163,6 +201,9 @@ def summary_text(campaign: dict[str, Any]) -> str:
     for w in s["worst"]:
         lines.append(f"  flight {w['index']:>4}: {w['min_nonfloor_distance_m']:.3f} m ({w['surface']}, {w['layout']}, "
                      f"{w['operator']})  {w['replay']}")
+    if s.get("by_cpu_share"):
+        lines += ["", "clearance and the companion's data age by its CPU share (a starved campaign):",
+                  by_cpu_share_text(s["by_cpu_share"])]
     if s.get("by_manoeuvre_and_direction"):
         lines += ["", "clearance by manoeuvre x direction of motion relative to the camera:",
                   manoeuvres.table_text(s["by_manoeuvre_and_direction"])]

@@ -25,6 +25,7 @@ dies is a failed flight, not retried: it is a finding.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import math
@@ -37,8 +38,9 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Protocol
 
-from harness.campaign.draws import FlightFiles, draw_flight, write_flight_files
+from harness.campaign.draws import FlightFiles, Starvation, StarvationRange, draw_flight, write_flight_files
 from harness.campaign.safety import Envelope, envelope, read_truth, truth_of_flight
+from harness.cpu_share import BusyNeighbour, CpuShare
 from harness.demo.cli import ROOM_HEIGHT_ENTRY_ERROR_M
 from harness.demo.orchestrator import kill_leftovers
 from quadlink import REPO_ROOT
@@ -94,6 +96,12 @@ class CampaignOptions:
     view: bool = False  # the operator image view in each flight (costs CPU, changes nothing in the flight)
     experiment: str = "teleop"  # or one of harness.campaign.experiments.EXPERIMENTS (paper003-oval, -hover)
     deterministic: bool = True  # the deterministic lock-step (quadlink.lockstep): a flight re-flies bit for bit
+    realtime: bool = False  # every part on the wall clock, as on the vehicle (not deterministic; what starving needs)
+    starve: StarvationRange | None = None  # real time only: draw each flight's CPU share and busy neighbour (issue 30)
+
+    def __post_init__(self) -> None:
+        if self.starve is not None and not self.realtime:
+            raise ValueError("a starved CPU only means something in real time: the lock-step waits for a slow part")
 
 
 @dataclass(frozen=True)
@@ -156,22 +164,27 @@ def fly(options: CampaignOptions, index: int, slot: int, attempt: int,
     if attempt > 1:
         kill_leftovers(folder / "logs")
         (folder / "logs" / "pids").unlink(missing_ok=True)
-    draws = draw_flight(options.seed, index, options.duration_s, options.offboard_share, options.fixed_share)
+    draws = draw_flight(options.seed, index, options.duration_s, options.offboard_share, options.fixed_share,
+                        options.starve)
     files = write_flight_files(draws, folder)
     return fly_files(files, folder, index, draws.session.kind, options.duration_s,
                      flight_ports(options.port_offset, slot), attempt, draws.record, should_stop=should_stop,
                      view=options.view, deterministic=options.deterministic,
-                     room_height_error_m=draws.room_height_error_m)
+                     room_height_error_m=draws.room_height_error_m, realtime=options.realtime,
+                     starvation=draws.starvation)
 
 
 def fly_files(files: FlightFiles, folder: Path, index: int, operator: str, duration_s: float, port_offset: int,
               attempt: int, record: dict[str, Any], should_stop: Callable[[], bool] | None = None,
               view: bool = False, deterministic: bool = True, companion_config: Path | None = None,
-              room_height_error_m: float | None = ROOM_HEIGHT_ENTRY_ERROR_M) -> FlightResult:
+              room_height_error_m: float | None = ROOM_HEIGHT_ENTRY_ERROR_M, realtime: bool = False,
+              starvation: Starvation | None = None) -> FlightResult:
     """Fly the flight whose files are written in ``folder`` (:class:`FlightFiles`: scenario, operator script or
     plan, SITL config) on the demo's ports shifted by ``port_offset``, judge it and write ``result.json``.
     ``companion_config``: the companion's YAML (default: the nominal one with the operator's entry of the room's
-    height, the truth + ``room_height_error_m``; None: not entered)."""
+    height, the truth + ``room_height_error_m``; None: not entered). ``realtime``: every part on the wall clock
+    (not deterministic). ``starvation``: the bridge and the companion in a CPU share, busy processes beside them
+    (real time only); the share's figures go into the report as ``cpu_share``."""
     from harness.demo.cli import run_demo
     from harness.demo.orchestrator import ProcessDied
 
@@ -180,14 +193,24 @@ def fly_files(files: FlightFiles, folder: Path, index: int, operator: str, durat
                           node=os.uname().nodename, t_start_unix_s=time.time(), code_version=code_version())
     scenario = load_config(files.scenario, ScenarioConfig)
     envelopes: list[Envelope] = []
+    if starvation is not None and not realtime:
+        raise ValueError("a starved flight flies in real time")
     try:
-        report = run_demo(str(files.scenario), duration_s + STARTUP_ALLOWANCE_S, folder, files.operator,
-                          lockstep=True,
-                          port_offset=port_offset, progress_every_s=30.0, sitl_config=str(files.sitl),
-                          operator=operator, should_stop=should_stop, view=view,
-                          plots=False, on_flight=lambda f: envelopes.append(envelope(truth_of_flight(f), scenario)),
-                          settle_s=LANDING_SETTLE_S, deterministic=deterministic and not view,
-                          companion_config=companion_config, room_height_error_m=room_height_error_m)
+        with contextlib.ExitStack() as held:
+            share = held.enter_context(CpuShare(starvation.cores)) if starvation is not None else None
+            if starvation is not None and starvation.busy_neighbours:
+                held.enter_context(BusyNeighbour(starvation.busy_neighbours))
+            report = run_demo(str(files.scenario), duration_s + STARTUP_ALLOWANCE_S, folder, files.operator,
+                              lockstep=not realtime,
+                              port_offset=port_offset, progress_every_s=30.0, sitl_config=str(files.sitl),
+                              operator=operator, should_stop=should_stop, view=view,
+                              plots=False, on_flight=lambda f: envelopes.append(envelope(truth_of_flight(f), scenario)),
+                              settle_s=LANDING_SETTLE_S, deterministic=deterministic and not view and not realtime,
+                              companion_config=companion_config, room_height_error_m=room_height_error_m,
+                              cpu_share=share)
+            if share is not None and starvation is not None:
+                report["cpu_share"] = {"cores": starvation.cores, "busy_neighbours": starvation.busy_neighbours,
+                                       "cgroup_version": share.version, "throttled_s": share.throttled_s()}
         result.report = report
         if report.get("interrupted"):
             result.status = "cancelled"

@@ -71,6 +71,8 @@ class FlightLog:
     t_setpoint: np.ndarray = field(default_factory=lambda: np.zeros(0))
     force: dict[str, np.ndarray] = field(default_factory=dict)
     command_age: dict[str, float] = field(default_factory=dict)    # the companion's last CMD_* values
+    data_age_s: np.ndarray = field(default_factory=lambda: np.zeros(0))  # DATA_AGE samples: camera stamp -> setpoint
+    late_hold: np.ndarray = field(default_factory=lambda: np.zeros(0))   # LATE_HOLD samples (1: holding for latency)
     link: dict[str, Any] = field(default_factory=dict)             # link.json
 
 
@@ -98,7 +100,7 @@ def load_flight(out_dir: Path) -> FlightLog:
         flight.t_dist0, flight.dist0_m, flight.t_dist1, flight.dist1_m = D0[:, 0], D0[:, 1], D1[:, 0], D1[:, 1]
     companion = out_dir / "companion.tlog"
     if companion.is_file():
-        fb, sp = [], []
+        fb, sp, age, hold = [], [], [], []
         for _, m in read_tlog(companion):
             kind = m.get_type()
             if kind == "TELEOP_FEEDBACK":
@@ -109,6 +111,10 @@ def load_flight(out_dir: Path) -> FlightLog:
                 sp.append(m.time_boot_ms / 1e3)
             elif kind in ("NAMED_VALUE_INT", "NAMED_VALUE_FLOAT") and str(m.name).startswith("CMD_"):
                 flight.command_age[str(m.name)] = float(m.value)
+            elif kind == "NAMED_VALUE_FLOAT" and m.name == "DATA_AGE":
+                age.append(float(m.value))
+            elif kind == "NAMED_VALUE_INT" and m.name == "LATE_HOLD":
+                hold.append(float(m.value))
         F = _arr(fb, 15)
         order = np.argsort(F[:, 0], kind="stable")
         F = F[order]
@@ -117,6 +123,7 @@ def load_flight(out_dir: Path) -> FlightLog:
         flight.pan_scan_rate, flight.yaw_rate_cmd, flight.gyro_yaw_rate = F[:, 10], F[:, 11], F[:, 12]
         flight.obstacle_est_m, flight.mode = F[:, 13], F[:, 14]
         flight.t_setpoint = np.asarray(sorted(set(sp)), dtype=float)
+        flight.data_age_s, flight.late_hold = np.asarray(age, dtype=float), np.asarray(hold, dtype=float)
     link_json = out_dir / "link.json"
     if link_json.is_file():
         flight.link = json.loads(link_json.read_text())
@@ -239,6 +246,9 @@ def compute_report(flight: FlightLog, cpu_s: dict[str, float] | None = None, sce
     link = link_figures(flight)
     if link:
         report["link"] = link
+    age = data_age_figures(flight)
+    if age:
+        report["data_age_ms"] = age
     if cpu_s:
         report["cpu_core_s_per_sim_s"] = {k: (v / duration if duration > 0 else math.nan) for k, v in cpu_s.items()}
     report["targets"] = check_targets(report)
@@ -248,6 +258,18 @@ def compute_report(flight: FlightLog, cpu_s: dict[str, float] | None = None, sce
 def _column(flight: FlightLog, key: str) -> np.ndarray:
     v = flight.force.get(key)
     return v[np.isfinite(v)] if v is not None else np.zeros(0)
+
+
+def data_age_figures(flight: FlightLog) -> dict[str, float]:
+    """The companion's own latency figure (issue 30): the age of the data its setpoints are built from (camera
+    stamp to setpoint), as it reports it (NAMED_VALUE DATA_AGE, about once a second: a sample, not every frame),
+    and the share of those reports taken while it held the vehicle for latency (LATE_HOLD). Empty: none reported."""
+    age = flight.data_age_s[np.isfinite(flight.data_age_s)]
+    if not age.size:
+        return {}
+    return {"p50": float(np.percentile(age, 50)) * 1e3, "p95": float(np.percentile(age, 95)) * 1e3,
+            "max": float(np.max(age)) * 1e3, "samples": float(age.size),
+            "late_hold_share": float(np.mean(flight.late_hold > 0)) if flight.late_hold.size else math.nan}
 
 
 def link_figures(flight: FlightLog) -> dict[str, Any]:
