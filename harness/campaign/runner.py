@@ -45,6 +45,7 @@ from harness.demo.cli import ROOM_HEIGHT_ENTRY_ERROR_M
 from harness.demo.orchestrator import kill_leftovers
 from quadlink import REPO_ROOT
 from quadlink.config import load_config
+from quadlink.errors import LinkError
 from sim_sitl.config import ScenarioConfig
 
 log = logging.getLogger("harness.campaign")
@@ -270,7 +271,12 @@ def _init_ray(options: PoolOptions | CampaignOptions) -> Any:
         runtime_env = {"working_dir": str(REPO_ROOT),
                        "excludes": [".git", ".venv", "*.tlog", "*.qlcf", "*.png", "flight-report*", "campaign-*",
                                     "__pycache__", str(options.out_dir)]}
-        ray.init(address=options.address, runtime_env=runtime_env, log_to_driver=False)
+        try:
+            ray.init(address=options.address, runtime_env=runtime_env, log_to_driver=False)
+        except ConnectionError as exc:   # no cluster there, or one that wants a token: one line, not a traceback
+            raise LinkError(f"Ray cluster at {options.address}: {exc}. A cluster with token authentication (this "
+                            "Ray's default) needs its token on this machine (Ray's token-auth docs), or "
+                            "RAY_AUTH_MODE=disabled on the cluster and here, on a trusted network") from None
     else:
         # workers inherit this environment: make sure they import this checkout
         paths = [str(REPO_ROOT)] + [p for p in os.environ.get("PYTHONPATH", "").split(os.pathsep) if p]
