@@ -135,7 +135,10 @@ def _start_and_run(stop: threading.Event, config_path: str, autopilot: str | Non
         cfg = dataclasses.replace(cfg, timing=dataclasses.replace(cfg.timing, camera_stamps="local"))
     set_nice(cfg.timing.nice)   # before the threads start: they inherit it
     vehicle = load_vehicle(cfg.vehicle)
-    factory = default_pipeline_factory(cfg, cfg.seed)
+    factory = default_pipeline_factory(cfg, cfg.seed, links.camera)
+    if not perception_config(cfg, links.camera).hidden_floor.enabled and perception_config(cfg).hidden_floor.enabled:
+        log.info("hidden floor off for camera %s: a stereo camera's depth holes are not a dark object's",
+                 links.camera)
     ident = cfg.identity
     opened: list = []
     try:
@@ -164,7 +167,8 @@ def _start_and_run(stop: threading.Event, config_path: str, autopilot: str | Non
         if frames is not None:
             opened.append(frames)
         try:
-            header = {"companion": to_dict(cfg), "perception": to_dict(perception_config(cfg)), "seed": cfg.seed}
+            header = {"companion": to_dict(cfg), "perception": to_dict(perception_config(cfg, links.camera)),
+                      "seed": cfg.seed}
             journal = JournalWriter(journal_path, header) if journal_path else None
         except OSError as exc:
             raise LinkError(f"journal {journal_path}: {exc}") from exc

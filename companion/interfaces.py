@@ -52,22 +52,35 @@ class ImageSink(Protocol):
 PipelineFactory = Callable[[RgbdFrame], Pipeline]
 
 
-def perception_config(cfg: CompanionConfig) -> Any:
-    """The perception configuration the companion's pipeline runs with (``perception_config``, or the defaults)."""
+#: cameras whose missing depth is not a structured-light camera's: the hidden floor (perception.hidden_floor) reads
+#: a structured-light camera's holes (a dark or specular surface); an active-stereo RealSense, its depth aligned to
+#: the colour camera, has holes of its own on the floor (alignment, textureless patches), which read as objects
+#: (the RealSense path's push in CI moved 0.3-0.5 m instead of > 0.6 m with it on)
+HIDDEN_FLOOR_OFF_FOR = ("realsense://",)
+
+
+def perception_config(cfg: CompanionConfig, camera: str | None = None) -> Any:
+    """The perception configuration the companion's pipeline runs with (``perception_config``, or the defaults),
+    for the camera at URL ``camera``: the hidden floor is off for a camera in :data:`HIDDEN_FLOOR_OFF_FOR`."""
+    import dataclasses
+
     from perception.pipeline import PerceptionConfig
     from quadlink.config import load_config
 
-    return load_config(cfg.perception_config, PerceptionConfig) if cfg.perception_config else PerceptionConfig()
+    pcfg = load_config(cfg.perception_config, PerceptionConfig) if cfg.perception_config else PerceptionConfig()
+    if camera is not None and camera.startswith(HIDDEN_FLOOR_OFF_FOR) and pcfg.hidden_floor.enabled:
+        pcfg = dataclasses.replace(pcfg, hidden_floor=dataclasses.replace(pcfg.hidden_floor, enabled=False))
+    return pcfg
 
 
-def default_pipeline_factory(cfg: CompanionConfig, seed: int = 0) -> PipelineFactory:
+def default_pipeline_factory(cfg: CompanionConfig, seed: int = 0, camera: str | None = None) -> PipelineFactory:
     """Builds ``perception.pipeline.PerceptionPipeline`` on the first frame (its intrinsics and mount)."""
     try:
         from perception.pipeline import PerceptionPipeline
     except ImportError as exc:
         raise QuadlinkError(f"perception pipeline not available ({exc}); the companion needs perception/pipeline.py"
                             ) from exc
-    pcfg = perception_config(cfg)
+    pcfg = perception_config(cfg, camera)
 
     def make(frame: RgbdFrame) -> Pipeline:
         return PerceptionPipeline(pcfg, frame.intrinsics, frame.R_qc, frame.p_qc_m, np.random.default_rng(seed))
