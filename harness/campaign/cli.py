@@ -73,6 +73,9 @@ def check_cpu_share() -> None:
 @click.option("--contention", "contention_p", default=CONTENTION_P, show_default=True,
               type=click.FloatRange(0.0, 1.0),
               help="With --cpu-share: the share of flights with a busy process spinning beside the stack.")
+@click.option("--journal", is_flag=True,
+              help="Each flight's companion journals its inputs (flight-NNNN/companion.qljn): quadlink "
+                   "replay-companion re-runs it offline.")
 @click.option("--report-only", is_flag=True,
               help="Fly nothing: rebuild campaign.json and the summary from OUT's finished flights (wall time "
                    "estimated from the flights' wall times and --parallel).")
@@ -85,7 +88,7 @@ def check_cpu_share() -> None:
 def command(n_flights: int, seed: int, out_dir: Path, parallel: int, address: str | None, duration_s: float,
             cpus_per_flight: float, port_offset: int, offboard_share: float, fixed_share: float,
             view: bool, deterministic: bool, realtime: bool, cpu_share: str | None, contention_p: float,
-            report_only: bool, first_index: int, experiment: str) -> None:
+            journal: bool, report_only: bool, first_index: int, experiment: str) -> None:
     """Fly N randomized flights (arena, start, operator, vehicle and sensors) and report the safety envelope, or
     N flights of one of paper 003's experiments and report its figures."""
     from harness.campaign.experiment_report import experiment_summary_text, write_experiment_campaign
@@ -96,7 +99,7 @@ def command(n_flights: int, seed: int, out_dir: Path, parallel: int, address: st
         check_cpu_share()
     options = CampaignOptions(n_flights, seed, out_dir, duration_s, parallel, address, cpus_per_flight, port_offset,
                               offboard_share, fixed_share, first_index, view, experiment,
-                              deterministic and not realtime, realtime, starve)
+                              deterministic and not realtime, realtime, starve, journal)
     t0 = time.monotonic()
     cancelled = False
     if report_only:

@@ -99,6 +99,7 @@ class CampaignOptions:
     deterministic: bool = True  # the deterministic lock-step (quadlink.lockstep): a flight re-flies bit for bit
     realtime: bool = False  # every part on the wall clock, as on the vehicle (not deterministic; what starving needs)
     starve: StarvationRange | None = None  # real time only: draw each flight's CPU share and busy neighbour (issue 30)
+    journal: bool = False  # each flight's companion journals its inputs (companion.qljn: quadlink replay-companion)
 
     def __post_init__(self) -> None:
         if self.starve is not None and not self.realtime:
@@ -172,20 +173,21 @@ def fly(options: CampaignOptions, index: int, slot: int, attempt: int,
                      flight_ports(options.port_offset, slot), attempt, draws.record, should_stop=should_stop,
                      view=options.view, deterministic=options.deterministic,
                      room_height_error_m=draws.room_height_error_m, realtime=options.realtime,
-                     starvation=draws.starvation)
+                     starvation=draws.starvation, journal=options.journal)
 
 
 def fly_files(files: FlightFiles, folder: Path, index: int, operator: str, duration_s: float, port_offset: int,
               attempt: int, record: dict[str, Any], should_stop: Callable[[], bool] | None = None,
               view: bool = False, deterministic: bool = True, companion_config: Path | None = None,
               room_height_error_m: float | None = ROOM_HEIGHT_ENTRY_ERROR_M, realtime: bool = False,
-              starvation: Starvation | None = None) -> FlightResult:
+              starvation: Starvation | None = None, journal: bool = False) -> FlightResult:
     """Fly the flight whose files are written in ``folder`` (:class:`FlightFiles`: scenario, operator script or
     plan, SITL config) on the demo's ports shifted by ``port_offset``, judge it and write ``result.json``.
     ``companion_config``: the companion's YAML (default: the nominal one with the operator's entry of the room's
     height, the truth + ``room_height_error_m``; None: not entered). ``realtime``: every part on the wall clock
     (not deterministic). ``starvation``: the bridge and the companion in a CPU share, busy processes beside them
-    (real time only); the share's figures go into the report as ``cpu_share``."""
+    (real time only); the share's figures go into the report as ``cpu_share``. ``journal``: the companion journals
+    its inputs to ``companion.qljn`` in ``folder``."""
     from harness.demo.cli import run_demo
     from harness.demo.orchestrator import ProcessDied
 
@@ -208,7 +210,7 @@ def fly_files(files: FlightFiles, folder: Path, index: int, operator: str, durat
                               plots=False, on_flight=lambda f: envelopes.append(envelope(truth_of_flight(f), scenario)),
                               settle_s=LANDING_SETTLE_S, deterministic=deterministic and not view and not realtime,
                               companion_config=companion_config, room_height_error_m=room_height_error_m,
-                              cpu_share=share)
+                              cpu_share=share, journal=journal)
             if share is not None and starvation is not None:
                 report["cpu_share"] = {"cores": starvation.cores, "busy_neighbours": starvation.busy_neighbours,
                                        "cgroup_version": share.version, "throttled_s": share.throttled_s()}

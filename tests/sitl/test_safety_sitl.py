@@ -206,7 +206,7 @@ async def _flight_plan(script: ClientScript, seen: dict[str, Any], f: Flight, fl
     seen["t_wall0"], seen["p_wall0"] = f.t_s, f.p_arena.copy()
     await off.set_velocity_body(Velocity(0.5, 0.0, 0.0, 0.0))
     await script.sim_wait(20.0)
-    seen["p_wall1"] = f.p_arena.copy()
+    seen["p_wall1"], seen["t_wall1"] = f.p_arena.copy(), f.t_s
     seen["offboard_still"] = await off.is_active()
     script.step("backward (blind side)")
     await off.set_velocity_body(Velocity(-0.4, 0.0, 0.0, 0.0))   # blind side: held
@@ -249,14 +249,18 @@ async def _until_true(pred: Any, timeout_s: float) -> None:
 def _check_mavsdk(f: Flight, seen: dict[str, Any]) -> None:
     # toward the wall: stops outside the safe distance, near it
     _assert_clear(f, seen["t_wall0"])
-    gap = float(seen["p_wall1"][0] - POSTER_FACE_X_M)
-    print(f"offboard into the wall: moved {seen['p_wall0'][0] - seen['p_wall1'][0]:.2f} m, rests {gap:.2f} m "
-          f"from the poster; free leg {np.linalg.norm(seen['p_free1'][:2] - seen['p_free0'][:2]):.2f} m of 2.0 m")
-    # at rest 0.49-0.58 m from the poster (nine runs, idle and with both cores busy; CI once 0.60 m under load,
-    # cause not isolated). With the position hold (companion.position_hold: no creep past where the layer stops it)
-    # 0.47, 0.49, 0.50, 0.55 m locally and 0.72 m once in CI: widened from 0.65 to 0.75 m with that distribution; a
-    # stalled approach still fails
-    assert gap <= 0.75, f"stopped {gap:.2f} m from the wall"
+    rest = float(seen["p_wall1"][0] - POSTER_FACE_X_M)
+    gap = min(s.clearance.surface_m for s in f.log.samples if seen["t_wall0"] <= s.t_s <= seen["t_wall1"])
+    print(f"offboard into the wall: moved {seen['p_wall0'][0] - seen['p_wall1'][0]:.2f} m, came {gap:.2f} m from the "
+          f"nearest surface, rests {rest:.2f} m from the poster's plane; free leg "
+          f"{np.linalg.norm(seen['p_free1'][:2] - seen['p_free0'][:2]):.2f} m of 2.0 m")
+    # how near it came (not where it rests: body-forward at the pan-scan's mean heading, up to ~35 deg off the wall's
+    # normal, the layer takes away only the closing part and the vehicle slides along the wall, past the poster's
+    # edge at y = -1 m; CI on 7e89097 came 0.65 m from the poster and rested 0.76 m from its plane at y = -1.47 m).
+    # Nearest surface on the leg: 0.65 m (CI, 7e89097), 0.62 and 0.53 m locally (7e89097); before the hidden floor
+    # the rest gap was 0.47-0.60 m (nine runs) and 0.72 m once in CI. The bound stays 0.75 m; a stalled approach
+    # (nothing nearer than ~1.7 m) still fails
+    assert gap <= 0.75, f"came no nearer than {gap:.2f} m to the wall"
     # backward, where the camera has not looked: refused (PX4's CP_GO_NO_DATA = 0 for scripts)
     blind = float(np.linalg.norm(seen["p_blind"][:2] - seen["p_wall1"][:2]))
     assert blind < 0.3, f"flew {blind:.2f} m into the camera's blind side"
