@@ -58,7 +58,7 @@ PARAM_SPECS: tuple[ParamSpec, ...] = (
     ParamSpec("BRG_ATT_TAU", 1.0, 0.05, 20.0, "s", "complementary attitude filter time constant"),
     ParamSpec("BRG_ODOM_QMIN", 1.0, 0.0, 100.0, "%", "odometry quality below this is not used (0: accept unknown)"),
     ParamSpec("BRG_TKO_OL_SPD", 0.4, 0.1, 1.0, "m/s", "take-off phase 1 (no odometry yet): climb rate"),
-    ParamSpec("BRG_TKO_OL_ALT", 1.5, 0.3, 5.0, "m", "take-off phase 1: height bound (accelerometer estimate)"),
+    ParamSpec("BRG_TKO_OL_ALT", 0.7, 0.3, 5.0, "m", "take-off phase 1: height bound (accelerometer estimate)"),
     ParamSpec("BRG_TKO_OL_T", 6.0, 1.0, 30.0, "s", "take-off phase 1: time bound"),
     ParamSpec("BRG_TKO_THR_MRG", 0.25, 0.05, 0.6, "fraction", "take-off phase 1: thrust ceiling above hover, fraction"),
     ParamSpec("BRG_TKO_RAMP_T", 1.0, 0.0, 5.0, "s", "take-off phase 1: thrust ramp from idle"),
