@@ -67,6 +67,8 @@ def command(config_path: str, autopilot: str | None, gcs: str | None, camera: st
             tlog_path: Path | None, frames_path: Path | None, journal_path: Path | None, duration: float | None,
             lockstep_url: str | None) -> None:
     """Start the companion daemon: perception, reference velocity, MAVLink to autopilot and ground station."""
+    if journal_path is not None and frames_path is not None:
+        raise click.UsageError("--journal holds the frames already: give one of --journal and --record-frames")
     stop = threading.Event()
 
     def on_stop_signal(*_: object) -> None:
@@ -101,9 +103,9 @@ def _start_and_run(stop: threading.Event, config_path: str, autopilot: str | Non
 
     from companion.cameras import camera_url, is_device_url, open_camera
     from companion.config import load_companion_config
-    from companion.daemon import Companion, default_pipeline_factory
+    from companion.daemon import Companion
     from companion.image_publisher import OperatorImagePublisher
-    from companion.interfaces import perception_config
+    from companion.interfaces import for_camera, perception_config, pipeline_factory
     from companion.journal import JournalWriter
     from companion.lockstep_links import join_lockstep
     from quadlink.camera import FrameRecordWriter
@@ -135,8 +137,10 @@ def _start_and_run(stop: threading.Event, config_path: str, autopilot: str | Non
         cfg = dataclasses.replace(cfg, timing=dataclasses.replace(cfg.timing, camera_stamps="local"))
     set_nice(cfg.timing.nice)   # before the threads start: they inherit it
     vehicle = load_vehicle(cfg.vehicle)
-    factory = default_pipeline_factory(cfg, cfg.seed, links.camera)
-    if not perception_config(cfg, links.camera).hidden_floor.enabled and perception_config(cfg).hidden_floor.enabled:
+    configured = perception_config(cfg)
+    pcfg = for_camera(configured, links.camera)
+    factory = pipeline_factory(pcfg, cfg.seed)
+    if configured.hidden_floor.enabled and not pcfg.hidden_floor.enabled:
         log.info("hidden floor off for camera %s: a stereo camera's depth holes are not a dark object's",
                  links.camera)
     ident = cfg.identity
@@ -167,7 +171,7 @@ def _start_and_run(stop: threading.Event, config_path: str, autopilot: str | Non
         if frames is not None:
             opened.append(frames)
         try:
-            header = {"companion": to_dict(cfg), "perception": to_dict(perception_config(cfg, links.camera)),
+            header = {"companion": to_dict(cfg), "perception": to_dict(pcfg),
                       "seed": cfg.seed}
             journal = JournalWriter(journal_path, header) if journal_path else None
         except OSError as exc:

@@ -61,26 +61,38 @@ HIDDEN_FLOOR_OFF_FOR = ("realsense://",)
 
 def perception_config(cfg: CompanionConfig, camera: str | None = None) -> Any:
     """The perception configuration the companion's pipeline runs with (``perception_config``, or the defaults),
-    for the camera at URL ``camera``: the hidden floor is off for a camera in :data:`HIDDEN_FLOOR_OFF_FOR`."""
-    import dataclasses
-
+    for the camera at URL ``camera`` (:func:`for_camera`)."""
     from perception.pipeline import PerceptionConfig
     from quadlink.config import load_config
 
     pcfg = load_config(cfg.perception_config, PerceptionConfig) if cfg.perception_config else PerceptionConfig()
+    return for_camera(pcfg, camera)
+
+
+def for_camera(pcfg: Any, camera: str | None) -> Any:
+    """``pcfg`` as it runs for the camera at URL ``camera``: the hidden floor is off for a camera in
+    :data:`HIDDEN_FLOOR_OFF_FOR`."""
+    import dataclasses
+
     if camera is not None and camera.startswith(HIDDEN_FLOOR_OFF_FOR) and pcfg.hidden_floor.enabled:
         pcfg = dataclasses.replace(pcfg, hidden_floor=dataclasses.replace(pcfg.hidden_floor, enabled=False))
     return pcfg
 
 
 def default_pipeline_factory(cfg: CompanionConfig, seed: int = 0, camera: str | None = None) -> PipelineFactory:
-    """Builds ``perception.pipeline.PerceptionPipeline`` on the first frame (its intrinsics and mount)."""
+    """Builds ``perception.pipeline.PerceptionPipeline`` on the first frame (its intrinsics and mount), with the
+    configuration :func:`perception_config` gives for ``camera``."""
+    return pipeline_factory(perception_config(cfg, camera), seed)
+
+
+def pipeline_factory(pcfg: Any, seed: int = 0) -> PipelineFactory:
+    """Builds ``perception.pipeline.PerceptionPipeline`` with ``pcfg`` on the first frame (its intrinsics and
+    mount)."""
     try:
         from perception.pipeline import PerceptionPipeline
     except ImportError as exc:
         raise QuadlinkError(f"perception pipeline not available ({exc}); the companion needs perception/pipeline.py"
                             ) from exc
-    pcfg = perception_config(cfg, camera)
 
     def make(frame: RgbdFrame) -> Pipeline:
         return PerceptionPipeline(pcfg, frame.intrinsics, frame.R_qc, frame.p_qc_m, np.random.default_rng(seed))

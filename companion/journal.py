@@ -105,6 +105,11 @@ class JournalWriter:
     def _record(self, kind: Kind, payload: bytes) -> None:
         self._write(_RECORD.pack(int(kind), len(payload)) + payload)
 
+    def output(self, kind: Kind, buf: bytes) -> None:
+        """Journal ``buf`` written to the link ``kind`` while an event is handled (nothing outside one)."""
+        if self.active:
+            self._record(kind, bytes(buf))
+
     @contextlib.contextmanager
     def event(self, kind: Kind, payload: bytes = b"") -> Iterator[None]:
         """``with journal.event(Kind.GCS, msg.get_msgbuf()): handle(msg)``: the event, then what its handling read
@@ -150,8 +155,7 @@ class JournaledLink:
         self.link, self._journal, self._kind = link, journal, kind
 
     def write(self, buf: bytes) -> Any:
-        if self._journal.active:
-            self._journal._record(self._kind, bytes(buf))
+        self._journal.output(self._kind, buf)
         return self.link.write(buf)
 
     def recv_msg(self) -> Any:

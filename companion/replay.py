@@ -18,8 +18,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 from companion.config import CompanionConfig
 from companion.journal import OUTPUTS, JournalEvent, Kind, decode_frame, read_events
 from companion.link_reader import decode_highres_imu_v2
@@ -108,15 +106,11 @@ def _decode_message(payload: bytes) -> Any:
 
 
 def _perception_factory(header: dict[str, Any]) -> Callable[[RgbdFrame], Any]:
-    from perception.pipeline import PerceptionConfig, PerceptionPipeline
+    from companion.interfaces import pipeline_factory
+    from perception.pipeline import PerceptionConfig
 
     pcfg = from_dict(PerceptionConfig, header["perception"], source="journal header: perception")
-    seed = int(header["seed"])
-
-    def make(frame: RgbdFrame) -> Any:
-        return PerceptionPipeline(pcfg, frame.intrinsics, frame.R_qc, frame.p_qc_m, np.random.default_rng(seed))
-
-    return make
+    return pipeline_factory(pcfg, int(header["seed"]))
 
 
 def _differs(event: JournalEvent, written: list[tuple[Kind, bytes]], clocks: list[_Clock]) -> str | None:

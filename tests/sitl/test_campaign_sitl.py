@@ -15,6 +15,7 @@ from pathlib import Path
 
 import pytest
 
+from companion.replay import replay_journal
 from harness.campaign.draws import StarvationRange, draw_flight
 from harness.campaign.runner import CampaignOptions, fly, run_campaign
 from harness.campaign.safety import envelope, read_truth
@@ -140,7 +141,9 @@ def test_same_seed_twice_gives_identical_metrics(tmp_path: Path) -> None:
     burner = threading.Thread(target=burn, daemon=True)
     burner.start()
     try:
-        second = fly(CampaignOptions(1, 77, tmp_path / "b", duration_s=25.0, port_offset=OFFSET), 0, 0, 1)
+        # the second also journals its companion's inputs (--journal): journaling must not change the flight
+        second = fly(CampaignOptions(1, 77, tmp_path / "b", duration_s=25.0, port_offset=OFFSET, journal=True),
+                     0, 0, 1)
     finally:
         stop.set()
         burner.join()
@@ -155,6 +158,10 @@ def test_same_seed_twice_gives_identical_metrics(tmp_path: Path) -> None:
     for log in ("truth.tlog", "companion.tlog", "bridge.tlog"):
         a, b = _payloads(Path(first.folder) / log), _payloads(Path(second.folder) / log)
         assert len(a) > 1000 and a == b, log
+    # and the journal re-runs that companion byte for byte (quadlink replay-companion)
+    assert not (Path(first.folder) / "companion.qljn").exists()
+    replay = replay_journal(Path(second.folder) / "companion.qljn")
+    assert replay.divergence is None and replay.by_kind.get("FRAME", 0) > 300, replay
 
 
 def test_a_starved_real_time_campaign_flight_holds_its_share_and_reports_its_latency(tmp_path: Path) -> None:
