@@ -24,6 +24,7 @@ import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -329,6 +330,36 @@ def mavsdk_server(system_url: str, log_path: Path) -> Iterator[int]:
         except subprocess.TimeoutExpired:
             proc.kill()
             proc.wait(5.0)
+
+
+async def connect_classic(port: int, timeout_s: float = 60.0) -> Any:
+    """A classic-API ``System`` connected to the ``mavsdk_server`` on gRPC ``port`` (:func:`mavsdk_server`).
+
+    The server opens its gRPC port only once it has discovered the vehicle, and a gRPC channel that meets a closed
+    port backs off before it tries again (1 s, x1.6 per failure, up to 120 s): a ``connect()`` begun before the
+    discovery could still be waiting when its budget ran out although the server had long been listening (CI twice,
+    on ``e9ba20b`` and ``ff7c74e``: stuck in connect, the server's log showing the vehicle discovered). So first
+    wait here for the port to accept a connection, then connect: the channel's first try succeeds."""
+    import asyncio
+
+    from mavsdk_grpc import System
+
+    deadline = time.monotonic() + timeout_s
+    while True:
+        try:
+            _, writer = await asyncio.open_connection("127.0.0.1", port)
+        except OSError:
+            if time.monotonic() > deadline:
+                raise TimeoutError(f"mavsdk_server's gRPC port {port} not open after {timeout_s:.0f} s") from None
+            await asyncio.sleep(0.1)
+            continue
+        writer.close()
+        with contextlib.suppress(OSError):
+            await writer.wait_closed()
+        break
+    drone = System(mavsdk_server_address="127.0.0.1", port=port)
+    await asyncio.wait_for(drone.connect(), max(1.0, deadline - time.monotonic()))
+    return drone
 
 
 class ClientScript:

@@ -14,7 +14,6 @@ Where the vehicle ends up is judged from the SITL's truth and the scenario's geo
 
 from __future__ import annotations
 
-import asyncio
 import os
 from pathlib import Path
 
@@ -27,6 +26,7 @@ from flight_harness import (
     ClientScript,
     Flight,
     companion_config_with,
+    connect_classic,
     flight,
     mavsdk_server,
 )
@@ -110,12 +110,10 @@ def _mavsdk_land(f: Flight, api: str, out_dir: Path) -> str:
                 seen["result"] = str(exc)
 
     async def classic(script: ClientScript) -> None:
-        from mavsdk_grpc import System
         from mavsdk_grpc.action import ActionError
 
         script.step("connect")
-        drone = System(mavsdk_server_address="127.0.0.1", port=grpc_port)
-        await asyncio.wait_for(drone.connect(), 60.0)
+        drone = await connect_classic(grpc_port)
         async for state in drone.core.connection_state():
             if state.is_connected:
                 break

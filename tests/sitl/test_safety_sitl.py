@@ -23,6 +23,7 @@ from flight_harness import (
     ClientScript,
     Flight,
     companion_config_with,
+    connect_classic,
     flight,
     mavsdk_server,
 )
@@ -167,13 +168,11 @@ def _fly_mavsdk(f: Flight, api: str, out_dir: Path) -> dict[str, Any]:
                                VelocityBodyYawspeed)
 
     async def classic(script: ClientScript) -> None:
-        from mavsdk_grpc import System
         from mavsdk_grpc.offboard import VelocityBodyYawspeed
         from mavsdk_grpc.telemetry import FlightMode
 
         script.step("connect")
-        drone = System(mavsdk_server_address="127.0.0.1", port=grpc_port)
-        await asyncio.wait_for(drone.connect(), 60.0)
+        drone = await connect_classic(grpc_port)
         await asyncio.wait_for(_first(drone.core.connection_state(), lambda s: s.is_connected), 60.0)
         await _flight_plan(script, seen, f, drone.telemetry.flight_mode, FlightMode, drone.action, drone.offboard,
                            VelocityBodyYawspeed)
@@ -306,13 +305,11 @@ def _land_beside_the_wall_classic(f: Flight, out_dir: Path) -> dict[str, Any]:
     url = f"udpout://127.0.0.1:{f.ports.vehicle}"
 
     async def classic(script: ClientScript) -> None:
-        from mavsdk_grpc import System
         from mavsdk_grpc.offboard import VelocityBodyYawspeed
         from mavsdk_grpc.telemetry import FlightMode
 
         script.step("connect")
-        drone = System(mavsdk_server_address="127.0.0.1", port=grpc_port)
-        await asyncio.wait_for(drone.connect(), 60.0)
+        drone = await connect_classic(grpc_port)
         await asyncio.wait_for(_first(drone.core.connection_state(), lambda s: s.is_connected), 60.0)
         script.step("arm")
         await drone.action.arm()
