@@ -12,12 +12,8 @@ prisms) inside a room, so every visible surface is a planar convex polygon. Per 
 3. per pixel (u, v), with the face's plane n.X = d in the camera frame, the inverse depth is linear in
    the pixel: 1/z = (n . K^-1 (u, v, 1)) / d, and so are the texture coordinates times 1/z (perspective-
    correct mapping). One 9-float row per face, gathered by id, gives depth and atlas coordinates;
-4. colour: bilinear ``cv2.remap`` from a texture atlas in which every face has its own copy of its texture,
-   pre-multiplied by its (static) Lambert shading, mip-mapped (trilinear between the atlas's halvings, the level
-   from the pixel's footprint in texels, exact per face: d(atlas x)/du = (c_x,u - x c_z,u) z). A camera's pixel
-   and lens integrate what falls on the pixel; point-sampling a fine texture where a pixel covers several texels
-   aliases it: campaign seed 2031's flight 15 saw a wood floor at a grazing view as moving moire stripes, and its
-   odometry followed the stripes at up to 10 m/s.
+4. colour: one bilinear ``cv2.remap`` from a texture atlas in which every face has its own copy of its
+   texture, pre-multiplied by its (static) Lambert shading.
 
 Depth is exact for the polygons (the z of the ray's hit along the optical axis); the pixel (u, v) is the
 ray ((u - cx)/fx, (v - cy)/fy, 1), as for ``camera_sim``. Frames are NED throughout (no pybullet frame).
@@ -29,7 +25,6 @@ import heapq
 import logging
 import math
 from dataclasses import dataclass
-from typing import Any
 
 import cv2
 import numpy as np
@@ -50,7 +45,6 @@ ATLAS_WIDTH_PX = 4096  # cv2.remap takes coordinates below 32768
 # (its centre within ~0.5 px outside): its lookup lands outside the face's texels by up to the pixel's
 # footprint in texels (<= 13 texels over the test poses, more only at extreme grazing): the border catches it.
 PAD_PX = 16
-MIP_LEVELS = 4  # the atlas and 3 halvings: a pixel up to 8 texels wide is averaged (the border is 2 px at level 3)
 _SHIFT = 4  # sub-pixel bits for cv2.fillConvexPoly
 # cv2.fillConvexPoly rounds vertices to whole pixels and fills boundaries inclusively (~0.5 px too much on
 # every side); moving each edge 0.4 px inward makes coverage follow the pixel centres best: against pybullet
@@ -268,18 +262,6 @@ class RasterRenderer:
         self.atlas = np.zeros((height, ATLAS_WIDTH_PX, 4), np.uint8)
         for t, (x, y) in zip(tiles, pos, strict=True):
             self.atlas[y:y + t.shape[0], x:x + t.shape[1]] = t
-        # the mip chain side by side in one image (level l at x offset _mip_x[l]): one remap samples any level
-        levels = [self.atlas]
-        for _ in range(1, MIP_LEVELS):
-            prev = levels[-1]
-            levels.append(np.asarray(cv2.resize(prev, ((prev.shape[1] + 1) // 2, (prev.shape[0] + 1) // 2),
-                                                interpolation=cv2.INTER_AREA), dtype=np.uint8))
-        self._mip_x = np.cumsum([0] + [m.shape[1] for m in levels[:-1]]).astype(np.float32)
-        self._mip_scale = np.array([0.5 ** level for level in range(MIP_LEVELS)], np.float32)
-        self._mip_atlas = np.zeros((height, int(self._mip_x[-1]) + levels[-1].shape[1], 4), np.uint8)
-        for level, m in enumerate(levels):
-            x0 = int(self._mip_x[level])
-            self._mip_atlas[:m.shape[0], x0:x0 + m.shape[1]] = m
         # atlas_x = G_u . X + h_u, atlas_y = G_v . X + h_v for points X on the face (texel centres at +0.5)
         F = len(self.faces)
         self._G = np.zeros((F, 2, 3))
@@ -410,7 +392,9 @@ class RasterRenderer:
         ay += c[7] * v
         ay += c[8]
         ay *= depth
-        rgb = self._sample(ax, ay, depth, c, H, W)
+        map1, map2 = cv2.convertMaps(ax.reshape(H, W), ay.reshape(H, W), cv2.CV_16SC2)
+        rgba = cv2.remap(self.atlas, map1, map2, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        rgb = np.asarray(cv2.cvtColor(rgba, cv2.COLOR_RGBA2RGB), dtype=np.uint8)
         material: NDArray[np.uint8] | None = None
         if with_material:
             codes = np.zeros(len(drawn) + 1, np.uint8)
@@ -422,29 +406,6 @@ class RasterRenderer:
             else:
                 material = codes[ids]
         return rgb, depth.reshape(H, W).astype(np.float32, copy=False), material
-
-    def _sample(self, ax: NDArray[np.float32], ay: NDArray[np.float32], depth: NDArray[np.float32],
-                c: list[Any], H: int, W: int) -> NDArray[np.uint8]:
-        """RGB8 at atlas coordinates (``ax``, ``ay``), trilinear over the mip levels: the level is log2 of the
-        pixel's footprint in texels (the larger of its two sides; level 0 where it is under a texel). Each
-        pixel's two levels come from one remap each over the side-by-side chain, blended by the level's
-        fraction."""
-        # atlas x = (c3 u + c4 v + c5) / (c0 u + c1 v + c2): d/du = (c3 - x c0) z, d/dv = (c4 - x c1) z; y alike
-        du2 = ((c[3] - ax * c[0]) * depth) ** 2 + ((c[6] - ay * c[0]) * depth) ** 2
-        dv2 = ((c[4] - ax * c[1]) * depth) ** 2 + ((c[7] - ay * c[1]) * depth) ** 2
-        lod = np.clip(0.5 * np.log2(np.maximum(np.maximum(du2, dv2), 1.0)), 0.0, MIP_LEVELS - 1.0)
-        lo = lod.astype(np.int32)           # lod >= 0: truncation is the floor
-        frac = lod - lo
-        maps = []
-        for level in (lo, np.minimum(lo + 1, MIP_LEVELS - 1)):
-            scale, x0 = self._mip_scale[level], self._mip_x[level]
-            mx = ((ax + 0.5) * scale - 0.5 + x0).reshape(H, W)
-            my = ((ay + 0.5) * scale - 0.5).reshape(H, W)
-            map1, map2 = cv2.convertMaps(mx, my, cv2.CV_16SC2)
-            maps.append(cv2.remap(self._mip_atlas, map1, map2, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE))
-        w1 = frac.reshape(H, W).astype(np.float32)
-        rgba = cv2.blendLinear(maps[0], maps[1], np.float32(1.0) - w1, w1)
-        return np.asarray(cv2.cvtColor(rgba, cv2.COLOR_RGBA2RGB), dtype=np.uint8)
 
     def _screen_polygons(self, Xc: NDArray[np.float64], drawn: NDArray[np.int64], k: CameraIntrinsics,
                          near_m: float) -> list[NDArray[np.int32] | None]:
