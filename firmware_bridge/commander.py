@@ -144,7 +144,10 @@ class CommanderService:
                 stale_s = now_s - s.odom_time_s if s.odom_time_s is not None else 0.0
                 vz = float(s.v_h_dead_reckoned[2])
                 s.height_m -= vz * max(stale_s, 0.0)  # the climb since the last odometry
-                s.vertical.align(s.height_m, vz)
+                if not s.vertical.estimate.baro_fused:
+                    # on the barometer the estimate is the better one: aligned to an odometry the vertical gate had
+                    # refused, it took the phantom's descent and the climb ran on to 1 m/s (a unit test's point mass)
+                    s.vertical.align(s.height_m, vz)
                 s.takeoff_phase = TakeoffPhase.OPEN_LOOP
                 s.blind = True
                 # the thrust is up already: ramping it again from idle dropped a vehicle 5 cm up back on its gear
@@ -158,8 +161,10 @@ class CommanderService:
                 # after the brake, the descent is the blind one (firmware_bridge.flight_control._blind_step):
                 # thrust capped at the hover thrust, a probe, and the touchdown on ground contact. The leaky
                 # dead reckoning alone read an accelerometer bias of 0.2 m/s^2 as 0.6 m/s of descent, and the
-                # level descent on it climbed (a campaign flight, 2.4 m to 0.10 m of the ceiling)
-                s.vertical.align(s.height_m, vz)
+                # level descent on it climbed (a campaign flight, 2.4 m to 0.10 m of the ceiling); on the barometer
+                # the estimate is the better one and is kept
+                if not s.vertical.estimate.baro_fused:
+                    s.vertical.align(s.height_m, vz)
                 s.blind = True
                 s.blind_descent = None
                 s.odom_lost_s = now_s

@@ -43,6 +43,11 @@ ODOM_BODY_FRAMES = (mavlink.MAV_FRAME_BODY_FRD, mavlink.MAV_FRAME_BODY_NED)
 
 IMU_PREDICTION_HORIZON_S = 0.3
 TKO_REANCHOR_M = 0.3   # odometry back in an open-loop take-off: its height this far from the climb -> re-anchored
+VZ_GATE_MIN_HEIGHT_M = 0.3   # outside a take-off the vertical gate acts only this high on the barometer: lower,
+                             # in a landing, the baro-fused height read 0 (and its vertical speed 0) with the
+                             # vehicle still 0.1-0.2 m up and descending (eight campaign flights, seed 777); there a
+                             # landing flies level on the baro anyway (BRG_LAND_LVL_ALT, 0.3 m). Higher (0.5 m), a
+                             # phantom descent refused above and accepted below held a landing hovering at the line
 POSITION_CORRECTION_MAX_M_S = 1.0  # a trajectory setpoint's position term, per axis (a far x_d is not a sprint)
 DEAD_RECKONING_LEAK_TAU_S = 3.0
 IMU_DT_MAX_S = 0.1  # a longer gap (or a step back) restarts the integration at the nominal sample period
@@ -284,16 +289,49 @@ class OffboardService:
         recent = s.odom_time_s is not None and now_s - s.odom_time_s <= s.params["BRG_ODOM_LOSS_T"]
         reference = s.v_h_gate_ref if recent else s.v_h_dead_reckoned
         jump = math.hypot(float(v_h[0] - reference[0]), float(v_h[1] - reference[1]))
-        if gate <= 0.0 or jump <= gate:
+        vz_off = self._vertical_disagreement(float(v_h[2]))
+        if (gate <= 0.0 or jump <= gate) and vz_off is None:
             s.v_h_gate_ref = reference + s.params["BRG_ODOM_VGATE_K"] * (np.asarray(v_h, dtype=float) - reference)
             return True
         s.counters["odometry_gated"] += 1
         if recent:   # the estimate the tracker flies on falls back to the reference, not the last accepted sample
             s.v_h_odom = np.array(s.v_h_gate_ref, dtype=float)
             s.dv_h_imu[:] = 0.0
-        if s.counters["odometry_gated"] in (1, 10, 100, 1000):
+        if vz_off is not None:
+            s.counters["odometry_vz_gated"] += 1
+            if s.counters["odometry_vz_gated"] in (1, 10, 100, 1000):
+                s.event(mavlink.MAV_SEVERITY_WARNING, f"Odometry climb refused: {vz_off:.1f} m/s off the baro")
+        elif s.counters["odometry_gated"] in (1, 10, 100, 1000):
             s.event(mavlink.MAV_SEVERITY_WARNING, f"Odometry velocity refused: {jump:.1f} m/s off the IMU")
         return False
+
+    def _vertical_disagreement(self, vz_odom_m_s: float) -> float | None:
+        """The vertical gate (BRG_ODOM_VZGATE): how far the odometry's vertical velocity (H, NED) is from the
+        barometer-fused estimate's (:mod:`firmware_bridge.vertical_estimator`; 0 while it is pinned to the ground
+        under lift-off thrust), if farther than the gate; None if within it, or the gate is off, or the estimate
+        has no fresh baro reading, or (outside a take-off) it reads under VZ_GATE_MIN_HEIGHT_M.
+
+        The odometry's first frames after lift-off can follow a floor's texture instead of the floor: a campaign
+        flight's read 0.2-1.5 m/s of descent while the vehicle climbed at 0.2-0.7 m/s, the horizontal gate let the
+        first samples through (they were 0.1 m/s off horizontally), the take-off switched to closed loop on them
+        and the tracker climbed against the phantom descent to 1.25 m/s (seed 777, flight 2); another ended its
+        take-off "complete at 0.95 m" 0.2 m up (CI, seed 20261201, flight 2). In the same eight flights the
+        baro-fused estimate stayed within 0.05 m/s of the truth through every take-off, and the odometry's
+        accepted samples within 0.34 m/s of it (its first, lagging the lift-off) and within 0.25 m/s in offboard
+        flight."""
+        s = self.state
+        gate = s.params["BRG_ODOM_VZGATE"]
+        vertical = s.vertical.estimate
+        if gate <= 0.0:
+            return None
+        if vertical.pinned:     # the thrust is under lift-off: the ground holds the vehicle, its climb is 0
+            vz_ref = 0.0
+        elif not vertical.baro_fused or (s.mode != FlightMode.TAKEOFF and vertical.height_m < VZ_GATE_MIN_HEIGHT_M):
+            return None
+        else:
+            vz_ref = vertical.vz_m_s
+        off = abs(vz_odom_m_s - vz_ref)
+        return off if off > gate else None
 
     def odometry_ok_event(self) -> None:
         if self.state.in_air:

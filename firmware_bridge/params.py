@@ -65,6 +65,9 @@ PARAM_SPECS: tuple[ParamSpec, ...] = (
     ParamSpec("BRG_OL_LAND_SPD", 0.5, 0.1, 1.0, "m/s", "landing without odometry: descent rate (ArduPilot LAND_SPEED)"),
     ParamSpec("BRG_ODOM_VGATE", 0.3, 0.0, 5.0, "m/s",
               "odometry velocity further than this from the IMU's prediction is refused (0: off)"),
+    ParamSpec("BRG_ODOM_VZGATE", 0.5, 0.0, 5.0, "m/s",
+              "odometry whose vertical velocity is further than this from the barometer-fused estimate's is refused "
+              "(in a take-off, and above 0.3 m on the baro; 0: off)"),
     ParamSpec("BRG_ODOM_VGATE_K", 0.3, 0.05, 1.0, "fraction",
               "the gate's reference takes this share of an accepted odometry velocity, the rest from the IMU "
               "(1: the last accepted velocity)"),

@@ -205,8 +205,8 @@ class BridgeState:
         self.stream_interval_s = self.streams.interval_s  # the same dict: the scheduler's table
         self.counters: dict[str, int] = {"mavlink_bad": 0, "mk_bad": 0, "setpoint_rejected": 0,
                                          "odometry_rejected": 0, "odometry_low_quality": 0, "odometry_gated": 0,
-                                         "commands": 0, "unsupported_commands": 0, "commands_refused": 0,
-                                         "handler_errors": 0, "param_refused": 0}
+                                         "odometry_vz_gated": 0, "commands": 0, "unsupported_commands": 0,
+                                         "commands_refused": 0, "handler_errors": 0, "param_refused": 0}
         self._last_counter_report_s = -math.inf
 
     def _select_tracker(self, kind: int) -> None:

@@ -845,3 +845,48 @@ def test_land_holds_the_place_where_it_began():
     assert not sim.ap.armed_cmd
     moved = float(np.linalg.norm(sim.p[:2] - start[:2]))
     assert moved < 0.14, f"landed {moved:.2f} m from where LAND began"   # 0.11 m; 0.18 m on v = 0 alone
+
+
+def test_a_takeoff_refuses_an_odometry_whose_climb_the_baro_does_not_see():
+    """The vertical gate (BRG_ODOM_VZGATE): an odometry's first frames after lift-off read 0.2-1.5 m/s of descent
+    while the vehicle climbed (a campaign flight, seed 777 flight 2); the take-off switched to closed loop on them and
+    the tracker climbed against the phantom. Here the odometry reads 0.8 m/s more descent than there is from the
+    ground on: refused against the barometer-fused estimate (and 0 while the ground holds the vehicle), the take-off
+    stays open loop and lands at BRG_TKO_OL_ALT; without the gate (the control) the tracker climbs on and on."""
+    for gate in (0.5, 0.0):
+        sim = Sim(ParamTable({"BRG_ODOM_VZGATE": gate}))
+        sim.baro = True
+        sim.odom_velocity_error_n[:] = (0.0, 0.0, 0.8)
+        sim.step(1.5)
+        assert sim.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1)[0] == mavlink.MAV_RESULT_ACCEPTED
+        sim.step(0.2)
+        assert sim.command(mavlink.MAV_CMD_NAV_TAKEOFF, *([math.nan] * 7))[0] == mavlink.MAV_RESULT_ACCEPTED
+        heights = []
+        for _ in range(400):                                   # 8 s
+            sim.step(0.02)
+            heights.append(-float(sim.p[2]))
+        if gate > 0.0:
+            assert sim.ap.state.counters["odometry_vz_gated"] > 10
+            assert any("Odometry climb refused" in t for t in sim.statustext)
+            landing = [i for i, t in enumerate(sim.statustext) if "No odometry in takeoff" in t]
+            assert landing, sim.statustext
+            assert not any("closed loop" in t for t in sim.statustext[:landing[0]])
+            assert max(heights) < 0.9, f"climbed to {max(heights):.2f} m on a phantom descent"
+            assert heights[-1] < 0.05 and not sim.ap.armed_cmd
+        else:
+            assert max(heights) > 2.0, f"the control climbed only to {max(heights):.2f} m"
+
+
+def test_the_vertical_gate_passes_a_true_climb_and_descent():
+    """A take-off, a 0.5 m/s climb and descent in offboard and a landing with a correct odometry: nothing refused."""
+    sim = Sim(ParamTable({"BRG_ODOM_VZGATE": 0.5}))
+    sim.baro = True
+    fly_to_hover(sim)
+    sim.step(1.0, setpoint=velocity_body(0, 0, 0))
+    assert sim.command(mavlink.MAV_CMD_DO_SET_MODE, 1, 6, 0)[0] == mavlink.MAV_RESULT_ACCEPTED
+    sim.step(2.0, setpoint=velocity_body(0, 0, -0.5))
+    sim.step(2.0, setpoint=velocity_body(0, 0, 0.5))
+    assert sim.command(mavlink.MAV_CMD_NAV_LAND)[0] == mavlink.MAV_RESULT_ACCEPTED
+    sim.step(6.0)
+    assert sim.ap.state.counters["odometry_vz_gated"] == 0
+    assert not sim.ap.state.in_air
