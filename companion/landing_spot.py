@@ -187,12 +187,30 @@ def distance_to_clear_m(tops_xy_m: NDArray[np.float64], azimuth_rad: float, foot
 
 
 ROOM_LATERAL_MARGIN_M = 0.15   # a clearing move passes nothing closer than min_distance_m + this to its side
+NARROW_STOP_M = 0.4            # a narrow way off is free this far past where the footprint clears: the move goes on
+                               # for land_clear_hold_s (1 s at 0.25 m/s) after the spot reads clear, then stops
 
 
-def room_to_clear(band_points_h_m: ArrayLike, azimuth_rad: float, reach_m: float, min_distance_m: float) -> bool:
+def tops_xy_m(points_h_m: ArrayLike | None, height_m: float | None, params: LandingSpotParams,
+              floor_margin_m: float) -> NDArray[np.float64]:
+    """The tops of the objects below the vehicle's level within the clearing's look-ahead (N x 2, H), as
+    :func:`clearing_azimuth_rad` sees them."""
+    tops = _objects_below(points_h_m, height_m, max(floor_margin_m, params.min_top_m),
+                          within_m=CLEARING_LOOKAHEAD_M + params.footprint_radius_m)
+    return np.zeros((0, 2)) if tops is None else tops[0][:, :2]
+
+
+def narrow_reach_m(tops_xy: NDArray[np.float64], azimuth_rad: float, params: LandingSpotParams) -> float:
+    """How far a narrow way off (:func:`room_to_clear` with no lateral margin) must be free along ``azimuth_rad``:
+    to where the footprint widened by ``clear_margin_m`` holds no top, and NARROW_STOP_M on."""
+    return distance_to_clear_m(tops_xy, azimuth_rad, params.footprint_radius_m + params.clear_margin_m) + NARROW_STOP_M
+
+
+def room_to_clear(band_points_h_m: ArrayLike, azimuth_rad: float, reach_m: float, min_distance_m: float,
+                  lateral_margin_m: float = ROOM_LATERAL_MARGIN_M) -> bool:
     """Whether a failsafe landing may move clear along ``azimuth_rad`` (H): no obstacle point of the avoidance's
     height band (N x 3 in H, vehicle at the origin) in the path the move sweeps (ahead, within ``reach_m`` along
-    the way and ``min_distance_m + ROOM_LATERAL_MARGIN_M`` to either side of it), and none anywhere nearer than
+    the way and ``min_distance_m + lateral_margin_m`` to either side of it), and none anywhere nearer than
     ``min_distance_m`` (inside the safe distance the camera's blind zone can hide the obstacle: campaign 6's
     flight 6 moved from 0.41 m of one to 0.19 m). What lies behind the way off does not count: a vehicle that an
     operator left resting at the safe distance from a wall, over the edge of a box, landed beside the box at
@@ -208,7 +226,7 @@ def room_to_clear(band_points_h_m: ArrayLike, azimuth_rad: float, reach_m: float
     u = np.array([math.cos(azimuth_rad), math.sin(azimuth_rad)])
     along = p[:, :2] @ u
     beside = np.abs(p[:, 0] * u[1] - p[:, 1] * u[0])
-    in_path = (along > 0.0) & (along <= reach_m) & (beside < min_distance_m + ROOM_LATERAL_MARGIN_M)
+    in_path = (along > 0.0) & (along <= reach_m) & (beside < min_distance_m + lateral_margin_m)
     return not bool(in_path.any())
 
 

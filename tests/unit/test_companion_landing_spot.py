@@ -14,8 +14,10 @@ from companion.landing_spot import (
     clearing_azimuth_rad,
     clearing_command,
     distance_to_clear_m,
+    narrow_reach_m,
     object_below,
     room_to_clear,
+    tops_xy_m,
 )
 
 pytestmark = pytest.mark.unit
@@ -201,6 +203,31 @@ def test_the_way_off_takes_only_directions_with_room() -> None:
                                 room=lambda az: room_to_clear(boxed_in, az, 0.9, 0.40)) is None
     # no sectors known: the direct way off, if it has room
     assert clearing_azimuth_rad(box, height_m, P, FLOOR_MARGIN_M, 0.0, None, room=lambda az: False) is None
+
+
+def test_a_narrow_way_off_the_edge_of_a_box_in_a_cluttered_room() -> None:
+    """Campaign seed 4242, flight 34: over the edge of a box, columns and walls 0.6-0.8 m away on every side in the
+    map, no way had room with the lateral margin over the influence distance, the failsafe landed "where it was"
+    and came down the box's side to 0.11 m. The narrow rule asks for room only as far as the spot where the
+    footprint (and its clearing margin) holds no top, plus the stop, and no lateral margin: off the edge, away
+    from the box, it has room; across the box (the far side is 1.3 m away) and into a column it has not."""
+    height_m = 1.9
+    box = _top(0.45, 0.0, 0.8, height_m - 1.0)        # the box's top: its near edge 0.05 m ahead of the vehicle
+    tops = tops_xy_m(box, height_m, P, FLOOR_MARGIN_M)
+    assert tops.shape[0] == box.shape[0]
+    away = narrow_reach_m(tops, math.pi, P)            # straight back, off the edge
+    need = P.footprint_radius_m + P.clear_margin_m - 0.05
+    assert away == pytest.approx(need + 0.4, abs=0.11)
+    assert narrow_reach_m(tops, 0.0, P) > 1.5          # across the box: the footprint clears past its far side
+    # a column 0.9 m behind and 0.45 m to the side, walls 0.75 m to either side: the margin's rule finds no room
+    column = np.array([[-0.95, 0.5, 0.0], [-0.9, 0.45, 0.0]])
+    walls = np.vstack([np.column_stack([np.arange(-1.0, 1.0, 0.05), np.full(40, y), np.zeros(40)])
+                       for y in (-0.75, 0.75)])
+    band = np.vstack([column, walls])
+    assert not room_to_clear(band, math.pi, 0.9, 0.40)               # the wide rule: the column 0.45 m aside
+    assert room_to_clear(band, math.pi, min(0.9, away), 0.40, lateral_margin_m=0.0)
+    assert not room_to_clear(band, math.pi / 2, min(0.9, narrow_reach_m(tops, math.pi / 2, P)), 0.40,
+                             lateral_margin_m=0.0)                  # into a wall
 
 
 def test_the_look_round_counts_the_turn_made_whatever_the_wrap() -> None:
