@@ -13,7 +13,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from companion.config import CompanionConfig
-from perception.pipeline import PerceptionOutput
+from perception.pipeline import PerceptionConfig, PerceptionOutput
 from quadlink.camera import RgbdFrame
 from quadlink.errors import QuadlinkError
 from quadlink.operator_image import OperatorImageMeta
@@ -59,17 +59,16 @@ PipelineFactory = Callable[[RgbdFrame], Pipeline]
 HIDDEN_FLOOR_OFF_FOR = ("realsense://",)
 
 
-def perception_config(cfg: CompanionConfig, camera: str | None = None) -> Any:
+def perception_config(cfg: CompanionConfig, camera: str | None = None) -> PerceptionConfig:
     """The perception configuration the companion's pipeline runs with (``perception_config``, or the defaults),
     for the camera at URL ``camera`` (:func:`for_camera`)."""
-    from perception.pipeline import PerceptionConfig
     from quadlink.config import load_config
 
     pcfg = load_config(cfg.perception_config, PerceptionConfig) if cfg.perception_config else PerceptionConfig()
     return for_camera(pcfg, camera)
 
 
-def for_camera(pcfg: Any, camera: str | None) -> Any:
+def for_camera(pcfg: PerceptionConfig, camera: str | None) -> PerceptionConfig:
     """``pcfg`` as it runs for the camera at URL ``camera``: the hidden floor is off for a camera in
     :data:`HIDDEN_FLOOR_OFF_FOR`."""
     import dataclasses
@@ -85,7 +84,7 @@ def default_pipeline_factory(cfg: CompanionConfig, seed: int = 0, camera: str | 
     return pipeline_factory(perception_config(cfg, camera), seed)
 
 
-def pipeline_factory(pcfg: Any, seed: int = 0) -> PipelineFactory:
+def pipeline_factory(pcfg: PerceptionConfig, seed: int = 0) -> PipelineFactory:
     """Builds ``perception.pipeline.PerceptionPipeline`` with ``pcfg`` on the first frame (its intrinsics and
     mount)."""
     try:

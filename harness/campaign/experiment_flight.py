@@ -50,7 +50,8 @@ def fly_experiment(options: CampaignOptions, index: int, slot: int, attempt: int
                           node=os.uname().nodename, t_start_unix_s=time.time(), code_version=code_version())
     try:
         result.report = run_paper003(draws.experiment.paper003, folder, port_offset=offset, plots=False,
-                                     scenario=str(files.scenario), sitl_config=str(files.sitl))
+                                     scenario=str(files.scenario), sitl_config=str(files.sitl),
+                                     journal=options.journal)
     except (ProcessDied, TimeoutError, RuntimeError) as exc:  # a part died, a wait ran out, airborne too late
         result.status, result.failure = "failed", f"{type(exc).__name__}: {exc}"
         report_path = Path(folder) / "paper003.json"

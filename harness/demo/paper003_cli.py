@@ -250,10 +250,11 @@ def run_paper003(experiment: str, out_dir: Path, port_offset: int = 0, port_base
                  scenario: str | None = None, trajectory: Path | None = None,
                  companion_overrides: dict[str, dict[str, object]] | None = None,
                  wall_timeout_s: float = 900.0, estimator: str = "filters",
-                 sitl_config: str | None = None) -> dict[str, Any]:
+                 sitl_config: str | None = None, journal: bool = False) -> dict[str, Any]:
     """Fly one experiment; returns (and writes to ``out_dir/paper003.json``) its figures. ``scenario``: the arena
     and start pose (name or path; default :data:`HOVER_SCENARIO` or ``empty``); ``sitl_config``: the SITL's YAML
-    (``quadlink sitl --config``: vehicle, noise, seed), e.g. a campaign flight's ``sitl.yaml``."""
+    (``quadlink sitl --config``: vehicle, noise, seed), e.g. a campaign flight's ``sitl.yaml``; ``journal``: the
+    companion journals its inputs to ``out_dir/companion.qljn`` (``quadlink replay-companion``)."""
     from sim_sitl.config import load_scenario
 
     if experiment not in ("oval", "hover"):
@@ -275,7 +276,8 @@ def run_paper003(experiment: str, out_dir: Path, port_offset: int = 0, port_base
         sim_s = max((e for _, e in pushes), default=0.0) + 60.0
     companion_yaml = write_configs(out_dir, companion_overrides, estimator)
     specs = build_specs(scenario, Path("unused"), out_dir, ports, lockstep, 1.0, sim_s, view=False,
-                        companion_config=companion_yaml, sitl_config=sitl_config)[:3]   # the client is us
+                        companion_config=companion_yaml, sitl_config=sitl_config,
+                        journal=journal)[:3]   # the client is us
     # at most real time: lock-step alone lets the SITL run unpaced while only the bridge gates it (before the
     # companion's camera client connects), which would spend the scenario's push times before the take-off
     specs[0] = dataclasses.replace(specs[0], args=(*specs[0].args, "--speed", "1.0"))
