@@ -14,6 +14,7 @@ from companion.modes import ModeParams
 from companion.pan_scan import PanScanParams
 from companion.position_hold import PositionHoldParams
 from companion.reference_params import ReferenceParams
+from companion.seen_ground import SeenGroundParams
 from quadlink.config import find_config, load_config
 from quadlink.ids import COMPANION_COMPONENT_ID
 from quadlink.mavlink.security import SecurityConfig
@@ -108,6 +109,7 @@ class CompanionConfig:
     obstacles: ObstacleConfig = field(default_factory=ObstacleConfig)
     arbiter: ArbiterParams = field(default_factory=ArbiterParams)   # sources of motion (companion.arbiter)
     landing_spot: LandingSpotParams = field(default_factory=LandingSpotParams)   # commanded landings over objects
+    seen_ground: SeenGroundParams = field(default_factory=SeenGroundParams)   # ... and over ground never seen
     latency: LatencyParams = field(default_factory=LatencyParams)   # late data: what the safety law pays for it
     # where the reference stops the vehicle, hold the place (companion.position_hold), not just v = 0
     position_hold: PositionHoldParams = field(default_factory=PositionHoldParams)

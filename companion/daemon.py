@@ -80,6 +80,7 @@ from companion.imu_clock import ImuClock, imu_sample
 from companion.interfaces import ImageSink, MavLink, Pipeline, PipelineFactory, default_pipeline_factory
 from companion.journal import JournalWriter, Kind
 from companion.landing_spot import (
+    CLEARING_LOOKAHEAD_M,
     SURVEY_YAW_RATE_RAD_S,
     BelowMemory,
     ClearingSurvey,
@@ -108,6 +109,7 @@ from companion.reference_params import ReferenceParams
 from companion.router import route_from_autopilot
 from companion.scheduler import PeriodicTasks, Task
 from companion.security import GcsSecurity
+from companion.seen_ground import SeenGround
 from companion.stats import PROGRESS_EVERY_S, ProgressLine, Stats
 from companion.timesync import AutopilotTime, TimeSync
 from companion.trajectory_follow import feed_forward_after_safety
@@ -194,6 +196,8 @@ class Companion:
         self.arbiter = Arbiter(cfg.arbiter)
         self.landing_spot = cfg.landing_spot
         self.below = BelowMemory(cfg.landing_spot)   # objects seen under the vehicle, for its landings
+        self.ground = SeenGround(cfg.seen_ground)      # where the camera has looked: a landing needs to have seen it
+        self._takeoff_spot_pending = True               # the take-off spot is marked seen at the first pose in the air
         self._clearing_world_az: float | None = None  # the way off an object below, kept in the odometry's world
         self._survey: ClearingSurvey | None = None      # the look round before it is chosen
         self._clearing_narrow = False                   # the way off was taken by the narrow rule
@@ -521,6 +525,8 @@ class Companion:
         band = select_points(map_points_h_m(out, ref, height), ref, height, ref.influence_distance_m)
         room_m = ref.safe_distance_m - 0.05
         points_below = self._points_below()
+        if points_below is not None:
+            points_below = np.vstack([points_below, self._unseen_ground_points()])
         tops = tops_xy_m(points_below, height, self.landing_spot, ref.floor_margin_m)
 
         def room(az_h: float) -> bool:
@@ -551,11 +557,31 @@ class Companion:
         return refusal
 
     def _land_refusal(self, extra_radius_m: float = 0.0) -> str | None:
-        """Why the spot under the vehicle is no place to land (an object seen below it, within the footprint
-        widened by ``extra_radius_m``), or None."""
+        """Why the spot under the vehicle is no place to land (an object seen below it, or ground the camera has
+        not seen, within the footprint widened by ``extra_radius_m``), or None."""
         below = object_below(self._points_below(), self._height_above_floor_m(), self.landing_spot,
                              self.ref_params.floor_margin_m, extra_radius_m)
-        return None if below is None else below.refusal()
+        if below is not None:
+            return below.refusal()
+        out = self.state.last_output
+        if not self.ground.params.enabled or out is None or not out.odometry_ok:
+            return None
+        unseen = self.ground.unseen_fraction(out.position_m, self.landing_spot.footprint_radius_m + extra_radius_m)
+        if unseen is not None and unseen > self.ground.params.max_unseen_fraction:
+            return f"land refused: ground below not seen ({100 * unseen:.0f} %)"
+        return None
+
+    def _unseen_ground_points(self) -> NDArray[np.float64]:
+        """The ground the camera has not seen around the vehicle, as the tops of objects just above the landing's
+        threshold (H): a way off an unseen spot leads to seen ground as a way off an object leads off its top."""
+        out = self.state.last_output
+        height = self._height_above_floor_m()
+        if not self.ground.params.enabled or out is None or not out.odometry_ok or height is None:
+            return np.zeros((0, 3))
+        return self.ground.unseen_points_h(out.position_m, out.yaw_rad,
+                                           CLEARING_LOOKAHEAD_M + self.landing_spot.footprint_radius_m,
+                                           height - (max(self.landing_spot.min_top_m, self.ref_params.floor_margin_m)
+                                                     + 0.05))
 
     def _clearing_command(self, out: PerceptionOutput | None) -> tuple[NDArray[np.float64], float] | None:
         """While a failsafe landing moves clear of an object below (companion.modes), the command that does it
@@ -596,8 +622,18 @@ class Companion:
         height = st.height.update(stamp, height_m(out), None if out is None else out.floor_height_m)
         if self.modes.mode == Mode.IDLE:
             self.below.clear()   # a new flight, a new odometry world
+            self.ground.clear()
             self.position_hold.reset()
-        elif out is not None and out.odometry_ok:
+            self._takeoff_spot_pending = True
+        if out is not None and out.odometry_ok and (self.modes.mode in (Mode.IDLE, Mode.TAKEOFF)
+                                                    or self._takeoff_spot_pending):
+            # the ground the vehicle stands on, and climbs straight up from (a take-off's, or an offboard script's
+            # climb from the ground: the first pose after it), counts as seen
+            self.ground.mark_disc(out.position_m, self.ground.params.takeoff_radius_m)
+            self._takeoff_spot_pending = self.modes.mode == Mode.IDLE
+        if self.modes.mode != Mode.IDLE and out is not None and out.odometry_ok:
+            self.ground.observe(frame.depth_m, frame.intrinsics, st.R_qc, frame.p_qc_m, out.roll_rad, out.pitch_rad,
+                                out.yaw_rad, out.position_m)
             # with the walls seen from below extended up to the vehicle: beside it, not below it
             self.below.observe(with_open_tops(out.obstacle_points_h_m, out.obstacle_open_top,
                                               self._height_above_floor_m(), self.ref_params.floor_margin_m),
