@@ -56,6 +56,9 @@ PARAM_SPECS: tuple[ParamSpec, ...] = (
     ParamSpec("BRG_BOARD_LOSS_T", 0.5, 0.05, 10.0, "s", "board link loss timeout"),
     ParamSpec("COM_DISARM_PRFLT", 10.0, 0.0, 60.0, "s", "auto-disarm when armed on the ground (0 off)"),
     ParamSpec("BRG_ATT_TAU", 1.0, 0.05, 20.0, "s", "complementary attitude filter time constant"),
+    ParamSpec("BRG_ATT_ODOM_TAU", 0.3, 0.0, 5.0, "s",
+              "the attitude's tilt follows the odometry's with this time constant, the accelerometer's correction "
+              "held off while it comes (0: the accelerometer only)"),
     ParamSpec("BRG_ODOM_QMIN", 1.0, 0.0, 100.0, "%", "odometry quality below this is not used (0: accept unknown)"),
     ParamSpec("BRG_TKO_OL_SPD", 0.4, 0.1, 1.0, "m/s", "take-off phase 1 (no odometry yet): climb rate"),
     ParamSpec("BRG_TKO_OL_ALT", 0.7, 0.3, 5.0, "m", "take-off phase 1: height bound (accelerometer estimate)"),

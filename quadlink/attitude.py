@@ -101,6 +101,7 @@ class AttitudeFilter:
         self._omega_lp = [0.0, 0.0, 0.0]
         self._stamp: float | None = None
         self._lowpass_tau_s = 1.0 / (2.0 * math.pi * self.config.gyro_lowpass_hz)
+        self._accel_hold_until_s = -math.inf   # the accelerometer's correction is skipped before this (correct_tilt)
 
     def reset(self) -> None:
         self.__init__(self.config)  # type: ignore[misc]
@@ -141,7 +142,7 @@ class AttitudeFilter:
         ox, oy, oz = gx + bx, gy + by, gz + bz                # bias-corrected rate
         w, x, y, z = qmul(self._q, quat_exp(ox * dt, oy * dt, oz * dt))   # predict with the gyro to this sample
         norm_f = math.sqrt(fx * fx + fy * fy + fz * fz)
-        if norm_f > 1e-3 and abs(norm_f - GRAVITY_M_S2) < cfg.accel_gate_m_s2:
+        if norm_f > 1e-3 and abs(norm_f - GRAVITY_M_S2) < cfg.accel_gate_m_s2 and stamp_s >= self._accel_hold_until_s:
             # estimated "up" in body: -R^T e_z (third row of R, negated)
             ux, uy, uz = -2.0 * (x * z - w * y), -2.0 * (y * z + w * x), -(1.0 - 2.0 * (x * x + y * y))
             mx, my, mz = fx / norm_f, fy / norm_f, fz / norm_f  # measured "up" (specific force)
@@ -157,6 +158,35 @@ class AttitudeFilter:
         alpha = dt / (dt + self._lowpass_tau_s)
         lx, ly, lz = self._omega_lp
         self._omega_lp = [lx + alpha * (ox - lx), ly + alpha * (oy - ly), lz + alpha * (oz - lz)]
+
+    def correct_tilt(self, stamp_s: float, roll_rad: float, pitch_rad: float, fraction: float,
+                     accel_hold_s: float = 0.0, bias_dt_s: float = 0.0, max_error_rad: float = math.radians(15.0)
+                     ) -> bool:
+        """Turn the estimate's tilt a ``fraction`` (0..1) of the way toward a reference attitude's roll and pitch
+        (a visual odometry's: good through a manoeuvre, where the accelerometer's direction is the thrust axis, not
+        gravity), feed the integral (gyro bias) term as the accelerometer's error would over ``bias_dt_s``, and skip
+        the accelerometer's correction until ``stamp_s + accel_hold_s``. Nothing is done (False) for a non-finite
+        reference, before the first IMU sample, or for a reference more than ``max_error_rad`` away."""
+        if self._stamp is None or not (math.isfinite(roll_rad) and math.isfinite(pitch_rad)):
+            return False
+        w, x, y, z = self._q
+        ux, uy, uz = -2.0 * (x * z - w * y), -2.0 * (y * z + w * x), -(1.0 - 2.0 * (x * x + y * y))   # estimated up
+        sp, cp = math.sin(pitch_rad), math.cos(pitch_rad)
+        mx, my, mz = sp, -math.sin(roll_rad) * cp, -math.cos(roll_rad) * cp     # the reference's up, in body
+        ex, ey, ez = my * uz - mz * uy, mz * ux - mx * uz, mx * uy - my * ux    # e = v_ref x v_est
+        sin_a = math.sqrt(ex * ex + ey * ey + ez * ez)
+        angle = math.atan2(sin_a, mx * ux + my * uy + mz * uz)
+        if angle > max_error_rad:
+            return False
+        if sin_a > 1e-12:
+            k = min(max(fraction, 0.0), 1.0) * angle / sin_a
+            self._q = normalised(qmul((w, x, y, z), quat_exp(k * ex, k * ey, k * ez)))
+            lim = self.config.max_bias_rad_s
+            ki = self.config.ki_rad_s2 * max(bias_dt_s, 0.0)
+            bx, by, bz = self._bias_corr
+            self._bias_corr = [_clamp(bx + ki * ex, lim), _clamp(by + ki * ey, lim), _clamp(bz + ki * ez, lim)]
+        self._accel_hold_until_s = stamp_s + accel_hold_s
+        return True
 
     @property
     def gyro_bias_rad_s(self) -> Vec3:

@@ -890,3 +890,30 @@ def test_the_vertical_gate_passes_a_true_climb_and_descent():
     sim.step(6.0)
     assert sim.ap.state.counters["odometry_vz_gated"] == 0
     assert not sim.ap.state.in_air
+
+
+def test_the_bridge_tilt_follows_the_odometry_and_holds_the_accelerometer_off():
+    """Paper 003's hover: after a 1.5 m/s push the bridge's accelerometer-levelled tilt put the IMU's prediction
+    0.5-1.2 m/s behind the true velocity; the gate refused the good odometry for 2 s and the vehicle landed. The tilt
+    now follows the odometry's (BRG_ATT_ODOM_TAU), the accelerometer held off while it comes: a sustained
+    horizontal specific force (what a push or a brake gives in the body's x) no longer tilts the estimate."""
+    from firmware_bridge.attitude_filter import BridgeAttitude
+
+    def run(tau_s: float) -> float:
+        f = BridgeAttitude(tau_s=1.0)
+        t = 0.0
+        accel = np.array([0.0, 0.0, -GRAVITY_M_S2])
+        for _ in range(500):                                   # 1 s level at rest
+            t += 0.002
+            f.update(t, np.zeros(3), accel)
+        # the body level (the odometry says so), the accelerometer reading 2.5 m/s^2 along x for 2 s
+        push = np.array([2.5, 0.0, -GRAVITY_M_S2])
+        for k in range(1000):
+            t += 0.002
+            f.update(t, np.zeros(3), push)
+            if k % 17 == 0:
+                f.correct_tilt(t, 0.0, 0.0, tau_s)
+        return math.degrees(math.hypot(f.estimate.roll_rad, f.estimate.pitch_rad))
+
+    assert run(0.3) < 0.5
+    assert run(0.0) > 5.0          # the control: the accelerometer alone tilts it by ~ atan(2.5 / g) * (1 - e^-2)
