@@ -52,13 +52,14 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import functools
 import itertools
 import logging
 import math
 import threading
 import time
 from collections.abc import Callable, Iterable
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 from numpy.typing import NDArray
@@ -517,23 +518,30 @@ class Companion:
         # once moving clear, the spot must be clear by a margin (hysteresis): the map's tops read a few cm
         # optimistic, and a landing that stopped just past the footprint came down beside the box inside the safe
         # distance (campaign 9, flight 2); before, a wall the vehicle rests beside must not count as "below"
-        refusal = self._land_refusal(self.landing_spot.clear_margin_m if self.modes.clearing_spot else 0.0)
+        map_below = self._points_below()
+        refusal = self._land_refusal(self.landing_spot.clear_margin_m if self.modes.clearing_spot else 0.0,
+                                     points_below=map_below)
         if refusal is None:
             return None
         ref = self.ref_params
         height = self._height_above_floor_m()
         band = select_points(map_points_h_m(out, ref, height), ref, height, ref.influence_distance_m)
         room_m = ref.safe_distance_m - 0.05
-        points_below = self._points_below()
-        if points_below is not None:
-            points_below = np.vstack([points_below, self._unseen_ground_points()])
-        tops = tops_xy_m(points_below, height, self.landing_spot, ref.floor_margin_m)
+
+        # built only when a way off is judged by the narrow rule or chosen again (a kept wide way needs neither)
+        @functools.cache
+        def points_below() -> NDArray[np.float64] | None:
+            return None if map_below is None else np.vstack([map_below, self._unseen_ground_points()])
+
+        @functools.cache
+        def tops() -> NDArray[np.float64]:
+            return tops_xy_m(points_below(), height, self.landing_spot, ref.floor_margin_m)
 
         def room(az_h: float) -> bool:
             return room_to_clear(band, az_h, ref.influence_distance_m, room_m)
 
         def narrow_room(az_h: float) -> bool:
-            reach = min(ref.influence_distance_m, narrow_reach_m(tops, az_h, self.landing_spot))
+            reach = min(ref.influence_distance_m, narrow_reach_m(tops(), az_h, self.landing_spot))
             return room_to_clear(band, az_h, reach, room_m, lateral_margin_m=0.0)
 
         if not room_to_clear(band, 0.0, 0.0, room_m):    # inside the safe distance of something: no room anywhere
@@ -547,7 +555,7 @@ class Companion:
         # the way off, chosen after the look round, or again when the one taken has no room any more
         sectors, _, offset_deg = msgs.sector_arrays(out.sectors)
         for narrow, rule in ((False, room), (True, narrow_room)):
-            az_h = clearing_azimuth_rad(points_below, height, self.landing_spot, ref.floor_margin_m,
+            az_h = clearing_azimuth_rad(points_below(), height, self.landing_spot, ref.floor_margin_m,
                                         camera_yaw_rad(self.state.R_qc), sectors, ref.unknown_sector_guard_rad,
                                         math.radians(offset_deg), room=rule)
             if az_h is not None:
@@ -556,10 +564,14 @@ class Companion:
         self._clearing_world_az, self._survey, self._clearing_narrow = None, None, False   # look round again
         return refusal
 
-    def _land_refusal(self, extra_radius_m: float = 0.0) -> str | None:
+    def _land_refusal(self, extra_radius_m: float = 0.0, *,
+                      points_below: NDArray[np.float64] | None | Literal["build"] = "build") -> str | None:
         """Why the spot under the vehicle is no place to land (an object seen below it, or ground the camera has
-        not seen, within the footprint widened by ``extra_radius_m``), or None."""
-        below = object_below(self._points_below(), self._height_above_floor_m(), self.landing_spot,
+        not seen, within the footprint widened by ``extra_radius_m``), or None. ``points_below`` is
+        :meth:`_points_below` when the caller has built it already."""
+        if isinstance(points_below, str):
+            points_below = self._points_below()
+        below = object_below(points_below, self._height_above_floor_m(), self.landing_spot,
                              self.ref_params.floor_margin_m, extra_radius_m)
         if below is not None:
             return below.refusal()
