@@ -95,7 +95,7 @@ from companion.landing_spot import (
 from companion.latency import LatencyGuard
 from companion.link_reader import CodecReader
 from companion.lockstep_links import AUTOPILOT_IN, CAMERA_IN, GCS_IN, LockstepLinks
-from companion.modes import AutopilotRequest, Mode, ModeMachine, StatusText
+from companion.modes import AutopilotRequest, Mode, ModeMachine, SpotRefusal, StatusText
 from companion.motion import Motion
 from companion.obstacle_points import select_points, with_open_tops
 from companion.operator_input import camera_yaw_rad
@@ -519,10 +519,11 @@ class Companion:
         # optimistic, and a landing that stopped just past the footprint came down beside the box inside the safe
         # distance (campaign 9, flight 2); before, a wall the vehicle rests beside must not count as "below"
         map_below = self._points_below()
-        refusal = self._land_refusal(self.landing_spot.clear_margin_m if self.modes.clearing_spot else 0.0,
-                                     points_below=map_below)
-        if refusal is None:
+        spot = self._land_refusal(self.landing_spot.clear_margin_m if self.modes.clearing_spot else 0.0,
+                                  points_below=map_below)
+        if spot is None:
             return None
+        refusal = spot.text
         ref = self.ref_params
         height = self._height_above_floor_m()
         band = select_points(map_points_h_m(out, ref, height), ref, height, ref.influence_distance_m)
@@ -565,7 +566,7 @@ class Companion:
         return refusal
 
     def _land_refusal(self, extra_radius_m: float = 0.0, *,
-                      points_below: NDArray[np.float64] | None | Literal["build"] = "build") -> str | None:
+                      points_below: NDArray[np.float64] | None | Literal["build"] = "build") -> SpotRefusal | None:
         """Why the spot under the vehicle is no place to land (an object seen below it, or ground the camera has
         not seen, within the footprint widened by ``extra_radius_m``), or None. ``points_below`` is
         :meth:`_points_below` when the caller has built it already."""
@@ -574,13 +575,13 @@ class Companion:
         below = object_below(points_below, self._height_above_floor_m(), self.landing_spot,
                              self.ref_params.floor_margin_m, extra_radius_m)
         if below is not None:
-            return below.refusal()
+            return SpotRefusal(below.refusal())
         out = self.state.last_output
         if not self.ground.params.enabled or out is None or not out.odometry_ok:
             return None
         unseen = self.ground.unseen_fraction(out.position_m, self.landing_spot.footprint_radius_m + extra_radius_m)
         if unseen is not None and unseen > self.ground.params.max_unseen_fraction:
-            return f"land refused: ground below not seen ({100 * unseen:.0f} %)"
+            return SpotRefusal(f"ground below not seen ({100 * unseen:.0f} %)", unseen=True)
         return None
 
     def _unseen_ground_points(self) -> NDArray[np.float64]:

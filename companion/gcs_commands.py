@@ -4,7 +4,8 @@
   ``arm``, ``disarm``, ``takeoff`` and ``land`` go to the mode machine (a takeoff without camera frames is
   refused: perception is not running), MAV_CMD_DO_SET_PARAMETER to the parameter service; everything else
   is UNSUPPORTED. A ``land`` over an object (:mod:`companion.landing_spot`) is DENIED, and so is a LAND sent to
-  the autopilot while the companion flies (:meth:`GcsCommands.on_autopilot_land`). Params are read through
+  the autopilot while the companion flies (:meth:`GcsCommands.on_autopilot_land`); one over ground the camera
+  has not seen is ACCEPTED and moves to seen ground first (:mod:`companion.modes`). Params are read through
   :mod:`quadlink.mavlink.command_params` (NaN = unused; a required param NaN, infinite or out of range:
   DENIED). Every command is acked.
 * Setpoints (:meth:`GcsCommands.on_setpoint`): SET_POSITION_TARGET_LOCAL_NED to the motion arbiter, which
@@ -30,7 +31,7 @@ from collections.abc import Callable
 from typing import Any
 
 from companion.arbiter import Arbiter, Pose, Setpoint
-from companion.modes import ModeMachine, StatusText, VehicleStatus
+from companion.modes import ModeMachine, SpotRefusal, StatusText, VehicleStatus
 from companion.outbound import AutopilotAck, GcsReply, Output
 from companion.params import ParamService
 from quadlink.mavlink import mavlink
@@ -53,7 +54,7 @@ class GcsCommands:
 
     def __init__(self, modes: ModeMachine, arbiter: Arbiter, params: ParamService, clock: Callable[[], float],
                  vehicle_status: Callable[[], VehicleStatus], camera_fresh: Callable[[], bool],
-                 land_refusal: Callable[[], str | None] = lambda: None) -> None:
+                 land_refusal: Callable[[], SpotRefusal | None] = lambda: None) -> None:
         self.modes, self.arbiter, self.params = modes, arbiter, params
         self._clock = clock
         self._vehicle_status = vehicle_status
@@ -102,16 +103,18 @@ class GcsCommands:
 
     def on_autopilot_land(self, msg: Any) -> tuple[bool, list[Output]]:
         """A LAND for the autopilot (MAV_CMD_NAV_LAND, as MAVSDK's ``action.land()`` sends it) while the companion
-        flies the vehicle: refused, answered as the autopilot, if the spot below is no place to land (handled,
-        outputs); else it goes on to the autopilot, which lands (and the mode machine follows it)."""
+        flies the vehicle: if the spot below is no place to land, answered as the autopilot (handled, outputs):
+        refused over an object, accepted over unseen ground (the companion moves to seen ground, then asks the
+        autopilot to land); else it goes on to the autopilot, which lands (and the mode machine follows it)."""
         if not self.modes.in_control:
             return False, []
         refusal = self._land_refusal()
         if refusal is None:
             return False, []
-        return True, [StatusText(mavlink.MAV_SEVERITY_WARNING, f"companion: {refusal}"),
-                      AutopilotAck(mavlink.MAVLink_command_ack_message(
-                          msg.command, mavlink.MAV_RESULT_DENIED, 0, 0, msg.get_srcSystem(), msg.get_srcComponent()))]
+        ok, out = self.modes.request("land", self._clock(), self._vehicle_status(), refusal)
+        result = mavlink.MAV_RESULT_ACCEPTED if ok else mavlink.MAV_RESULT_DENIED
+        return True, [*out, AutopilotAck(mavlink.MAVLink_command_ack_message(
+            msg.command, result, 0, 0, msg.get_srcSystem(), msg.get_srcComponent()))]
 
     def refuse_motion(self, text: str) -> list[Output]:
         """A refused motion command: a STATUSTEXT if ``text`` is not the reason last told."""
@@ -148,6 +151,8 @@ class GcsCommands:
         accepted = self.arbiter.on_set_mode(self._clock(), offboard)
         out: list[Output] = [StatusText(mavlink.MAV_SEVERITY_INFO, f"companion: {text}")
                              for text in self.arbiter.take_events()]
+        if accepted:
+            out += self.modes.end_commanded_clearing(self._clock())
         if not self.modes.in_control:
             return False, out   # the autopilot flies its own mode: it answers
         if ack:

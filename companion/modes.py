@@ -25,10 +25,13 @@ Modes (the dialect's QUADLINK_TELEOP_MODE, TELEOP_FEEDBACK.mode): IDLE, TAKEOFF,
 * LAND: land command to the autopilot; -> IDLE when the autopilot reports landed or disarmed. The
   autopilot reporting that it lands (commanded by someone else, or its own failsafe) -> LAND.
 * Where it lands (:mod:`companion.landing_spot`): a ground station's ``land`` over an object the map holds
-  below the vehicle is refused. A failsafe landing (no fresh command, link lost) over one first moves clear
-  of it — HOLD with :attr:`ModeMachine.clearing_spot` set, the daemon flying away from the object through the
-  same safety pipeline — and lands once the spot below is clear, or after ``land_clear_timeout_s`` wherever
-  it is. With the odometry failed the vehicle cannot move safely: it lands where it is.
+  below the vehicle is refused. One over ground the camera has not seen (:mod:`companion.seen_ground`) is
+  accepted and first moves to seen ground, as a failsafe landing moves clear (the same HOLD, ``clearing_spot``
+  set); a ground station's mode change ends it. A failsafe landing (no fresh command, link lost) over an object
+  first moves clear of it — HOLD with :attr:`ModeMachine.clearing_spot` set, the daemon flying away from the
+  object through the same safety pipeline — and lands once the spot below is clear, or after
+  ``land_clear_timeout_s`` wherever it is. With the odometry failed the vehicle cannot move safely: it lands
+  where it is.
 
 Every transition returns a :class:`StatusText` action (the daemon logs it and sends STATUSTEXT) and
 the autopilot commands to send as :class:`AutopilotRequest` actions (the daemon sends them with acks
@@ -101,6 +104,16 @@ SEVERITY_WARNING = 4
 SEVERITY_NOTICE = 5
 SEVERITY_INFO = 6
 
+@dataclass(frozen=True)
+class SpotRefusal:
+    """Why the spot under the vehicle is no place to land: ``text``, the STATUSTEXT body; ``unseen``: only
+    because the camera has not seen the ground there (no object seen below), so a commanded landing can move
+    to seen ground first instead of being refused."""
+
+    text: str
+    unseen: bool = False
+
+
 Action = AutopilotRequest | StatusText
 LandRefusal = str | None | Callable[[], str | None]
 GCS_REQUESTS = ("arm", "disarm", "takeoff", "land")
@@ -123,6 +136,7 @@ class ModeMachine:
         self.odometry_ok = False
         self._armed_in_takeoff = False
         self._clearing_since_s: float | None = None   # a failsafe landing moving clear of an object below
+        self._commanded_clearing = False              # ... started by a ground station's land (unseen ground)
         self._clear_since_s: float | None = None      # ... and since when the spot below has looked clear
 
     # --- inputs -----------------------------------------------------------------------------
@@ -145,8 +159,21 @@ class ModeMachine:
 
     @property
     def clearing_spot(self) -> bool:
-        """A failsafe landing is moving clear of an object below the vehicle (HOLD; the daemon flies it away)."""
+        """A landing is moving clear of an object below the vehicle, or to seen ground (HOLD; the daemon flies
+        it away): a failsafe's, or a ground station's over unseen ground."""
         return self._clearing_since_s is not None and self.mode == Mode.HOLD
+
+    @property
+    def commanded_clearing(self) -> bool:
+        """The landing moving to seen ground is a ground station's (not a failsafe's)."""
+        return self._commanded_clearing and self.clearing_spot
+
+    def end_commanded_clearing(self, now_s: float) -> list[Action]:
+        """A ground station's mode change while its landing moves to seen ground: the landing is called off
+        (as a mode change ends PX4's LAND) and the vehicle is the operator's or the script's again."""
+        if not self.commanded_clearing:
+            return []
+        return self._go(Mode.TELEOP, now_s, "ground-station mode change: land called off", SEVERITY_NOTICE)
 
     def time_in_mode_s(self, now_s: float) -> float:
         return now_s - self._entered_s
@@ -154,17 +181,18 @@ class ModeMachine:
     def _go(self, mode: Mode, now_s: float, reason: str, severity: int = SEVERITY_INFO) -> list[Action]:
         old = self.mode
         self._armed_in_takeoff = False
-        self._clearing_since_s = None
+        self._clearing_since_s, self._commanded_clearing = None, False
         self.mode, self.reason, self._entered_s = mode, reason, now_s
         if mode == Mode.TAKEOFF:
             self._takeoff_s = now_s   # a flight's commands count from its take-off
         return [StatusText(severity, f"companion: {old.name} -> {mode.name} ({reason})")]
 
     def request(self, name: str, now_s: float, status: VehicleStatus,
-                land_refusal: str | None = None) -> tuple[bool, list[Action]]:
+                land_refusal: SpotRefusal | None = None) -> tuple[bool, list[Action]]:
         """A ground-station command (``arm``, ``disarm``, ``takeoff``, ``land``): accepted?, actions.
         ``land_refusal``: why the spot under the vehicle is no place to land (companion.landing_spot), if it is
-        not: a commanded landing in flight is then refused (the failsafe landings are not asked)."""
+        not: a commanded landing in flight is then refused, or, over ground only unseen, accepted and moved to
+        seen ground first (the failsafe landings are not asked)."""
         if name not in GCS_REQUESTS:
             return False, []
         if name == "arm":
@@ -185,7 +213,14 @@ class ModeMachine:
         if self.mode in (Mode.IDLE, Mode.LAND):
             return self.mode == Mode.LAND, []
         if land_refusal is not None and self.mode in (Mode.TELEOP, Mode.HOLD):
-            return False, [StatusText(SEVERITY_WARNING, f"companion: {land_refusal}")]
+            if not land_refusal.unseen:
+                return False, [StatusText(SEVERITY_WARNING, f"companion: {land_refusal.text}")]
+            if self._commanded_clearing:
+                return True, []
+            actions = self._failsafe_land(now_s, "ground-station land", land_refusal.text, self.odometry_ok,
+                                          SEVERITY_NOTICE)
+            self._commanded_clearing = self.clearing_spot
+            return True, actions
         return True, [AutopilotRequest("land")] + self._go(Mode.LAND, now_s, "ground-station land")
 
     def on_request_failed(self, request: AutopilotRequest, now_s: float, detail: str) -> list[Action]:
@@ -200,16 +235,18 @@ class ModeMachine:
         return [text]
 
     # --- the periodic step ------------------------------------------------------------------
-    def _failsafe_land(self, now_s: float, reason: str, land_refusal: LandRefusal, can_move: bool) -> list[Action]:
-        """A failsafe landing: at once, or first moving clear of an object below (``land_refusal``: why the
-        spot is no place to land) while ``can_move`` and for at most ``land_clear_timeout_s``."""
+    def _failsafe_land(self, now_s: float, reason: str, land_refusal: LandRefusal, can_move: bool,
+                       severity: int = SEVERITY_WARNING) -> list[Action]:
+        """A failsafe landing (or a ground station's over unseen ground): at once, or first moving clear of an
+        object below (``land_refusal``: why the spot is no place to land) while ``can_move`` and for at most
+        ``land_clear_timeout_s``."""
         p = self.params
         if callable(land_refusal):
             land_refusal = land_refusal()
         if land_refusal is not None and can_move and self._clearing_since_s is None:
-            actions = [] if self.mode == Mode.HOLD else self._go(Mode.HOLD, now_s, reason, SEVERITY_WARNING)
+            actions = [] if self.mode == Mode.HOLD else self._go(Mode.HOLD, now_s, reason, severity)
             self._clearing_since_s, self._clear_since_s = now_s, None
-            return actions + [StatusText(SEVERITY_WARNING, f"companion: {reason}: {land_refusal}, moving clear")]
+            return actions + [StatusText(severity, f"companion: {reason}: {land_refusal}, moving clear")]
         if self._clearing_since_s is not None and can_move:
             if land_refusal is not None:
                 self._clear_since_s = None
@@ -220,7 +257,8 @@ class ModeMachine:
                 return []
             if not clear_long_enough:
                 reason += ", could not clear the object below"
-        return [AutopilotRequest("land")] + self._go(Mode.LAND, now_s, reason, SEVERITY_CRITICAL)
+        return [AutopilotRequest("land")] + self._go(Mode.LAND, now_s, reason,
+                                                     SEVERITY_CRITICAL if severity == SEVERITY_WARNING else severity)
 
     def update(self, now_s: float, status: VehicleStatus, odometry_ok: bool,
                land_refusal: LandRefusal = None) -> list[Action]:
@@ -268,6 +306,8 @@ class ModeMachine:
             silent_for = None if last is None or last < self._takeoff_s else now_s - last
             if not status.armed:
                 actions += self._go(Mode.IDLE, now_s, "autopilot disarmed", SEVERITY_WARNING)
+            elif self.commanded_clearing:   # a ground station's land, moving to seen ground first
+                actions += self._failsafe_land(now_s, "ground-station land", land_refusal, usable, SEVERITY_NOTICE)
             elif silent_for is not None and silent_for >= p.gcs_land_timeout_s:
                 actions += self._failsafe_land(now_s, f"no fresh command for {p.gcs_land_timeout_s:g} s",
                                                land_refusal, usable)

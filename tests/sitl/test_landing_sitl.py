@@ -190,3 +190,27 @@ def _has(module: str) -> bool:
         return importlib.util.find_spec(module) is not None
     except ModuleNotFoundError:
         return False
+
+
+@pytest.mark.slow
+def test_a_scripted_land_over_unseen_ground_is_accepted_and_lands_on_seen_ground(tmp_path: Path) -> None:
+    """Issue 30: a LAND is refused only for an object under the footprint. Campaign 21's flight 14 (seed 7575, an
+    offboard script in a random arena) asks for LAND where 40 % of the footprint's ground was never seen; it used
+    to be refused, and the vehicle landed only after the script's silence brought the failsafe 10 s later. Now the
+    LAND is accepted, the vehicle moves to seen ground and lands, the whole flight 0.40 m from every surface."""
+    from harness.campaign.runner import CampaignOptions, fly
+    from harness.campaign.safety import read_truth
+
+    options = CampaignOptions(1, 7575, tmp_path, duration_s=40.0, offboard_share=0.25, first_index=14,
+                              port_offset=OFFSET)
+    result = fly(options, 14, 0, 1)
+    assert result.status == "ok", result.failure
+    folder = Path(result.folder)
+    log = (folder / "logs" / "companion.log").read_text()
+    assert "ground-station land: ground below not seen" in log and "moving clear" in log, log[-2000:]
+    assert "land refused" not in log
+    assert "HOLD -> LAND (ground-station land)" in log and "LAND -> IDLE (landed)" in log
+    assert "no fresh command" not in log   # landed on the script's LAND, not on the failsafe's
+    truth = read_truth(folder / "truth.tlog")
+    assert float(truth.obstacle_m.min()) >= MIN_CLEARANCE_M
+    assert -truth.p_local_ned_m[-1, 2] < LANDED_ABOVE_FLOOR_M   # on the floor (the start's level), not on a top

@@ -18,7 +18,7 @@ from companion.config import PanScanConfig
 from companion.gcs_commands import GcsCommands
 from companion.gcs_input import GcsInput
 from companion.guard import ErrorCounter
-from companion.modes import AutopilotRequest, Mode, ModeMachine, ModeParams, StatusText, VehicleStatus
+from companion.modes import AutopilotRequest, Mode, ModeMachine, ModeParams, SpotRefusal, StatusText, VehicleStatus
 from companion.motion import Motion
 from companion.operator_input import OperatorInput
 from companion.outbound import AutopilotAck, GcsReply, Outbox, Output
@@ -220,7 +220,7 @@ class Rig:
         self.arbiter = Arbiter(ArbiterParams())
         self.status = VehicleStatus()
         self.camera = True
-        self.land_refusal: str | None = None
+        self.land_refusal: SpotRefusal | None = None
         self.cmds = GcsCommands(self.modes, self.arbiter, params(), self.clock, lambda: self.status,
                                 lambda: self.camera, lambda: self.land_refusal)
 
@@ -256,7 +256,7 @@ def test_a_land_over_an_object_is_denied_whoever_it_is_sent_to_and_the_failsafe_
     rig = InputRig()
     rig.modes.mode = Mode.TELEOP
     rig.status = VehicleStatus(armed=True, in_air=True)
-    rig.land_refusal = "land refused: object below, 0.75 m tall"
+    rig.land_refusal = SpotRefusal("land refused: object below, 0.75 m tall")
     land = mavlink.MAV_CMD_NAV_LAND
     out, forward = rig.on(command(land, 0, 0, 0, math.nan, math.nan, math.nan, math.nan))
     assert not forward and acks(out) == [(land, mavlink.MAV_RESULT_DENIED, None)]
@@ -269,12 +269,67 @@ def test_a_land_over_an_object_is_denied_whoever_it_is_sent_to_and_the_failsafe_
     out, _ = rig.on(command(land, 0, 0, 0, math.nan, math.nan, math.nan, math.nan))
     assert AutopilotRequest("land") in out and rig.modes.mode == Mode.LAND
     # not flying it (IDLE): the autopilot's own business, whatever is below
-    rig.modes.mode, rig.land_refusal = Mode.IDLE, "land refused: object below, 0.75 m tall"
+    rig.modes.mode, rig.land_refusal = Mode.IDLE, SpotRefusal("land refused: object below, 0.75 m tall")
     assert rig.on(command(land, target_component=AP_COMPID)) == ([], True)
     # the failsafe landing (no fresh command for gcs_land_timeout_s) is not asked
     rig.modes.mode = Mode.HOLD
     actions = rig.modes.update(rig.clock() + 100.0, rig.status, True)
     assert AutopilotRequest("land") in actions and rig.modes.mode == Mode.LAND
+
+
+def test_a_land_over_unseen_ground_is_accepted_and_moves_to_seen_ground_first() -> None:
+    """Issue 30: a ground station's LAND is refused only for an object under the footprint. Over ground the camera
+    has not seen (companion.seen_ground) it is accepted, to the companion or to the autopilot (MAVSDK's
+    ``action.land()``): the vehicle holds and moves to seen ground (``clearing_spot``, as a failsafe landing
+    moves clear), then the autopilot is asked to land; a ground station's mode change calls it off."""
+    unseen = SpotRefusal("ground below not seen (63 %)", unseen=True)
+    land = mavlink.MAV_CMD_NAV_LAND
+    for target in (COMPID, AP_COMPID):
+        rig = InputRig()
+        rig.modes.mode, rig.modes.odometry_ok = Mode.TELEOP, True
+        rig.status = VehicleStatus(armed=True, in_air=True)
+        rig.land_refusal = unseen
+        out, forward = rig.on(command(land, 0, 0, 0, math.nan, math.nan, math.nan, math.nan,
+                                      target_component=target))
+        (ack,) = [o.msg for o in out if isinstance(o, AutopilotAck | GcsReply)]
+        assert not forward and ack.command == land and ack.result == mavlink.MAV_RESULT_ACCEPTED
+        assert AutopilotRequest("land") not in out and rig.modes.mode == Mode.HOLD and rig.modes.clearing_spot
+        assert "companion: ground-station land: ground below not seen (63 %), moving clear" in texts(out)
+        # a second LAND while it moves: accepted, nothing new
+        out, _ = rig.on(command(land, target_component=target))
+        assert AutopilotRequest("land") not in out and rig.modes.clearing_spot
+        # the operator's sticks do not end it (HOLD), the spot seen for land_clear_hold_s lands it
+        now = rig.clock()
+        rig.modes.on_manual_control(now + 0.5)
+        rig.modes.on_motion_command(now + 0.5)
+        assert _requests_of(rig.modes.update(now + 0.5, rig.status, True, "ground below not seen (40 %)")) == []
+        assert rig.modes.mode == Mode.HOLD and rig.modes.clearing_spot and rig.modes.commanded_clearing
+        assert _requests_of(rig.modes.update(now + 1.0, rig.status, True, None)) == []
+        actions = rig.modes.update(now + 2.1, rig.status, True, None)
+        assert _requests_of(actions) == ["land"] and rig.modes.mode == Mode.LAND
+    # called off by a mode change (POSCTL: the operator's again)
+    rig = InputRig()
+    rig.modes.mode, rig.modes.odometry_ok = Mode.TELEOP, True
+    rig.status = VehicleStatus(armed=True, in_air=True)
+    rig.land_refusal = unseen
+    rig.on(command(land, target_component=AP_COMPID))
+    assert rig.modes.clearing_spot
+    set_mode = command(mavlink.MAV_CMD_DO_SET_MODE, target_component=AP_COMPID)
+    handled, out = rig.cmds.on_set_mode(set_mode, CUSTOM, Px4MainMode.POSCTL, 0.0)
+    assert handled and rig.modes.mode == Mode.TELEOP and not rig.modes.clearing_spot
+    assert any("land called off" in t for t in texts(out))
+    # without a pose to move on, it lands where it is (as a failsafe landing does)
+    rig = InputRig()
+    rig.modes.mode, rig.modes.odometry_ok = Mode.TELEOP, False
+    rig.status = VehicleStatus(armed=True, in_air=True)
+    rig.land_refusal = unseen
+    out, _ = rig.on(command(land, 0, 0, 0, math.nan, math.nan, math.nan, math.nan))
+    assert AutopilotRequest("land") in out and rig.modes.mode == Mode.LAND
+    assert acks(out) == [(land, mavlink.MAV_RESULT_ACCEPTED, None)]
+
+
+def _requests_of(actions: list[Any]) -> list[str]:
+    return [a.name for a in actions if isinstance(a, AutopilotRequest)]
 
 
 def test_command_int_is_handled_and_acked_like_command_long() -> None:
