@@ -10,40 +10,21 @@ writes or clock readings differ is the divergence; nothing after it can be compa
 
 from __future__ import annotations
 
-import dataclasses
 import logging
-from collections import deque
 from collections.abc import Callable
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 from companion.config import CompanionConfig
-from companion.journal import OUTPUTS, JournalEvent, Kind, decode_frame, read_events
+from companion.journal import OUTPUTS, Kind, decode_frame, read_events
 from companion.link_reader import decode_highres_imu_v2
 from quadlink.camera import RgbdFrame
 from quadlink.config import from_dict
 from quadlink.errors import ConfigError
+from quadlink.journal import ReplayClock, ReplayReport, first_difference
 from quadlink.mavlink import mavlink
 
 log = logging.getLogger("companion.replay")
-
-
-class _Clock:
-    """Gives back one event's recorded readings of one clock, in order."""
-
-    def __init__(self, kind: Kind) -> None:
-        self.kind = kind
-        self.queue: deque[float] = deque()
-        self.overread = 0
-        self._last = 0.0
-
-    def __call__(self) -> float:
-        if self.queue:
-            self._last = self.queue.popleft()
-        else:
-            self.overread += 1
-        return self._last
 
 
 class _Link:
@@ -75,24 +56,6 @@ class _Camera:
         pass
 
 
-@dataclass
-class ReplayReport:
-    events: int = 0
-    by_kind: dict[str, int] = dataclasses.field(default_factory=dict)
-    writes_compared: int = 0
-    divergence: str | None = None     # the first event that differs, and how
-    divergence_event: int | None = None
-
-    @property
-    def identical(self) -> bool:
-        return self.divergence is None
-
-    def summary(self) -> str:
-        kinds = ", ".join(f"{k} {n}" for k, n in sorted(self.by_kind.items()))
-        head = f"{self.events} events ({kinds}), {self.writes_compared} writes compared"
-        return f"{head}: identical, bit for bit" if self.identical else f"{head}: {self.divergence}"
-
-
 def _decode_message(payload: bytes) -> Any:
     msg = decode_highres_imu_v2(payload)    # what the autopilot link's fast path gives (companion.link_reader)
     if msg is not None:
@@ -113,21 +76,6 @@ def _perception_factory(header: dict[str, Any]) -> Callable[[RgbdFrame], Any]:
     return pipeline_factory(pcfg, int(header["seed"]))
 
 
-def _differs(event: JournalEvent, written: list[tuple[Kind, bytes]], clocks: list[_Clock]) -> str | None:
-    for clock in clocks:
-        if clock.overread:
-            return f"read the {clock.kind.name} clock {clock.overread} more time(s) than the flight did"
-        if clock.queue:
-            return f"read the {clock.kind.name} clock {len(clock.queue)} fewer time(s) than the flight did"
-    if written == event.outputs:
-        return None
-    for i, (want, got) in enumerate(zip(event.outputs, written)):
-        if want != got:
-            return (f"write {i} differs: the flight wrote {want[1][:24].hex()}... to {want[0].name}, the replay "
-                    f"{got[1][:24].hex()}... to {got[0].name}")
-    return f"the flight wrote {len(event.outputs)} message(s), the replay {len(written)}"
-
-
 def replay_journal(path: str | Path, progress: Callable[[int], None] | None = None,
                    pipeline_factory: Callable[[RgbdFrame], Any] | None = None) -> ReplayReport:
     """Re-run the companion of the journal at ``path``; see the module doc. ``progress`` sees the event count;
@@ -142,7 +90,7 @@ def replay_journal(path: str | Path, progress: Callable[[int], None] | None = No
     except BaseException:
         events.close()
         raise
-    clocks = [_Clock(Kind.CLOCK), _Clock(Kind.STOPWATCH)]
+    clocks = [ReplayClock(Kind.CLOCK, "CLOCK"), ReplayClock(Kind.STOPWATCH, "STOPWATCH")]
     clock, stopwatch = clocks
     autopilot, gcs = _Link(), _Link()
     report = ReplayReport()
@@ -150,8 +98,7 @@ def replay_journal(path: str | Path, progress: Callable[[int], None] | None = No
     try:
         for event in events:
             for c in clocks:
-                c.queue = deque(event.readings[c.kind])
-                c.overread = 0
+                c.load(event)
             autopilot.written.clear()
             gcs.written.clear()
             if event.kind == Kind.INIT:
@@ -160,7 +107,7 @@ def replay_journal(path: str | Path, progress: Callable[[int], None] | None = No
                 daemon = Companion(cfg, autopilot, gcs, _Camera(), pipeline_factory or _perception_factory(header),
                                    clock=clock, stopwatch=stopwatch)
             elif daemon is None:
-                raise ConfigError(f"{path}: event {event.index} ({event.kind.name}) before the companion's INIT")
+                raise ConfigError(f"{path}: event {event.index} ({Kind(event.kind).name}) before the companion's INIT")
             elif event.kind == Kind.AUTOPILOT:
                 daemon.handle_autopilot(_decode_message(event.payload))
             elif event.kind == Kind.GCS:
@@ -171,16 +118,13 @@ def replay_journal(path: str | Path, progress: Callable[[int], None] | None = No
                 daemon.handle_frame(decode_frame(event.payload))
             elif event.kind == Kind.PERIODIC:
                 daemon.handle_periodic()
-            written = [(OUTPUTS[0], b) for b in autopilot.written] + [(OUTPUTS[1], b) for b in gcs.written]
+            written = [(int(OUTPUTS[0]), b) for b in autopilot.written] + [(int(OUTPUTS[1]), b) for b in gcs.written]
             # the flight's writes are in the order they happened; the replay's are kept per link: compare per link
             want = sorted(event.outputs, key=lambda o: o[0])
-            report.events += 1
-            report.by_kind[event.kind.name] = report.by_kind.get(event.kind.name, 0) + 1
-            report.writes_compared += min(len(want), len(written))
-            diff = _differs(dataclasses.replace(event, outputs=want), written, clocks)
+            report.count(Kind(event.kind).name, min(len(want), len(written)))
+            diff = first_difference(want, written, clocks, lambda k: Kind(k).name)
             if diff is not None:
-                report.divergence = f"event {event.index} ({event.kind.name}): {diff}"
-                report.divergence_event = event.index
+                report.diverged(event.index, Kind(event.kind).name, diff)
                 break
             if progress is not None and report.events % 5000 == 0:
                 progress(report.events)

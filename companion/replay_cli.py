@@ -3,13 +3,11 @@
 
 from __future__ import annotations
 
-import logging
-import sys
 from pathlib import Path
 
 import click
 
-from quadlink.errors import QuadlinkError
+from quadlink.journal import replay_main
 
 
 @click.command(name="replay-companion")
@@ -20,12 +18,4 @@ def command(journal: Path) -> None:
     status 0: identical, bit for bit; 1: the first event that differs is printed; 2: not a journal."""
     from companion.replay import replay_journal
 
-    logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(levelname).1s %(name)s: %(message)s")
-    click.echo(f"replaying {journal} ...", err=True)
-    try:
-        report = replay_journal(journal, progress=lambda n: click.echo(f"  {n} events", err=True))
-    except (QuadlinkError, KeyError, ValueError) as exc:
-        click.echo(f"quadlink replay-companion: {journal}: {exc}", err=True)
-        sys.exit(2)
-    click.echo(report.summary())
-    sys.exit(0 if report.identical else 1)
+    replay_main("replay-companion", journal, replay_journal)

@@ -51,11 +51,18 @@ SWITCH_INTERVAL_S = 0.0005
               "'bridge'; the bridge then runs on the simulated time, handles exactly what each step announces "
               "(companion datagrams on --mavlink endpoint 0, MK bytes); exits with status 0 when the "
               "simulation ends, 1 when the coordinator is lost [config lockstep_url: off]")
+@click.option("--journal", "journal_path", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              help="journal every input the bridge handles, with its clocks and what it wrote "
+                   "(firmware_bridge.journal; ~0.1 MB/s): `quadlink replay-bridge FILE` re-runs it bit for bit")
 def command(mk_cmd: str | None, mk_imu: str | None, mavlink_urls: tuple[str, ...], sysid: int | None,
             config_name: str, params_path: Path | None, rt_priority: int | None, duration: float | None,
             signing_key: Path | None, require_signing: bool | None, gcs_links: tuple[int, ...],
-            lockstep_url: str | None) -> None:
+            lockstep_url: str | None, journal_path: Path | None) -> None:
     from firmware_bridge.daemon import BridgeConfig, BridgeDaemon
+    from firmware_bridge.journal import JournalWriter
+    from firmware_bridge.params import load_param_file
+    from quadlink.config import to_dict
+    from quadlink.errors import LinkError
 
     try:
         config = load_config(find_config(config_name), BridgeConfig)
@@ -89,8 +96,22 @@ def command(mk_cmd: str | None, mk_imu: str | None, mavlink_urls: tuple[str, ...
     # that wakes while the main thread computes waits up to 5 ms, which is the whole IMU latency budget.
     sys.setswitchinterval(SWITCH_INTERVAL_S)
     set_realtime_priority(config.realtime_priority)   # before open() starts the reader threads: they inherit it
-    daemon = BridgeDaemon(config, vehicle, params_path)
-    daemon.open()  # LinkError (a lock-step coordinator that never answers too) -> one-line error, exit 2
+    journal = None
+    if journal_path is not None:
+        stored = load_param_file((params_path or Path(config.params_file)).expanduser())
+        try:
+            journal = JournalWriter(journal_path, {"bridge": to_dict(config), "vehicle": to_dict(vehicle),
+                                                   "params": stored})
+        except OSError as exc:
+            raise LinkError(f"journal {journal_path}: {exc}") from exc
+        log.info("journaling every input to %s (quadlink replay-bridge %s)", journal_path, journal_path)
+    daemon = BridgeDaemon(config, vehicle, params_path, journal=journal)
+    try:
+        daemon.open()
+    except BaseException:
+        if journal is not None:
+            journal.close()
+        raise  # LinkError (a lock-step coordinator that never answers too) -> one-line error, exit 2
     previous = {sig: signal.signal(sig, lambda *_: daemon.stop()) for sig in STOP_SIGNALS}   # quadlink.signals
     log.info("bridge running (Ctrl-C to stop)")
     lockstep_end: LockstepError | None = None
@@ -102,6 +123,8 @@ def command(mk_cmd: str | None, mk_imu: str | None, mavlink_urls: tuple[str, ...
         lockstep_end = exc
     finally:
         daemon.close()
+        if journal is not None:
+            journal.close()
         for sig, handler in previous.items():
             signal.signal(sig, handler)
         s = daemon.stats

@@ -28,6 +28,7 @@ stamp their reads with the wall clock, which only feeds the in-process latency s
 from __future__ import annotations
 
 import collections
+import contextlib
 import functools
 import logging
 import math
@@ -42,6 +43,8 @@ from typing import Any
 import numpy as np
 
 from firmware_bridge.autopilot import Autopilot, BoardCommand, Outbound
+from firmware_bridge.journal import JournalWriter, encode_input
+from firmware_bridge.journal import Kind as JKind
 from firmware_bridge.links import LinkReaders, SentDatagrams, StreamHolder
 from firmware_bridge.params import DEFAULT_PARAMS_PATH, ParamTable, load_param_file, save_param_file
 from firmware_bridge.step_inputs import (
@@ -134,18 +137,42 @@ class _Stopped(Exception):
 class BridgeDaemon:
     """The bridge process. ``clock`` is the wall clock (seconds, monotonic): the daemon's time source when
     free-running; in lock-step mode (``config.lockstep_url``) the daemon's :attr:`clock` is the current step's
-    simulated time instead, and the wall clock only bounds waits and stamps reads for the latency statistic."""
+    simulated time instead, and the wall clock only bounds waits and stamps reads for the latency statistic.
+
+    ``journal``: every input the main thread handles, every housekeeping turn, the clocks read and the bytes written
+    in them (:mod:`firmware_bridge.journal`). ``daemon_clock``: the daemon's clock whatever the mode (a journal's
+    replay gives back the recorded readings)."""
 
     def __init__(self, config: BridgeConfig, vehicle: VehicleConfig, params_path: Path | None = None,
                  clock: Callable[[], float] = time.monotonic, unix_clock: Callable[[], float] = time.time,
                  stream_opener: Callable[[str], ByteStream] = open_stream,
-                 mavlink_opener: Callable[..., Any] = open_mavlink) -> None:
+                 mavlink_opener: Callable[..., Any] = open_mavlink, journal: JournalWriter | None = None,
+                 daemon_clock: Callable[[], float] | None = None) -> None:
         self.config = config
         self.vehicle = vehicle
         self.lockstep_mode = config.lockstep_url is not None
-        self._wall_clock = clock
+        self.journal = journal
+        self._reader_clock = clock   # the reader threads' (never journaled: only the main thread writes the journal)
         self._step_t_s = 0.0  # lock-step: the current step's simulated time
-        self.clock: Callable[[], float] = self._step_clock if self.lockstep_mode else clock
+        own_clock = daemon_clock or (self._step_clock if self.lockstep_mode else clock)
+        if journal is not None:
+            clock, own_clock = journal.clock(clock, JKind.WALL), journal.clock(own_clock, JKind.CLOCK)
+            unix_clock = journal.clock(unix_clock, JKind.UNIX)
+        self._wall_clock = clock
+        self.clock: Callable[[], float] = own_clock
+        with self._event(JKind.INIT):
+            self._init_state(config, vehicle, params_path, unix_clock, stream_opener, mavlink_opener)
+
+    def _event(self, kind: JKind,
+               payload: Callable[[], bytes] | None = None) -> contextlib.AbstractContextManager[None]:
+        """The journal's record of one event (a no-op without a journal)."""
+        if self.journal is None:
+            return contextlib.nullcontext()
+        return self.journal.event(kind, payload() if payload is not None else b"")
+
+    def _init_state(self, config: BridgeConfig, vehicle: VehicleConfig, params_path: Path | None,
+                    unix_clock: Callable[[], float], stream_opener: Callable[[str], ByteStream],
+                    mavlink_opener: Callable[..., Any]) -> None:
         self.params_path = (params_path or Path(config.params_file)).expanduser()
         self.params = ParamTable(load_param_file(self.params_path))
         # lock-step: no wall-clock Unix time in SYSTEM_TIME (0 is MAVLink's "unknown"), or flights would differ
@@ -210,7 +237,7 @@ class BridgeDaemon:
         log.info("parameters: %s (%d)", self.params_path, len(self.params))
         if c.lockstep_url is not None:
             self._join_lockstep(c.lockstep_url)
-        readers = LinkReaders(self._put, self._stop, self._wall_clock, c.reconnect_interval_s)
+        readers = LinkReaders(self._put, self._stop, self._reader_clock, c.reconnect_interval_s)
         self._threads = readers.start(self.cmd, self.imu, self.mavlinks)
 
     def _join_lockstep(self, url: str) -> None:
@@ -285,8 +312,8 @@ class BridgeDaemon:
             except queue.Empty:
                 item = None
             if item is not None:
-                self._dispatch(item)
-            self._housekeeping()
+                self._handle(item)
+            self._turn()
 
     # ------------------------------------------------------------------ the deterministic lock-step
     def _step_clock(self) -> float:
@@ -333,8 +360,8 @@ class BridgeDaemon:
             wait(functools.partial(inputs.received, link), step.count(link), what=f"step {step.index}: {link} {what}")
         self._pump(0.0)  # what else has arrived (the endpoints outside the lock-step)
         for item in inputs.take(step):
-            self._dispatch(item)
-        self._housekeeping()
+            self._handle(item)
+        self._turn()
 
     def _pump(self, block_s: float) -> None:
         """Sort what the readers queued into the step inputs, waiting up to ``block_s`` for the first item;
@@ -347,13 +374,23 @@ class BridgeDaemon:
             return
         while True:
             if not self._step_inputs.add(item):
-                self._dispatch(item)
+                self._handle(item)
             try:
                 item = self._queue.get_nowait()
             except queue.Empty:
                 return
 
     # ------------------------------------------------------------------ handling
+    def _handle(self, item: tuple[Any, ...]) -> None:
+        """One item of the readers' queue (both loops and a journal's replay come through here)."""
+        with self._event(JKind.INPUT, lambda: encode_input(item)):
+            self._dispatch(item)
+
+    def _turn(self) -> None:
+        """One turn of the periodic tasks (both loops and a journal's replay come through here)."""
+        with self._event(JKind.HOUSEKEEPING):
+            self._housekeeping()
+
     def _dispatch(self, item: tuple[Any, ...]) -> None:
         kind = item[0]
         if kind == "imu":
@@ -496,7 +533,7 @@ class BridgeDaemon:
         except (ProtocolError, ValueError) as exc:
             log.error("cannot encode setpoint %s: %s", command, exc)
             return
-        if self.cmd.write(frame):
+        if self._write_mk(frame):
             self.stats.setpoints_sent += 1
             self._seq = (self._seq + 1) % 256
 
@@ -543,7 +580,7 @@ class BridgeDaemon:
         assert self.cmd is not None
         self._last_version_request = wall
         self._version_requests += 1
-        self.cmd.write(encode_frame(ADDR_FC, mk.VersionRequest.COMMAND, mk.VersionRequest().pack()))
+        self._write_mk(encode_frame(ADDR_FC, mk.VersionRequest.COMMAND, mk.VersionRequest().pack()))
         if self._version_requests == self.config.version_request_attempts:
             log.warning("board did not answer the version request (%d tries)", self._version_requests)
 
@@ -557,12 +594,25 @@ class BridgeDaemon:
             except OSError as exc:
                 log.error("cannot save parameters to %s: %s", self.params_path, exc)
 
+    def _write_mk(self, frame: bytes) -> bool:
+        """A frame for MK port 1: written?"""
+        assert self.cmd is not None
+        ok = self.cmd.write(frame)
+        if self.journal is not None:
+            self.journal.mk_write(frame, ok)
+        return ok
+
     def _send(self, out: list[Outbound]) -> None:
         for item in out:
-            targets = self.mavlinks if item.link is None else self.mavlinks[item.link:item.link + 1]
-            for conn in targets:
+            indices = range(len(self.mavlinks)) if item.link is None else range(item.link, item.link + 1)
+            for i in indices:
+                if i >= len(self.mavlinks):
+                    continue
+                conn = self.mavlinks[i]
                 try:
                     conn.mav.send(item.msg)
+                    if self.journal is not None:
+                        self.journal.mavlink_sent(i, item.msg.get_msgbuf())
                     self.stats.mavlink_out += 1
                 except (OSError, RuntimeError) as exc:  # RuntimeError: pymavlink udpin's client set changed
                     self.stats.send_errors += 1

@@ -74,8 +74,8 @@ def check_cpu_share() -> None:
               type=click.FloatRange(0.0, 1.0),
               help="With --cpu-share: the share of flights with a busy process spinning beside the stack.")
 @click.option("--journal", is_flag=True,
-              help="Each flight's companion journals its inputs (flight-NNNN/companion.qljn): quadlink "
-                   "replay-companion re-runs it offline.")
+              help="Each flight's companion and bridge journal their inputs (flight-NNNN/companion.qljn and "
+                   "bridge.qlbj): quadlink replay-companion and replay-bridge re-run them offline.")
 @click.option("--report-only", is_flag=True,
               help="Fly nothing: rebuild campaign.json and the summary from OUT's finished flights (wall time "
                    "estimated from the flights' wall times and --parallel).")

@@ -40,6 +40,7 @@ DEFAULT_SCRIPT = CONFIG_DIR / "teleop_scripts" / "paper_experiment.yaml"
 SITL_DURATION_MARGIN_S = 300.0
 STARVED_PARTS = ("bridge", "companion")  # the parts a CPU share holds: what runs on the companion board
 JOURNAL_NAME = "companion.qljn"   # the companion's input journal (--journal): quadlink replay-companion re-runs it
+BRIDGE_JOURNAL_NAME = "bridge.qlbj"   # the bridge's (--journal too): quadlink replay-bridge re-runs it
 
 
 #: the demo operator's entry of the room's height is this much above the truth: the unsafe side of the +-10 cm a
@@ -214,7 +215,9 @@ def build_specs(scenario: str, script: Path, out_dir: Path, ports: Ports, lockst
                                "--mk-imu", f"socket://127.0.0.1:{ports.mk2}",
                                "--mavlink", f"udpout:127.0.0.1:{ports.autopilot}",
                                "--mavlink", f"udpout:127.0.0.1:{ports.gcs_bridge}",
-                               "--params", str(out_dir / "bridge_params.yaml"), *stepped), ready_after_s=2.0),
+                               "--params", str(out_dir / "bridge_params.yaml"),
+                               *(("--journal", str(out_dir / BRIDGE_JOURNAL_NAME)) if journal else ()),
+                               *stepped), ready_after_s=2.0),
         ProcessSpec("companion", ("companion", "--config", str(companion_config),
                                   "--autopilot", f"udpin:127.0.0.1:{ports.autopilot}",
                                   "--gcs", f"udpin:127.0.0.1:{ports.vehicle}",
@@ -474,8 +477,9 @@ def compare_reports(original: dict[str, Any], replay: dict[str, Any]) -> list[tu
 @click.option("--record-frames", is_flag=True,
               help="Also record the companion's camera frames to OUT/frames.qlcf (~11 MB per second of flight).")
 @click.option("--journal", is_flag=True,
-              help=f"Journal every input the companion handles to OUT/{JOURNAL_NAME} (~12 MB per second of flight): "
-                   f"`quadlink replay-companion OUT/{JOURNAL_NAME}` re-runs the companion bit for bit.")
+              help=f"Journal every input the companion handles to OUT/{JOURNAL_NAME} (~12 MB per second of flight) "
+                   f"and the bridge's to OUT/{BRIDGE_JOURNAL_NAME} (~0.1 MB/s): `quadlink replay-companion` and "
+                   "`quadlink replay-bridge` re-run each bit for bit.")
 @click.option("--link-delay-ms", type=float, default=None,
               help="Ground link through netem: one-way delay (ms, each direction) [issue 18].")
 @click.option("--link-jitter-ms", type=float, default=None, help="Ground link jitter (ms, std dev).")

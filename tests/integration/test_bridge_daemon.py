@@ -14,8 +14,17 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from click.testing import CliRunner
+from hypothesis import given
+from hypothesis import strategies as st
 
+from companion.journal import JournalWriter as CompanionJournal
 from firmware_bridge.daemon import BridgeConfig, BridgeDaemon, _align
+from firmware_bridge.journal import SCHEMA, JournalWriter, Kind, decode_input, encode_input, read_events
+from firmware_bridge.replay import replay_bridge_journal
+from quadlink import journal as core
+from quadlink.cli import main
+from quadlink.config import to_dict
 from quadlink.errors import LinkError
 from quadlink.frames import GRAVITY_M_S2
 from quadlink.mavlink import mavlink
@@ -212,3 +221,72 @@ def test_counter_alignment_unwraps_the_12_bit_counter():
     assert _align(10000, (10000 + 3) % 4096) == 10003
     assert _align(8193, 4095) == 8191
     assert _align(0, 5) == 5
+
+
+def test_a_journaled_bridge_re_runs_bit_for_bit_and_a_changed_reading_is_found(gcs_port, tmp_path):
+    """Issue 28: the bridge's input journal (firmware_bridge.journal), free-running against the fake board with a
+    ground station's parameter download and change and garbage on both sides: the replay writes every MK setpoint
+    and MAVLink frame the flight wrote; a journal with one clock reading changed diverges there."""
+    board = FakeBoard(chunks=200, garbage=True)
+    config = BridgeConfig(mk_cmd_url=board.cmd_url, mk_imu_url=board.imu_url,
+                          mavlink_urls=(f"udpout:127.0.0.1:{gcs_port}",), params_file=str(tmp_path / "p.yaml"))
+    path = tmp_path / "bridge.qlbj"
+    journal = JournalWriter(path, {"bridge": to_dict(config), "vehicle": to_dict(VehicleConfig()), "params": {}})
+    daemon = BridgeDaemon(config, VehicleConfig(), journal=journal)
+    gcs = open_mavlink(f"udpin:127.0.0.1:{gcs_port}", 255, 190)
+    daemon.open()
+    thread = threading.Thread(target=daemon.run, kwargs={"duration_s": 30.0}, daemon=True)
+    thread.start()
+    try:
+        gcs.recv_match(type="HEARTBEAT", blocking=True, timeout=5.0)
+        gcs.mav.param_request_list_send(1, 1)
+        gcs.mav.param_set_send(1, 1, b"MIS_TAKEOFF_ALT", 1.7, 9)
+        for address in list(gcs.clients):
+            gcs.port.sendto(b"\xfd\x09garbage" * 4, address)
+        board.thread.join(timeout=15.0)
+    finally:
+        stop(daemon, thread, gcs, board)
+        journal.close()
+    report = replay_bridge_journal(path)
+    assert report.identical, report.summary()
+    assert report.by_kind["INPUT"] >= 200 and report.by_kind["HOUSEKEEPING"] > 100
+    assert report.writes_compared >= 200 + 1000   # every setpoint, every HIGHRES_IMU at least
+    # the same journal with one housekeeping turn's clock reading moved by 5 s
+    header, events = read_events(path)
+    tampered = tmp_path / "tampered.qlbj"
+    writer = core.JournalWriter(tampered, {k: v for k, v in header.items() if k not in ("version", "started_unix_s")},
+                                SCHEMA)
+    target = None
+    for event in events:
+        with writer.event(event.kind, event.payload):
+            for kind, readings in event.readings.items():
+                for i, t in enumerate(readings):
+                    moved = target is None and event.index > 500 and event.kind == Kind.HOUSEKEEPING and \
+                        kind == Kind.CLOCK and i == 0
+                    if moved:
+                        target = event.index
+                    writer.clock(lambda t=t, moved=moved: t + 5.0 if moved else t, kind)()
+            for kind, buf in event.outputs:
+                writer.output(kind, buf)
+    writer.close()
+    assert target is not None
+    report = replay_bridge_journal(tampered)
+    # found at once or at the next turns (a tick timer set 5 s ahead skips the ticks after it), never before
+    assert not report.identical and report.divergence_event is not None, report.summary()
+    assert target <= report.divergence_event <= target + 10, (target, report.summary())
+    # the command a user runs: 0 identical, 1 a divergence, 2 not a bridge journal (a companion's)
+    assert CliRunner().invoke(main, ["replay-bridge", str(path)]).exit_code == 0
+    assert CliRunner().invoke(main, ["replay-bridge", str(tampered)]).exit_code == 1
+    companion_journal = tmp_path / "companion.qljn"
+    CompanionJournal(companion_journal, {}).close()
+    wrong = CliRunner().invoke(main, ["replay-bridge", str(companion_journal)])
+    assert wrong.exit_code == 2 and "not a bridge journal" in wrong.output
+
+
+@given(st.one_of(
+    st.tuples(st.sampled_from(["imu", "cmd"]), st.binary(max_size=64), st.floats(allow_nan=False)),
+    st.tuples(st.just("mav"), st.integers(0, 255), st.binary(max_size=280)),
+    st.tuples(st.just("mavbad"), st.integers(0, 255), st.text(max_size=40)),
+    st.tuples(st.just("link"), st.sampled_from(["imu", "cmd"]), st.text(max_size=40))))
+def test_every_reader_item_survives_the_journal(item):
+    assert decode_input(encode_input(item)) == item

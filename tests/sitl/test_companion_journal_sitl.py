@@ -1,7 +1,9 @@
-"""Issue 28: a companion's flight re-run from its input journal. A deterministic lock-step demo flight with the
-companion journaling (``quadlink demo --journal``): the real perception on the SITL's frames, the bridge's IMU and
-the operator's MANUAL_CONTROL. ``quadlink replay-companion`` re-runs that companion open loop, alone, from the
-journal, and must write every byte the flight's companion wrote, to the autopilot and to the ground station."""
+"""Issue 28: a flight's companion and bridge re-run from their input journals. A deterministic lock-step demo flight
+with both journaling (``quadlink demo --journal``): the real perception on the SITL's frames, the bridge's IMU and
+the operator's MANUAL_CONTROL. ``quadlink replay-companion`` re-runs that companion open loop, alone, from its
+journal, and must write every byte the flight's companion wrote, to the autopilot and to the ground station;
+``quadlink replay-bridge`` re-runs the bridge, and must write every byte it wrote to the board and to each
+MAVLink endpoint."""
 
 from __future__ import annotations
 
@@ -13,7 +15,8 @@ from pathlib import Path
 import pytest
 
 from companion.replay import replay_journal
-from harness.demo.cli import JOURNAL_NAME, run_demo
+from firmware_bridge.replay import replay_bridge_journal
+from harness.demo.cli import BRIDGE_JOURNAL_NAME, JOURNAL_NAME, run_demo
 
 pytestmark = [pytest.mark.sitl, pytest.mark.timeout(600)]
 
@@ -51,3 +54,11 @@ def test_a_flights_companion_re_runs_from_its_journal_bit_for_bit(tmp_path: Path
                           capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stderr[-2000:]
     assert "identical, bit for bit" in done.stdout
+    # the bridge: every MK setpoint and every MAVLink frame, from the board's IMU bytes and the companion's datagrams
+    bridge = replay_bridge_journal(tmp_path / BRIDGE_JOURNAL_NAME)
+    print(bridge.summary())
+    assert bridge.identical, bridge.summary()
+    assert bridge.by_kind["INPUT"] > 1000 and bridge.by_kind["HOUSEKEEPING"] > 1000 and bridge.writes_compared > 5000
+    done = subprocess.run([sys.executable, "-m", "quadlink.cli", "replay-bridge", str(tmp_path / BRIDGE_JOURNAL_NAME)],
+                          capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0 and "identical, bit for bit" in done.stdout, done.stdout[-500:] + done.stderr[-2000:]
