@@ -13,7 +13,8 @@
   at 20 Hz), as are the motion commands the companion does not take (:meth:`GcsCommands.refuse_motion`).
 * Mode changes for the autopilot (:meth:`GcsCommands.on_set_mode`, from MAV_CMD_DO_SET_MODE or SET_MODE):
   OFFBOARD engages a script, a hold-like mode (POSCTL, ALTCTL, AUTO_LOITER) disengages it (the motion
-  arbiter, :mod:`companion.arbiter`). While the companion flies the vehicle it answers them as the
+  arbiter, :mod:`companion.arbiter`); a landing mode (AUTO.LAND: QGroundControl's Land; ArduCopter's LAND:
+  MAVProxy's ``mode land``) is checked as a LAND is. While the companion flies the vehicle it answers them as the
   autopilot would (its forwarded heartbeat reports the arbiter's mode); other modes (LAND, RTL, ...) and
   every mode change while it is not in control go on to the autopilot.
 * The mode the ground stations see (:meth:`GcsCommands.mode_heartbeat`): while the companion is in control
@@ -36,7 +37,7 @@ from companion.outbound import AutopilotAck, GcsReply, Output
 from companion.params import ParamService
 from quadlink.mavlink import mavlink
 from quadlink.mavlink.command_params import COMMAND_PARAMS, CommandParamError, read_params
-from quadlink.px4_modes import AUTO_LOITER, OFFBOARD, POSCTL, Px4MainMode
+from quadlink.px4_modes import AUTO_LOITER, OFFBOARD, POSCTL, Px4MainMode, is_land_mode
 
 GCS_COMMAND_NAMES = {mavlink.MAV_CMD_NAV_TAKEOFF: "takeoff", mavlink.MAV_CMD_NAV_LAND: "land"}
 
@@ -106,15 +107,24 @@ class GcsCommands:
         flies the vehicle: if the spot below is no place to land, answered as the autopilot (handled, outputs):
         refused over an object, accepted over unseen ground (the companion moves to seen ground, then asks the
         autopilot to land); else it goes on to the autopilot, which lands (and the mode machine follows it)."""
+        return self._land_as_autopilot(msg, msg.command, ack=True)
+
+    def _land_as_autopilot(self, msg: Any, command: int, ack: bool) -> tuple[bool, list[Output]]:
+        """A landing asked of the autopilot (``command``: NAV_LAND or DO_SET_MODE; ``ack``: answer it) while the
+        companion flies the vehicle: handled here only if the spot below is no place to land (see
+        :meth:`on_autopilot_land`)."""
         if not self.modes.in_control:
             return False, []
         refusal = self._land_refusal()
         if refusal is None:
             return False, []
-        ok, out = self.modes.request("land", self._clock(), self._vehicle_status(), refusal)
-        result = mavlink.MAV_RESULT_ACCEPTED if ok else mavlink.MAV_RESULT_DENIED
-        return True, [*out, AutopilotAck(mavlink.MAVLink_command_ack_message(
-            msg.command, result, 0, 0, msg.get_srcSystem(), msg.get_srcComponent()))]
+        ok, actions = self.modes.request("land", self._clock(), self._vehicle_status(), refusal)
+        out: list[Output] = list(actions)
+        if ack:
+            result = mavlink.MAV_RESULT_ACCEPTED if ok else mavlink.MAV_RESULT_DENIED
+            out.append(AutopilotAck(mavlink.MAVLink_command_ack_message(
+                command, result, 0, 0, msg.get_srcSystem(), msg.get_srcComponent())))
+        return True, out
 
     def refuse_motion(self, text: str) -> list[Output]:
         """A refused motion command: a STATUSTEXT if ``text`` is not the reason last told."""
@@ -143,6 +153,8 @@ class GcsCommands:
                 not (int(base_mode) & mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED):
             return False, []
         main_i, sub_i = int(main), int(sub)
+        if is_land_mode(main_i, sub_i):   # QGroundControl's Land, MAVProxy's "mode land": a LAND like any other
+            return self._land_as_autopilot(msg, mavlink.MAV_CMD_DO_SET_MODE, ack)
         offboard = main_i == Px4MainMode.OFFBOARD
         hold = main_i in (Px4MainMode.POSCTL, Px4MainMode.ALTCTL) or \
             (main_i == AUTO_LOITER.main and sub_i == AUTO_LOITER.sub)

@@ -50,7 +50,7 @@ class ArduCopterMode(enum.IntEnum):
 
     GUIDED = 4
     LOITER = 5
-    LAND = 9
+    LAND = px4_modes.ARDUCOPTER_LAND
     POSHOLD = 16
 
 

@@ -64,3 +64,11 @@ ALTCTL = Px4Mode(Px4MainMode.ALTCTL)
 AUTO_TAKEOFF = Px4Mode(Px4MainMode.AUTO, Px4AutoSubMode.TAKEOFF)
 AUTO_LOITER = Px4Mode(Px4MainMode.AUTO, Px4AutoSubMode.LOITER)
 AUTO_LAND = Px4Mode(Px4MainMode.AUTO, Px4AutoSubMode.LAND)
+ARDUCOPTER_LAND = 9   # ArduCopter's LAND: what MAVProxy's ``mode land`` sends for a generic quadrotor (the bridge
+                      # takes ArduCopter's numbers where they are unambiguous, firmware_bridge.modes)
+
+
+def is_land_mode(main: int, sub: int) -> bool:
+    """A mode request (DO_SET_MODE's or SET_MODE's main and sub mode) that lands the vehicle: PX4's AUTO.LAND (what
+    QGroundControl's Land action asks a PX4 vehicle for) or ArduCopter's LAND."""
+    return (main, sub) in ((AUTO_LAND.main, AUTO_LAND.sub), (ARDUCOPTER_LAND, 0))

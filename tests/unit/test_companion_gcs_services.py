@@ -328,6 +328,34 @@ def test_a_land_over_unseen_ground_is_accepted_and_moves_to_seen_ground_first() 
     assert acks(out) == [(land, mavlink.MAV_RESULT_ACCEPTED, None)]
 
 
+def test_a_landing_mode_is_checked_as_a_land_is() -> None:
+    """QGroundControl's Land asks a PX4 vehicle for AUTO.LAND (DO_SET_MODE), MAVProxy's ``mode land`` for
+    ArduCopter's LAND (9, SET_MODE): while the companion flies, neither may bypass the landing-spot check. Over an
+    object: DENIED, answered as the autopilot (SET_MODE has no ack); over unseen ground: accepted, moving to seen
+    ground; over seen floor, or not flying it: the autopilot's (forwarded)."""
+    set_mode = command(mavlink.MAV_CMD_DO_SET_MODE, target_component=AP_COMPID)
+    for main, sub in ((Px4MainMode.AUTO, 6.0), (9.0, 0.0)):
+        rig = InputRig()
+        rig.modes.mode, rig.modes.odometry_ok = Mode.TELEOP, True
+        rig.status = VehicleStatus(armed=True, in_air=True)
+        rig.land_refusal = SpotRefusal("land refused: object below, 0.75 m tall")
+        handled, out = rig.cmds.on_set_mode(set_mode, CUSTOM, main, sub)
+        (ack,) = [o.msg for o in out if isinstance(o, AutopilotAck)]
+        assert handled and ack.command == mavlink.MAV_CMD_DO_SET_MODE and ack.result == mavlink.MAV_RESULT_DENIED
+        assert texts(out) == ["companion: land refused: object below, 0.75 m tall"] and rig.modes.mode == Mode.TELEOP
+        handled, out = rig.cmds.on_set_mode(set_mode, CUSTOM, main, sub, ack=False)   # SET_MODE: no ack
+        assert handled and not [o for o in out if isinstance(o, AutopilotAck)] and rig.modes.mode == Mode.TELEOP
+        rig.land_refusal = SpotRefusal("ground below not seen (40 %)", unseen=True)
+        handled, out = rig.cmds.on_set_mode(set_mode, CUSTOM, main, sub)
+        (ack,) = [o.msg for o in out if isinstance(o, AutopilotAck)]
+        assert handled and rig.modes.clearing_spot and ack.result == mavlink.MAV_RESULT_ACCEPTED
+        rig = InputRig()
+        rig.modes.mode = Mode.TELEOP
+        assert rig.cmds.on_set_mode(set_mode, CUSTOM, main, sub) == (False, [])      # nothing below: the autopilot's
+        rig.modes.mode, rig.land_refusal = Mode.IDLE, SpotRefusal("land refused: object below, 0.75 m tall")
+        assert rig.cmds.on_set_mode(set_mode, CUSTOM, main, sub) == (False, [])      # not flying it
+
+
 def _requests_of(actions: list[Any]) -> list[str]:
     return [a.name for a in actions if isinstance(a, AutopilotRequest)]
 
