@@ -8,6 +8,8 @@ over) and is told to land there.
   LAND is accepted and the vehicle lands on the floor.
 * A failsafe landing over the box (the operator's MANUAL_CONTROL stops; heartbeats go on) first moves clear of
   it and lands on the floor.
+* (``-m slow``) A script's LAND over ground the camera never saw (campaign 7575's flight 14) is accepted, moves to
+  seen ground and lands on the floor.
 
 Where the vehicle ends up is judged from the SITL's truth and the scenario's geometry, not from the companion.
 """
