@@ -12,8 +12,8 @@ chunk with exactly one setpoint. Only while the IMU stream is silent does a wall
 advance time and clock the control step (failsafes must still run).
 
 Deterministic lock-step (``--lockstep tcp://HOST:PORT``, :mod:`quadlink.lockstep`): the bridge joins the
-SITL's coordinator as participant ``"bridge"`` and its main thread runs steps instead of the free-running
-queue loop. On ``STEP k`` it waits (bounded) until the readers have delivered what the step announces
+SITL's coordinator as participant ``"bridge"`` and its one loop (:meth:`BridgeDaemon.run`) takes its inputs from
+the coordinator's steps instead of the readers' queue. On ``STEP k`` it waits (bounded) until the readers have delivered what the step announces
 (companion datagrams on MAVLink endpoint 0, MK port-1 and port-2 bytes), holds back companion datagrams
 that came early, handles the step's inputs in a fixed order (endpoint 0, the other endpoints, MK port 1,
 MK port 2, whose IMU samples clock the control step: one setpoint per chunk), runs the housekeeping once
@@ -65,7 +65,6 @@ from quadlink.lockstep import (
     LockstepClient,
     LockstepEnded,
     LockstepError,
-    Step,
     wait_for_units,
 )
 from quadlink.mavlink import mavlink
@@ -295,25 +294,65 @@ class BridgeDaemon:
         except queue.Full:
             log.warning("bridge input queue full; dropping %s input", item[0])
 
-    # ------------------------------------------------------------------ main loop
+    # ------------------------------------------------------------------ the loop
     def run(self, duration_s: float | None = None) -> None:
-        """Process inputs until :meth:`stop` (or ``duration_s`` of wall time; in lock-step mode, of simulated
-        time, or until the simulation ends). Lock-step: :class:`LockstepError` when the coordinator is lost
-        (closed without an end message) or an announced input did not come."""
-        if self.lockstep is not None:
-            self._run_lockstep(self.lockstep, duration_s)
-            return
+        """The one loop, whatever the event source: take the next inputs (:meth:`_next_inputs`: what the readers
+        queued, or the lock-step's STEP), handle each, run one housekeeping turn, tell the source (:meth:`_done`);
+        until :meth:`stop`, ``duration_s`` of the daemon's clock (in lock-step: simulated time), or the
+        simulation's end. Lock-step: :class:`LockstepError` when the coordinator is lost (closed without an end
+        message) or an announced input did not come. A journal's replay hands the same handlers their events
+        (:mod:`firmware_bridge.replay`)."""
         end = None if duration_s is None else self.clock() + duration_s
-        while not self._stop.is_set():
-            if end is not None and self.clock() >= end:
-                break
+        try:
+            while not self._stop.is_set():
+                inputs = self._next_inputs()
+                if inputs is None:   # a lock-step wait slice passed without a STEP: look at the stop flag again
+                    continue
+                for item in inputs:
+                    self._handle(item)
+                self._turn()
+                self._done()
+                if end is not None and self.clock() >= end:
+                    break
+        except _Stopped:
+            pass
+        except LockstepEnded as exc:
+            log.info("lock-step: %s", exc)
+        except LockstepError as exc:
+            client = self.lockstep
+            log.warning("lock-step ended at step %s: %s",
+                        client.step.index if client is not None and client.step is not None else "(none)", exc)
+            raise
+        finally:
+            if self.lockstep is not None:
+                self.lockstep.close()
+
+    def _next_inputs(self) -> list[tuple[Any, ...]] | None:
+        """The inputs of the next turn. Free-running: the item the readers queued within 5 ms, if any. Lock-step:
+        the next STEP's inputs, each link's up to its announced count (waiting, bounded, for those in flight), in
+        the canonical order, its time the daemon's clock; None when no STEP came within a wait slice."""
+        if self.lockstep is None:
             try:
-                item = self._queue.get(timeout=0.005)
+                return [self._queue.get(timeout=0.005)]
             except queue.Empty:
-                item = None
-            if item is not None:
-                self._handle(item)
-            self._turn()
+                return []
+        step = self.lockstep.next_step()  # None after STEP_WAIT_SLICE_S: look at the stop flag again
+        if step is None:
+            return None
+        self._step_t_s = step.t_s
+        wait = functools.partial(wait_for_units, pump=self._pump, timeout_s=DEFAULT_INPUT_TIMEOUT_S,
+                                 clock=self._wall_clock)
+        for link, what in ((LINK_COMPANION_IN, "datagrams on MAVLink endpoint 0"),
+                           (LINK_MK_CMD_IN, "bytes on MK port 1"), (LINK_MK_IMU_IN, "bytes on MK port 2")):
+            wait(functools.partial(self._step_inputs.received, link), step.count(link),
+                 what=f"step {step.index}: {link} {what}")
+        self._pump(0.0)  # what else has arrived (the endpoints outside the lock-step)
+        return self._step_inputs.take(step)
+
+    def _done(self) -> None:
+        """Lock-step: DONE for the step, with what was sent on the lock-step's links."""
+        if self.lockstep is not None:
+            self.lockstep.done(self.lockstep_sent())
 
     # ------------------------------------------------------------------ the deterministic lock-step
     def _step_clock(self) -> float:
@@ -324,44 +363,6 @@ class BridgeDaemon:
         """Units sent so far on the bridge's lock-step output links (cumulative; see :mod:`quadlink.lockstep`)."""
         return {LINK_MK_OUT: self.cmd.bytes_written if self.cmd is not None else 0,
                 LINK_COMPANION_OUT: self._companion_sent.count if self._companion_sent is not None else 0}
-
-    def _run_lockstep(self, client: LockstepClient, duration_s: float | None) -> None:
-        """Answer the coordinator's steps until :meth:`stop`, ``duration_s`` of simulated time, or the
-        simulation's end (a normal end returns; a coordinator lost or an input that never came raises
-        :class:`LockstepError` after the client is closed)."""
-        try:
-            while not self._stop.is_set():
-                step = client.next_step()  # None after STEP_WAIT_SLICE_S: look at the stop flag again
-                if step is None:
-                    continue
-                self._run_step(step)
-                client.done(self.lockstep_sent())
-                if duration_s is not None and step.t_s >= duration_s:
-                    break
-        except _Stopped:
-            pass
-        except LockstepEnded as exc:
-            log.info("lock-step: %s", exc)
-        except LockstepError as exc:
-            log.warning("lock-step ended at step %s: %s",
-                        client.step.index if client.step is not None else "(none)", exc)
-            raise
-        finally:
-            client.close()
-
-    def _run_step(self, step: Step) -> None:
-        """One step: its inputs up to the announced counts, in the canonical order, then the housekeeping."""
-        self._step_t_s = step.t_s
-        inputs = self._step_inputs
-        wait = functools.partial(wait_for_units, pump=self._pump, timeout_s=DEFAULT_INPUT_TIMEOUT_S,
-                                 clock=self._wall_clock)
-        for link, what in ((LINK_COMPANION_IN, "datagrams on MAVLink endpoint 0"),
-                           (LINK_MK_CMD_IN, "bytes on MK port 1"), (LINK_MK_IMU_IN, "bytes on MK port 2")):
-            wait(functools.partial(inputs.received, link), step.count(link), what=f"step {step.index}: {link} {what}")
-        self._pump(0.0)  # what else has arrived (the endpoints outside the lock-step)
-        for item in inputs.take(step):
-            self._handle(item)
-        self._turn()
 
     def _pump(self, block_s: float) -> None:
         """Sort what the readers queued into the step inputs, waiting up to ``block_s`` for the first item;
