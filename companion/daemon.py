@@ -258,15 +258,33 @@ class Companion:
 
     # ------------------------------------------------------------------ the loop
     def run(self, stop: threading.Event, duration_s: float | None = None) -> None:
-        """Step until ``stop`` is set or ``duration_s`` of the clock have passed (in lock-step: simulated seconds,
-        or the simulation's end; :class:`~quadlink.lockstep.LockstepError` when the coordinator is lost or a
-        unit does not come)."""
-        if self.lockstep is not None:
-            self._run_lockstep(stop, duration_s, self.lockstep)
-            return
+        """The one loop, whatever the event source: one turn (:meth:`step` on the wall clock and the sockets, or
+        :meth:`lockstep_step` per STEP of the coordinator) after another, until ``stop`` is set or ``duration_s``
+        of the clock have passed (in lock-step: simulated seconds, or the simulation's end;
+        :class:`~quadlink.lockstep.LockstepError` when the coordinator is lost or a unit does not come). The stop
+        flag is looked at between turns and while a step waits for a unit (every wait is sliced at 0.1 s at
+        most). A journal's replay hands the same handlers their events (:mod:`companion.replay`)."""
+        self._stop = stop
         end = None if duration_s is None else self.clock() + duration_s
-        while not stop.is_set() and (end is None or self.clock() < end):
-            self.step()
+        ls = self.lockstep
+        try:
+            while not stop.is_set() and (end is None or self.clock() < end):
+                if ls is None:
+                    self.step()
+                    continue
+                step = ls.client.next_step()
+                if step is not None:
+                    self.lockstep_step(step)
+        except _Stopped:
+            pass
+        except LockstepEnded as exc:   # the simulation's normal end: ours too
+            log.info("lock-step: %s", exc)
+        except LockstepError as exc:
+            log.error("lock-step ended: %s", exc)
+            raise
+        finally:
+            if ls is not None:
+                ls.close()
 
     def step(self) -> None:
         self._drain_autopilot()
@@ -320,27 +338,7 @@ class Companion:
             self.stats.handler_errors += 1
             self.errors.record(where, exc)
 
-    # ------------------------------------------------------------------ the lock-step loop (quadlink.lockstep)
-    def _run_lockstep(self, stop: threading.Event, duration_s: float | None, ls: LockstepLinks) -> None:
-        """The step loop: one :meth:`lockstep_step` per STEP; the stop flag is looked at between steps and while a
-        step waits for a unit (every wait is sliced at 0.1 s at most). The lock-step is left at the end."""
-        self._stop = stop
-        end = None if duration_s is None else self.clock() + duration_s
-        try:
-            while not stop.is_set() and (end is None or self.clock() < end):
-                step = ls.client.next_step()
-                if step is not None:
-                    self.lockstep_step(step)
-        except _Stopped:
-            pass
-        except LockstepEnded as exc:   # the simulation's normal end: ours too
-            log.info("lock-step: %s", exc)
-        except LockstepError as exc:
-            log.error("lock-step ended: %s", exc)
-            raise
-        finally:
-            ls.close()
-
+    # ------------------------------------------------------------------ the lock-step's turn (quadlink.lockstep)
     def lockstep_step(self, step: Step) -> None:
         """One STEP: the inputs in their fixed order, each exactly up to its count, the periodic tasks, DONE.
 
