@@ -13,9 +13,9 @@ advance time and clock the control step (failsafes must still run).
 
 Deterministic lock-step (``--lockstep tcp://HOST:PORT``, :mod:`quadlink.lockstep`): the bridge joins the
 SITL's coordinator as participant ``"bridge"`` and its one loop (:meth:`BridgeDaemon.run`) takes its inputs from
-the coordinator's steps instead of the readers' queue. On ``STEP k`` it waits (bounded) until the readers have delivered what the step announces
-(companion datagrams on MAVLink endpoint 0, MK port-1 and port-2 bytes), holds back companion datagrams
-that came early, handles the step's inputs in a fixed order (endpoint 0, the other endpoints, MK port 1,
+the coordinator's steps instead of the readers' queue. On ``STEP k`` it waits (bounded) until the readers have
+delivered what the step announces (companion datagrams on MAVLink endpoint 0, MK port-1 and port-2 bytes), holds
+back companion datagrams that came early, handles the step's inputs in a fixed order (endpoint 0, the other endpoints, MK port 1,
 MK port 2, whose IMU samples clock the control step: one setpoint per chunk), runs the housekeeping once
 and answers ``DONE k`` with what it has sent (MK port-1 bytes, endpoint-0 datagrams). Its clock is the
 step's simulated time, not the wall clock: the board-time fallback, the telemetry streams, the refusal and
