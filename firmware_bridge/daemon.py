@@ -11,19 +11,18 @@ the 100 Hz control step runs on every 5th sample, so in lock-step SITL the bridg
 chunk with exactly one setpoint. Only while the IMU stream is silent does a wall-clock fallback
 advance time and clock the control step (failsafes must still run).
 
-Deterministic lock-step (``--lockstep tcp://HOST:PORT``, :mod:`quadlink.lockstep`): the bridge joins the
-SITL's coordinator as participant ``"bridge"`` and its one loop (:meth:`BridgeDaemon.run`) takes its inputs from
-the coordinator's steps instead of the readers' queue. On ``STEP k`` it waits (bounded) until the readers have
+Deterministic lock-step (``--lockstep tcp://HOST:PORT``, :mod:`quadlink.lockstep`): the bridge joins the SITL's
+coordinator as participant ``"bridge"`` and its one loop (:meth:`BridgeDaemon.run`) takes its inputs from the
+coordinator's steps instead of the readers' queue. On ``STEP k`` it waits (bounded) until the readers have
 delivered what the step announces (companion datagrams on MAVLink endpoint 0, MK port-1 and port-2 bytes), holds
-back companion datagrams that came early, handles the step's inputs in a fixed order (endpoint 0, the other endpoints, MK port 1,
-MK port 2, whose IMU samples clock the control step: one setpoint per chunk), runs the housekeeping once
-and answers ``DONE k`` with what it has sent (MK port-1 bytes, endpoint-0 datagrams). Its clock is the
-step's simulated time, not the wall clock: the board-time fallback, the telemetry streams, the refusal and
-version-request timers and the parameter saving all run on it, the IMU never goes stale, and SYSTEM_TIME
-carries no Unix time (0, "unknown"), so the same inputs give the same bytes on any machine. Nothing is
-written on MK port 1 or endpoint 0 outside a step (only the main thread writes). The reader threads still
-stamp their reads with the wall clock, which only feeds the in-process latency statistic.
-"""
+back companion datagrams that came early, handles the step's inputs in a fixed order (endpoint 0, the other
+endpoints, MK port 1, MK port 2, whose IMU samples clock the control step: one setpoint per chunk), runs the
+housekeeping once and answers ``DONE k`` with what it has sent (MK port-1 bytes, endpoint-0 datagrams). Its clock
+is the step's simulated time, not the wall clock: the board-time fallback, the telemetry streams, the refusal and
+version-request timers and the parameter saving all run on it, the IMU never goes stale, and SYSTEM_TIME carries
+no Unix time (0, "unknown"), so the same inputs give the same bytes on any machine. Nothing is written on MK port
+1 or endpoint 0 outside a step (only the main thread writes). The reader threads still stamp their reads with the
+wall clock, which only feeds the in-process latency statistic."""
 
 from __future__ import annotations
 
