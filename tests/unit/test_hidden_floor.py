@@ -45,6 +45,30 @@ def test_a_dark_column_is_found_at_its_foot(height_m: float, distance_m: float, 
     assert np.any(pts[:, 2] <= 0.0) and np.all(pts[:, 2] <= height_m - 0.15 - 1e-9)
 
 
+@pytest.mark.parametrize(("height_m", "distance_m"), [(1.0, 1.4), (1.5, 1.8), (0.8, 1.2)])
+def test_a_found_object_reaches_the_floor_below_the_level_it_was_found_at(height_m: float, distance_m: float,
+                                                                          rng: np.random.Generator) -> None:
+    """It stands on the floor: each of its azimuths carries points from the highest one down to 0.3 m above the
+    floor, at most 0.3 m apart, so a vehicle that later descends meets it within the map's height band (+-0.45 m;
+    campaign 22, flight 35 found a dark box from 1 m up and flew into it from 0.3 m up)."""
+    cfg = HiddenFloorConfig(enabled=True)
+    pts = hidden(render(height_m, [column_at(distance_m)], rng), height_m)
+    assert pts.shape[0] >= 1
+    low_z = height_m - cfg.foot_clearance_m            # H z down: 0.3 m above the floor
+    columns: dict[tuple[float, float], list[float]] = {}
+    for x, y, z in pts:
+        columns.setdefault((round(float(x), 6), round(float(y), 6)), []).append(float(z))
+    for zs in columns.values():
+        zs = sorted(zs)
+        # (an edge bin whose rays passed over a low part is lower than that already)
+        assert zs[-1] >= low_z - 1e-9, "an azimuth's points stop above 0.3 m over the floor"
+        assert float(np.max(np.diff(zs), initial=0.0)) <= cfg.level_step_m + 1e-9
+    # every height from the top point down to 0.3 m over the floor lies within 0.15 m of a point
+    assert float(pts[:, 2].min()) <= 0.0       # found at the vehicle's level (the middle bins)
+    for z in np.linspace(float(pts[:, 2].min()), low_z, 20):
+        assert float(np.min(np.abs(pts[:, 2] - z))) <= cfg.level_step_m / 2 + 1e-9
+
+
 @pytest.mark.parametrize(("height_m", "distance_m", "radius_m"), [(1.0, 1.6, 0.5), (1.1, 2.0, 0.6), (1.1, 1.4, 0.4),
                                                                   (0.8, 1.2, 0.3)])
 def test_a_wide_dark_objects_ends_are_mapped_to_within_a_bin(height_m: float, distance_m: float, radius_m: float,
