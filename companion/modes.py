@@ -217,8 +217,8 @@ class ModeMachine:
                 return False, [StatusText(SEVERITY_WARNING, f"companion: {land_refusal.text}")]
             if self._commanded_clearing:
                 return True, []
-            actions = self._failsafe_land(now_s, "ground-station land", land_refusal.text, self.odometry_ok,
-                                          SEVERITY_NOTICE)
+            actions = self._land_clear_of_objects(now_s, "ground-station land", land_refusal.text,
+                                                  self.odometry_ok, SEVERITY_NOTICE)
             self._commanded_clearing = self.clearing_spot
             return True, actions
         return True, [AutopilotRequest("land")] + self._go(Mode.LAND, now_s, "ground-station land")
@@ -235,11 +235,11 @@ class ModeMachine:
         return [text]
 
     # --- the periodic step ------------------------------------------------------------------
-    def _failsafe_land(self, now_s: float, reason: str, land_refusal: LandRefusal, can_move: bool,
-                       severity: int = SEVERITY_WARNING) -> list[Action]:
-        """A failsafe landing (or a ground station's over unseen ground): at once, or first moving clear of an
-        object below (``land_refusal``: why the spot is no place to land) while ``can_move`` and for at most
-        ``land_clear_timeout_s``."""
+    def _land_clear_of_objects(self, now_s: float, reason: str, land_refusal: LandRefusal, can_move: bool,
+                               severity: int = SEVERITY_WARNING) -> list[Action]:
+        """A landing that must not come down on an object: a failsafe's, or a ground station's over unseen
+        ground. At once, or first moving clear of an object below (``land_refusal``: why the spot is no place to
+        land) while ``can_move`` and for at most ``land_clear_timeout_s``."""
         p = self.params
         if callable(land_refusal):
             land_refusal = land_refusal()
@@ -307,10 +307,11 @@ class ModeMachine:
             if not status.armed:
                 actions += self._go(Mode.IDLE, now_s, "autopilot disarmed", SEVERITY_WARNING)
             elif self.commanded_clearing:   # a ground station's land, moving to seen ground first
-                actions += self._failsafe_land(now_s, "ground-station land", land_refusal, usable, SEVERITY_NOTICE)
+                actions += self._land_clear_of_objects(now_s, "ground-station land", land_refusal, usable,
+                                                       SEVERITY_NOTICE)
             elif silent_for is not None and silent_for >= p.gcs_land_timeout_s:
-                actions += self._failsafe_land(now_s, f"no fresh command for {p.gcs_land_timeout_s:g} s",
-                                               land_refusal, usable)
+                actions += self._land_clear_of_objects(now_s, f"no fresh command for {p.gcs_land_timeout_s:g} s",
+                                                       land_refusal, usable)
             elif self.mode == Mode.TELEOP and failed:
                 actions += self._go(Mode.HOLD, now_s, "odometry failed", SEVERITY_CRITICAL)
             elif self.mode == Mode.TELEOP and not gcs_ok:
@@ -319,7 +320,8 @@ class ModeMachine:
                 lost_for = now_s - self._last_manual_s if self._last_manual_s is not None else in_mode
                 bad_for = now_s - self._odometry_bad_since_s if self._odometry_bad_since_s is not None else 0.0
                 if not gcs_ok and lost_for >= p.gcs_land_timeout_s:
-                    actions += self._failsafe_land(now_s, "ground-station link lost too long", land_refusal, usable)
+                    actions += self._land_clear_of_objects(now_s, "ground-station link lost too long",
+                                                           land_refusal, usable)
                 elif failed and bad_for >= p.odometry_land_timeout_s:
                     actions.append(AutopilotRequest("land"))
                     actions += self._go(Mode.LAND, now_s, "odometry failed too long", SEVERITY_CRITICAL)

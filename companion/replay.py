@@ -21,7 +21,7 @@ from companion.link_reader import decode_highres_imu_v2
 from quadlink.camera import RgbdFrame
 from quadlink.config import from_dict
 from quadlink.errors import ConfigError
-from quadlink.journal import ReplayClock, ReplayReport, first_difference
+from quadlink.journal import JournalEvent, ReplayClock, ReplayReport, replay_events
 from quadlink.mavlink import mavlink
 
 log = logging.getLogger("companion.replay")
@@ -93,43 +93,35 @@ def replay_journal(path: str | Path, progress: Callable[[int], None] | None = No
     clocks = [ReplayClock(Kind.CLOCK, "CLOCK"), ReplayClock(Kind.STOPWATCH, "STOPWATCH")]
     clock, stopwatch = clocks
     autopilot, gcs = _Link(), _Link()
-    report = ReplayReport()
     daemon: Any = None
-    try:
-        for event in events:
-            for c in clocks:
-                c.load(event)
-            autopilot.written.clear()
-            gcs.written.clear()
-            if event.kind == Kind.INIT:
-                if daemon is not None:
-                    raise ConfigError(f"{path}: a second INIT event (event {event.index})")
-                daemon = Companion(cfg, autopilot, gcs, _Camera(), pipeline_factory or _perception_factory(header),
-                                   clock=clock, stopwatch=stopwatch)
-            elif daemon is None:
-                raise ConfigError(f"{path}: event {event.index} ({Kind(event.kind).name}) before the companion's INIT")
-            elif event.kind == Kind.AUTOPILOT:
-                daemon.handle_autopilot(_decode_message(event.payload))
-            elif event.kind == Kind.GCS:
-                daemon.handle_gcs(_decode_message(event.payload))
-            elif event.kind == Kind.GCS_BAD:
-                daemon.handle_gcs_bad_data()
-            elif event.kind == Kind.FRAME:
-                daemon.handle_frame(decode_frame(event.payload))
-            elif event.kind == Kind.PERIODIC:
-                daemon.handle_periodic()
-            written = [(int(OUTPUTS[0]), b) for b in autopilot.written] + [(int(OUTPUTS[1]), b) for b in gcs.written]
-            # the flight's writes are in the order they happened; the replay's are kept per link: compare per link
-            want = sorted(event.outputs, key=lambda o: o[0])
-            report.count(Kind(event.kind).name, min(len(want), len(written)))
-            diff = first_difference(want, written, clocks, lambda k: Kind(k).name)
-            if diff is not None:
-                report.diverged(event.index, Kind(event.kind).name, diff)
-                break
-            if progress is not None and report.events % 5000 == 0:
-                progress(report.events)
-    finally:
-        events.close()   # a replay that stopped at a divergence closes the file too
-    if daemon is None and report.divergence is None:
-        report.divergence = "the journal has no events"
-    return report
+
+    def start(event: JournalEvent) -> None:
+        nonlocal daemon
+        autopilot.written.clear()
+        gcs.written.clear()
+        daemon = Companion(cfg, autopilot, gcs, _Camera(), pipeline_factory or _perception_factory(header),
+                           clock=clock, stopwatch=stopwatch)
+
+    def handle(event: JournalEvent) -> None:
+        autopilot.written.clear()
+        gcs.written.clear()
+        if event.kind == Kind.AUTOPILOT:
+            daemon.handle_autopilot(_decode_message(event.payload))
+        elif event.kind == Kind.GCS:
+            daemon.handle_gcs(_decode_message(event.payload))
+        elif event.kind == Kind.GCS_BAD:
+            daemon.handle_gcs_bad_data()
+        elif event.kind == Kind.FRAME:
+            daemon.handle_frame(decode_frame(event.payload))
+        elif event.kind == Kind.PERIODIC:
+            daemon.handle_periodic()
+
+    def written() -> list[tuple[int, bytes]]:
+        return [(int(OUTPUTS[0]), b) for b in autopilot.written] + [(int(OUTPUTS[1]), b) for b in gcs.written]
+
+    def expected(event: JournalEvent) -> list[tuple[int, bytes]]:
+        # the flight's writes are in the order they happened; the replay's are kept per link: compare per link
+        return sorted(event.outputs, key=lambda o: o[0])
+
+    return replay_events(path, events, clocks, Kind.INIT, lambda k: Kind(k).name, start, handle, written, expected,
+                         progress, progress_every=5000)

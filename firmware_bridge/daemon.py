@@ -308,8 +308,8 @@ class BridgeDaemon:
                 if inputs is None:   # a lock-step wait slice passed without a STEP: look at the stop flag again
                     continue
                 for item in inputs:
-                    self._handle(item)
-                self._turn()
+                    self.handle_input(item)
+                self.housekeeping_turn()
                 self._done()
                 if end is not None and self.clock() >= end:
                     break
@@ -374,22 +374,30 @@ class BridgeDaemon:
             return
         while True:
             if not self._step_inputs.add(item):
-                self._handle(item)
+                self.handle_input(item)
             try:
                 item = self._queue.get_nowait()
             except queue.Empty:
                 return
 
     # ------------------------------------------------------------------ handling
-    def _handle(self, item: tuple[Any, ...]) -> None:
+    def handle_input(self, item: tuple[Any, ...]) -> None:
         """One item of the readers' queue (both loops and a journal's replay come through here)."""
         with self._event(JKind.INPUT, lambda: encode_input(item)):
             self._dispatch(item)
 
-    def _turn(self) -> None:
+    def housekeeping_turn(self) -> None:
         """One turn of the periodic tasks (both loops and a journal's replay come through here)."""
         with self._event(JKind.HOUSEKEEPING):
             self._housekeeping()
+
+    def attach_links(self, mk_cmd: Any, mavlinks: list[Any]) -> None:
+        """Links opened elsewhere instead of :meth:`open`'s, with no reader threads: MK port 1 (``write(data)
+        -> bool``, ``drop()``, ``bytes_written``) and the MAVLink endpoints (``.mav``, ``write``, ``close``), in
+        :attr:`BridgeConfig.mavlink_urls`' order. A journal's replay hands the events in itself."""
+        if self.cmd is not None or self.mavlinks:
+            raise RuntimeError("attach_links: the bridge's links are already open")
+        self.cmd, self.mavlinks = mk_cmd, list(mavlinks)
 
     def _dispatch(self, item: tuple[Any, ...]) -> None:
         kind = item[0]

@@ -1,11 +1,12 @@
 """Re-run a bridge open loop from its input journal (:mod:`firmware_bridge.journal`) and check every byte it writes.
 
 A bridge is built from the journal's header (its configuration, vehicle and stored parameters, in a temporary
-parameter file: the user's is never written), with links that receive nothing and keep what is written to them;
-each event is handed to the method the flight's loop called (``_handle`` for an input, ``_turn`` for a
-housekeeping turn) on clocks that give back the readings recorded during that event. What it writes to MK port 1
-and to each MAVLink endpoint is compared with what the flight wrote, event by event; the first event whose writes
-or clock readings differ is the divergence (nothing after it can be compared: the state has parted).
+parameter file: the user's is never written), with links that receive nothing and keep what is written to them
+(:meth:`BridgeDaemon.attach_links`); each event is handed to the method the flight's loop called
+(``handle_input`` for an input, ``housekeeping_turn`` for a housekeeping turn) on clocks that give back the
+readings recorded during that event (:func:`quadlink.journal.replay_events`). What it writes to MK port 1 and to
+each MAVLink endpoint is compared with what the flight wrote, event by event; the first event whose writes or clock
+readings differ is the divergence (nothing after it can be compared: the state has parted).
 """
 
 from __future__ import annotations
@@ -20,7 +21,7 @@ from firmware_bridge.journal import Kind, decode_input, kind_name, read_events
 from firmware_bridge.params import save_param_file
 from quadlink.config import from_dict
 from quadlink.errors import ConfigError
-from quadlink.journal import ReplayClock, ReplayReport, first_difference
+from quadlink.journal import JournalEvent, ReplayClock, ReplayReport, replay_events
 from quadlink.mavlink import mavlink
 from quadlink.vehicle import VehicleConfig
 
@@ -75,45 +76,41 @@ def replay_bridge_journal(path: str | Path, progress: Callable[[int], None] | No
     daemon_clock, wall, unix = clocks
     mk_port = _MkPort()
     endpoints = [_Endpoint(cfg.sysid, cfg.compid) for _ in cfg.mavlink_urls]
-    report = ReplayReport()
     daemon: Any = None
+
+    def begin(event: JournalEvent) -> None:
+        mk_port.written.clear()
+        mk_port.results = deque(bool(p[0]) for k, p in event.outputs if k == Kind.OUT_MK and p)
+        for e in endpoints:
+            e.written.clear()
+
+    def written() -> list[tuple[int, bytes]]:
+        # per link, in the order written
+        out = [(int(Kind.OUT_MK), b) for b in mk_port.written]
+        for i, e in enumerate(endpoints):
+            out += [(Kind.OUT_MAVLINK + i, b) for b in e.written]
+        return out
+
+    def expected(event: JournalEvent) -> list[tuple[int, bytes]]:
+        # the flight's MK writes without their result flag (handed back to the replay's port)
+        return [(k, b[1:] if k == Kind.OUT_MK else b) for k, b in sorted(event.outputs, key=lambda o: o[0])]
+
     with tempfile.TemporaryDirectory(prefix="quadlink-replay-bridge-") as tmp:
         params_path = Path(tmp) / "params.yaml"
         save_param_file(params_path, {str(k): float(v) for k, v in params.items()})
-        try:
-            for event in events:
-                for c in clocks:
-                    c.load(event)
-                mk_port.written.clear()
-                mk_port.results = deque(bool(p[0]) for k, p in event.outputs if k == Kind.OUT_MK and p)
-                for e in endpoints:
-                    e.written.clear()
-                if event.kind == Kind.INIT:
-                    if daemon is not None:
-                        raise ConfigError(f"{path}: a second INIT event (event {event.index})")
-                    daemon = BridgeDaemon(cfg, vehicle, params_path, clock=wall, unix_clock=unix,
-                                          daemon_clock=daemon_clock)
-                    daemon.cmd, daemon.mavlinks = mk_port, endpoints
-                elif daemon is None:
-                    raise ConfigError(f"{path}: event {event.index} ({Kind(event.kind).name}) before the INIT")
-                elif event.kind == Kind.INPUT:
-                    daemon._handle(decode_input(event.payload))
-                elif event.kind == Kind.HOUSEKEEPING:
-                    daemon._turn()
-                # per link, in the order written; the flight's MK writes without their result flag (handed back)
-                written = [(int(Kind.OUT_MK), b) for b in mk_port.written]
-                for i, e in enumerate(endpoints):
-                    written += [(Kind.OUT_MAVLINK + i, b) for b in e.written]
-                want = [(k, b[1:] if k == Kind.OUT_MK else b) for k, b in sorted(event.outputs, key=lambda o: o[0])]
-                report.count(Kind(event.kind).name, min(len(want), len(written)))
-                diff = first_difference(want, written, clocks, kind_name)
-                if diff is not None:
-                    report.diverged(event.index, Kind(event.kind).name, diff)
-                    break
-                if progress is not None and report.events % 50000 == 0:
-                    progress(report.events)
-        finally:
-            events.close()
-    if daemon is None and report.divergence is None:
-        report.divergence = "the journal has no events"
-    return report
+
+        def start(event: JournalEvent) -> None:
+            nonlocal daemon
+            begin(event)
+            daemon = BridgeDaemon(cfg, vehicle, params_path, clock=wall, unix_clock=unix, daemon_clock=daemon_clock)
+            daemon.attach_links(mk_port, endpoints)
+
+        def handle(event: JournalEvent) -> None:
+            begin(event)
+            if event.kind == Kind.INPUT:
+                daemon.handle_input(decode_input(event.payload))
+            elif event.kind == Kind.HOUSEKEEPING:
+                daemon.housekeeping_turn()
+
+        return replay_events(path, events, clocks, Kind.INIT, kind_name, start, handle, written, expected,
+                             progress, progress_every=50000)

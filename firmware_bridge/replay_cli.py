@@ -7,7 +7,7 @@ from pathlib import Path
 
 import click
 
-from quadlink.journal import replay_main
+from quadlink.replay_cli import replay_main
 
 
 @click.command(name="replay-bridge")

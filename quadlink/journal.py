@@ -27,7 +27,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, BinaryIO
 
-from quadlink.errors import ProtocolError, QuadlinkError
+from quadlink.errors import ConfigError, ProtocolError
 
 log = logging.getLogger("quadlink.journal")
 
@@ -283,19 +283,42 @@ class ReplayReport:
         self.divergence_event = index
 
 
-def replay_main(command: str, journal: Path, replay: Callable[..., ReplayReport]) -> None:
-    """What ``quadlink replay-companion`` and ``replay-bridge`` do: replay ``journal``, print the verdict, exit
-    with status 0 (identical), 1 (the first divergence printed) or 2 (not a journal)."""
-    import sys
-
-    import click
-
-    logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(levelname).1s %(name)s: %(message)s")
-    click.echo(f"replaying {journal} ...", err=True)
+def replay_events(path: str | Path, events: JournalEvents, clocks: list[ReplayClock], init_kind: int,
+                  kind_name: Callable[[int], str], start: Callable[[JournalEvent], None],
+                  handle: Callable[[JournalEvent], None], written: Callable[[], list[tuple[int, bytes]]],
+                  expected: Callable[[JournalEvent], list[tuple[int, bytes]]],
+                  progress: Callable[[int], None] | None = None, progress_every: int = 5000) -> ReplayReport:
+    """The replay's loop, whatever the process: for each event, load the clocks with its readings, build the
+    daemon (``start``, the ``init_kind`` event) or hand it the event (``handle``), then compare what it
+    ``written`` (each write as (kind, bytes), per link in the order written) with what the flight wrote
+    (``expected``) and the clock reads with the flight's; stop at the first difference (nothing after it can be
+    compared: the state has parted). Closes ``events``. A second INIT, or an event before the INIT, is a
+    :class:`ConfigError`."""
+    report = ReplayReport()
+    started = False
     try:
-        report = replay(journal, progress=lambda n: click.echo(f"  {n} events", err=True))
-    except (QuadlinkError, KeyError, ValueError) as exc:
-        click.echo(f"quadlink {command}: {exc}", err=True)
-        sys.exit(2)
-    click.echo(report.summary())
-    sys.exit(0 if report.identical else 1)
+        for event in events:
+            for c in clocks:
+                c.load(event)
+            if event.kind == init_kind:
+                if started:
+                    raise ConfigError(f"{path}: a second INIT event (event {event.index})")
+                started = True
+                start(event)
+            elif not started:
+                raise ConfigError(f"{path}: event {event.index} ({kind_name(event.kind)}) before the INIT")
+            else:
+                handle(event)
+            got, want = written(), expected(event)
+            report.count(kind_name(event.kind), min(len(want), len(got)))
+            diff = first_difference(want, got, clocks, kind_name)
+            if diff is not None:
+                report.diverged(event.index, kind_name(event.kind), diff)
+                break
+            if progress is not None and report.events % progress_every == 0:
+                progress(report.events)
+    finally:
+        events.close()   # a replay that stopped at a divergence closes the file too
+    if not started and report.divergence is None:
+        report.divergence = "the journal has no events"
+    return report

@@ -126,3 +126,13 @@ def test_a_signed_ground_link_is_not_replayed(tmp_path: Path) -> None:
 def test_a_journal_without_events_is_not_identical(tmp_path: Path) -> None:
     JournalWriter(tmp_path / "j.qljn", _header()).close()
     assert not replay_journal(tmp_path / "j.qljn").identical
+
+
+def test_an_event_before_the_init_is_a_clear_error(tmp_path: Path) -> None:
+    """(quadlink.journal.replay_events: both processes' replays share the loop that checks this)."""
+    w = JournalWriter(tmp_path / "early.qljn", _header())
+    with w.event(Kind.PERIODIC):
+        pass
+    w.close()
+    with pytest.raises(ConfigError, match="before the INIT"):
+        replay_journal(tmp_path / "early.qljn")
