@@ -43,6 +43,7 @@ from harness.campaign.safety import Envelope, envelope, read_truth, truth_of_fli
 from harness.cpu_share import BusyNeighbour, CpuShare
 from harness.demo.cli import ROOM_HEIGHT_ENTRY_ERROR_M
 from harness.demo.orchestrator import kill_leftovers
+from harness.ports import PORT_SLOT_STRIDE
 from quadlink import REPO_ROOT
 from quadlink.config import load_config
 from quadlink.errors import LinkError
@@ -50,7 +51,6 @@ from sim_sitl.config import ScenarioConfig
 
 log = logging.getLogger("harness.campaign")
 
-PORT_SLOT_STRIDE = 25  # offsets between slots: every demo port group spans < 25 ports
 RAY_START_ATTEMPTS = 3
 #: simulated time a flight may take beyond its session: in the plain lock-step (--no-deterministic) the SITL's
 #: clock runs in real time until its lock-step clients connect, so the operator joins some seconds of simulated

@@ -28,6 +28,7 @@ from harness.demo.report import (
     summary_table,
     write_report,
 )
+from harness.ports import PORT_BLOCK_SIZE, PORT_NAMES, Ports
 from quadlink import CONFIG_DIR
 from quadlink.errors import ConfigError
 
@@ -46,34 +47,6 @@ BRIDGE_JOURNAL_NAME = "bridge.qlbj"   # the bridge's (--journal too): quadlink r
 #: the demo operator's entry of the room's height is this much above the truth: the unsafe side of the +-10 cm a
 #: tape measure and a rough guess give (issue 29: no operator knows the ceiling to the millimetre); campaigns draw it
 ROOM_HEIGHT_ENTRY_ERROR_M = 0.10
-
-
-PORT_NAMES = ("mk1", "mk2", "camera", "image", "autopilot", "gcs_bridge", "vehicle", "truth", "http",
-              "vehicle_netem", "image_netem", "lockstep")
-#: ``vehicle_netem`` / ``image_netem``: the impaired ground link's ends (harness.demo.link)
-DEFAULT_PORTS = {"mk1": 5760, "mk2": 5761, "camera": 5762, "image": 5770, "autopilot": 14540, "gcs_bridge": 14551,
-                 "vehicle": 14555, "truth": 14560, "http": 8080, "vehicle_netem": 14557, "image_netem": 5771,
-                 "lockstep": 5763}
-PORT_BLOCK_SIZE = len(PORT_NAMES)  # ports per flight with ``base``
-
-
-@dataclass(frozen=True)
-class Ports:
-    """Every port of a demo flight: the defaults shifted by ``offset``, or, with ``base``, the contiguous block
-    ``base .. base + PORT_BLOCK_SIZE - 1`` (in :data:`PORT_NAMES` order), so several stacks can share a machine."""
-
-    offset: int = 0
-    base: int | None = None
-
-    def __getattr__(self, name: str) -> int:
-        if name not in DEFAULT_PORTS:
-            raise AttributeError(name)
-        if self.base is not None:
-            return self.base + PORT_NAMES.index(name)
-        return DEFAULT_PORTS[name] + self.offset
-
-    def as_dict(self) -> dict[str, int]:
-        return {name: getattr(self, name) for name in PORT_NAMES}
 
 
 @dataclass(frozen=True)

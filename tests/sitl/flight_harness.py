@@ -31,6 +31,7 @@ from numpy.typing import NDArray
 
 from harness.cpu_share import CpuShare
 from harness.judge import ArenaGeometry, Clearance
+from harness.ports import Ports, free_port, free_port_offset
 from quadlink.frames import euler_from_quat_wxyz
 from quadlink.ids import COMPANION_COMPONENT_ID, GROUND_COMPONENT_ID, GROUND_SYSTEM_ID, TRUTH_SENSOR_NON_FLOOR
 from quadlink.mavlink import mavlink
@@ -123,7 +124,6 @@ class Flight:
     def __init__(self, out_dir: Path, scenario: str, offset: int, lockstep: bool,
                  companion_config: Path | None, sitl_duration_s: float, camera: str = "tcp://127.0.0.1:{port}",
                  shipped_timeouts: bool = False, cpu_share: CpuShare | None = None) -> None:
-        from harness.demo.cli import Ports
         from harness.demo.orchestrator import ProcessSpec, Stack
         from quadlink.mavlink.connection import open_mavlink
 
@@ -277,15 +277,16 @@ class Flight:
 
 
 @contextlib.contextmanager
-def flight(out_dir: Path, scenario: str = "paper-arena", offset: int = 4000, lockstep: bool = True,
+def flight(out_dir: Path, scenario: str = "paper-arena", offset: int | None = None, lockstep: bool = True,
            companion_config: Path | None = None, sitl_duration_s: float = 400.0,
            camera: str = "tcp://127.0.0.1:{port}", shipped_timeouts: bool = False,
            cpu_share: CpuShare | None = None) -> Iterator[Flight]:
-    """A flight; ``camera``: the companion's camera URL, ``{port}`` the SITL's camera stream port;
+    """A flight on the demo's ports shifted by ``offset`` (None: a free one, :func:`harness.ports.free_port_offset`);
+    ``camera``: the companion's camera URL, ``{port}`` the SITL's camera stream port;
     ``shipped_timeouts``: the failsafe timeouts as shipped (else the loaded-machine margins, and the test says why);
     ``cpu_share``: the bridge and the companion run in this CPU share (harness.cpu_share)."""
-    f = Flight(out_dir, scenario, offset, lockstep, companion_config, sitl_duration_s, camera, shipped_timeouts,
-               cpu_share)
+    f = Flight(out_dir, scenario, free_port_offset() if offset is None else offset, lockstep, companion_config,
+               sitl_duration_s, camera, shipped_timeouts, cpu_share)
     try:
         yield f
     finally:
@@ -302,12 +303,6 @@ def companion_config_with(out_dir: Path, **sections: object) -> Path:
 
 
 # ---------------------------------------------------------------- client scripts beside the flight
-def free_port(kind: int = socket.SOCK_STREAM) -> int:
-    with socket.socket(socket.AF_INET, kind) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
 @contextlib.contextmanager
 def mavsdk_server(system_url: str, log_path: Path) -> Iterator[int]:
     """The classic API's ``mavsdk_server`` (the one mavsdk_grpc ships), started here rather than by

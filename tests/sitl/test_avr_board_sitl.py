@@ -13,8 +13,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 from avr_firmware import firmware_elf  # noqa: F401  (fixture)
-from test_bridge_sitl import PX4_LOITER, Gcs, Odometry, free_port, quadlink, wait_for, wait_port
+from test_bridge_sitl import PX4_LOITER, Gcs, Odometry, quadlink, wait_for, wait_port
 
+from harness.ports import free_port
 from quadlink.frames import euler_from_R
 from quadlink.mavlink import mavlink
 from quadlink.mk.messages import AttitudeSetpoint, encode_message

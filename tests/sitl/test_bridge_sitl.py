@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from harness.ports import free_port
 from quadlink.frames import R_from_quat_wxyz, euler_from_R
 from quadlink.mavlink import mavlink
 from quadlink.mavlink.connection import open_mavlink
@@ -30,12 +31,6 @@ pytestmark = [pytest.mark.sitl, pytest.mark.timeout(240)]
 REPO = Path(__file__).resolve().parents[2]
 PX4_OFFBOARD = 6 << 16
 PX4_LOITER = 4 << 16 | 3 << 24
-
-
-def free_port(kind: int = socket.SOCK_STREAM) -> int:
-    with socket.socket(socket.AF_INET, kind) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def quadlink(*args: str, log_path: Path) -> subprocess.Popen:

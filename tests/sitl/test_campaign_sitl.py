@@ -9,7 +9,6 @@ the drawn start pose, which differs from flight to flight, so a crossed port or 
 from __future__ import annotations
 
 import json
-import os
 import threading
 from pathlib import Path
 
@@ -22,6 +21,7 @@ from harness.campaign.safety import envelope, read_truth
 from harness.cpu_share import CpuShare, CpuShareUnavailable
 from harness.demo.cli import PORT_BLOCK_SIZE, compare_reports, run_demo
 from harness.demo.report import compute_report, load_flight
+from harness.ports import PORT_SLOT_STRIDE, free_port_base, free_port_offset
 from quadlink import CONFIG_DIR
 from quadlink.config import load_config
 from quadlink.mavlink import mavlink
@@ -33,7 +33,7 @@ from sim_sitl.scenario_gen import nearest_obstacle_2d
 pytestmark = pytest.mark.sitl
 
 # the campaign helper's port lane (offsets 3000-3900), one slice per test process
-OFFSET = 3300 + (os.getpid() % 8) * 60
+OFFSET = free_port_offset(slots=3)   # harness.ports: free now, reserved for this session
 COM_UP_M = 0.1  # the SITL's body rests with its centre 0.1 m above the floor
 
 
@@ -95,7 +95,7 @@ def test_three_flight_campaign_on_local_ray(tmp_path: Path) -> None:
 
 @pytest.mark.slow   # CI: the three-flight campaign above already flies two at once on separate port slots
 def test_two_flights_at_once_on_disjoint_port_blocks(tmp_path: Path) -> None:
-    base = 20000 + OFFSET  # blocks of PORT_BLOCK_SIZE ports, far from the offset lane's defaults
+    base = free_port_base(2 * PORT_BLOCK_SIZE)  # two blocks of PORT_BLOCK_SIZE ports
     script = CONFIG_DIR / "teleop_scripts" / "demo_short.yaml"
     results: dict[str, dict] = {}
     errors: list[BaseException] = []
@@ -173,8 +173,9 @@ def test_a_starved_real_time_campaign_flight_holds_its_share_and_reports_its_lat
             pass
     except CpuShareUnavailable as exc:
         pytest.skip(f"no CPU share can be set here: {exc}")
-    options = CampaignOptions(1, 20261205, tmp_path, duration_s=25.0, parallel=1, port_offset=OFFSET + 50,
-                              deterministic=False, realtime=True, starve=StarvationRange(0.35, 0.35, 1.0))
+    options = CampaignOptions(1, 20261205, tmp_path, duration_s=25.0, parallel=1,
+                              port_offset=OFFSET + 2 * PORT_SLOT_STRIDE, deterministic=False, realtime=True,
+                              starve=StarvationRange(0.35, 0.35, 1.0))
     (r,) = run_campaign(options, echo=lambda s: None)
     assert r.status == "ok", r.failure
     assert r.draws["starvation"] == {"cpu_cores": 0.35, "busy_neighbours": 1}

@@ -7,7 +7,6 @@ MAVLink endpoint."""
 
 from __future__ import annotations
 
-import os
 import subprocess
 import sys
 from pathlib import Path
@@ -17,10 +16,11 @@ import pytest
 from companion.replay import replay_journal
 from firmware_bridge.replay import replay_bridge_journal
 from harness.demo.cli import BRIDGE_JOURNAL_NAME, JOURNAL_NAME, run_demo
+from harness.ports import free_port_offset
 
 pytestmark = [pytest.mark.sitl, pytest.mark.timeout(600)]
 
-OFFSET = 8000 + (os.getpid() % 20) * 20   # 8000-8380: no other SITL test's offsets
+OFFSET = free_port_offset()   # harness.ports: free now, reserved for this session
 SCRIPT = """name: take off, push forward, land (a short journaled flight)
 steps:
   - wait_s: 1.0

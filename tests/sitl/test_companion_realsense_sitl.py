@@ -5,19 +5,19 @@ device) into `quadlink companion --camera realsense://software?source=tcp://...`
 from __future__ import annotations
 
 import importlib.util
-import os
 from pathlib import Path
 
 import numpy as np
 import pytest
 from flight_harness import MODE_TELEOP, flight
 
+from harness.ports import free_port_offset
 from quadlink.mavlink import mavlink
 
 pytestmark = [pytest.mark.sitl, pytest.mark.timeout(600),
               pytest.mark.skipif(importlib.util.find_spec("pyrealsense2") is None, reason="needs pyrealsense2")]
 
-OFFSET = 6000 + (os.getpid() % 20) * 20
+OFFSET = free_port_offset()   # harness.ports: free now, reserved for this session
 
 
 def test_a_flight_on_the_realsense_path(tmp_path: Path) -> None:

@@ -10,7 +10,6 @@ then holds the handle fully forward.
 from __future__ import annotations
 
 import math
-import os
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -18,6 +17,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from harness.ports import Ports, free_port_offset
 from quadlink.frames import euler_from_quat_wxyz, wrap_pi
 from quadlink.ids import TRUTH_SENSOR_NON_FLOOR
 from quadlink.mavlink import mavlink
@@ -42,9 +42,7 @@ class FlightRecord:
 
 
 def _ports(offset: int) -> dict[str, int]:
-    base = {"mk1": 5760, "mk2": 5761, "camera": 5762, "image": 5770, "autopilot": 14540, "gcs_bridge": 14551,
-            "vehicle": 14555, "truth": 14560}
-    return {k: v + offset for k, v in base.items()}
+    return Ports(offset).as_dict()
 
 
 def _wait_tcp(port: int, stack: object, timeout_s: float) -> None:
@@ -62,7 +60,7 @@ def _wait_tcp(port: int, stack: object, timeout_s: float) -> None:
     raise TimeoutError(f"nothing listening on port {port} after {timeout_s:.0f} s")
 
 
-def fly_push_toward_column(out_dir: Path, push_s: float, port_offset: int = 700) -> FlightRecord:
+def fly_push_toward_column(out_dir: Path, push_s: float, port_offset: int) -> FlightRecord:
     from harness.demo.orchestrator import ProcessSpec, Stack
     from quadlink.mavlink.connection import open_mavlink
 
@@ -205,11 +203,11 @@ def _check(rec: FlightRecord) -> None:
 @pytest.mark.sitl
 @pytest.mark.timeout(900)
 def test_push_toward_column_short(tmp_path: Path) -> None:
-    _check(fly_push_toward_column(tmp_path, push_s=12.0, port_offset=700 + os.getpid() % 50))
+    _check(fly_push_toward_column(tmp_path, push_s=12.0, port_offset=free_port_offset()))
 
 
 @pytest.mark.sitl
 @pytest.mark.slow
 @pytest.mark.timeout(1800)
 def test_push_toward_column_long(tmp_path: Path) -> None:
-    _check(fly_push_toward_column(tmp_path, push_s=40.0, port_offset=760 + os.getpid() % 50))
+    _check(fly_push_toward_column(tmp_path, push_s=40.0, port_offset=free_port_offset()))

@@ -6,18 +6,18 @@ by the station (TIMESYNC round trip), the proxy (loss) and the companion (comman
 from __future__ import annotations
 
 import json
-import os
 from pathlib import Path
 
 import pytest
 
 from harness.demo.cli import run_demo
 from harness.demo.link import LinkImpairment
+from harness.ports import free_port_offset
 from quadlink import CONFIG_DIR
 
 pytestmark = [pytest.mark.sitl, pytest.mark.slow]   # ~40 s simulated, minutes of wall time on a loaded machine
 
-OFFSET = 1500 + (os.getpid() % 50) * 20
+OFFSET = free_port_offset()   # harness.ports: free now, reserved for this session
 
 
 def test_short_flight_over_a_delayed_lossy_link(tmp_path: Path) -> None:

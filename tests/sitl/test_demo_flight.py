@@ -8,19 +8,19 @@ The CI version flies a short script (take off, drive, turn, land); the full pape
 from __future__ import annotations
 
 import json
-import os
 from pathlib import Path
 
 import pytest
 
 from harness.demo.cli import run_demo
+from harness.ports import PORT_SLOT_STRIDE, free_port_offset
 from quadlink import CONFIG_DIR
 from quadlink.mavlink.tlog import read_tlog
 
 pytestmark = pytest.mark.sitl
 
 # Port offset per test process so a developer's running stack (or a parallel run) is not disturbed.
-OFFSET = 1000 + (os.getpid() % 50) * 20
+OFFSET = free_port_offset(slots=2)   # harness.ports: free now, reserved for this session
 
 
 def _assert_common(report: dict, out: Path) -> None:
@@ -92,7 +92,7 @@ def test_signed_demo_flight(tmp_path: Path) -> None:
     out = tmp_path / "report"
     report = run_demo("paper-arena", duration_s=45.0, out_dir=out,
                       script=CONFIG_DIR / "teleop_scripts" / "demo_short.yaml", lockstep=True,
-                      port_offset=OFFSET + 10, progress_every_s=10.0, signing_key=key)
+                      port_offset=OFFSET + PORT_SLOT_STRIDE, progress_every_s=10.0, signing_key=key)
     _assert_common(report, out)
     signed, total = _signed_share_from(out / "companion.tlog", 255)
     assert total > 100 and signed == total, f"{signed} of {total} station packets signed"

@@ -9,13 +9,14 @@
 
 from __future__ import annotations
 
-import os
 import signal
 from pathlib import Path
 
 import numpy as np
 import pytest
 from flight_harness import Flight, companion_config_with, flight
+
+from harness.ports import PORT_SLOT_STRIDE, free_port_offset
 
 pytestmark = [pytest.mark.sitl, pytest.mark.timeout(600)]
 
@@ -25,7 +26,7 @@ MAX_TOUCHDOWN_M_S = 0.7
 # drag, BRG_DRAG_K_NOM): 0.11-0.12 m at 1.9 m, 0.04-0.10 m at 1.2 m, 0.06-0.07 m at 0.5 m (three runs each); before it,
 # level on the board's own attitude estimate, 0.56-0.63 m at 1.9 m and the bound was widened to 0.75 m
 MAX_DRIFT_M = 0.5
-OFFSET = 5700 + (os.getpid() % 20) * 20
+OFFSET = free_port_offset(slots=2)   # harness.ports: free now, reserved for this session
 
 
 def _hover_at(f: Flight, height_m: float) -> None:
@@ -65,7 +66,7 @@ def test_the_companion_killed_in_a_hover_lands_gently(tmp_path: Path, height_m: 
 
 
 def test_a_companion_stalled_beside_a_wall_does_not_carry_the_vehicle_into_it(tmp_path: Path) -> None:
-    with flight(tmp_path, offset=OFFSET + 10, lockstep=False, shipped_timeouts=True) as f:
+    with flight(tmp_path, offset=OFFSET + PORT_SLOT_STRIDE, lockstep=False, shipped_timeouts=True) as f:
         f.take_off()
         f.run_for(25.0, lambda: f.manual(700), until=lambda: f.log.samples[-1].clearance.surface_m < 0.65)
         t_stall = f.t_s

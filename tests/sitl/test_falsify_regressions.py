@@ -8,19 +8,19 @@ No folder, no test: the folders are added by hand from a study's findings (docs/
 from __future__ import annotations
 
 import json
-import os
 from pathlib import Path
 
 import pytest
 
 from harness.falsify.export import fly_regression
 from harness.falsify.objective import ENVELOPE_M, judge
+from harness.ports import free_port_offset
 
 pytestmark = [pytest.mark.sitl, pytest.mark.slow]
 
 REGRESSION_DIR = Path(__file__).resolve().parents[1] / "regression_flights"
 FLIGHTS = sorted(p.parent for p in REGRESSION_DIR.glob("*/finding.json"))
-OFFSET = 4600 + (os.getpid() % 8) * 50
+OFFSET = free_port_offset()   # harness.ports: free now, reserved for this session
 MIN_MOVED_M = 0.3  # the push must still take the vehicle somewhere ...
 HELD_NEAR_M = 0.60  # ... or the layer held it within 0.15 m of its safe distance (0.45 m): as far as the room let it
 

@@ -26,6 +26,7 @@ from harness.falsify.cli import command
 from harness.falsify.export import materialize
 from harness.falsify.search import STUDY_NAME, storage_url
 from harness.falsify.space import params_from_dict
+from harness.ports import free_port_offset
 from quadlink.config import load_config
 from quadlink.mavlink.tlog import read_tlog
 from sim_sitl.config import ScenarioConfig
@@ -33,7 +34,7 @@ from sim_sitl.config import ScenarioConfig
 pytestmark = pytest.mark.sitl
 
 # the falsification's port lane (offsets 4000-4900), one slice per test process
-OFFSET = 4500 + (os.getpid() % 8) * 50
+OFFSET = free_port_offset(slots=2)   # harness.ports: free now, reserved for this session
 
 
 def _payloads(tlog: Path) -> list[bytes]:

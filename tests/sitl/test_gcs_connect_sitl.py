@@ -21,8 +21,9 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from test_bridge_sitl import free_port, quadlink, wait_port
+from test_bridge_sitl import quadlink, wait_port
 
+from harness.ports import free_port
 from quadlink.mavlink import mavlink
 from quadlink.mavlink.connection import open_mavlink
 

@@ -9,11 +9,12 @@ dark column, to 0.25 m).
 from __future__ import annotations
 
 import math
-import os
 from pathlib import Path
 
 import pytest
 from flight_harness import LOADED_MACHINE, companion_config_with, flight
+
+from harness.ports import free_port_offset
 
 pytestmark = [pytest.mark.sitl, pytest.mark.timeout(900)]
 
@@ -24,7 +25,7 @@ PARTITION_X_M, PARTITION_HALF_Y_M = (0.95, 1.05), 1.5    # the partition's footp
 def _to_partition_m(p_ned_m: object) -> float:
     x, y = float(p_ned_m[0]), float(p_ned_m[1])  # type: ignore[index]
     return math.hypot(max(0.0, PARTITION_X_M[0] - x, x - PARTITION_X_M[1]), max(0.0, abs(y) - PARTITION_HALF_Y_M))
-OFFSET = 4750 + (os.getpid() % 10) * 20
+OFFSET = free_port_offset()   # harness.ports: free now, reserved for this session
 
 
 def test_operator_pushing_at_a_dark_partition_stops_short_of_it(tmp_path: Path) -> None:

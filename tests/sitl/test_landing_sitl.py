@@ -16,7 +16,6 @@ Where the vehicle ends up is judged from the SITL's truth and the scenario's geo
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import numpy as np
@@ -33,11 +32,12 @@ from flight_harness import (
     mavsdk_server,
 )
 
+from harness.ports import PORT_SLOT_STRIDE, free_port_offset
 from quadlink.mavlink import mavlink
 
 pytestmark = [pytest.mark.sitl, pytest.mark.timeout(900)]
 
-OFFSET = 7000 + (os.getpid() % 20) * 20   # 7000-7390: no other SITL test's ports (paper003's are 5100-5700)
+OFFSET = free_port_offset(slots=2)   # harness.ports: free now, reserved for this session
 BOX_CENTRE_XY_M = np.array([1.4, 0.0])
 BOX_HALF_M = 0.4          # 0.8 m x 0.8 m, 0.4 m tall
 MIN_CLEARANCE_M = 0.40
@@ -176,7 +176,7 @@ def test_a_ground_station_land_over_a_box_is_refused_and_accepted_beside_it(tmp_
 
 
 def test_a_failsafe_landing_over_a_box_moves_clear_first(tmp_path: Path) -> None:
-    with flight(tmp_path, scenario=_scenario(tmp_path), offset=OFFSET + 10,
+    with flight(tmp_path, scenario=_scenario(tmp_path), offset=OFFSET + PORT_SLOT_STRIDE,
                 companion_config=_companion_config(tmp_path)) as f:
         _fly_over_the_box(f)
         t0 = f.t_s

@@ -17,7 +17,9 @@ import time
 from pathlib import Path
 
 import pytest
-from test_bridge_sitl import Gcs, Odometry, Stack, free_port, quadlink
+from test_bridge_sitl import Gcs, Odometry, Stack, quadlink
+
+from harness.ports import free_port
 
 pytestmark = [pytest.mark.sitl, pytest.mark.timeout(420),
               pytest.mark.skipif(subprocess.run([sys.executable, "-c", "import MAVProxy"]).returncode != 0,

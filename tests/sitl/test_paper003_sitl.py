@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
 from pathlib import Path
 
 import numpy as np
@@ -28,6 +27,7 @@ from harness.campaign.experiments import draw_experiment_flight
 from harness.campaign.runner import CampaignOptions, fly
 from harness.demo.paper003 import ISSUE19_TARGETS
 from harness.demo.paper003_cli import format_hover, run_paper003
+from harness.ports import PORT_SLOT_STRIDE, free_port_offset
 from quadlink import CONFIG_DIR
 from quadlink.mavlink import mavlink
 from quadlink.mavlink.setpoint_masks import TM_VELOCITY_ACCEL_YAW_RATE
@@ -35,7 +35,7 @@ from quadlink.mavlink.tlog import read_tlog
 
 pytestmark = [pytest.mark.sitl, pytest.mark.timeout(900)]
 
-OFFSET = 5100 + (os.getpid() % 10) * 60
+OFFSET = free_port_offset(slots=3)   # harness.ports: free now, reserved for this session
 COLUMN_NE_M = (1.5, 1.5)      # configs/scenarios/paper003-obstacle.yaml (arena = local NED: start (0, 0), yaw 0)
 COLUMN_RADIUS_M = 0.25
 MIN_CLEARANCE_M = 0.40
@@ -80,7 +80,7 @@ def test_oval_through_the_companion_within_paper_003s_bounds(tmp_path: Path) -> 
 
 
 def test_a_trajectory_into_a_column_yields_to_it(tmp_path: Path) -> None:
-    report = run_paper003("oval", tmp_path, port_offset=OFFSET + 20, plots=False,
+    report = run_paper003("oval", tmp_path, port_offset=OFFSET + PORT_SLOT_STRIDE, plots=False,
                           scenario=str(CONFIG_DIR / "scenarios" / "paper003-obstacle.yaml"),
                           trajectory=CONFIG_DIR / "trajectories" / "into-column.yaml", lead_in_s=4.0, hold_s=4.0)
     truth = np.loadtxt(tmp_path / "truth.csv", delimiter=",").reshape(-1, 7)
@@ -98,7 +98,7 @@ def test_a_trajectory_into_a_column_yields_to_it(tmp_path: Path) -> None:
 
 @pytest.mark.slow   # ~60 s of flight in real time (the pushes at 30, 40, 50 s of SITL time)
 def test_hover_back_within_3_s_of_each_push(tmp_path: Path) -> None:
-    report = run_paper003("hover", tmp_path, port_offset=OFFSET + 40, plots=False)
+    report = run_paper003("hover", tmp_path, port_offset=OFFSET + 2 * PORT_SLOT_STRIDE, plots=False)
     print(format_hover(report))
     rec = report["recoveries_truth"]
     assert len(rec) == 3

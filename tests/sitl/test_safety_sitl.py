@@ -9,7 +9,6 @@ CI flights are short (<= ~40 s of flight), one of them in real time; the longer 
 from __future__ import annotations
 
 import asyncio
-import os
 import time
 from pathlib import Path
 from typing import Any
@@ -28,6 +27,7 @@ from flight_harness import (
     mavsdk_server,
 )
 
+from harness.ports import PORT_SLOT_STRIDE, free_port_offset
 from quadlink.mavlink import mavlink
 
 pytestmark = [pytest.mark.sitl, pytest.mark.timeout(1200)]
@@ -35,11 +35,11 @@ pytestmark = [pytest.mark.sitl, pytest.mark.timeout(1200)]
 MIN_CLEARANCE_M = 0.40
 # the start of paper-arena: (-3, 0) facing south; the south wall (x = -5) and its poster (x = -4.95) ahead
 POSTER_FACE_X_M = -4.95
-OFFSET = 4300 + (os.getpid() % 20) * 20     # demo-style port offsets in 4300-4700
+OFFSET = free_port_offset(slots=11)   # harness.ports: free now, reserved for this session
 
 
 def _offset(k: int) -> int:
-    return OFFSET + 20 * k
+    return OFFSET + PORT_SLOT_STRIDE * k
 
 
 def _assert_clear(f: Flight, since_s: float) -> float:
@@ -343,7 +343,7 @@ def test_mavsdk_land_beside_a_wall_is_accepted_and_lands(tmp_path: Path, run: in
     """LAND at rest 0.45-0.6 m from the south wall's poster: accepted, and the vehicle lands clear of it. One run in CI;
     ``-m slow`` flies the other nine (the issue's 10 of 10)."""
     pytest.importorskip("mavsdk_grpc")
-    with flight(tmp_path, offset=_offset(6) + run % 4) as f:
+    with flight(tmp_path, offset=_offset(6 + run % 4)) as f:
         seen = _land_beside_the_wall_classic(f, tmp_path)
         gap = float(seen["p_rest"][0] - POSTER_FACE_X_M)
         print(f"run {run}: rested {gap:.2f} m from the poster; {f.log.summary()}")

@@ -7,7 +7,6 @@ instead, and the test says so."""
 from __future__ import annotations
 
 import contextlib
-import os
 import re
 from pathlib import Path
 
@@ -16,12 +15,13 @@ import pytest
 from flight_harness import flight
 
 from harness.cpu_share import BusyNeighbour, CpuShare, CpuShareUnavailable
+from harness.ports import free_port_offset
 
 pytestmark = [pytest.mark.sitl, pytest.mark.timeout(900)]
 
 MIN_CLEARANCE_M = 0.40
 COMPANION_CORES = 0.35
-OFFSET = 5300 + (os.getpid() % 20) * 20
+OFFSET = free_port_offset()   # harness.ports: free now, reserved for this session
 
 
 def _status_figures(log: Path) -> list[tuple[float, float]]:
