@@ -11,6 +11,7 @@ from __future__ import annotations
 import random
 import socket
 import threading
+from collections.abc import Callable
 from dataclasses import dataclass
 
 PORT_NAMES = ("mk1", "mk2", "camera", "image", "autopilot", "gcs_bridge", "vehicle", "truth", "http",
@@ -81,15 +82,11 @@ def free_port_offset(slots: int = 1, rng: random.Random | None = None, attempts:
         raise ValueError(f"slots must be >= 1, got {slots}")
     rng = rng or random.Random()
     top = (MAX_OFFSET - PORT_SLOT_STRIDE * (slots - 1)) // PORT_SLOT_STRIDE
-    for _ in range(attempts):
-        offset = PORT_SLOT_STRIDE * rng.randrange(40, top)
-        ports = offset_ports(offset, slots)
-        with _lock:
-            if _reserved.intersection(ports) or not all(port_is_free(p) for p in ports):
-                continue
-            _reserved.update(ports)
-        return offset
-    raise RuntimeError(f"no port offset with {slots} free slot(s) found in {attempts} tries")
+    offset = _reserve_first(lambda: PORT_SLOT_STRIDE * rng.randrange(40, top),
+                            lambda offset: offset_ports(offset, slots), attempts)
+    if offset is None:
+        raise RuntimeError(f"no port offset with {slots} free slot(s) found in {attempts} tries")
+    return offset
 
 
 def free_port_base(count: int, rng: random.Random | None = None, attempts: int = 400) -> int:
@@ -99,12 +96,22 @@ def free_port_base(count: int, rng: random.Random | None = None, attempts: int =
     if count < 1:
         raise ValueError(f"count must be >= 1, got {count}")
     rng = rng or random.Random()
+    base = _reserve_first(lambda: rng.randrange(20000, 32768 - count), lambda base: list(range(base, base + count)),
+                          attempts)
+    if base is None:
+        raise RuntimeError(f"no {count} contiguous free ports found in {attempts} tries")
+    return base
+
+
+def _reserve_first(draw: Callable[[], int], ports_of: Callable[[int], list[int]], attempts: int) -> int | None:
+    """The first drawn candidate whose ports are all free and unreserved, its ports reserved; None after
+    ``attempts``."""
     for _ in range(attempts):
-        base = rng.randrange(20000, 32768 - count)
-        ports = list(range(base, base + count))
+        candidate = draw()
+        ports = ports_of(candidate)
         with _lock:
             if _reserved.intersection(ports) or not all(port_is_free(p) for p in ports):
                 continue
             _reserved.update(ports)
-        return base
-    raise RuntimeError(f"no {count} contiguous free ports found in {attempts} tries")
+        return candidate
+    return None
