@@ -123,7 +123,7 @@ class Flight:
 
     def __init__(self, out_dir: Path, scenario: str, offset: int, lockstep: bool,
                  companion_config: Path | None, sitl_duration_s: float, camera: str = "tcp://127.0.0.1:{port}",
-                 shipped_timeouts: bool = False, cpu_share: CpuShare | None = None) -> None:
+                 shipped_timeouts: bool = False, cpu_share: CpuShare | None = None, journal: bool = False) -> None:
         from harness.demo.orchestrator import ProcessSpec, Stack
         from quadlink.mavlink.connection import open_mavlink
 
@@ -177,6 +177,8 @@ class Flight:
             if companion_config is None:
                 companion_config = companion_config_with(out_dir, **({} if shipped_timeouts else LOADED_MACHINE))
             comp += ["--config", str(companion_config)]
+            if journal:   # its input journal: quadlink replay-companion re-runs the flight's companion offline
+                comp += ["--journal", str(out_dir / "companion.qljn")]
             self.stack.start(ProcessSpec("companion", tuple(comp), ready_after_s=1.0))
             if cpu_share is not None:
                 cpu_share.add(self.stack.running[-1].popen.pid)
@@ -280,13 +282,14 @@ class Flight:
 def flight(out_dir: Path, scenario: str = "paper-arena", offset: int | None = None, lockstep: bool = True,
            companion_config: Path | None = None, sitl_duration_s: float = 400.0,
            camera: str = "tcp://127.0.0.1:{port}", shipped_timeouts: bool = False,
-           cpu_share: CpuShare | None = None) -> Iterator[Flight]:
+           cpu_share: CpuShare | None = None, journal: bool = False) -> Iterator[Flight]:
     """A flight on the demo's ports shifted by ``offset`` (None: a free one, :func:`harness.ports.free_port_offset`);
     ``camera``: the companion's camera URL, ``{port}`` the SITL's camera stream port;
     ``shipped_timeouts``: the failsafe timeouts as shipped (else the loaded-machine margins, and the test says why);
-    ``cpu_share``: the bridge and the companion run in this CPU share (harness.cpu_share)."""
+    ``cpu_share``: the bridge and the companion run in this CPU share (harness.cpu_share); ``journal``: the companion
+    journals its inputs to ``out_dir/companion.qljn`` (~12 MB/s)."""
     f = Flight(out_dir, scenario, free_port_offset() if offset is None else offset, lockstep, companion_config,
-               sitl_duration_s, camera, shipped_timeouts, cpu_share)
+               sitl_duration_s, camera, shipped_timeouts, cpu_share, journal)
     try:
         yield f
     finally:
