@@ -106,13 +106,22 @@ def reference_velocity(op: OperatorInput, R_qc: ArrayLike, scan: PanScanState,
     c = constraint_points(obstacle_points_h_m, params, height_m, reach, band=p)
     v_r, removed = limit_speed_prepared(v_r, c, params.safe_distance_m, params.approach_gain_per_s, reach,
                                         v_est_h_m_s, params.stopping_time_s)
-    if removed and sectors_m is not None and c.shape[0] and \
-            float(np.min(np.hypot(c[:, 0], c[:, 1]))) >= params.safe_distance_m:
+    if removed and sectors_m is not None and c.shape[0]:
         # the slide along an obstacle that the projection makes of a push is motion nobody commanded: like the
         # repulsion, it never goes where the map has not looked (CI's corner push slid left along the wall, where
         # the camera, 45 deg right of the nose, had not looked for 20 s, to 0.39 m of it). Backing out of the
-        # safe distance is never held back.
-        v_r, _ = remove_toward_unknown(v_r, sectors_m, params.unknown_sector_guard_rad, sector_offset_rad)
+        # safe distance is never held back: inside it, a slide toward the unknown gives way to the law's own
+        # back-out, from the repulsion alone (a starved companion's push, 0.35 m from the south wall: projected
+        # off a wall it saw, the push slid at 0.35 m/s toward one it had not, a few cm inside the safe distance)
+        v_kept, toward_unknown = remove_toward_unknown(v_r, sectors_m, params.unknown_sector_guard_rad,
+                                                       sector_offset_rad)
+        if toward_unknown:
+            if float(np.min(np.hypot(c[:, 0], c[:, 1]))) >= params.safe_distance_m:
+                v_r = v_kept
+            else:
+                v_back = np.array([v_o[0], v_o[1], v_r[2]])    # the climb or descent commanded stays
+                v_r, _ = limit_speed_prepared(v_back, c, params.safe_distance_m, params.approach_gain_per_s, reach,
+                                              v_est_h_m_s, params.stopping_time_s)
     v_up = None if v_est_h_m_s is None else -float(np.asarray(v_est_h_m_s, dtype=float)[2])
     limits = vertical_limits(height_m, v_up, params.vertical(), height_verified, height_uncertainty_m)
     v_r, vertical = apply_vertical_limits(v_r, limits)

@@ -267,6 +267,32 @@ def test_the_slide_a_push_makes_along_a_wall_never_goes_where_the_map_has_not_lo
     assert v[0] < -0.05
 
 
+def test_inside_the_safe_distance_a_slide_toward_the_unknown_gives_way_to_the_back_out() -> None:
+    """A starved companion's push (issue 30, 0.349 m): a few cm inside the safe distance of a wall it saw, the
+    projection turned the operator's push into a slide toward sectors it had never looked at (another wall there),
+    at 0.35 m/s. Inside the safe distance the slide is not exempt: what is left is the law's back-out, away from the
+    wall, never toward the unknown, and the climb the operator commanded."""
+    params = ReferenceParams(repulsion_gain_m3_s=0.0, stopping_time_s=0.0)
+    s = np.linspace(-2.0, 2.0, 81)
+    wall = np.column_stack([0.5 + 0.5 * s, s, np.zeros_like(s)])       # oblique, 0.447 m from the vehicle
+    assert float(np.min(np.hypot(wall[:, 0], wall[:, 1]))) < params.safe_distance_m
+    op = OperatorInput(qx=1.0, qz=0.5)
+    free = np.full(72, np.inf)
+    slid = reference_velocity(op, R_QC_FORWARD, NO_SCAN, wall, params, sectors_m=free).v_ref_h_m_s
+    slide_deg = math.degrees(math.atan2(slid[1], slid[0]))
+    assert np.hypot(slid[0], slid[1]) > 0.1 and abs(slide_deg) > 45.0      # slid along it (to -y, the left)
+    unseen = free.copy()
+    k = int(round((slide_deg % 360) / 5.0))
+    unseen[[(k + j) % 72 for j in range(-4, 5)]] = np.nan              # the slide's direction never looked at
+    out = reference_velocity(op, R_QC_FORWARD, NO_SCAN, wall, params, sectors_m=unseen)
+    v = out.v_ref_h_m_s
+    normal = np.array([2.0, -1.0]) / math.sqrt(5.0)                    # the wall's normal, toward it
+    assert float(v[:2] @ normal) < 0.0, "backs out of the safe distance"
+    along = np.array([1.0, 2.0]) / math.sqrt(5.0)
+    assert abs(float(v[:2] @ along)) < 1e-9 < abs(float(slid[:2] @ along)), "no slide toward the unknown"
+    assert v[2] == pytest.approx(slid[2]) and v[2] < 0.0, "the commanded climb stays"
+
+
 def test_drifted_toward_moves_each_point_in_by_its_age_horizontally_and_at_most_halfway() -> None:
     from companion.obstacle_points import drifted_toward
     points = np.array([[0.6, 0.8, 0.3],      # 1.0 m away horizontally, 10 s old: 0.1 m nearer
