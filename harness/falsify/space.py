@@ -12,7 +12,7 @@ Frames: the arena is NED with its origin on the floor at the room's centre; the 
 north (yaw 0), so its camera looks along ``MOTION_OFFSET_RAD`` (45 deg right of the heading, where the haptic
 operator's handle moves it). Bearings are measured from that axis, clockwise seen from above (NED yaw sense).
 
-Not in the space: link delay and loss. The deterministic lock-step has no impaired link (a netem link is on the
+Not in the space: link delay and loss, glass. The deterministic lock-step has no impaired link (a netem link is on the
 wall clock, so a flight through it cannot re-fly bit for bit); see docs/falsification.md.
 """
 
@@ -51,6 +51,7 @@ from sim_sitl.config import CameraNoiseConfig, ImuNoiseConfig, RoomConfig, Scena
 from sim_sitl.scenario_gen import clearance_2d
 
 ObstacleKind = Literal["wall", "corner", "doorway", "pole", "box", "column"]
+ObstacleMaterial = Literal["matte", "dark", "specular"]
 PushDirection = Literal["along", "diagonal", "across", "against"]
 OperatorKind = Literal["haptic", "offboard"]
 
@@ -108,6 +109,9 @@ class FlightParams:
     mass_scale: float = _p(1 - MASS_SPREAD, 1 + MASS_SPREAD, "1", "x the nominal mass (the companion keeps its "
                                                                   "nominal model)")
     sitl_seed: int = _p(0, 9999, "", "the SITL's own seed (noise and the biases' draws)")
+    # last, so that the draws of the fields above are those of the searches before it
+    obstacle_material: ObstacleMaterial = _p(doc="matte | dark (absorbs the Xtion's pattern: no depth return) | "
+                                                 "specular (mirrors it away); the campaigns' hazards, not glass")
 
     def __post_init__(self) -> None:
         check(self)
@@ -125,7 +129,8 @@ def param_fields() -> list[dataclasses.Field[Any]]:
 
 def choices(f: dataclasses.Field[Any]) -> tuple[Any, ...] | None:
     """The values of a categorical parameter (None for a numeric one)."""
-    tp = {"obstacle_kind": ObstacleKind, "operator": OperatorKind, "push_direction": PushDirection}.get(f.name)
+    tp = {"obstacle_kind": ObstacleKind, "operator": OperatorKind, "push_direction": PushDirection,
+          "obstacle_material": ObstacleMaterial}.get(f.name)
     if tp is not None:
         return get_args(tp)
     if f.name in ("pan_scan", "room_height_entered"):
@@ -150,9 +155,15 @@ def check(params: FlightParams) -> None:
             raise ConfigError(f"falsify parameter {f.name}={v!r}: outside [{lo}, {hi}] {f.metadata['unit']}")
 
 
+#: parameters added to the space since its first searches, and the value the flights before them had
+ADDED_SINCE: dict[str, Any] = {"obstacle_material": "matte"}
+
+
 def params_from_dict(data: dict[str, Any]) -> FlightParams:
-    """A point from plain data (an Optuna trial's ``params``, params.json); unknown or missing names are errors."""
+    """A point from plain data (an Optuna trial's ``params``, params.json); unknown or missing names are errors,
+    but for a parameter added since (:data:`ADDED_SINCE`), which an older study's trials lack."""
     names = {f.name for f in param_fields()}
+    data = {**{k: v for k, v in ADDED_SINCE.items() if k not in data}, **data}
     unknown, missing = set(data) - names, names - set(data)
     if unknown or missing:
         raise ConfigError(f"falsify parameters: unknown {sorted(unknown)}, missing {sorted(missing)}")
@@ -233,7 +244,11 @@ def _slab(name: str, centre: np.ndarray, along: np.ndarray, length_m: float, hei
 
 
 def obstacles(params: FlightParams) -> tuple[SceneObject, ...]:
-    """The obstacle of ``params`` in the arena frame (take-off at the origin, heading north)."""
+    """The obstacle of ``params`` in the arena frame (take-off at the origin, heading north), of its material."""
+    return tuple(dataclasses.replace(o, material=params.obstacle_material) for o in _obstacles(params))
+
+
+def _obstacles(params: FlightParams) -> tuple[SceneObject, ...]:
     phi = MOTION_OFFSET_RAD + math.radians(params.obstacle_bearing_deg)
     u = _unit(phi)  # toward the obstacle
     t = _unit(phi + math.pi / 2)  # across it
@@ -278,8 +293,9 @@ def scenario_of(params: FlightParams, name: str = "falsify") -> ScenarioConfig:
     room = RoomConfig(size_m=ROOM_SIZE_M, height_m=round(params.room_height_m, 4), floor_texture="carpet",
                       wall_texture="concrete", ceiling_texture="noise")
     p = params
+    what = p.obstacle_kind if p.obstacle_material == "matte" else f"{p.obstacle_material} {p.obstacle_kind}"
     return ScenarioConfig(name=name, description=(
-        f"falsify: {p.obstacle_kind} {p.obstacle_distance_m:.2f} m at {p.obstacle_bearing_deg:+.0f} deg from the "
+        f"falsify: {what} {p.obstacle_distance_m:.2f} m at {p.obstacle_bearing_deg:+.0f} deg from the "
         f"camera axis, room {p.room_height_m:.2f} m high"), room=room, start=StartPose((0.0, 0.0), 0.0),
         objects=obstacles(params))
 

@@ -73,6 +73,18 @@ def test_out_of_bounds_points_are_refused_by_name(rng: np.random.Generator) -> N
         params_from_dict({k: v for k, v in dataclasses.asdict(p).items() if k != "mass_scale"})
 
 
+def test_the_obstacle_is_of_the_points_material_and_an_older_studys_point_is_matte(rng: np.random.Generator) -> None:
+    """The space draws the campaigns' hazards (an object the Xtion gets no return from); a trial of a study from
+    before the parameter has none, and reads as the matte obstacle it flew."""
+    p = dataclasses.replace(sample(rng), obstacle_material="dark")
+    assert {o.material for o in build_flight(p, DURATION_S).scenario.objects} == {"dark"}
+    older = {k: v for k, v in dataclasses.asdict(p).items() if k != "obstacle_material"}
+    q = params_from_dict(older)
+    assert q.obstacle_material == "matte"
+    assert {o.material for o in build_flight(q, DURATION_S).scenario.objects} == {"matte"}
+    assert "dark" not in build_flight(q, DURATION_S).scenario.description
+
+
 def test_same_point_gives_the_same_files(rng: np.random.Generator, tmp_path: Path) -> None:
     for i in range(6):
         p = sample(rng)
