@@ -148,6 +148,7 @@ class Sitl:
         self._bytes_out = [0, 0]       # bytes written to port 1 and port 2
         self._operator_left_s: float | None = None
         self._disarmed_since_s: float | None = None
+        self._was_gated = False   # the plain lock-step's consumers gated the last chunk (_pace)
         if opts.lockstep_port is not None:
             try:
                 self.coordinator = Coordinator(opts.host, opts.lockstep_port, opts.lockstep_participants)
@@ -237,99 +238,99 @@ class Sitl:
 
     # ------------------------------------------------------------------ loop
     def run(self) -> None:
-        """Run until ``stop()`` or the duration (blocking)."""
-        if self.coordinator is not None:
-            self._run_deterministic(self.coordinator)
-            return
-        o = self.options
-        cfg = self.options.config
-        clock = self._clock
+        """The one loop, whatever owns time (blocking): per chunk of ticks, the inputs due (in the deterministic
+        lock-step, exactly the bytes the bridge had sent by its last DONE), the ticks (each one's serial bytes out;
+        in the plain lock-step a camera frame's acks awaited), then what paces the next chunk (:meth:`_pace`: the
+        wall clock, or the plain lock-step's setpoint gate; :meth:`_lockstep_step`: STEP to every participant and
+        their DONE); until :meth:`stop`, the duration, or the deterministic run's end (:meth:`_end_reason`)."""
+        o, cfg, clock, coord = self.options, self.options.config, self._clock, self.coordinator
+        plain_lockstep = o.lockstep and coord is None
+        chunk_ticks = max(1, round(cfg.lockstep_chunk_s / self.sim.tick_s)) if o.lockstep or coord else 1
         pacer = RealTimePacer(speed=o.speed if o.speed is not None else 1.0)
-        chunk_ticks = max(1, round(cfg.lockstep_chunk_s / self.sim.tick_s)) if o.lockstep else 1
-        start_wall = clock()
-        pacer.rebase(start_wall, self.sim.t_s)
-        last_progress = start_wall
-        last_progress_stats = (0.0, 0, 0)
-        was_gated = False
-        while not self._stop.is_set():
-            if o.duration_s is not None and self.sim.t_s >= o.duration_s - 1e-9:
-                break
-            for _ in range(chunk_ticks):
-                pending_frame = self._step(self.sim.tick())
-                if pending_frame is not None:
-                    self._await_camera_ack(pending_frame)
-            now = clock()
-            self.stats.sim_time_s = self.sim.t_s
-            self.stats.wall_time_s = now - start_wall
-            gated = o.lockstep and (self.gate.gated or self.ports.camera_client_count > 0)
-            if o.lockstep and self.gate.gated:
-                self._await_setpoint()
-            if gated and o.speed is None:
-                was_gated = True
-            elif was_gated:  # consumers left: pace from here, do not sleep off the time gained while gated
-                was_gated = False
-                pacer.rebase(now, self.sim.t_s)
-            if gated and o.speed is None:
-                self._serve_serial(0.0)  # lock-step alone paces
-            else:
-                behind = pacer.fell_behind
-                wait_s = pacer.wait_s(self.sim.t_s, clock())
-                if pacer.fell_behind and not behind:
-                    log.warning("cannot keep %.1fx real time; continuing as fast as possible", pacer.speed)
-                self._serve_for(wait_s)
-            if now - last_progress >= o.progress_every_s:
-                self._progress(now - last_progress, last_progress_stats)
-                last_progress = now
-                last_progress_stats = (self.sim.t_s, self.stats.imu_frames_offered, self.stats.camera_frames)
-        self.stats.wall_time_s = clock() - start_wall
-        log.info("SITL stopped at sim time %.2f s (real-time factor %.2f)", self.sim.t_s,
-                 self.stats.real_time_factor)
-
-    def _run_deterministic(self, coord: Coordinator) -> None:
-        """The deterministic lock-step (:mod:`quadlink.lockstep`): no simulated time passes until every participant
-        has registered; then per chunk: the bridge's bytes of the previous step, the chunk, STEP to everyone, and
-        every participant's DONE before the next chunk. A participant too slow (``lockstep_done_timeout_s`` of
-        wall time) ends the run with :class:`LockstepError`: a flight that is no longer deterministic must fail,
-        not go on as another flight."""
-        o, cfg, clock = self.options, self.options.config, self._clock
-        chunk_ticks = max(1, round(cfg.lockstep_chunk_s / self.sim.tick_s))
+        if coord is not None:
+            self._await_registration(coord)
         start_wall = last_progress = clock()
+        pacer.rebase(start_wall, self.sim.t_s)
         last_progress_stats = (0.0, 0, 0)
-        log.info("lock-step: waiting for %s to register on %s", ", ".join(o.lockstep_participants), coord.url)
-        while not self._stop.is_set() and not coord.all_registered():
-            coord.poll(0.02)
-            self._poll_port1()
-        last_progress = clock()   # the first progress line five seconds into the steps, not at the first step
+        self._was_gated = False
         index = 0
         reason: str | None = None
         while not self._stop.is_set():
             reason = self._end_reason(coord)
             if reason is not None:
                 break
-            self._apply_port1(coord.sent.get("bridge>sitl"))
+            if coord is not None:
+                self._apply_port1(coord.sent.get("bridge>sitl"))
             for _ in range(chunk_ticks):
-                self._step(self.sim.tick())
-            camera = self.ports.camera
-            coord.sent.update({"sitl>bridge.cmd": self._bytes_out[0], "sitl>bridge.imu": self._bytes_out[1],
-                               "sitl>companion.camera": camera.frames_published if camera is not None else 0})
-            coord.send_step(index, self.sim.t_s)
-            self._await_done(coord, index)
-            self.stats.steps = index = index + 1
-            now = clock()
+                pending_frame = self._step(self.sim.tick())
+                if pending_frame is not None and plain_lockstep:
+                    self._await_camera_ack(pending_frame)
+            if coord is not None:
+                self._lockstep_step(coord, index)
+                self.stats.steps = index = index + 1
+                now = clock()
+            else:
+                now = clock()
+                self._pace(pacer, now)
             self.stats.sim_time_s, self.stats.wall_time_s = self.sim.t_s, now - start_wall
             if now - last_progress >= o.progress_every_s:
                 self._progress(now - last_progress, last_progress_stats)
                 last_progress = now
                 last_progress_stats = (self.sim.t_s, self.stats.imu_frames_offered, self.stats.camera_frames)
         self.stats.wall_time_s = clock() - start_wall
-        log.info("SITL stopped at sim time %.2f s after %d lock-step steps (%s; real-time factor %.2f)",
-                 self.sim.t_s, self.stats.steps, reason or "stopped", self.stats.real_time_factor)
-        coord.close(reason or "stopped")
+        steps = f" after {self.stats.steps} lock-step steps" if coord is not None else ""
+        log.info("SITL stopped at sim time %.2f s%s (%s; real-time factor %.2f)", self.sim.t_s, steps,
+                 reason or "stopped", self.stats.real_time_factor)
+        if coord is not None:
+            coord.close(reason or "stopped")
 
-    def _end_reason(self, coord: Coordinator) -> str | None:
-        """Why the deterministic run ends now (None: it goes on); decided on simulated time and state only."""
+    def _await_registration(self, coord: Coordinator) -> None:
+        """The deterministic lock-step (:mod:`quadlink.lockstep`): no simulated time passes until every participant
+        has registered (serving port 1 meanwhile)."""
+        log.info("lock-step: waiting for %s to register on %s", ", ".join(self.options.lockstep_participants),
+                 coord.url)
+        while not self._stop.is_set() and not coord.all_registered():
+            coord.poll(0.02)
+            self._poll_port1()
+
+    def _lockstep_step(self, coord: Coordinator, index: int) -> None:
+        """The deterministic lock-step's end of a chunk: what was sent on each link, STEP ``index`` to everyone,
+        and every participant's DONE before the next chunk. A participant too slow (``lockstep_done_timeout_s`` of
+        wall time) ends the run with :class:`LockstepError`: a flight that is no longer deterministic must fail,
+        not go on as another flight."""
+        camera = self.ports.camera
+        coord.sent.update({"sitl>bridge.cmd": self._bytes_out[0], "sitl>bridge.imu": self._bytes_out[1],
+                           "sitl>companion.camera": camera.frames_published if camera is not None else 0})
+        coord.send_step(index, self.sim.t_s)
+        self._await_done(coord, index)
+
+    def _pace(self, pacer: RealTimePacer, now: float) -> None:
+        """Free-running: serve the serial ports until the next chunk is due on the wall clock (``speed`` x real
+        time), or, in the plain lock-step, until its setpoint has paid for it (and the camera's acks: a consumer
+        gates the run; when the consumers leave, pacing resumes from here, not sleeping off the time gained)."""
+        o = self.options
+        gated = o.lockstep and (self.gate.gated or self.ports.camera_client_count > 0)
+        if o.lockstep and self.gate.gated:
+            self._await_setpoint()
+        if gated and o.speed is None:
+            self._was_gated = True
+        elif self._was_gated:
+            self._was_gated = False
+            pacer.rebase(now, self.sim.t_s)
+        if gated and o.speed is None:
+            self._serve_serial(0.0)  # lock-step alone paces
+            return
+        behind = pacer.fell_behind
+        wait_s = pacer.wait_s(self.sim.t_s, self._clock())
+        if pacer.fell_behind and not behind:
+            log.warning("cannot keep %.1fx real time; continuing as fast as possible", pacer.speed)
+        self._serve_for(wait_s)
+
+    def _end_reason(self, coord: Coordinator | None) -> str | None:
+        """Why the run ends now (None: it goes on); decided on simulated time and state only: the duration, or in
+        the deterministic lock-step the operator's leaving and the landing after it."""
         o, t = self.options, self.sim.t_s
-        if o.end_after_operator_s is not None and "operator" in coord.left:
+        if coord is not None and o.end_after_operator_s is not None and "operator" in coord.left:
             if self._operator_left_s is None:
                 self._operator_left_s = t
                 log.info("the operator left at sim time %.2f s", t)
