@@ -32,7 +32,7 @@ BLIND_DESCENT_EXTRA_S = 3.0  # the blind descent probes for the ground after hei
 # to 0.21 m of a box. Longer, and the accelerometer's bias (~0.05 m/s^2) would steer it instead.
 ODOM_LOST_BRAKE_S = 1.0
 ODOM_LOST_BRAKE_TILT_RAD = 0.15   # ~1.5 m/s^2: 0.4 m/s braked in under 0.3 s
-LAND_HOLD_GAIN_1_S = 1.0          # LAND's position hold: m/s back per m away from where it began
+LAND_HOLD_GAIN_1_S = 1.0          # LAND's and TAKEOFF's position hold: m/s back per m away from where it began
 LAND_HOLD_MAX_M_S = 0.15
 LAND_HOLD_REANCHOR_M = 0.5        # farther than this from the anchor (an odometry reset): a new anchor
 DRAG_HOLD_TILT_RAD = 0.1          # the hold on the drag's velocity corrects a slide of tenths of m/s: ~1 m/s^2 is ample
@@ -151,6 +151,10 @@ class FlightControlService:
                         f"Takeoff: odometry height {s.height_m:.2f}, climbed {s.tko_climbed_m:.2f} m")
             remaining = s.takeoff_target_m - height
             v_ref[2] = -min(s.params["MPC_TKO_SPEED"], max(1.0 * remaining, 0.1))
+            # on odometry the climb holds where it began, as LAND does (PX4's take-off holds its position): a
+            # velocity loop asked for zero let a 0.16 m/s drift from the blind lift-off die out over 5 s, 0.26 m
+            # more toward a wall the camera did not face (campaign 24, flight 25: 0.65 m from it at the start, 0.356)
+            v_ref[:2] = self._position_hold(est.yaw_rad)
             if remaining <= 0.05:
                 s.event(mavlink.MAV_SEVERITY_INFO, f"Takeoff complete at {height:.2f} m")
                 s.takeoff_phase = None
@@ -158,7 +162,7 @@ class FlightControlService:
                 v_ref[2] = 0.0
         elif s.mode == FlightMode.LAND:
             v_ref[2] = s.params["MPC_LAND_SPEED"]
-            v_ref[:2] = self._land_position_hold(est.yaw_rad)
+            v_ref[:2] = self._position_hold(est.yaw_rad)
         elif s.fs_hover_until_s is not None and now_s >= s.fs_hover_until_s:
             s.fs_hover_until_s = None
             s.event(mavlink.MAV_SEVERITY_WARNING, "Failsafe: hover done, landing")
@@ -262,10 +266,11 @@ class FlightControlService:
             self._detect_touchdown(now_s, cmd, abs(vz_est), ground_contact=ground)
         return self._finish(cmd)
 
-    def _land_position_hold(self, yaw_rad: float) -> np.ndarray:
-        """LAND on odometry holds the place where it began (PX4's land holds its position), not only v = 0: a velocity
-        loop asked for zero creeps (3-8 cm/s seen), and a vertical descent beside a box came 0.10 m nearer it
-        (campaign seed 2031 flight 22). In H, at most LAND_HOLD_MAX_M_S; re-anchored after a jump."""
+    def _position_hold(self, yaw_rad: float) -> np.ndarray:
+        """LAND and TAKEOFF on odometry hold the place where they began (PX4's land and take-off hold their
+        position), not only v = 0: a velocity loop asked for zero creeps (3-8 cm/s seen), and a vertical descent
+        beside a box came 0.10 m nearer it (campaign seed 2031 flight 22). In H, at most LAND_HOLD_MAX_M_S;
+        re-anchored after a jump and at every mode change (:meth:`CommanderService.set_mode`)."""
         s = self.state
         p = s.odom_p_ned_m
         if p is None or not np.all(np.isfinite(p[:2])):
