@@ -47,7 +47,7 @@ class CommanderService:
         log.info("mode %s -> %s%s", s.mode.name, mode.name, f" ({reason})" if reason else "")
         s.mode = mode
         s.touchdown_since_s = None
-        s.land_anchor_ned_m = None   # a LAND or a TAKEOFF holds where it begins (firmware_bridge.flight_control)
+        s.hold_anchor_ned_m = None   # a LAND or a TAKEOFF holds where it begins (firmware_bridge.flight_control)
         if mode == FlightMode.TAKEOFF:
             self._start_takeoff(now_s)
 

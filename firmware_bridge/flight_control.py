@@ -274,11 +274,11 @@ class FlightControlService:
         s = self.state
         p = s.odom_p_ned_m
         if p is None or not np.all(np.isfinite(p[:2])):
-            s.land_anchor_ned_m = None
+            s.hold_anchor_ned_m = None
             return np.zeros(2)
-        if s.land_anchor_ned_m is None or float(np.linalg.norm(p[:2] - s.land_anchor_ned_m)) > LAND_HOLD_REANCHOR_M:
-            s.land_anchor_ned_m = p[:2].copy()
-        e_ned = np.array([p[0] - s.land_anchor_ned_m[0], p[1] - s.land_anchor_ned_m[1], 0.0])
+        if s.hold_anchor_ned_m is None or float(np.linalg.norm(p[:2] - s.hold_anchor_ned_m)) > LAND_HOLD_REANCHOR_M:
+            s.hold_anchor_ned_m = p[:2].copy()
+        e_ned = np.array([p[0] - s.hold_anchor_ned_m[0], p[1] - s.hold_anchor_ned_m[1], 0.0])
         v_h = -LAND_HOLD_GAIN_1_S * (Rz(-yaw_rad) @ e_ned)[:2]
         speed = float(np.linalg.norm(v_h))
         return v_h * (LAND_HOLD_MAX_M_S / speed) if speed > LAND_HOLD_MAX_M_S else v_h

@@ -169,7 +169,7 @@ class BridgeState:
         self.odom_lost_s: float | None = None   # when the odometry was lost in the air (None: not lost)
         self.odom_reset_counter: int | None = None
         self.odom_p_ned_m: np.ndarray | None = None  # the odometry's position (its local frame), if finite
-        self.land_anchor_ned_m: np.ndarray | None = None  # where LAND or TAKEOFF began (x, y of the odometry)
+        self.hold_anchor_ned_m: np.ndarray | None = None  # where LAND or TAKEOFF began (x, y of the odometry)
         # the horizontal velocity the accelerometer's drag reading gives, learnt while the odometry is good
         self.drag = DragVelocity()
         self.drag_told = False   # the STATUSTEXT when the fit is first trusted
