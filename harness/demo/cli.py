@@ -390,8 +390,10 @@ def _settle(recorder: Recorder, stack: Stack, operator_name: str, settle_s: floa
 
 
 def replay_flight(flight_dir: Path, out_dir: Path | None = None, port_offset: int = 0,
-                  port_base: int | None = None, progress_every_s: float = 3.0) -> tuple[dict[str, object], Path]:
-    """Fly ``flight_dir/flight.json`` again (into ``flight_dir/replay`` by default); returns (report, folder)."""
+                  port_base: int | None = None, progress_every_s: float = 3.0,
+                  journal: bool = False) -> tuple[dict[str, object], Path]:
+    """Fly ``flight_dir/flight.json`` again (into ``flight_dir/replay`` by default; ``journal``: with the
+    companion's and the bridge's input journals); returns (report, folder)."""
     path = flight_dir / "flight.json"
     if not path.is_file():
         raise ConfigError(f"{path}: no flight.json (fly it with quadlink demo or quadlink campaign first)")
@@ -405,7 +407,7 @@ def replay_flight(flight_dir: Path, out_dir: Path | None = None, port_offset: in
                       view=spec.view, settle_s=spec.settle_s, deterministic=spec.deterministic,
                       room_height_error_m=spec.room_height_error_m,
                       companion_config=Path(spec.companion_config) if spec.companion_config else None,
-                      board=spec.board)
+                      board=spec.board, journal=journal)
     return report, out
 
 
@@ -482,7 +484,7 @@ def command(scenario: str, duration_s: float, out_dir: Path | None, script: Path
         if link is not None:
             link.impairment()   # validates (ConfigError names the bad value)
         if replay_dir is not None:
-            report, out_dir = replay_flight(replay_dir, out_dir, port_offset, port_base)
+            report, out_dir = replay_flight(replay_dir, out_dir, port_offset, port_base, journal=journal)
         else:
             out_dir = out_dir or Path("flight-report")
             if journal and record_frames:
