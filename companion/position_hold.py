@@ -15,7 +15,9 @@ HOLD), it anchors the odometry's position and adds ``-gain (p - anchor)`` (at mo
 reference; the anchor moves on with what is left of the reference (a slow way out of the safe distance is followed,
 not fought). The anchor is a place the vehicle occupied a moment ago, so going back to it needs no map: it is the
 one motion that is safe toward a sector the camera has not looked at. The hold lets go as soon as the reference is
-faster than ``release_above_m_s``, and re-anchors if the vehicle is more than ``max_offset_m`` from the anchor (an
+faster than ``release_above_m_s`` — with nothing commanded, ``release_idle_above_m_s``, the correction's own
+limit: a slow repulsion then moves the anchor (a failsafe landing's look round let go for one and drifted 0.35 m
+with its velocity loop's error while it turned) — and re-anchors if the vehicle is more than ``max_offset_m`` from the anchor (an
 odometry reset or a push it could not resist: going back that far is a move, not a hold).
 
 Frames: the odometry's world (levelled, NED-like, yaw ``yaw_rad`` from the world x axis); the correction is added in
@@ -42,6 +44,8 @@ class PositionHoldParams:
     max_speed_m_s: float = 0.15       # the correction's limit (a creep of a few cm/s needs far less)
     engage_below_m_s: float = 0.02    # a reference slower than this (horizontally) holds the place
     release_above_m_s: float = 0.05   # a reference faster than this lets go
+    release_idle_above_m_s: float = 0.15   # ... with nothing commanded (the correction's own limit): a slow
+                                      # repulsion moves the anchor, it does not drop the hold (falsify s12 t32)
     max_offset_m: float = 0.5         # farther from the anchor than this: re-anchor where the vehicle is
 
     def __post_init__(self) -> None:
@@ -49,9 +53,9 @@ class PositionHoldParams:
             raise ValueError(f"gain_per_s must be >= 0, got {self.gain_per_s}")
         if not 0.0 <= self.max_speed_m_s <= 1.0:
             raise ValueError(f"max_speed_m_s must be in [0, 1] m/s, got {self.max_speed_m_s}")
-        if not 0.0 <= self.engage_below_m_s <= self.release_above_m_s:
-            raise ValueError("need 0 <= engage_below_m_s <= release_above_m_s, got "
-                             f"{self.engage_below_m_s} and {self.release_above_m_s}")
+        if not 0.0 <= self.engage_below_m_s <= min(self.release_above_m_s, self.release_idle_above_m_s):
+            raise ValueError("need 0 <= engage_below_m_s <= release_above_m_s and release_idle_above_m_s, got "
+                             f"{self.engage_below_m_s}, {self.release_above_m_s} and {self.release_idle_above_m_s}")
         if not self.max_offset_m > 0.0:
             raise ValueError(f"max_offset_m must be > 0, got {self.max_offset_m}")
 
@@ -99,7 +103,11 @@ class PositionHold:
         fresh = self._stamp_s is not None and math.isfinite(stamp_s)
         dt_s = min(max(stamp_s - self._stamp_s, 0.0), 0.2) if fresh and self._stamp_s is not None else 0.0
         self._stamp_s = stamp_s if math.isfinite(stamp_s) else self._stamp_s
-        if not usable or speed > (p.release_above_m_s if self.holding else p.engage_below_m_s):
+        v_cmd = np.asarray(ref.v_operator_h_m_s, dtype=float)
+        commanded = not (np.all(np.isfinite(v_cmd[:2])) and math.hypot(float(v_cmd[0]), float(v_cmd[1]))
+                         <= p.engage_below_m_s)
+        release = p.release_above_m_s if commanded else p.release_idle_above_m_s
+        if not usable or speed > (release if self.holding else p.engage_below_m_s):
             self._anchor_w_m = None
             return ref
         assert pos is not None
