@@ -190,10 +190,11 @@ def fly_push_toward_column(out_dir: Path, push_s: float, port_offset: int) -> Fl
 def _check(rec: FlightRecord) -> None:
     assert rec.max_altitude_m > 0.6, "never took off"
     # pushed at full deflection, it comes to rest at about the safe distance (0.45 m), not far before it: the
-    # map's drift margin and the pan-scan's sway put the rest at 0.52-0.58 m (eight flights, idle and with both
-    # cores busy), and CI once saw 0.60 m; a push that stalls (the force cue's dead-band once stopped it at
-    # 1.66 m) still fails
-    assert rec.closest_while_pushing_m < 0.65, f"stopped {rec.closest_while_pushing_m:.2f} m from the column"
+    # map's drift margin and the pan-scan's sway put the rest at 0.52-0.58 m (eight flights on 3a7302e); 0.53-0.63 m
+    # over twenty on fd4ccb4 and aff502c (twelve idle, eight with both cores busy), and CI 0.66 m once on 24b57c5
+    # with a second test run beside it (the bound was 0.65 m). A push that stalls (the force cue's dead-band once
+    # stopped it at 1.66 m) still fails
+    assert rec.closest_while_pushing_m < 0.70, f"stopped {rec.closest_while_pushing_m:.2f} m from the column"
     assert rec.min_obstacle_m >= 0.40, (f"truth distance went down to {rec.min_obstacle_m:.2f} m at "
                                         f"(t, mode, altitude) {rec.min_at}")
     assert rec.hold_seen, f"no hover after the ground station went silent (modes {rec.modes})"

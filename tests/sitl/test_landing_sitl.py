@@ -74,8 +74,12 @@ def _fly_over_the_box(f: Flight) -> None:
     f.take_off()
     f.run_for(2.0, lambda: f.manual(0))
     f.run_for(30.0, lambda: f.manual(400), until=lambda: f.p_arena[0] >= BOX_CENTRE_XY_M[0] - 0.1)
+    reached = f.p_arena.round(2)
     f.run_for(4.0, lambda: f.manual(0))
-    assert _over_box(f.p_arena), f"not over the box: at {f.p_arena.round(2)}"
+    # CI once ended 0.14 m short of the box's edge and 0.65 m to its side (1 in ~20 flights; 14 of 14 since, idle and
+    # with both cores busy): say where the push ended and what the companion said, to tell a block from a drift
+    assert _over_box(f.p_arena), (f"not over the box: at {f.p_arena.round(2)}, the push ended at {reached} "
+                                  f"(t {f.t_s:.1f} s); modes {f.log.modes}; status {f.log.statustexts[-8:]}")
     assert -f.p_arena[2] > 0.9, f"flying at {-f.p_arena[2]:.2f} m"
 
 
