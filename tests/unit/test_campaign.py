@@ -278,6 +278,32 @@ def test_the_companion_gets_the_operators_room_height_entry_not_the_truth(tmp_pa
     assert unknown["reference"]["room_height_m"] is None
 
 
+def test_the_entry_is_the_lowest_overhead_a_soffit_under_the_ceiling(tmp_path: Path) -> None:
+    """Campaign 24, flight 27 (0.106 m under a soffit): the operator enters the lowest overhead, as the guide asks (the
+    camera never sees above the vehicle), so the campaign's entry is the soffit's underside plus the error."""
+    import yaml
+
+    from harness.campaign.draws import scenario_to_dict
+    from harness.demo.cli import companion_config_for_room, lowest_overhead_m
+    from sim_sitl.config import load_scenario
+    from sim_sitl.scenario_gen import generate_procedural
+
+    soffits = []
+    for seed in range(60):
+        scenario, _ = generate_procedural(np.random.default_rng(seed), f"soffit-{seed}", layout="low-ceiling")
+        under = [-o.position_m[2] - o.size_m[2] / 2 for o in scenario.objects if o.name == "soffit"]
+        assert len(under) == 1
+        assert lowest_overhead_m(scenario) == pytest.approx(min(under[0], scenario.room.height_m))
+        soffits.append(scenario.room.height_m - under[0])
+    assert min(soffits) >= 0.29   # each hangs 0.3-0.7 m below its ceiling: the entry is lower than the room
+    path = tmp_path / "soffit.yaml"
+    path.write_text(yaml.safe_dump(scenario_to_dict(scenario)))
+    entered = yaml.safe_load(companion_config_for_room(tmp_path / "c", str(path), -0.05).read_text())
+    assert entered["reference"]["room_height_m"] == pytest.approx(round(under[0] - 0.05, 2))
+    # an object standing on the floor is not overhead
+    assert lowest_overhead_m(load_scenario("paper-arena")) == load_scenario("paper-arena").room.height_m
+
+
 def test_campaign_draws_the_room_height_entry_error_per_flight() -> None:
     from harness.campaign.draws import ROOM_HEIGHT_ENTRY_ERROR_M, draw_flight
 
