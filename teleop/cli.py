@@ -11,7 +11,7 @@ from types import FrameType
 import click
 
 from quadlink.errors import ConfigError
-from quadlink.lockstep import LockstepError
+from quadlink.lockstep import LockstepEnded, LockstepError
 from quadlink.mavlink.security import read_key
 from quadlink.signals import STOP_SIGNALS
 from teleop.config import load_teleop_config
@@ -108,6 +108,8 @@ def command(device_name: str, script: str | None, vehicle: str | None, image_str
             station.run(duration)
     except KeyboardInterrupt:
         log.info("interrupted; stopping")
+    except LockstepEnded as exc:   # the SITL ended the flight (its duration, the flight's end): a normal stop
+        log.info("lock-step: %s", exc)
     except LockstepError as exc:   # the coordinator is gone (the SITL ended or died) or a datagram never came
         log.error("lock-step: %s", exc)
         lockstep_error = exc

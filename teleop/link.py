@@ -50,9 +50,9 @@ def send_command(client: GroundClient, out: OutgoingCommand) -> None:
 
 
 class VehicleLink:
-    """The network loop of a :class:`teleop.station.Station`: :meth:`run` in its own thread on the wall clock,
-    or, in the deterministic lock-step, :meth:`_receive` and :meth:`tick` called from the station's step loop
-    on simulated time (:meth:`teleop.station.Station.run_lockstep`)."""
+    """The vehicle link of a :class:`teleop.station.Station`: :meth:`_receive` and :meth:`tick`, called by the
+    station's one loop (:meth:`teleop.station.Station._loop`) on the wall clock or on the lock-step's simulated
+    time."""
 
     def __init__(self, station: Station) -> None:
         self.station = station
@@ -62,28 +62,6 @@ class VehicleLink:
         self.statustexts = StatusTextAssembler()   # the vehicle's long texts come in chunks
         self.next_timesync = -math.inf             # on the station's clock (the first tick sends)
         self.receive_limited = False               # the last _receive stopped at its message limit
-
-    def run(self) -> None:
-        """The wall-clock loop (its own thread): receive, then one :meth:`tick`, every 1/rate_hz."""
-        st, cfg = self.station, self.cfg
-        period = 1.0 / cfg.mapping.rate_hz
-        client = st.client
-        assert client is not None, "the station's link is opened by start()"
-        csv_log = CsvLog(st.log_csv) if st.log_csv else None
-        t0 = st.clock()
-        next_t = t0
-        try:
-            while not st.stop_event.is_set():
-                t = st.clock()
-                tel = self._receive(client, st.telemetry, t)
-                self.tick(client, t, tel, csv_log, t0)
-                next_t += period
-                if st.clock() - next_t > 10 * period:
-                    next_t = st.clock()
-                st.stop_event.wait(max(next_t - st.clock(), 0.0))
-        finally:
-            if csv_log is not None:
-                csv_log.close()
 
     def tick(self, client: GroundClient, t: float, tel: Telemetry, csv_log: CsvLog | None, t0: float) -> None:
         """One tick of the link at time ``t`` (the station's clock): buttons -> commands, MANUAL_CONTROL (with its

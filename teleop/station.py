@@ -7,16 +7,18 @@ under one lock), a queue for button presses, one stop event; every wait has a ti
 * force loop, 1 kHz (``device.force_rate_hz``, :mod:`teleop.force_loop`): poll device -> eq. (15) -> set
   force; in its own process for a device spec (``ForceProcess``), else a thread here (the interpreter's
   switch interval lowered to 0.5 ms while it runs).
-* vehicle link, 50 Hz (:mod:`teleop.link`): MAVLink in, MANUAL_CONTROL / HEARTBEAT / commands out,
-  warnings, CSV log (:mod:`teleop.recording`).
+* the station's loop, 50 Hz (:meth:`Station._loop` over :mod:`teleop.link`): MAVLink in, MANUAL_CONTROL /
+  HEARTBEAT / commands out, warnings, CSV log (:mod:`teleop.recording`), the status line and the end checks. One
+  loop over either event source: the wall clock's turns (:meth:`Station.start`, its own thread; :meth:`Station.run`
+  waits for it) or the lock-step's STEPs.
 * view loop, camera rate (:meth:`Station._view_loop` over :mod:`teleop.view_loop`): the companion's
   operator images and their :class:`quadlink.operator_image.OperatorImageMeta` -> pan-scan compensation
   -> rendered view -> web page (:mod:`teleop.view.server`) and optional video.
 
 Deterministic lock-step (``quadlink teleop --lockstep tcp://HOST:PORT``, :mod:`quadlink.lockstep`): the station
 is the ``operator`` participant and runs single-threaded (:meth:`Station.start_lockstep`,
-:meth:`Station.run_lockstep`): no thread, no force process, no view. Per STEP of the SITL, on its simulated
-time ``t``: the force loop's ticks up to ``t`` at ``force_rate_hz`` of simulated time (the device, eq. (15),
+:meth:`Station.run_lockstep`: the same loop): no thread, no force process, no view. Per STEP of the SITL, on its
+simulated time ``t``: the force loop's ticks up to ``t`` at ``force_rate_hz`` of simulated time (the device, eq. (15),
 the script), then exactly the companion datagrams the step announces, then the link's ticks due at
 ``mapping.rate_hz`` of simulated time (MANUAL_CONTROL, commands, HEARTBEAT, TIMESYNC), then DONE. The
 station's clock is the step's time, so nothing it sends depends on the wall clock or on scheduling.
@@ -33,7 +35,7 @@ import threading
 import time
 from collections import deque
 from collections.abc import Callable
-from typing import Any
+from typing import Any, Protocol
 
 import cv2
 import numpy as np
@@ -42,7 +44,7 @@ from numpy.typing import NDArray
 from quadlink.camera import CameraStreamClient
 from quadlink.client import GroundClient, Signing, connect
 from quadlink.errors import ConfigError, ProtocolError, QuadlinkError
-from quadlink.lockstep import DEFAULT_INPUT_TIMEOUT_S, CountedMavlink, LockstepClient, wait_for_units
+from quadlink.lockstep import DEFAULT_INPUT_TIMEOUT_S, CountedMavlink, LockstepClient, Step, wait_for_units
 from quadlink.mavlink.security import read_key
 from teleop.commands import CommandResult, CommandTracker
 from teleop.config import TeleopConfig
@@ -135,9 +137,13 @@ class Station:
         self._lockstep: LockstepClient | None = None
         self._counted: CountedMavlink | None = None
         self.lockstep_steps = 0   # STEPs answered
+        self._duration_s: float | None = None   # the loop ends this long after its first turn (None: never)
+        self._status_period_s = 2.0
+        self._started_s = 0.0                   # the station's clock at start()
 
     # ---- lifecycle -------------------------------------------------------------------------
     def start(self) -> None:
+        self._started_s = self.clock()
         if isinstance(self.device, DeviceSpec):   # before any thread: the force loop in its own process
             self._force_proc = ForceProcess(self.device, self.cfg)
         self._open_link()
@@ -147,7 +153,7 @@ class Station:
         if self._force_proc is None:
             sys.setswitchinterval(0.0005)   # the force thread waits at most this long for the GIL
             self._spawn("force-loop", self._force_thread)
-        self._spawn("network-loop", self._network_loop)
+        self._spawn("station-loop", lambda: self._loop(_WallTurns(self)))
         if self.image_stream_url is not None or self.server is not None or self.record_path:
             self._spawn("view-loop", self._view_loop)
 
@@ -186,57 +192,58 @@ class Station:
         """Answer STEPs until stopped (Ctrl-C, quit button, script end, ``duration_s`` of simulated time); the
         last step is answered before returning. :class:`quadlink.lockstep.LockstepError`: the coordinator is
         gone or an announced datagram did not come."""
-        client, counted, ground = self._lockstep, self._counted, self.client
-        assert client is not None and counted is not None and ground is not None and \
+        assert self._lockstep is not None and self._counted is not None and self.client is not None and \
             isinstance(self.device, HapticDevice), "start_lockstep() first"
-        force = ForceLoop(self.device, self.cfg, _ThreadIO(self))
+        self._duration_s, self._status_period_s = duration_s, status_period_s
+        self._loop(_LockstepTurns(self, input_timeout_s))
+        if self.error is not None:
+            raise QuadlinkError(f"ground station stopped: {self.error}")
+
+    def _loop(self, turns: _Turns) -> None:
+        """The station's one loop, over either event source (``turns``): the wall clock's turns every link period
+        (:meth:`start`; the force loop and the view run in their own loops) or the lock-step's STEPs
+        (:meth:`start_lockstep`; the force loop's ticks run here, before the step's datagrams). Per turn at time
+        ``t``: the device's ticks due (lock-step), the vehicle's datagrams, the link's ticks due (MANUAL_CONTROL,
+        commands, HEARTBEAT, TIMESYNC), the end checks (duration, script end, the force process), warnings and
+        the status line."""
+        client = self.client
+        assert client is not None, "the vehicle link is opened by start() or start_lockstep()"
         link = VehicleLink(self)
         csv_log = CsvLog(self.log_csv) if self.log_csv else None
-        force_rate = self.cfg.device.force_rate_hz
-        link_period = 1.0 / self.cfg.mapping.rate_hz
         t_first: float | None = None
-        n_force = n_link = 0                 # ticks run so far: tick i is due at t_first + i / rate
         next_status = math.inf
         shown_warnings: set[str] = set()
         tel = self.telemetry
         try:
             while not self.stop_event.is_set():
-                step = client.next_step()
-                if step is None:
+                t = turns.next_time()
+                if t is None:
                     continue
-                t = step.t_s
                 if t_first is None:
-                    t_first, next_status = t, t + status_period_s
-                # the device and the force law up to t, on what was received up to the last step
-                while t_first + n_force / force_rate <= t + _EPS_S:
-                    force.tick(t_first + n_force / force_rate)
-                    n_force += 1
+                    t_first, next_status = t, t + self._status_period_s
+                turns.run_device(t)
                 played = self.exit_at_script_end and self.device_finished   # as far as the device has played
-                # exactly this step's datagrams
-                tel = self._receive_step(link, tel, t, step.count(LINK_IN), f"{LINK_IN} at step {step.index}",
-                                         input_timeout_s)
-                # the link's ticks due at t (MANUAL_CONTROL, commands, HEARTBEAT, TIMESYNC)
-                while t_first + n_link * link_period <= t + _EPS_S:
-                    link.tick(ground, t, tel, csv_log, t_first)
-                    n_link += 1
+                tel = turns.receive(link, tel, t)
+                for _ in range(turns.link_ticks_due(t, t_first)):
+                    link.tick(client, t, tel, csv_log, t_first)
                 # the script's end once its last presses went out (they wait for the link's next tick)
-                finished = ((duration_s is not None and t - t_first >= duration_s)
+                finished = ((self._duration_s is not None and t - t_first >= self._duration_s)
                             or (played and self._buttons.empty()))
-                client.done({LINK_OUT: counted.sent})
-                self.lockstep_steps += 1
+                turns.done()
+                if self._force_proc is not None and not self._force_proc.alive:
+                    raise QuadlinkError("the force process died (see its log above)")
                 shown_warnings = self._log_warnings(shown_warnings)
                 if t >= next_status:
-                    next_status = t + status_period_s
+                    next_status = t + self._status_period_s
                     log.info("%s", self.status_line())
                 if finished:
-                    log.info("%s at step %d (simulated %.2f s); leaving the lock-step",
-                             "script finished" if self.device_finished else "duration reached", step.index, t)
+                    log.info("%s at %.2f s; %s", "script finished" if self.device_finished else "duration reached",
+                             t, turns.leaving)
                     break
         finally:
             if csv_log is not None:
                 csv_log.close()
-        if self.error is not None:
-            raise QuadlinkError(f"ground station stopped: {self.error}")
+            self.stop_event.set()   # the station's loop is over: the others stop with it
 
     def _receive_step(self, link: VehicleLink, tel: Telemetry, t: float, allow: int | None, what: str,
                       input_timeout_s: float) -> Telemetry:
@@ -283,23 +290,12 @@ class Station:
         self._threads.append(thread)
 
     def run(self, duration_s: float | None = None, status_period_s: float = 2.0) -> None:
-        """Block until stopped (Ctrl-C, quit button, script end, duration), printing status lines."""
-        t0 = self.clock()
-        next_status = t0 + status_period_s
-        shown_warnings: set[str] = set()
+        """Block until the station's loop (started by :meth:`start`) stops: Ctrl-C, quit button, script end,
+        ``duration_s`` from now; it prints the status lines."""
+        self._status_period_s = status_period_s
+        self._duration_s = None if duration_s is None else duration_s + (self.clock() - self._started_s)
         while not self.stop_event.wait(0.1):
-            t = self.clock()
-            if duration_s is not None and t - t0 >= duration_s:
-                break
-            if self._force_proc is not None and not self._force_proc.alive:
-                raise QuadlinkError("the force process died (see its log above)")
-            if self.exit_at_script_end and self.device_finished:
-                log.info("script finished")
-                break
-            shown_warnings = self._log_warnings(shown_warnings)
-            if t >= next_status:
-                next_status = t + status_period_s
-                log.info("%s", self.status_line())
+            pass
         if self.error is not None:
             raise QuadlinkError(f"ground station stopped: {self.error}")
 
@@ -400,9 +396,6 @@ class Station:
         run_force_loop(self.device, self.cfg, _ThreadIO(self), self.clock)
 
     # ---- vehicle link (50 Hz): teleop.link ---------------------------------------------------
-    def _network_loop(self) -> None:
-        VehicleLink(self).run()
-
     def _set_link_state(self, tel: Telemetry, cmd: ManualControl, t: float, delay: LinkDelay | None = None) -> None:
         """The link loop's results of one tick, published atomically to the other threads and the page."""
         ok = link_ok(tel.feedback.t_recv_s if tel.feedback else None, t, self.cfg.force.link_timeout_s)
@@ -517,3 +510,113 @@ class _ThreadIO:
 
     def stop_requested(self) -> bool:
         return self.station.stop_event.is_set()
+
+
+class _Turns(Protocol):
+    """An event source of :meth:`Station._loop`."""
+
+    leaving: str   # what the end of the loop means for it (logged)
+
+    def next_time(self) -> float | None:
+        """Wait for the next turn; its time on the station's clock (None: no turn this time)."""
+
+    def run_device(self, t: float) -> None:
+        """The device's and the force law's ticks due up to ``t`` (if they run in this loop)."""
+
+    def receive(self, link: VehicleLink, tel: Telemetry, t: float) -> Telemetry:
+        """The vehicle's datagrams of this turn, handled at ``t``."""
+
+    def link_ticks_due(self, t: float, t_first: float) -> int:
+        """How many link ticks are due at ``t`` (the loop's first turn at ``t_first``)."""
+
+    def done(self) -> None:
+        """The turn is over."""
+
+
+class _WallTurns:
+    """Free-running: a turn every link period on the station's clock (more than ten periods late, the schedule
+    restarts from now), the datagrams readable then, one link tick per turn. The force loop (a thread or the force
+    process) and the view run in their own loops."""
+
+    leaving = "stopping"
+
+    def __init__(self, station: Station) -> None:
+        self.station = station
+        self.period_s = 1.0 / station.cfg.mapping.rate_hz
+        self._next_s: float | None = None
+
+    def next_time(self) -> float | None:
+        st = self.station
+        if self._next_s is None:
+            self._next_s = st.clock()
+        else:
+            self._next_s += self.period_s
+            if st.clock() - self._next_s > 10 * self.period_s:
+                self._next_s = st.clock()
+            if st.stop_event.wait(max(self._next_s - st.clock(), 0.0)):
+                return None
+        return st.clock()
+
+    def run_device(self, t: float) -> None:
+        pass
+
+    def receive(self, link: VehicleLink, tel: Telemetry, t: float) -> Telemetry:
+        assert self.station.client is not None
+        return link._receive(self.station.client, tel, t)
+
+    def link_ticks_due(self, t: float, t_first: float) -> int:
+        return 1
+
+    def done(self) -> None:
+        pass
+
+
+class _LockstepTurns:
+    """The deterministic lock-step: a turn per STEP of the SITL, at its simulated time ``t``: the force loop's ticks
+    up to ``t`` at ``force_rate_hz`` of simulated time, exactly the companion datagrams the step announces, the
+    link's ticks due at ``mapping.rate_hz`` of simulated time, then DONE."""
+
+    leaving = "leaving the lock-step"
+
+    def __init__(self, station: Station, input_timeout_s: float) -> None:
+        assert station._lockstep is not None and station._counted is not None and \
+            isinstance(station.device, HapticDevice)
+        self.station = station
+        self.client, self.counted = station._lockstep, station._counted
+        self.input_timeout_s = input_timeout_s
+        self.force = ForceLoop(station.device, station.cfg, _ThreadIO(station))
+        self.force_rate_hz = station.cfg.device.force_rate_hz
+        self.link_period_s = 1.0 / station.cfg.mapping.rate_hz
+        self.n_force = self.n_link = 0   # ticks run so far: tick i is due at t_first + i / rate
+        self.t_first: float | None = None
+        self.step: Step | None = None
+
+    def next_time(self) -> float | None:
+        self.step = self.client.next_step()
+        if self.step is None:
+            return None
+        if self.t_first is None:
+            self.t_first = self.step.t_s
+        return self.step.t_s
+
+    def run_device(self, t: float) -> None:
+        assert self.t_first is not None
+        while self.t_first + self.n_force / self.force_rate_hz <= t + _EPS_S:
+            self.force.tick(self.t_first + self.n_force / self.force_rate_hz)
+            self.n_force += 1
+
+    def receive(self, link: VehicleLink, tel: Telemetry, t: float) -> Telemetry:
+        assert self.step is not None
+        return self.station._receive_step(link, tel, t, self.step.count(LINK_IN),
+                                          f"{LINK_IN} at step {self.step.index}", self.input_timeout_s)
+
+    def link_ticks_due(self, t: float, t_first: float) -> int:
+        due = 0
+        while t_first + (self.n_link + due) * self.link_period_s <= t + _EPS_S:
+            due += 1
+        self.n_link += due
+        return due
+
+    def done(self) -> None:
+        self.client.done({LINK_OUT: self.counted.sent})
+        self.station.lockstep_steps += 1
