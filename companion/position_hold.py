@@ -17,8 +17,8 @@ not fought). The anchor is a place the vehicle occupied a moment ago, so going b
 one motion that is safe toward a sector the camera has not looked at. The hold lets go as soon as the reference is
 faster than ``release_above_m_s`` — with nothing commanded, ``release_idle_above_m_s``, the correction's own
 limit: a slow repulsion then moves the anchor (a failsafe landing's look round let go for one and drifted 0.35 m
-with its velocity loop's error while it turned) — and re-anchors if the vehicle is more than ``max_offset_m`` from the anchor (an
-odometry reset or a push it could not resist: going back that far is a move, not a hold).
+with its velocity loop's error while it turned) — and re-anchors if the vehicle is more than ``max_offset_m`` from
+the anchor (an odometry reset or a push it could not resist: going back that far is a move, not a hold).
 
 Frames: the odometry's world (levelled, NED-like, yaw ``yaw_rad`` from the world x axis); the correction is added in
 H (x along the heading), like every reference velocity.
