@@ -19,6 +19,7 @@ import click
 from harness.cpu_share import CpuShare
 from harness.demo.link import LinkImpairment, LinkProxies, teleop_config_with_passivity, write_link_stats
 from harness.demo.orchestrator import ProcessDied, ProcessSpec, Stack
+from harness.demo.parts import BridgePart, CompanionPart, SitlPart
 from harness.demo.recorder import Recorder
 from harness.demo.report import (
     FlightLog,
@@ -45,6 +46,7 @@ SITL_DURATION_MARGIN_S = 300.0
 STARVED_PARTS = ("bridge", "companion")  # the parts a CPU share holds: what runs on the companion board
 JOURNAL_NAME = "companion.qljn"   # the companion's input journal (--journal): quadlink replay-companion re-runs it
 BRIDGE_JOURNAL_NAME = "bridge.qlbj"   # the bridge's (--journal too): quadlink replay-bridge re-runs it
+TELEOP_JOURNAL_NAME = "teleop.qltj"   # the lock-stepped ground station's (--journal, deterministic): replay-teleop
 
 
 #: the demo operator's entry of the room's height is this much above the truth: the unsafe side of the +-10 cm a
@@ -171,21 +173,12 @@ def build_specs(scenario: str, script: Path, out_dir: Path, ports: Ports, lockst
         # deterministic lock-step (every part on simulated time: no wall-clock jitter) fly the shipped 0.5 s.
         params.write_text(f"BRG_ODOM_LOSS_T: {LOCKSTEP_ODOM_LOSS_T_S}\n")
     vehicle_port, image_port = (ports.vehicle_netem, ports.image_netem) if via_netem else (ports.vehicle, ports.image)
-    sitl = ["sitl", "--scenario", scenario, "--port1", str(ports.mk1), "--port2", str(ports.mk2),
-            "--camera-port", str(ports.camera), "--truth", f"udpout:127.0.0.1:{ports.truth}",
-            "--duration", f"{duration_s:g}" if deterministic else f"{duration_s + SITL_DURATION_MARGIN_S:.0f}"]
-    if sitl_config is not None:
-        sitl += ["--config", sitl_config]
-    if board is not None:   # model | avr: the firmware binary in simavr (sim_sitl/avr_board.py)
-        sitl += ["--board", board]
+    sitl = SitlPart(scenario, lockstep=lockstep, deterministic=deterministic, end_after_operator_s=settle_s,
+                    duration_s=duration_s if deterministic else float(f"{duration_s + SITL_DURATION_MARGIN_S:.0f}"),
+                    config=sitl_config, board=board, speed=None if speed == 1.0 else speed)
     stepped: tuple[str, ...] = ()
     if deterministic:
-        sitl += ["--lockstep-port", str(ports.lockstep), "--end-after-operator", f"{settle_s:g}"]
         stepped = ("--lockstep", f"tcp://127.0.0.1:{ports.lockstep}")
-    elif lockstep:
-        sitl.append("--lockstep")
-    if speed != 1.0:
-        sitl += ["--speed", str(speed)]
     if operator == "offboard":
         operator_spec = ProcessSpec("operator", ("--vehicle", f"udpout:127.0.0.1:{ports.vehicle}",
                                                  "--plan", str(script), *stepped),
@@ -198,30 +191,18 @@ def build_specs(scenario: str, script: Path, out_dir: Path, ports: Ports, lockst
                        *(("--config", str(teleop_config)) if teleop_config else ()),
                        "--http-port", str(ports.http) if view else "-1", "--log-csv", str(out_dir / "teleop.csv"),
                        "--exit-at-script-end", "--script-clock", "vehicle" if lockstep else "wall", *signed,
+                       *(("--journal", str(out_dir / TELEOP_JOURNAL_NAME)) if journal and deterministic else ()),
                        *stepped),
             ready_after_s=0.5)
     else:
         raise ConfigError(f"unknown operator {operator!r} (haptic or offboard)")
     return [
-        ProcessSpec("sitl", tuple(sitl), ready_after_s=4.0),
-        ProcessSpec("bridge", ("bridge", "--mk-cmd", f"socket://127.0.0.1:{ports.mk1}",
-                               "--mk-imu", f"socket://127.0.0.1:{ports.mk2}",
-                               "--mavlink", f"udpout:127.0.0.1:{ports.autopilot}",
-                               "--mavlink", f"udpout:127.0.0.1:{ports.gcs_bridge}",
-                               "--params", str(out_dir / "bridge_params.yaml"),
-                               *(("--journal", str(out_dir / BRIDGE_JOURNAL_NAME)) if journal else ()),
-                               *stepped), ready_after_s=2.0),
-        ProcessSpec("companion", ("companion", "--config", str(companion_config),
-                                  "--autopilot", f"udpin:127.0.0.1:{ports.autopilot}",
-                                  "--gcs", f"udpin:127.0.0.1:{ports.vehicle}",
-                                  "--camera", f"tcp://127.0.0.1:{ports.camera}",
-                                  "--image-port", str(ports.image) if view else "0",
-                                  "--tlog", str(out_dir / "companion.tlog"),
-                                  *((*signed, "--require-signing") if signed else ()),
-                                  *(("--record-frames", str(out_dir / "frames.qlcf")) if record_frames else ()),
-                                  *(("--journal", str(out_dir / JOURNAL_NAME)) if journal else ()),
-                                  *stepped),
-                    ready_after_s=3.0),
+        sitl.spec(ports),
+        BridgePart(params, journal=out_dir / BRIDGE_JOURNAL_NAME if journal else None,
+                   deterministic=deterministic).spec(ports),
+        CompanionPart(companion_config, image_stream=view, tlog=out_dir / "companion.tlog", signing_key=signing_key,
+                      record_frames=out_dir / "frames.qlcf" if record_frames else None,
+                      journal=out_dir / JOURNAL_NAME if journal else None, deterministic=deterministic).spec(ports),
         operator_spec,
     ]
 
@@ -472,9 +453,10 @@ def compare_reports(original: dict[str, Any], replay: dict[str, Any]) -> list[tu
 @click.option("--record-frames", is_flag=True,
               help="Also record the companion's camera frames to OUT/frames.qlcf (~11 MB per second of flight).")
 @click.option("--journal", is_flag=True,
-              help=f"Journal every input the companion handles to OUT/{JOURNAL_NAME} (~12 MB per second of flight) "
-                   f"and the bridge's to OUT/{BRIDGE_JOURNAL_NAME} (~0.1 MB/s): `quadlink replay-companion` and "
-                   "`quadlink replay-bridge` re-run each bit for bit.")
+              help=f"Journal every input the companion handles to OUT/{JOURNAL_NAME} (~12 MB per second of flight), "
+                   f"the bridge's to OUT/{BRIDGE_JOURNAL_NAME} (~0.1 MB/s) and, in a --deterministic flight, the "
+                   f"ground station's turns to OUT/{TELEOP_JOURNAL_NAME}: `quadlink replay-companion`, "
+                   "`replay-bridge` and `replay-teleop` re-run each bit for bit.")
 @click.option("--link-delay-ms", type=float, default=None,
               help="Ground link through netem: one-way delay (ms, each direction) [issue 18].")
 @click.option("--link-jitter-ms", type=float, default=None, help="Ground link jitter (ms, std dev).")

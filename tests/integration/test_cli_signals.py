@@ -12,11 +12,7 @@ import time
 
 import pytest
 
-
-def _free_port(kind: int = socket.SOCK_STREAM) -> int:
-    with socket.socket(socket.AF_INET, kind) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
+from harness.ports import free_port
 
 
 def _ignore_sigint() -> None:
@@ -29,7 +25,7 @@ def _ignore_sigint() -> None:
     ["netem", "--listen", "udp:127.0.0.1:{u1}", "--to", "udp:127.0.0.1:{u2}"],
 ], ids=["companion", "netem"])
 def test_sigint_stops_a_command_started_with_sigint_ignored(args: list[str]) -> None:
-    ports = {"u1": _free_port(socket.SOCK_DGRAM), "u2": _free_port(socket.SOCK_DGRAM), "t1": _free_port()}
+    ports = {"u1": free_port(socket.SOCK_DGRAM), "u2": free_port(socket.SOCK_DGRAM), "t1": free_port()}
     cmd = [sys.executable, "-m", "quadlink.cli", *(a.format(**ports) for a in args)]
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
                             preexec_fn=_ignore_sigint)

@@ -22,7 +22,7 @@ import socket
 import sys
 import time
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -30,6 +30,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from harness.cpu_share import CpuShare
+from harness.demo.parts import BridgePart, CompanionPart, SitlPart
 from harness.judge import ArenaGeometry, Clearance
 from harness.ports import Ports, free_port, free_port_offset
 from quadlink.frames import euler_from_quat_wxyz
@@ -118,13 +119,121 @@ def _wait_tcp(port: int, check: Callable[[], object], timeout_s: float) -> None:
     raise TimeoutError(f"nothing listening on port {port} after {timeout_s:.0f} s")
 
 
+# ---------------------------------------------------------------- the vehicle's processes (every SITL test's)
+class Vehicle:
+    """The vehicle's processes -- the SITL, and the bridge and the companion if asked, from the parts every flight
+    starts from (:mod:`harness.demo.parts`) -- on the demo's ports shifted by ``offset`` (None: a free offset,
+    :func:`harness.ports.free_port_offset`), in one :class:`harness.demo.orchestrator.Stack` (logs in
+    ``out_dir/logs``, each part in its own process group, stopped in reverse order). Each part starts once the one
+    before listens. ``bridge_params``: the bridge's parameter file's text (``out_dir/bridge_params.yaml``; the bridge
+    writes PARAM_SETs back to it). A part that fails to start leaves nothing running. ``cpu_share``: the bridge and
+    the companion run in this CPU share (:mod:`harness.cpu_share`)."""
+
+    def __init__(self, out_dir: Path, sitl: SitlPart, bridge: BridgePart | None,
+                 companion: CompanionPart | None = None, offset: int | None = None, bridge_params: str = "",
+                 cpu_share: CpuShare | None = None) -> None:
+        from harness.demo.orchestrator import Stack
+
+        out_dir.mkdir(parents=True, exist_ok=True)
+        self.out_dir = out_dir
+        self.ports = Ports(free_port_offset() if offset is None else offset)
+        self.stack = Stack(out_dir / "logs")
+        self.params_file = out_dir / "bridge_params.yaml"
+        self.cpu_share = cpu_share
+        try:
+            self._start_sitl(sitl)
+            if bridge is not None:
+                self.params_file.write_text(bridge_params)
+                self._start_part(replace(bridge, params=self.params_file).spec(self.ports))
+            if companion is not None:
+                self.start_companion(companion)
+        except BaseException:
+            self.close()
+            raise
+
+    def _start_sitl(self, part: SitlPart) -> None:
+        p = self.ports
+        self.stack.start(part.spec(p))
+        # the SITL's start-up is slow on a loaded machine (pybullet, the scene, simavr)
+        _wait_tcp(p.mk1, self.stack.check, 120.0)
+        _wait_tcp(p.mk2, self.stack.check, 60.0)
+        if part.camera:
+            _wait_tcp(p.camera, self.stack.check, 60.0)
+
+    def start_companion(self, part: CompanionPart) -> None:
+        """The companion (its tlog in ``out_dir/companion.tlog`` unless the part names one)."""
+        if part.tlog is None:
+            part = replace(part, tlog=self.out_dir / "companion.tlog")
+        self._start_part(part.spec(self.ports))
+
+    def _start_part(self, spec: Any) -> None:
+        self.stack.start(spec)
+        if self.cpu_share is not None:
+            self.cpu_share.add(self.stack.running[-1].popen.pid)
+
+    def check(self) -> None:
+        """Raise if a part has died (its log's tail in the message)."""
+        self.stack.check()
+
+    def close(self) -> None:
+        import signal as signals
+
+        for r in self.stack.running:   # a stalled part must be able to stop
+            with contextlib.suppress(OSError):
+                r.popen.send_signal(signals.SIGCONT)
+        self.stack.stop()
+
+
+class TruthReader:
+    """The SITL's truth stream read in a thread (for tests that fly from their own thread): the latest position,
+    velocity and attitude, the simulated time and how many positions came."""
+
+    def __init__(self, port: int) -> None:
+        import threading
+
+        from quadlink.mavlink.connection import open_mavlink
+
+        self.truth = open_mavlink(f"udpin:127.0.0.1:{port}", 255, 0)
+        self.lock = threading.Lock()
+        self.p_ned, self.v_ned = np.zeros(3), np.zeros(3)
+        self.q_wxyz = np.array([1.0, 0.0, 0.0, 0.0])
+        self.truth_count = 0
+        self.sim_time_s = 0.0
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._read, daemon=True, name="truth-reader")
+        self._thread.start()
+
+    def _read(self) -> None:
+        while not self._stop.is_set():
+            m = self.truth.recv_match(type=["LOCAL_POSITION_NED", "ATTITUDE_QUATERNION"], blocking=True,
+                                      timeout=0.2)
+            if m is None:
+                continue
+            with self.lock:
+                if m.get_type() == "LOCAL_POSITION_NED":
+                    self.p_ned, self.v_ned = np.array([m.x, m.y, m.z]), np.array([m.vx, m.vy, m.vz])
+                    self.sim_time_s = m.time_boot_ms * 1e-3
+                    self.truth_count += 1
+                else:
+                    self.q_wxyz = np.array([m.q1, m.q2, m.q3, m.q4])
+
+    def state(self) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+        """(position NED, velocity NED, attitude quaternion wxyz), the latest."""
+        with self.lock:
+            return self.p_ned.copy(), self.v_ned.copy(), self.q_wxyz.copy()
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=2.0)
+        self.truth.close()
+
+
 class Flight:
     """A running stack and a ground station on the companion's endpoint. Use :func:`flight`."""
 
     def __init__(self, out_dir: Path, scenario: str, offset: int, lockstep: bool,
                  companion_config: Path | None, sitl_duration_s: float, camera: str = "tcp://127.0.0.1:{port}",
                  shipped_timeouts: bool = False, cpu_share: CpuShare | None = None, journal: bool = False) -> None:
-        from harness.demo.orchestrator import ProcessSpec, Stack
         from quadlink.mavlink.connection import open_mavlink
 
         self.out_dir = out_dir
@@ -132,7 +241,6 @@ class Flight:
         self.geometry = ArenaGeometry(scenario)
         self.ports = p = Ports(offset)
         self.lockstep = lockstep
-        self.stack = Stack(out_dir / "logs")
         self.truth = open_mavlink(f"udpin:127.0.0.1:{p.truth}", 255, 0)
         self.gcs = open_mavlink(f"udpout:127.0.0.1:{p.vehicle}", GROUND_SYSTEM_ID, GROUND_COMPONENT_ID)
         self.log = FlightLog()
@@ -149,42 +257,25 @@ class Flight:
         # z starts there (the start is on the floor in the scenarios used here)
         from sim_sitl.config import load_sitl_config
         self._rest_z = -load_sitl_config().physics.body_size_m[2] / 2.0
+        # the bridge's and the companion's timeouts: as tests/test_companion_sitl.py, a loaded machine can stall
+        # the lock-step IMU stream longer than the bridge's 0.5 s board-loss timeout; these flights are about the
+        # companion (likewise its odometry-loss timeout: a starved companion stalls the odometry stream).
+        # ``shipped_timeouts``: the bridge's and the companion's own values, as a user flies them (issue 29)
+        relaxed = "" if shipped_timeouts else "BRG_BOARD_LOSS_T: 3.0\nBRG_ODOM_LOSS_T: 2.0\n"
+        if companion_config is None:
+            companion_config = companion_config_with(out_dir, **({} if shipped_timeouts else LOADED_MACHINE))
         try:   # a part that fails to start must not leave the others running or the sockets open
-            sitl = ["sitl", "--scenario", scenario, "--port1", str(p.mk1), "--port2", str(p.mk2), "--camera-port",
-                    str(p.camera), "--truth", f"udpout:127.0.0.1:{p.truth}", "--duration", f"{sitl_duration_s:.0f}"]
-            if lockstep:
-                sitl.append("--lockstep")
-            self.stack.start(ProcessSpec("sitl", tuple(sitl), ready_after_s=2.0))
-            # as tests/test_companion_sitl.py: a loaded machine can stall the lock-step IMU stream longer than
-            # the bridge's 0.5 s board-loss timeout; these flights are about the companion
-            # (likewise its odometry-loss timeout: a starved companion stalls the odometry stream).
-            # ``shipped_timeouts``: the bridge's and the companion's own values, as a user flies them (issue 29)
-            relaxed = "" if shipped_timeouts else "BRG_BOARD_LOSS_T: 3.0\nBRG_ODOM_LOSS_T: 2.0\n"
-            (out_dir / "bridge_params.yaml").write_text(relaxed)
-            _wait_tcp(p.mk1, self.stack.check, 120.0)
-            _wait_tcp(p.camera, self.stack.check, 60.0)
-            self.stack.start(ProcessSpec("bridge", ("bridge", "--mk-cmd", f"socket://127.0.0.1:{p.mk1}",
-                                                    "--mk-imu", f"socket://127.0.0.1:{p.mk2}",
-                                                    "--mavlink", f"udpout:127.0.0.1:{p.autopilot}",
-                                                    "--mavlink", f"udpout:127.0.0.1:{p.gcs_bridge}",
-                                                    "--params", str(out_dir / "bridge_params.yaml")),
-                                         ready_after_s=1.0))
-            if cpu_share is not None:
-                cpu_share.add(self.stack.running[-1].popen.pid)
-            comp = ["companion", "--autopilot", f"udpin:127.0.0.1:{p.autopilot}",
-                    "--gcs", f"udpin:127.0.0.1:{p.vehicle}", "--camera", camera.format(port=p.camera),
-                    "--image-port", "0", "--tlog", str(out_dir / "companion.tlog")]
-            if companion_config is None:
-                companion_config = companion_config_with(out_dir, **({} if shipped_timeouts else LOADED_MACHINE))
-            comp += ["--config", str(companion_config)]
-            if journal:   # its input journal: quadlink replay-companion re-runs the flight's companion offline
-                comp += ["--journal", str(out_dir / "companion.qljn")]
-            self.stack.start(ProcessSpec("companion", tuple(comp), ready_after_s=1.0))
-            if cpu_share is not None:
-                cpu_share.add(self.stack.running[-1].popen.pid)
+            self.vehicle = Vehicle(out_dir,
+                                   SitlPart(scenario, lockstep, duration_s=sitl_duration_s, ready_after_s=2.0),
+                                   BridgePart(ready_after_s=1.0),
+                                   CompanionPart(companion_config, camera=camera, ready_after_s=1.0,
+                                                 journal=out_dir / "companion.qljn" if journal else None),
+                                   offset=offset, bridge_params=relaxed, cpu_share=cpu_share)
         except BaseException:
-            self.close()
+            self.truth.close()
+            self.gcs.close()
             raise
+        self.stack = self.vehicle.stack
 
     # --- I/O
     def pump(self) -> None:
@@ -267,12 +358,7 @@ class Flight:
 
     def close(self) -> None:
         try:
-            import signal as signals
-
-            for r in self.stack.running:   # a stalled part must be able to stop
-                with contextlib.suppress(OSError):
-                    r.popen.send_signal(signals.SIGCONT)
-            self.stack.stop()
+            self.vehicle.close()
         finally:
             self.truth.close()
             self.gcs.close()

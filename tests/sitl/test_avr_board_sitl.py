@@ -6,16 +6,15 @@ bridge (take off, hover, land) judged on the SITL's ground truth.
 from __future__ import annotations
 
 import math
-import socket
 from collections.abc import Callable
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import pytest
 from avr_firmware import firmware_elf  # noqa: F401  (fixture)
-from test_bridge_sitl import PX4_LOITER, Gcs, Odometry, quadlink, wait_for, wait_port
+from test_bridge_sitl import BRIDGE_SITL, PX4_LOITER, Gcs, Odometry, Stack, wait_for
 
-from harness.ports import free_port
 from quadlink.frames import euler_from_R
 from quadlink.mavlink import mavlink
 from quadlink.mk.messages import AttitudeSetpoint, encode_message
@@ -153,21 +152,11 @@ def test_failsafe_on_setpoint_silence_descends_and_cuts_on_the_floor(firmware_el
 
 
 def test_flight_through_the_bridge_takes_off_hovers_and_lands(firmware_elf: Path, tmp_path: Path) -> None:  # noqa: F811
-    p1, p2 = free_port(), free_port()
-    truth_port, gcs_port = free_port(socket.SOCK_DGRAM), free_port(socket.SOCK_DGRAM)
-    sitl = quadlink("sitl", "--board", "avr", "--firmware-elf", str(firmware_elf), "--no-camera", "--lockstep",
-                    "--speed", "1", "--port1", str(p1), "--port2", str(p2), "--camera-port", str(free_port()),
-                    "--truth", f"udpout:127.0.0.1:{truth_port}", log_path=tmp_path / "sitl.log")
-    bridge = stack = None
+    stack = Stack(tmp_path, replace(BRIDGE_SITL, board="avr", firmware_elf=firmware_elf))
     gcs = odom = None
     try:
-        wait_port(p2, 30.0)
-        bridge = quadlink("bridge", "--mk-cmd", f"socket://127.0.0.1:{p1}", "--mk-imu", f"socket://127.0.0.1:{p2}",
-                          "--mavlink", f"udpout:127.0.0.1:{gcs_port}", "--params", str(tmp_path / "params.yaml"),
-                          log_path=tmp_path / "bridge.log")
-        stack = _TruthStack(truth_port)
-        gcs = Gcs(gcs_port)
-        odom = Odometry(stack, gcs)  # type: ignore[arg-type]
+        gcs = Gcs(stack.gcs_port)
+        odom = Odometry(stack, gcs)
         assert gcs.recv("HEARTBEAT", 30.0) is not None
         wait_for(lambda: stack.truth_count > 10, 15.0, "truth")
         odom.start()
@@ -203,77 +192,16 @@ def test_flight_through_the_bridge_takes_off_hovers_and_lands(firmware_elf: Path
             odom.stop.set()
         if gcs is not None:
             gcs.close()
-        if stack is not None:
-            stack.close()
-        _stop(bridge, sitl)
+        stack.close()
 
 
-# ---------------------------------------------------------------- helpers (truth reader and process shutdown)
+# ---------------------------------------------------------------- helpers
 
 
 def _R(q: np.ndarray) -> np.ndarray:
     from quadlink.frames import R_from_quat_wxyz
 
     return R_from_quat_wxyz(q)
-
-
-class _TruthStack:
-    """The ground-truth reader of test_bridge_sitl.Stack, for a SITL this test starts itself."""
-
-    def __init__(self, port: int) -> None:
-        import threading
-
-        from quadlink.mavlink.connection import open_mavlink
-
-        self.truth = open_mavlink(f"udpin:127.0.0.1:{port}", 255, 191)
-        self.lock = threading.Lock()
-        self.p_ned, self.v_ned = np.zeros(3), np.zeros(3)
-        self.q_wxyz = np.array([1.0, 0.0, 0.0, 0.0])
-        self.truth_count = 0
-        self.sim_time_s = 0.0
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._read, daemon=True)
-        self._thread.start()
-
-    def _read(self) -> None:
-        while not self._stop.is_set():
-            m = self.truth.recv_match(type=["LOCAL_POSITION_NED", "ATTITUDE_QUATERNION"], blocking=True,
-                                      timeout=0.2)
-            if m is None:
-                continue
-            with self.lock:
-                if m.get_type() == "LOCAL_POSITION_NED":
-                    self.p_ned, self.v_ned = np.array([m.x, m.y, m.z]), np.array([m.vx, m.vy, m.vz])
-                    self.sim_time_s = m.time_boot_ms * 1e-3
-                    self.truth_count += 1
-                else:
-                    self.q_wxyz = np.array([m.q1, m.q2, m.q3, m.q4])
-
-    def state(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        with self.lock:
-            return self.p_ned.copy(), self.v_ned.copy(), self.q_wxyz.copy()
-
-    def close(self) -> None:
-        self._stop.set()
-        self._thread.join(timeout=2.0)
-        self.truth.close()
-
-
-def _stop(*procs: object) -> None:
-    import os
-    import signal
-    import subprocess
-
-    live = [p for p in procs if isinstance(p, subprocess.Popen)]
-    for proc in live:
-        if proc.poll() is None:
-            os.killpg(proc.pid, signal.SIGINT)
-    for proc in live:
-        try:
-            proc.wait(timeout=10.0)
-        except subprocess.TimeoutExpired:
-            os.killpg(proc.pid, signal.SIGKILL)
-            proc.wait(timeout=5.0)
 
 
 def _lockstep_flight(elf: Path, jitter_s: float, seed: int) -> tuple[object, object, np.ndarray]:

@@ -8,107 +8,57 @@ from __future__ import annotations
 
 import asyncio
 import math
-import os
 import queue
-import signal
-import socket
-import subprocess
-import sys
 import threading
 import time
 from pathlib import Path
 
 import numpy as np
 import pytest
+from flight_harness import TruthReader, Vehicle
 
-from harness.ports import free_port
+from harness.demo.parts import BridgePart, CompanionPart, SitlPart
 from quadlink.frames import R_from_quat_wxyz, euler_from_R
 from quadlink.mavlink import mavlink
 from quadlink.mavlink.connection import open_mavlink
 
 pytestmark = [pytest.mark.sitl, pytest.mark.timeout(240)]
 
-REPO = Path(__file__).resolve().parents[2]
 PX4_OFFBOARD = 6 << 16
 PX4_LOITER = 4 << 16 | 3 << 24
 
 
-def quadlink(*args: str, log_path: Path) -> subprocess.Popen:
-    with open(log_path, "w") as log_file:  # the child keeps its own descriptor
-        return subprocess.Popen([sys.executable, "-m", "quadlink.cli", *args], cwd=REPO, stdout=log_file,
-                                stderr=subprocess.STDOUT, start_new_session=True)
+#: the SITL of these tests: lock-step at real-time pace, no camera, its default scenario
+BRIDGE_SITL = SitlPart(scenario=None, camera=False, speed=1.0, duration_s=None)
 
 
-def wait_port(port: int, timeout_s: float) -> None:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        try:
-            socket.create_connection(("127.0.0.1", port), timeout=0.5).close()
-            return
-        except OSError:
-            time.sleep(0.2)
-    raise TimeoutError(f"port {port} did not open")
+class Stack(TruthReader):
+    """The SITL and the bridge (the flight harness's :class:`Vehicle`), the bridge sending MAVLink to ``gcs_port``
+    and ``mavsdk_port``; the truth read in a thread."""
 
-
-class Stack:
-    def __init__(self, tmp: Path) -> None:
-        self.p1, self.p2 = free_port(), free_port()
-        self.truth_port = free_port(socket.SOCK_DGRAM)
-        self.gcs_port = free_port(socket.SOCK_DGRAM)
-        self.mavsdk_port = free_port(socket.SOCK_DGRAM)
+    def __init__(self, tmp: Path, sitl: SitlPart = BRIDGE_SITL) -> None:
         self.tmp = tmp
-        self.sitl = quadlink("sitl", "--no-camera", "--lockstep", "--speed", "1", "--port1", str(self.p1),
-                             "--port2", str(self.p2), "--camera-port", str(free_port()),
-                             "--truth", f"udpout:127.0.0.1:{self.truth_port}", log_path=tmp / "sitl.log")
-        wait_port(self.p2, 30.0)
-        self.params_file = tmp / "bridge_params.yaml"
-        self.bridge = quadlink("bridge", "--mk-cmd", f"socket://127.0.0.1:{self.p1}", "--mk-imu",
-                               f"socket://127.0.0.1:{self.p2}", "--mavlink", f"udpout:127.0.0.1:{self.gcs_port}",
-                               "--mavlink", f"udpout:127.0.0.1:{self.mavsdk_port}",
-                               "--params", str(self.params_file), log_path=tmp / "bridge.log")
-        self.truth = open_mavlink(f"udpin:127.0.0.1:{self.truth_port}", 255, 191)
-        self.truth_lock = threading.Lock()
-        self.p_ned = np.zeros(3)
-        self.v_ned = np.zeros(3)
-        self.q_wxyz = np.array([1.0, 0.0, 0.0, 0.0])
-        self.truth_count = 0
-        self.sim_time_s = 0.0
-        self._stop = threading.Event()
-        self._truth_thread = threading.Thread(target=self._read_truth, daemon=True)
-        self._truth_thread.start()
+        self.vehicle = Vehicle(tmp, sitl, BridgePart(outputs=("gcs_bridge", "autopilot")))
+        p = self.vehicle.ports
+        self.ports = p
+        self.gcs_port, self.mavsdk_port = p.gcs_bridge, p.autopilot
+        self.params_file = self.vehicle.params_file
+        try:
+            super().__init__(p.truth)
+        except BaseException:
+            self.vehicle.close()
+            raise
 
-    def _read_truth(self) -> None:
-        while not self._stop.is_set():
-            m = self.truth.recv_match(type=["LOCAL_POSITION_NED", "ATTITUDE_QUATERNION"], blocking=True,
-                                      timeout=0.2)
-            if m is None:
-                continue
-            with self.truth_lock:
-                if m.get_type() == "LOCAL_POSITION_NED":
-                    self.p_ned = np.array([m.x, m.y, m.z])
-                    self.v_ned = np.array([m.vx, m.vy, m.vz])
-                    self.sim_time_s = m.time_boot_ms * 1e-3
-                    self.truth_count += 1
-                else:
-                    self.q_wxyz = np.array([m.q1, m.q2, m.q3, m.q4])
-
-    def state(self):
-        with self.truth_lock:
-            return self.p_ned.copy(), self.v_ned.copy(), self.q_wxyz.copy()
+    def start_companion(self, part: CompanionPart) -> None:
+        """The companion between the bridge's first endpoint (``gcs_port``) and the ground stations' port
+        (``ports.vehicle``)."""
+        self.vehicle.start_companion(part)
 
     def close(self) -> None:
-        self._stop.set()
-        self._truth_thread.join(timeout=2.0)
-        self.truth.close()
-        for proc in (self.bridge, self.sitl):
-            if proc.poll() is None:
-                os.killpg(proc.pid, signal.SIGINT)
-        for proc in (self.bridge, self.sitl):
-            try:
-                proc.wait(timeout=10.0)
-            except subprocess.TimeoutExpired:
-                os.killpg(proc.pid, signal.SIGKILL)
-                proc.wait(timeout=5.0)
+        try:
+            super().close()
+        finally:
+            self.vehicle.close()
 
 
 @pytest.fixture(scope="module")

@@ -16,7 +16,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from flight_harness import Vehicle
 
+from harness.demo.parts import BridgePart, CompanionPart, SitlPart
 from harness.ports import Ports, free_port_offset
 from quadlink.frames import euler_from_quat_wxyz, wrap_pi
 from quadlink.ids import TRUTH_SENSOR_NON_FLOOR
@@ -41,57 +43,23 @@ class FlightRecord:
     track: list[tuple[float, ...]] = field(default_factory=list)  # t, x, y, z, yaw, distance, mode
 
 
-def _ports(offset: int) -> dict[str, int]:
-    return Ports(offset).as_dict()
-
-
-def _wait_tcp(port: int, stack: object, timeout_s: float) -> None:
-    """Wait until the SITL listens (its start-up is slow on a loaded machine)."""
-    import socket
-
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        stack.check()  # type: ignore[attr-defined]
-        try:
-            with socket.create_connection(("127.0.0.1", port), timeout=0.5):
-                return
-        except OSError:
-            time.sleep(0.5)
-    raise TimeoutError(f"nothing listening on port {port} after {timeout_s:.0f} s")
-
-
 def fly_push_toward_column(out_dir: Path, push_s: float, port_offset: int) -> FlightRecord:
-    from harness.demo.orchestrator import ProcessSpec, Stack
     from quadlink.mavlink.connection import open_mavlink
 
-    p = _ports(port_offset)
-    stack = Stack(out_dir / "logs")
-    truth = open_mavlink(f"udpin:127.0.0.1:{p['truth']}", 255, 0)
-    gcs = open_mavlink(f"udpout:127.0.0.1:{p['vehicle']}", 255, 190)
+    p = Ports(port_offset)
+    truth = open_mavlink(f"udpin:127.0.0.1:{p.truth}", 255, 0)
+    gcs = open_mavlink(f"udpout:127.0.0.1:{p.vehicle}", 255, 190)
     rec = FlightRecord()
+    vehicle: Vehicle | None = None
     try:
-        stack.start(ProcessSpec("sitl", ("sitl", "--scenario", "paper-arena", "--lockstep", "--port1", str(p["mk1"]),
-                                         "--port2", str(p["mk2"]), "--camera-port", str(p["camera"]),
-                                         "--truth", f"udpout:127.0.0.1:{p['truth']}", "--duration", "300"),
-                                ready_after_s=4.0))
         # On a loaded 2-core machine a lock-step chunk can stall the IMU stream for more than the bridge's
         # 0.5 s board-loss timeout (its wall-clock fallback then fails the flight); this test is about the
         # companion, so give the bridge more tolerance there (reported to the bridge/SITL owners). The
         # odometry timeout stays at its default: a longer one keeps a stale 'odometry ok' from the ground
-        # into the take-off.
-        (out_dir / "bridge_params.yaml").write_text("BRG_BOARD_LOSS_T: 3.0\n")
-        _wait_tcp(p["mk1"], stack, 120.0)
-        _wait_tcp(p["camera"], stack, 60.0)
-        stack.start(ProcessSpec("bridge", ("bridge", "--mk-cmd", f"socket://127.0.0.1:{p['mk1']}",
-                                           "--mk-imu", f"socket://127.0.0.1:{p['mk2']}",
-                                           "--mavlink", f"udpout:127.0.0.1:{p['autopilot']}",
-                                           "--mavlink", f"udpout:127.0.0.1:{p['gcs_bridge']}",
-                                           "--params", str(out_dir / "bridge_params.yaml")), ready_after_s=1.0))
-        stack.start(ProcessSpec("companion", ("companion", "--autopilot", f"udpin:127.0.0.1:{p['autopilot']}",
-                                              "--gcs", f"udpin:127.0.0.1:{p['vehicle']}",
-                                              "--camera", f"tcp://127.0.0.1:{p['camera']}",
-                                              "--image-port", "0", "--tlog", str(out_dir / "companion.tlog")),
-                                ready_after_s=2.0))
+        # into the take-off. The companion flies its shipped configuration.
+        vehicle = Vehicle(out_dir, SitlPart("paper-arena", duration_s=300.0), BridgePart(ready_after_s=1.0),
+                          CompanionPart(ready_after_s=2.0), offset=port_offset, bridge_params="BRG_BOARD_LOSS_T: 3.0\n")
+        stack = vehicle.stack
         state = {"t": 0.0, "pos": np.zeros(3), "yaw": math.pi, "dist": math.inf, "mode": 0, "flags": 0, "armed": False}
 
         def pump() -> None:
@@ -182,7 +150,8 @@ def fly_push_toward_column(out_dir: Path, push_s: float, port_offset: int) -> Fl
                    header="t_s,x_m,y_m,z_m,yaw_rad,obstacle_distance_m,companion_mode")
         return rec
     finally:
-        stack.stop()
+        if vehicle is not None:
+            vehicle.close()
         truth.close()
         gcs.close()
 

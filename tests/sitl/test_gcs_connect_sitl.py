@@ -9,11 +9,7 @@ the table is in firmware_bridge/README.md ("Ground stations").
 
 from __future__ import annotations
 
-import os
 import queue
-import signal
-import socket
-import subprocess
 import threading
 import time
 from collections.abc import Callable
@@ -21,9 +17,9 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from test_bridge_sitl import quadlink, wait_port
+from flight_harness import Vehicle as HarnessVehicle
 
-from harness.ports import free_port
+from harness.demo.parts import BridgePart, CompanionPart, SitlPart
 from quadlink.mavlink import mavlink
 from quadlink.mavlink.connection import open_mavlink
 
@@ -143,34 +139,18 @@ def qgc_connect_sequence(c: Client) -> list[tuple[str, bool]]:
 
 
 class Vehicle:
-    """SITL (lock-step, no camera) + bridge; the companion between the bridge and a second ground station."""
+    """SITL (lock-step at real-time pace, no camera) + bridge, its first endpoint a ground station's (``gcs_port``)
+    and its second the companion's, and the companion's ground-station port (``vehicle_port``): the flight harness's
+    :class:`flight_harness.Vehicle`."""
 
     def __init__(self, tmp: Path) -> None:
-        self.p1, self.p2 = free_port(), free_port()
-        self.gcs_port, self.ap_port, self.vehicle_port = (free_port(socket.SOCK_DGRAM) for _ in range(3))
-        self.procs: list[subprocess.Popen] = []
-        self.procs.append(quadlink("sitl", "--no-camera", "--lockstep", "--speed", "1", "--port1", str(self.p1),
-                                   "--port2", str(self.p2), "--camera-port", str(free_port()),
-                                   log_path=tmp / "sitl.log"))
-        wait_port(self.p2, 60.0)
-        self.procs.append(quadlink("bridge", "--mk-cmd", f"socket://127.0.0.1:{self.p1}", "--mk-imu",
-                                   f"socket://127.0.0.1:{self.p2}", "--mavlink", f"udpout:127.0.0.1:{self.gcs_port}",
-                                   "--mavlink", f"udpout:127.0.0.1:{self.ap_port}", log_path=tmp / "bridge.log"))
-        self.procs.append(quadlink("companion", "--autopilot", f"udpin:127.0.0.1:{self.ap_port}", "--gcs",
-                                   f"udpin:127.0.0.1:{self.vehicle_port}", "--camera",
-                                   f"tcp://127.0.0.1:{free_port()}", "--image-port", "0",
-                                   log_path=tmp / "companion.log"))
+        self.parts = HarnessVehicle(tmp, SitlPart(scenario=None, camera=False, truth=False, speed=1.0,
+                                                    duration_s=None),
+                                    BridgePart(outputs=("gcs_bridge", "autopilot")), CompanionPart())
+        self.gcs_port, self.vehicle_port = self.parts.ports.gcs_bridge, self.parts.ports.vehicle
 
     def close(self) -> None:
-        for proc in reversed(self.procs):
-            if proc.poll() is None:
-                os.killpg(proc.pid, signal.SIGINT)
-        for proc in self.procs:
-            try:
-                proc.wait(timeout=10.0)
-            except subprocess.TimeoutExpired:
-                os.killpg(proc.pid, signal.SIGKILL)
-                proc.wait(timeout=5.0)
+        self.parts.close()
 
 
 @pytest.fixture(scope="module")

@@ -9,7 +9,6 @@ from __future__ import annotations
 import os
 import queue
 import signal
-import socket
 import subprocess
 import sys
 import threading
@@ -17,9 +16,9 @@ import time
 from pathlib import Path
 
 import pytest
-from test_bridge_sitl import Gcs, Odometry, Stack, quadlink
+from test_bridge_sitl import Gcs, Odometry, Stack
 
-from harness.ports import free_port
+from harness.demo.parts import CompanionPart
 
 pytestmark = [pytest.mark.sitl, pytest.mark.timeout(420),
               pytest.mark.skipif(subprocess.run([sys.executable, "-c", "import MAVProxy"]).returncode != 0,
@@ -153,21 +152,15 @@ def test_mavproxy_session_on_the_bridge(tmp_path: Path) -> None:
 def test_mavproxy_session_through_the_companion(tmp_path: Path) -> None:
     """The bridge's first endpoint feeds the companion; MAVProxy talks to the companion's ground-station port."""
     stack = Stack(tmp_path)   # its gcs_port becomes the companion's autopilot link
-    vehicle_port = free_port(socket.SOCK_DGRAM)
-    companion = quadlink("companion", "--autopilot", f"udpin:127.0.0.1:{stack.gcs_port}", "--gcs",
-                         f"udpin:127.0.0.1:{vehicle_port}", "--camera", f"tcp://127.0.0.1:{free_port()}",
-                         "--image-port", "0", log_path=tmp_path / "companion.log")
     odo_gcs = Gcs(stack.mavsdk_port)
     odom = Odometry(stack, odo_gcs)
     try:
+        stack.start_companion(CompanionPart(autopilot="gcs_bridge"))   # no camera behind its camera port
         assert odo_gcs.recv("HEARTBEAT", 60.0) is not None
         odom.start()
-        log = session(stack, f"udpout:127.0.0.1:{vehicle_port}", tmp_path, hold=False)
+        log = session(stack, f"udpout:127.0.0.1:{stack.ports.vehicle}", tmp_path, hold=False)
         print(log[-1])
     finally:
         odom.stop.set()
         odo_gcs.close()
-        if companion.poll() is None:
-            os.killpg(companion.pid, signal.SIGINT)
-        companion.wait(timeout=30.0)
-        stack.close()
+        stack.close()   # the companion first
