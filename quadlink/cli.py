@@ -27,6 +27,7 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "vo-eval": ("perception.cli", "Run the RGB-D odometry on a TUM-format sequence and print RPE/ATE."),
     "replay-companion": ("companion.replay_cli", "Re-run a companion from its input journal; check every byte."),
     "replay-bridge": ("firmware_bridge.replay_cli", "Re-run a bridge from its input journal; check every byte."),
+    "replay-teleop": ("teleop.replay_cli", "Re-run a lock-stepped ground station from its journal; check every byte."),
     "identify-yaw": ("companion.identify_cli", "Identify the yaw response to the pan-scan (eq. 5) from a flight log."),
     "keygen": ("quadlink.keygen_cli", "Create a MAVLink 2 signing key file for signed ground-station links."),
     "netem": ("harness.netem.cli", "A UDP/TCP link with delay, jitter, loss, reordering and a rate limit."),

@@ -11,7 +11,8 @@ File format (little-endian)::
     record  = uint8 kind | uint32 length | payload
 
 What the kinds mean is each process's (:class:`JournalSchema`): events, clock readings (float64) and writes.
-Used by the companion (:mod:`companion.journal`) and the bridge (:mod:`firmware_bridge.journal`).
+Used by the companion (:mod:`companion.journal`), the bridge (:mod:`firmware_bridge.journal`) and the ground
+station (:mod:`teleop.journal`).
 """
 
 from __future__ import annotations
@@ -102,13 +103,23 @@ class JournalWriter:
         if self.active:
             yield
             return
-        self._record(kind, payload)
-        self.events += 1
-        self.active = True
+        self.begin(kind, payload)
         try:
             yield
         finally:
-            self.active = False
+            self.end()
+
+    def begin(self, kind: int, payload: bytes = b"") -> None:
+        """An event that is not one call (a loop's turn, begun and ended in separate steps): from here to
+        :meth:`end`, what is read and written belongs to it."""
+        if self.active:
+            raise RuntimeError("a journal event begun inside another")
+        self._record(kind, payload)
+        self.events += 1
+        self.active = True
+
+    def end(self) -> None:
+        self.active = False
 
     def clock(self, fn: Callable[[], float], kind: int) -> Callable[[], float]:
         """``fn``, with each reading taken inside an event journaled as ``kind``."""

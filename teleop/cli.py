@@ -6,10 +6,12 @@ import dataclasses
 import logging
 import signal
 import sys
+from pathlib import Path
 from types import FrameType
 
 import click
 
+from quadlink.config import to_dict
 from quadlink.errors import ConfigError
 from quadlink.lockstep import LockstepEnded, LockstepError
 from quadlink.mavlink.security import read_key
@@ -18,6 +20,7 @@ from teleop.config import load_teleop_config
 from teleop.devices import DEVICE_NAMES, HapticDevice, open_device
 from teleop.devices.script import load_script
 from teleop.force_loop import DeviceSpec
+from teleop.journal import open_journal
 from teleop.station import Station
 
 log = logging.getLogger(__name__)
@@ -50,10 +53,13 @@ log = logging.getLogger(__name__)
               help="Join the SITL's deterministic lock-step as the 'operator' participant: single-threaded, every "
                    "timer on simulated time, no operator view; --duration counts simulated seconds. Virtual "
                    "device only.")
+@click.option("--journal", "journal_path", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              help="With --lockstep: journal every turn of the station (its time, the companion's datagrams, what "
+                   "it sent; teleop.journal, ~25 kB/s): `quadlink replay-teleop FILE` re-runs it bit for bit.")
 def command(device_name: str, script: str | None, vehicle: str | None, image_stream: str | None,
             http_port: int | None, record: str | None, config_name: str, log_csv: str | None,
             duration: float | None, exit_at_script_end: bool, script_clock: str, signing_key: str | None,
-            lockstep_url: str | None) -> None:
+            lockstep_url: str | None, journal_path: Path | None) -> None:
     """Start the ground station: haptic device, force feedback, commands, operator view (issue 7)."""
     cfg = load_teleop_config(config_name)
     if signing_key is not None:
@@ -87,8 +93,22 @@ def command(device_name: str, script: str | None, vehicle: str | None, image_str
         if script is not None:
             load_script(script)     # bad scripts fail here, with one line, before anything starts
         device = DeviceSpec(device_name, script, script_clock)
+    journal = None
+    if journal_path is not None:
+        if lockstep_url is None:   # free-running, the force loop and the view interleave with the link: not journaled
+            raise ConfigError("--journal journals a lock-stepped station only (give --lockstep URL)")
+        if cfg.network.signing_key_file is not None:
+            raise ConfigError("--journal: a signed vehicle link cannot be replayed (the journal holds no key)")
+        header = {"teleop": to_dict(cfg), "script": Path(script).read_text() if script else "",
+                  "script_clock": script_clock, "exit_at_script_end": exit_at_script_end, "duration_s": duration}
+        try:
+            journal = open_journal(journal_path, header)
+        except OSError as exc:
+            raise ConfigError(f"journal {journal_path}: {exc}") from exc
+        log.info("journaling every turn to %s (quadlink replay-teleop %s)", journal_path, journal_path)
     station = Station(cfg, device, vehicle_url, None if image_url == "none" else image_url,
-                      None if port < 0 else port, record, log_csv, exit_at_script_end=exit_at_script_end)
+                      None if port < 0 else port, record, log_csv, exit_at_script_end=exit_at_script_end,
+                      journal=journal)
     stations.append(station)
     log.info("device %s%s", device_name, f", script {script} on the {script_clock} clock" if script else "")
 
@@ -117,6 +137,8 @@ def command(device_name: str, script: str | None, vehicle: str | None, image_str
         for sig, handler in previous.items():
             signal.signal(sig, handler)
         station.close()
+        if journal is not None:
+            journal.close()
         log.info("ground station stopped (%d MANUAL_CONTROL sent, %d view frames)", station.manual_control_sent,
                  station.view_frames)
     if lockstep_error is not None:

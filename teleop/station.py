@@ -44,6 +44,7 @@ from numpy.typing import NDArray
 from quadlink.camera import CameraStreamClient
 from quadlink.client import GroundClient, Signing, connect
 from quadlink.errors import ConfigError, ProtocolError, QuadlinkError
+from quadlink.journal import JournalWriter
 from quadlink.lockstep import DEFAULT_INPUT_TIMEOUT_S, CountedMavlink, LockstepClient, Step, wait_for_units
 from quadlink.mavlink.security import read_key
 from teleop.commands import CommandResult, CommandTracker
@@ -60,6 +61,8 @@ from teleop.force_loop import (
     PeriodRecorder,
     run_force_loop,
 )
+from teleop.journal import Kind as JKind
+from teleop.journal import encode_step, journal_link
 from teleop.link import VehicleLink
 from teleop.mapping import ManualControl
 from teleop.recording import CsvLog, open_video
@@ -100,8 +103,10 @@ class Station:
     def __init__(self, cfg: TeleopConfig, device: HapticDevice | DeviceSpec, vehicle_url: str,
                  image_stream_url: str | None,
                  http_port: int | None, record_path: str | None = None, log_csv: str | None = None,
-                 clock: Callable[[], float] = time.perf_counter, exit_at_script_end: bool = True) -> None:
+                 clock: Callable[[], float] = time.perf_counter, exit_at_script_end: bool = True,
+                 journal: JournalWriter | None = None) -> None:
         self.cfg = cfg
+        self.journal = journal   # the lock-stepped loop's turns (teleop.journal)
         self.device = device
         self.vehicle_url = vehicle_url
         self.image_stream_url = image_stream_url
@@ -185,7 +190,30 @@ class Station:
         self._counted = CountedMavlink(self._conn)
         self._lockstep = LockstepClient(url, LOCKSTEP_NAME)
         self.clock = self._lockstep.clock
+        if self.journal is not None:   # what pymavlink is handed in a step, what is sent, the clock's readings
+            journal_link(self.journal, self._conn)
+            self.clock = self.journal.clock(self._lockstep.clock, JKind.CLOCK)
+            with self.journal.event(JKind.INIT):
+                pass
         self._lockstep.hello({LINK_OUT: self._counted.sent})
+
+    def start_replay(self, conn: Any, clock: Callable[[], float]) -> None:
+        """For a journal's replay (:mod:`teleop.replay`, instead of :meth:`start_lockstep`): the vehicle link is
+        ``conn`` (:func:`quadlink.mavlink.connection.open_replay_mavlink`), counted as in the lock-step, and the
+        station's clock is ``clock`` (the journal's readings)."""
+        if not isinstance(self.device, HapticDevice):
+            raise ConfigError("replay: the device must run in the station's process (a HapticDevice)")
+        self.client = GroundClient(conn, self.cfg.mapping.target_system, self.cfg.commands.companion_component,
+                                   clock=lambda: self.clock())
+        self._conn = conn
+        self._counted = CountedMavlink(conn)
+        self.clock = clock
+
+    def run_turns(self, turns: Turns, duration_s: float | None = None) -> None:
+        """The station's loop over ``turns`` until they end or the loop does (a journal's replay)."""
+        assert self.client is not None, "start_replay() first"
+        self._duration_s = duration_s
+        self._loop(turns)
 
     def run_lockstep(self, duration_s: float | None = None, status_period_s: float = 2.0,
                      input_timeout_s: float = DEFAULT_INPUT_TIMEOUT_S) -> None:
@@ -199,7 +227,7 @@ class Station:
         if self.error is not None:
             raise QuadlinkError(f"ground station stopped: {self.error}")
 
-    def _loop(self, turns: _Turns) -> None:
+    def _loop(self, turns: Turns) -> None:
         """The station's one loop, over either event source (``turns``): the wall clock's turns every link period
         (:meth:`start`; the force loop and the view run in their own loops) or the lock-step's STEPs
         (:meth:`start_lockstep`; the force loop's ticks run here, before the step's datagrams). Per turn at time
@@ -245,9 +273,10 @@ class Station:
                 csv_log.close()
             self.stop_event.set()   # the station's loop is over: the others stop with it
 
-    def _receive_step(self, link: VehicleLink, tel: Telemetry, t: float, allow: int | None, what: str,
-                      input_timeout_s: float) -> Telemetry:
-        """Handle the companion's datagrams up to the step's count ``allow`` (None: what is there), at ``t``."""
+    def receive_step(self, link: VehicleLink, tel: Telemetry, t: float, allow: int | None, what: str,
+                     input_timeout_s: float) -> Telemetry:
+        """Handle the companion's datagrams up to the link's count ``allow`` (None: what is there), at ``t``: a
+        lock-step's or a journal's turn."""
         counted, ground = self._counted, self.client
         assert counted is not None and ground is not None
         counted.allow = allow
@@ -512,8 +541,9 @@ class _ThreadIO:
         return self.station.stop_event.is_set()
 
 
-class _Turns(Protocol):
-    """An event source of :meth:`Station._loop`."""
+class Turns(Protocol):
+    """An event source of :meth:`Station._loop`: the wall clock's turns, the lock-step's STEPs or a journal's
+    turns (:mod:`teleop.replay`)."""
 
     leaving: str   # what the end of the loop means for it (logged)
 
@@ -571,44 +601,28 @@ class _WallTurns:
         pass
 
 
-class _LockstepTurns:
-    """The deterministic lock-step: a turn per STEP of the SITL, at its simulated time ``t``: the force loop's ticks
-    up to ``t`` at ``force_rate_hz`` of simulated time, exactly the companion datagrams the step announces, the
-    link's ticks due at ``mapping.rate_hz`` of simulated time, then DONE."""
+class SteppedTicks:
+    """The ticks of a stepped station (the lock-step's, a journal's replay): the device's and the force law's at
+    ``force_rate_hz`` and the link's at ``mapping.rate_hz``, both of the steps' simulated time, counted from the
+    first step (tick i is due at ``t_first + i / rate``)."""
 
-    leaving = "leaving the lock-step"
-
-    def __init__(self, station: Station, input_timeout_s: float) -> None:
-        assert station._lockstep is not None and station._counted is not None and \
-            isinstance(station.device, HapticDevice)
-        self.station = station
-        self.client, self.counted = station._lockstep, station._counted
-        self.input_timeout_s = input_timeout_s
+    def __init__(self, station: Station) -> None:
+        assert isinstance(station.device, HapticDevice)
         self.force = ForceLoop(station.device, station.cfg, _ThreadIO(station))
         self.force_rate_hz = station.cfg.device.force_rate_hz
         self.link_period_s = 1.0 / station.cfg.mapping.rate_hz
-        self.n_force = self.n_link = 0   # ticks run so far: tick i is due at t_first + i / rate
+        self.n_force = self.n_link = 0   # ticks run so far
         self.t_first: float | None = None
-        self.step: Step | None = None
 
-    def next_time(self) -> float | None:
-        self.step = self.client.next_step()
-        if self.step is None:
-            return None
+    def first(self, t: float) -> None:
         if self.t_first is None:
-            self.t_first = self.step.t_s
-        return self.step.t_s
+            self.t_first = t
 
     def run_device(self, t: float) -> None:
         assert self.t_first is not None
         while self.t_first + self.n_force / self.force_rate_hz <= t + _EPS_S:
             self.force.tick(self.t_first + self.n_force / self.force_rate_hz)
             self.n_force += 1
-
-    def receive(self, link: VehicleLink, tel: Telemetry, t: float) -> Telemetry:
-        assert self.step is not None
-        return self.station._receive_step(link, tel, t, self.step.count(LINK_IN),
-                                          f"{LINK_IN} at step {self.step.index}", self.input_timeout_s)
 
     def link_ticks_due(self, t: float, t_first: float) -> int:
         due = 0
@@ -617,6 +631,45 @@ class _LockstepTurns:
         self.n_link += due
         return due
 
+
+class _LockstepTurns:
+    """The deterministic lock-step: a turn per STEP of the SITL, at its simulated time ``t``: the force loop's ticks
+    up to ``t`` at ``force_rate_hz`` of simulated time, exactly the companion datagrams the step announces, the
+    link's ticks due at ``mapping.rate_hz`` of simulated time, then DONE. With a journal, each turn is its STEP
+    event."""
+
+    leaving = "leaving the lock-step"
+
+    def __init__(self, station: Station, input_timeout_s: float) -> None:
+        assert station._lockstep is not None and station._counted is not None
+        self.station = station
+        self.client, self.counted = station._lockstep, station._counted
+        self.input_timeout_s = input_timeout_s
+        self.ticks = SteppedTicks(station)
+        self.step: Step | None = None
+
+    def next_time(self) -> float | None:
+        self.step = self.client.next_step()
+        if self.step is None:
+            return None
+        self.ticks.first(self.step.t_s)
+        if self.station.journal is not None:
+            self.station.journal.begin(JKind.STEP, encode_step(self.step.t_s))
+        return self.step.t_s
+
+    def run_device(self, t: float) -> None:
+        self.ticks.run_device(t)
+
+    def receive(self, link: VehicleLink, tel: Telemetry, t: float) -> Telemetry:
+        assert self.step is not None
+        return self.station.receive_step(link, tel, t, self.step.count(LINK_IN),
+                                         f"{LINK_IN} at step {self.step.index}", self.input_timeout_s)
+
+    def link_ticks_due(self, t: float, t_first: float) -> int:
+        return self.ticks.link_ticks_due(t, t_first)
+
     def done(self) -> None:
         self.client.done({LINK_OUT: self.counted.sent})
         self.station.lockstep_steps += 1
+        if self.station.journal is not None:
+            self.station.journal.end()

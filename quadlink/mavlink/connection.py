@@ -53,3 +53,32 @@ def open_mavlink(url: str, source_system: int = 255, source_component: int = 0, 
     conn.mav.robust_parsing = True
     log.info("MAVLink endpoint %s open (sysid %d compid %d)", url, source_system, source_component)
     return conn
+
+
+def open_replay_mavlink(source_system: int = 255, source_component: int = 0) -> Any:
+    """A MAVLink 2 endpoint with no socket, for a journal's replay: its reads hand over the datagrams queued in
+    ``incoming`` (a deque), in order, then nothing; what is sent is kept in ``written``. Otherwise an ordinary
+    ``mavfile`` of the quadlink dialect (the same parser and encoder as :func:`open_mavlink`'s)."""
+    import collections
+
+    mavutil = _install_dialect()
+
+    class ReplayMavfile(mavutil.mavfile):  # type: ignore[misc, name-defined]
+        def __init__(self) -> None:
+            super().__init__(None, "replay", source_system=source_system, source_component=source_component,
+                             input=False)
+            self.incoming: collections.deque[bytes] = collections.deque()
+            self.written: list[bytes] = []
+
+        def recv(self, n: int | None = None) -> bytes:
+            return self.incoming.popleft() if self.incoming else b""
+
+        def write(self, buf: bytes) -> None:
+            self.written.append(bytes(buf))
+
+        def close(self) -> None:
+            pass
+
+    conn = ReplayMavfile()
+    conn.mav.robust_parsing = True
+    return conn

@@ -3,7 +3,8 @@ with both journaling (``quadlink demo --journal``): the real perception on the S
 the operator's MANUAL_CONTROL. ``quadlink replay-companion`` re-runs that companion open loop, alone, from its
 journal, and must write every byte the flight's companion wrote, to the autopilot and to the ground station;
 ``quadlink replay-bridge`` re-runs the bridge, and must write every byte it wrote to the board and to each
-MAVLink endpoint."""
+MAVLink endpoint; ``quadlink replay-teleop`` re-runs the lock-stepped ground station, and must send every byte it
+sent to the companion."""
 
 from __future__ import annotations
 
@@ -15,8 +16,9 @@ import pytest
 
 from companion.replay import replay_journal
 from firmware_bridge.replay import replay_bridge_journal
-from harness.demo.cli import BRIDGE_JOURNAL_NAME, JOURNAL_NAME, run_demo
+from harness.demo.cli import BRIDGE_JOURNAL_NAME, JOURNAL_NAME, TELEOP_JOURNAL_NAME, run_demo
 from harness.ports import free_port_offset
+from teleop.replay import replay_teleop_journal
 
 pytestmark = [pytest.mark.sitl, pytest.mark.timeout(600)]
 
@@ -62,3 +64,40 @@ def test_a_flights_companion_re_runs_from_its_journal_bit_for_bit(tmp_path: Path
     done = subprocess.run([sys.executable, "-m", "quadlink.cli", "replay-bridge", str(tmp_path / BRIDGE_JOURNAL_NAME)],
                           capture_output=True, text=True, timeout=300)
     assert done.returncode == 0 and "identical, bit for bit" in done.stdout, done.stdout[-500:] + done.stderr[-2000:]
+    # the ground station: every MANUAL_CONTROL, COMMAND_STAMP, command and TIMESYNC, from the steps' times and the
+    # companion's datagrams (the operator script and the virtual device re-run with it)
+    teleop = replay_teleop_journal(tmp_path / TELEOP_JOURNAL_NAME)
+    print(teleop.summary())
+    assert teleop.identical, teleop.summary()
+    assert teleop.by_kind["STEP"] > 1000 and teleop.writes_compared > 1000
+    done = subprocess.run([sys.executable, "-m", "quadlink.cli", "replay-teleop", str(tmp_path / TELEOP_JOURNAL_NAME)],
+                          capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0 and "identical, bit for bit" in done.stdout, done.stdout[-500:] + done.stderr[-2000:]
+    # a turn the flight did not take is found: the 500th STEP 0.1 s later (five link ticks fall due in it), and
+    # the station parts from the flight at that turn, not before
+    shifted = tmp_path / "shifted.qltj"
+    shift_step(tmp_path / TELEOP_JOURNAL_NAME, shifted, 500, 0.1)
+    moved = replay_teleop_journal(shifted)
+    assert not moved.identical and moved.divergence_event == 500, moved.summary()   # event 0 is the INIT
+
+
+def shift_step(src: Path, dst: Path, n: int, dt_s: float) -> None:
+    """Copy the ground-station journal ``src`` to ``dst`` with its ``n``-th STEP (from 1) ``dt_s`` later."""
+    import struct
+
+    from teleop.journal import Kind
+
+    data = bytearray(src.read_bytes())
+    _, header_len = struct.unpack_from("<4sI", data, 0)
+    at, steps = 8 + header_len, 0
+    while at < len(data):
+        kind, length = struct.unpack_from("<BI", data, at)
+        if kind == Kind.STEP:
+            steps += 1
+            if steps == n:
+                (t,) = struct.unpack_from("<d", data, at + 5)
+                struct.pack_into("<d", data, at + 5, t + dt_s)
+                break
+        at += 5 + length
+    assert steps == n, f"the journal has {steps} STEPs"
+    dst.write_bytes(bytes(data))
