@@ -3,6 +3,8 @@
 * HEARTBEAT of an autopilot (:func:`is_autopilot_heartbeat`) -> the vehicle's state
   (:class:`companion.vehicle_state.VehicleState`); the daemon also takes the vehicle's system id from it;
 * EXTENDED_SYS_STATE -> the vehicle's landed state;
+* ALTITUDE -> the autopilot's barometer-fused height (its ``altitude_relative``), which the ceiling limit takes
+  when it is higher than the odometry's (:func:`companion.vertical_limits.vertical_limits`);
 * COMMAND_ACK -> the acked command queue (:mod:`companion.commands`); a command refused or never acknowledged
   goes back to the mode machine (:meth:`companion.modes.ModeMachine.on_request_failed`);
 * TIMESYNC -> the offset to the autopilot's clock (:class:`companion.timesync.TimeSync`); its requests are
@@ -55,6 +57,8 @@ class AutopilotInput:
                 self.vehicle.on_heartbeat(msg.base_mode, msg.custom_mode, self._clock())
         elif kind == "EXTENDED_SYS_STATE":
             self.vehicle.landed_state = msg.landed_state
+        elif kind == "ALTITUDE":
+            self.vehicle.on_altitude(msg.altitude_relative, self._clock())
         elif kind == "COMMAND_ACK":
             done, failed = self.commands.on_ack(msg.command, msg.result, self._clock())
             if done is not None:

@@ -666,7 +666,8 @@ class Companion:
                           command_yaw_rate_rad_s=clearing[1] if clearing is not None else cmd.yaw_rate_rad_s,
                           height_above_takeoff_m=height,
                           height_verified=st.height.verified(stamp), command_into_unknown=ob.scripts_into_unknown,
-                          height_uncertainty_m=st.height.uncertainty_m(stamp))
+                          height_uncertainty_m=st.height.uncertainty_m(stamp),
+                          baro_height_m=self.vehicle.baro_height(self.clock()))
         held = self.position_hold.step(stamp, step.ref, None if out is None else out.position_m,
                                       math.nan if out is None else out.yaw_rad, out is not None and out.odometry_ok,
                                       self.modes.in_control)
@@ -764,7 +765,8 @@ class Companion:
         elif task == Task.FALLBACK:   # keeps the autopilot's stream alive without a camera (frame_step.fallback_step)
             stamp = self.time.estimate_s(now)
             op = self.motion.operator_of(self.motion.command(self._pose()))
-            self._send_setpoint(stamp, self.state.fallback(op, self.ref_params, self.modes.operator_enabled, stamp))
+            self._send_setpoint(stamp, self.state.fallback(op, self.ref_params, self.modes.operator_enabled, stamp,
+                                                           self.vehicle.baro_height(now)))
         elif task == Task.FEEDBACK:
             self._send_feedback(self.time.estimate_s(now))
         elif task == Task.PROGRESS:

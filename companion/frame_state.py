@@ -95,12 +95,12 @@ class FrameState:
         return Pose((float(p[0]), float(p[1]), float(p[2])), float(out.yaw_rad), scan.yaw_offset_rad)
 
     def fallback(self, op: OperatorInput, params: ReferenceParams, operator_enabled: bool,
-                 stamp_s: float) -> ReferenceOutput:
+                 stamp_s: float, baro_height_m: float | None = None) -> ReferenceOutput:
         """No camera frame: the reference from the last map (:func:`companion.frame_step.fallback_step`), kept as
-        the last reference."""
+        the last reference; ``baro_height_m``: the autopilot's barometer-fused height (None: none fresh)."""
         self.last_ref = fallback_step(self.last_output, op, self.R_qc, params, operator_enabled,
                                       height_above_takeoff_m=self.height.height_m,
-                                      height_verified=self.height.verified(stamp_s))
+                                      height_verified=self.height.verified(stamp_s), baro_height_m=baro_height_m)
         return self.last_ref
 
     def odometry_message(self, stamp_s: float, out: PerceptionOutput) -> Any:

@@ -83,12 +83,13 @@ def frame_step(out: PerceptionOutput | None, op: OperatorInput, R_qc: NDArray[np
                v_command_h_m_s: NDArray[np.float64] | None = None, command_yaw_rate_rad_s: float = 0.0,
                height_above_takeoff_m: float | None | HeightFrom = HeightFrom.ODOMETRY,
                command_into_unknown: bool = False, height_verified: bool = True,
-               height_uncertainty_m: float = 0.0) -> FrameStep:
+               height_uncertainty_m: float = 0.0, baro_height_m: float | None = None) -> FrameStep:
     """The reference for a frame; ``out`` is perception's output (None: perception failed on it).
     ``v_command_h_m_s`` / ``command_yaw_rate_rad_s``: a scripted command (companion.arbiter) instead of
     the operator's handle ``op``; the measured velocity feeds the closing-speed law's stopping distance.
     ``height_above_takeoff_m``: the vehicle's height (None = unknown; default: the odometry's);
-    ``height_verified``: checked against the floor lately (otherwise no climb toward a configured ceiling)."""
+    ``height_verified``: checked against the floor lately (otherwise no climb toward a configured ceiling);
+    ``baro_height_m``: the autopilot's barometer-fused height above the take-off spot (None: none fresh)."""
     h = height_m(out) if isinstance(height_above_takeoff_m, HeightFrom) else height_above_takeoff_m
     points = map_points_h_m(out, params, h)
     sectors, _, offset_deg = msgs.sector_arrays(None if out is None else out.sectors)
@@ -102,6 +103,7 @@ def frame_step(out: PerceptionOutput | None, op: OperatorInput, R_qc: NDArray[np
                              block_unknown=out is None or not allow_unknown_when_fresh or blind_side,
                              operator_enabled=operator_enabled, sector_offset_rad=math.radians(offset_deg),
                              height_m=h, height_verified=height_verified, height_uncertainty_m=height_uncertainty_m,
+                             baro_height_m=baro_height_m,
                              v_est_h_m_s=None if out is None or not out.odometry_ok else out.v_h_m_s,
                              v_command_h_m_s=v_command_h_m_s, command_yaw_rate_rad_s=command_yaw_rate_rad_s)
     # the warning and the dots use the avoidance's points: the floor (within the floor margin once the height
@@ -113,7 +115,7 @@ def frame_step(out: PerceptionOutput | None, op: OperatorInput, R_qc: NDArray[np
 def fallback_step(last_out: PerceptionOutput | None, op: OperatorInput, R_qc: NDArray[np.float64],
                   params: ReferenceParams, operator_enabled: bool,
                   height_above_takeoff_m: float | None | HeightFrom = HeightFrom.ODOMETRY,
-                  height_verified: bool = True) -> ReferenceOutput:
+                  height_verified: bool = True, baro_height_m: float | None = None) -> ReferenceOutput:
     """No camera: obstacle data stale -> no motion toward unknown (= all) sectors, repulsion from the last
     map kept (conservative), no pan-scan; the operator is zeroed by HOLD (``operator_enabled``)."""
     h = height_m(last_out) if isinstance(height_above_takeoff_m, HeightFrom) else height_above_takeoff_m
@@ -121,7 +123,7 @@ def fallback_step(last_out: PerceptionOutput | None, op: OperatorInput, R_qc: ND
     # the last velocity estimate is stale: the stopping distance uses none (the hold is the vehicle's)
     return reference_velocity(op, R_qc, NO_SCAN, points, params, sectors_m=None, block_unknown=True,
                               operator_enabled=operator_enabled, height_verified=height_verified,
-                              height_m=h)
+                              height_m=h, baro_height_m=baro_height_m)
 
 
 def setpoint_velocity(ref: ReferenceOutput, in_control: bool) -> tuple[NDArray[np.float64], float]:

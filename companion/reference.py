@@ -57,8 +57,8 @@ def reference_velocity(op: OperatorInput, R_qc: ArrayLike, scan: PanScanState,
                        operator_enabled: bool = True, sector_offset_rad: float = 0.0,
                        height_m: float | None = None, v_est_h_m_s: ArrayLike | None = None,
                        v_command_h_m_s: ArrayLike | None = None, command_yaw_rate_rad_s: float = 0.0,
-                       height_verified: bool = True, height_uncertainty_m: float = 0.0
-                       ) -> ReferenceOutput:
+                       height_verified: bool = True, height_uncertainty_m: float = 0.0,
+                       baro_height_m: float | None = None) -> ReferenceOutput:
     """Eqs. (2)-(8) with the safety constraints (see module doc).
 
     ``operator_enabled`` False (hold, link lost) zeroes the operator part but keeps the repulsion;
@@ -71,11 +71,14 @@ def reference_velocity(op: OperatorInput, R_qc: ArrayLike, scan: PanScanState,
     scripted command (from :mod:`companion.arbiter`) that replaces eqs. (2)-(3); everything after them
     applies to it alike. ``height_verified``: the height was checked against the floor recently
     (:mod:`companion.vertical_limits`: otherwise no climb toward a configured ceiling); ``height_uncertainty_m``:
-    how far it may have drifted since (kept from the room's ceiling).
-    """
+    how far it may have drifted since (kept from the room's ceiling). ``baro_height_m``: the autopilot's
+    barometer-fused height above the take-off spot, as ``height_m``; None if none is fresh (the ceiling is kept from
+    the higher of the two)."""
     alpha = camera_yaw_rad(R_qc) + scan.yaw_offset_rad  # eq. (6)
     if height_m is not None:
         height_m = height_m + params.takeoff_height_m
+    if baro_height_m is not None:
+        baro_height_m = baro_height_m + params.takeoff_height_m
     if not operator_enabled:
         op = OperatorInput()
     if v_command_h_m_s is not None and operator_enabled:
@@ -123,7 +126,7 @@ def reference_velocity(op: OperatorInput, R_qc: ArrayLike, scan: PanScanState,
                 v_r, _ = limit_speed_prepared(v_back, c, params.safe_distance_m, params.approach_gain_per_s, reach,
                                               v_est_h_m_s, params.stopping_time_s)
     v_up = None if v_est_h_m_s is None else -float(np.asarray(v_est_h_m_s, dtype=float)[2])
-    limits = vertical_limits(height_m, v_up, params.vertical(), height_verified, height_uncertainty_m)
+    limits = vertical_limits(height_m, v_up, params.vertical(), height_verified, height_uncertainty_m, baro_height_m)
     v_r, vertical = apply_vertical_limits(v_r, limits)
     speed = float(np.linalg.norm(v_r))
     if speed > params.max_speed_m_s:

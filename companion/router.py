@@ -15,7 +15,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-AUTOPILOT_CONSUMED = frozenset({"HIGHRES_IMU", "HEARTBEAT", "EXTENDED_SYS_STATE", "COMMAND_ACK", "TIMESYNC"})
+AUTOPILOT_CONSUMED = frozenset({"HIGHRES_IMU", "HEARTBEAT", "EXTENDED_SYS_STATE", "ALTITUDE", "COMMAND_ACK",
+                                "TIMESYNC"})
 BROADCAST_PARAM_KINDS = frozenset({"PARAM_REQUEST_LIST", "PARAM_REQUEST_READ", "PARAM_SET"})
 # Motion commands from a ground station: the companion is the one arbiter of motion (companion.arbiter),
 # so they are consumed here and never reach the autopilot raw; so are mode changes (the companion answers

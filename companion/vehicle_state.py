@@ -1,8 +1,9 @@
-"""What the companion knows of the autopilot from its HEARTBEAT and EXTENDED_SYS_STATE."""
+"""What the companion knows of the autopilot from its HEARTBEAT, EXTENDED_SYS_STATE and ALTITUDE."""
 
 from __future__ import annotations
 
 import logging
+import math
 from dataclasses import dataclass
 
 from companion.modes import VehicleStatus
@@ -11,6 +12,8 @@ from quadlink.px4_modes import Px4AutoSubMode, Px4MainMode, decode_custom_mode
 
 log = logging.getLogger("companion.daemon")
 
+BARO_HEIGHT_MAX_AGE_S = 0.5   # an ALTITUDE older than this is not the vehicle's height any more
+
 
 @dataclass
 class VehicleState:
@@ -18,6 +21,8 @@ class VehicleState:
     landed_state: int | None = None
     custom_mode: int = 0
     heartbeat_wall_s: float | None = None
+    baro_height_m: float | None = None      # ALTITUDE.altitude_relative: the autopilot's barometer-fused height
+    baro_height_s: float | None = None      # when it came (monotonic)
 
     def on_heartbeat(self, base_mode: int, custom_mode: int, now_s: float) -> None:
         """The autopilot's HEARTBEAT fields, received at ``now_s`` (monotonic)."""
@@ -27,6 +32,18 @@ class VehicleState:
         self.armed = armed
         self.custom_mode = custom_mode
         self.heartbeat_wall_s = now_s
+
+    def on_altitude(self, altitude_relative_m: float, now_s: float) -> None:
+        """The autopilot's ALTITUDE (its barometer-fused height above the take-off spot, NaN: none), at ``now_s``."""
+        h = float(altitude_relative_m)
+        self.baro_height_m = h if math.isfinite(h) else None
+        self.baro_height_s = now_s
+
+    def baro_height(self, now_s: float) -> float | None:
+        """The autopilot's barometer-fused height if it came within BARO_HEIGHT_MAX_AGE_S of ``now_s``, else None."""
+        if self.baro_height_s is None or now_s - self.baro_height_s > BARO_HEIGHT_MAX_AGE_S:
+            return None
+        return self.baro_height_m
 
     def status(self) -> VehicleStatus:
         px4 = decode_custom_mode(self.custom_mode)

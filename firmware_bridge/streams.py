@@ -22,6 +22,7 @@ STREAM_DEFAULT_INTERVAL_S: dict[int, float] = {
     mavlink.MAVLINK_MSG_ID_ATTITUDE_QUATERNION: -1.0,  # off unless requested
     mavlink.MAVLINK_MSG_ID_HIGHRES_IMU: 0.0,  # 0: every IMU sample
     mavlink.MAVLINK_MSG_ID_BATTERY_STATUS: -1.0,
+    mavlink.MAVLINK_MSG_ID_ALTITUDE: 0.05,   # the barometer-fused height (the companion's ceiling takes it)
 }
 IMU_STREAMS = (mavlink.MAVLINK_MSG_ID_HIGHRES_IMU, mavlink.MAVLINK_MSG_ID_ATTITUDE,
                mavlink.MAVLINK_MSG_ID_ATTITUDE_QUATERNION)

@@ -14,6 +14,7 @@ when arming would be accepted.
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 from firmware_bridge.attitude_filter import AttitudeEstimate
@@ -93,7 +94,19 @@ class TelemetryService:
             out.append(Outbound(s.mav.extended_sys_state_encode(0, self.landed_state())))
         if s.streams.due(mavlink.MAVLINK_MSG_ID_BATTERY_STATUS, now_s):
             out.append(Outbound(self.battery_status()))
+        if s.vertical.estimate.baro_fused and s.streams.due(mavlink.MAVLINK_MSG_ID_ALTITUDE, now_s):
+            out.append(Outbound(self.altitude(now_s)))
         return out
+
+    def altitude(self, now_s: float) -> Any:
+        """ALTITUDE: the barometer-fused height above where the vehicle last stood (the take-off spot,
+        :mod:`firmware_bridge.vertical_estimator`) as ``altitude_local`` and ``altitude_relative`` (and
+        ``altitude_monotonic``), NaN without a fresh baro reading; AMSL, terrain and bottom clearance unknown (NaN).
+        The companion keeps its ceiling from the higher of this and its odometry's height."""
+        s = self.state
+        h = s.vertical.height_m if s.vertical.estimate.baro_fused else math.nan
+        nan = math.nan
+        return s.mav.altitude_encode(int(now_s * 1e6), h, nan, h, h, nan, nan)
 
     def landed_state(self) -> int:
         if not self.state.in_air:
@@ -193,6 +206,8 @@ class TelemetryService:
             return self.state.mav.extended_sys_state_encode(0, self.landed_state())
         if msg_id == mavlink.MAVLINK_MSG_ID_BATTERY_STATUS:
             return self.battery_status()
+        if msg_id == mavlink.MAVLINK_MSG_ID_ALTITUDE:
+            return self.altitude(now_s)
         if msg_id == mavlink.MAVLINK_MSG_ID_ATTITUDE:
             e = self.state.filter.estimate
             return self.state.mav.attitude_encode(int(now_s * 1000) & 0xFFFFFFFF, e.roll_rad, e.pitch_rad,

@@ -5,6 +5,7 @@ the rest of the loop (companion.frame_state)."""
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import numpy as np
@@ -137,6 +138,24 @@ def test_the_vehicle_state_follows_the_autopilot_heartbeat_not_a_ground_station_
     ap.on_message(wire(mavlink.MAVLink_heartbeat_message(mavlink.MAV_TYPE_QUADROTOR, mavlink.MAV_AUTOPILOT_PX4, armed,
                                                          0, 0, 3)))
     assert vehicle.armed and vehicle.heartbeat_wall_s == 3.0
+
+
+def test_the_autopilot_altitude_is_the_baro_height_while_fresh() -> None:
+    """ALTITUDE's altitude_relative (the bridge's barometer-fused height) is kept with its arrival time; older
+    than BARO_HEIGHT_MAX_AGE_S, or NaN (no baro fused), it is no height."""
+    from companion.vehicle_state import BARO_HEIGHT_MAX_AGE_S
+
+    vehicle = VehicleState()
+    now = [10.0]
+    ap = AutopilotInput(vehicle, CommandQueue(), ModeMachine(ModeParams()), TimeSync(), lambda: now[0])
+    assert vehicle.baro_height(10.0) is None
+    ap.on_message(wire(mavlink.MAVLink_altitude_message(0, 1.9, math.nan, 1.9, 1.9, math.nan, math.nan)))
+    assert vehicle.baro_height(10.0) == pytest.approx(1.9)
+    assert vehicle.baro_height(10.0 + BARO_HEIGHT_MAX_AGE_S + 0.01) is None
+    now[0] = 11.0
+    ap.on_message(wire(mavlink.MAVLink_altitude_message(0, math.nan, math.nan, math.nan, math.nan, math.nan,
+                                                        math.nan)))
+    assert vehicle.baro_height(11.0) is None
 
 
 def imu(time_usec: int, gyro_z: float = 0.1) -> Any:

@@ -186,6 +186,26 @@ def test_climb_slows_to_the_ceiling_and_descent_to_the_floor() -> None:
     assert v == pytest.approx([0.3, 0.0, 0.0])
 
 
+def test_the_ceiling_is_kept_from_the_higher_of_the_odometry_and_the_barometer() -> None:
+    """An odometry that stopped measuring a climb (the search's trial 31: 1.85-1.93 m while the vehicle rose to
+    2.2 m) leaves the ceiling to the autopilot's barometer-fused height when that is higher; a lower baro (its
+    noise, a descent it lags) changes nothing; the descent toward the floor stays on the odometry."""
+    p = VerticalParams(room_height_m=3.0, gain_per_s=1.0, stopping_time_s=0.5, floor_min_height_m=0.3)
+    odo = vertical_limits(2.0, 0.0, p)
+    baro_high = vertical_limits(2.0, 0.0, p, baro_height_m=2.6)
+    assert odo.max_climb_m_s == pytest.approx(0.55)
+    assert baro_high.max_climb_m_s == pytest.approx(2.55 - 2.6)            # above the limit on the baro: sent down
+    assert vertical_limits(2.0, 0.0, p, baro_height_m=1.7).max_climb_m_s == pytest.approx(odo.max_climb_m_s)
+    assert vertical_limits(2.0, 0.0, p, baro_height_m=math.nan).max_climb_m_s == pytest.approx(odo.max_climb_m_s)
+    assert baro_high.max_descent_m_s == pytest.approx(odo.max_descent_m_s) and baro_high.height_m == 2.0
+    # through the reference: the baro is on the odometry's scale (from the take-off pose, takeoff_height_m added)
+    params = ReferenceParams(room_height_m=3.0, max_height_m=None, takeoff_height_m=0.1)
+    up = OperatorInput(qz=1.0)
+    free = reference_velocity(up, R_QC_FORWARD, NO_SCAN, None, params, height_m=1.8)
+    held = reference_velocity(up, R_QC_FORWARD, NO_SCAN, None, params, height_m=1.8, baro_height_m=2.5)
+    assert -free.v_ref_h_m_s[2] > 0.2 and -held.v_ref_h_m_s[2] < 0.0
+
+
 def test_a_full_climb_stops_below_the_ceiling_with_a_lagging_loop() -> None:
     # the reference's vertical limit with a vehicle whose climb rate follows with 0.3 s lag and 1 frame latency
     params = ReferenceParams(room_height_m=3.0, max_height_m=None)
