@@ -18,7 +18,7 @@ import click
 
 from harness.cpu_share import CpuShare
 from harness.demo.link import LinkImpairment, LinkProxies, teleop_config_with_passivity, write_link_stats
-from harness.demo.orchestrator import ProcessDied, ProcessSpec, Stack
+from harness.demo.orchestrator import JudgementVoid, ProcessDied, ProcessSpec, Stack
 from harness.demo.parts import BridgePart, CompanionPart, SitlPart
 from harness.demo.recorder import Recorder
 from harness.demo.report import (
@@ -332,6 +332,10 @@ def run_demo(scenario: str, duration_s: float, out_dir: Path, script: Path, lock
         report = compute_report(flight, cpu, str(scenario), *avoidance_distances(out_dir))
         report["plots"] = []
         (out_dir / "report.json").write_text(json.dumps(report, indent=2, default=float) + "\n")
+    if len(recorder.truth_senders) > 1 and failure is None:   # another vehicle's truth in the track: no judgement
+        failure = JudgementVoid(f"ground truth came from {len(recorder.truth_senders)} senders on port {ports.truth}: "
+                                "another SITL sends its truth there; this flight's judgement is void (fly it on free "
+                                "ports)")
     report["interrupted"] = interrupted
     report["failure"] = str(failure) if failure else None
     report["wall_time_s"] = time.monotonic() - t_wall0

@@ -73,6 +73,15 @@ class ProcessDied(RuntimeError):
         self.returncode = returncode
 
 
+class JudgementVoid(ProcessDied):
+    """The flight ran, but what judges it cannot be trusted (another vehicle's ground truth in its track)."""
+
+    def __init__(self, why: str) -> None:
+        RuntimeError.__init__(self, why)
+        self.name = "judge"
+        self.returncode = 0
+
+
 def _die_with_parent() -> Callable[[], None] | None:
     """On Linux, a part gets SIGTERM when the process that started it dies, however it dies: a runner killed by
     SIGTERM or SIGKILL (no ``finally`` runs) left a bridge and a companion flying on, on the same ports as the next

@@ -42,8 +42,9 @@ class SitlPart:
         a = ["sitl", "--port1", str(ports.mk1), "--port2", str(ports.mk2), "--camera-port", str(ports.camera)]
         if self.scenario is not None:
             a += ["--scenario", self.scenario]
-        if self.truth:
-            a += ["--truth", f"udpout:127.0.0.1:{ports.truth}"]
+        # without truth, say so: the SITL's default sends it to the demo's truth port, where another flight's judge
+        # may be listening (a test's SITL polluted a demo's truth track so)
+        a += ["--truth", f"udpout:127.0.0.1:{ports.truth}" if self.truth else "none"]
         if not self.camera:
             a.append("--no-camera")
         if self.duration_s is not None:

@@ -40,6 +40,7 @@ class Recorder:
         self.vehicle_armed: bool | None = None   # from the autopilot's HEARTBEAT on a non-truth stream
         self.counts: dict[str, int] = {}
         self._writers: list[TlogWriter] = []
+        self.truth_senders: set[Any] = set()   # the addresses the truth came from: more than one voids the judgement
 
     def record(self, name: str, url: str, path: Path, is_truth: bool = False) -> None:
         conn = open_mavlink(url, source_system=GROUND_SYSTEM_ID, source_component=GROUND_COMPONENT_ID)
@@ -56,12 +57,26 @@ class Recorder:
         try:
             while not self._stop.is_set():
                 self._on_message(name, conn.recv_match(blocking=True, timeout=0.2), writer, is_truth)
+                if is_truth:
+                    self._note_senders(conn)
             # what the senders sent before they stopped is still in the socket: a log cut short at a moment of
             # the wall clock would make two identical flights' logs differ (issue 15)
             while (msg := conn.recv_match(blocking=False)) is not None:
                 self._on_message(name, msg, writer, is_truth)
+            if is_truth:
+                self._note_senders(conn)
         finally:
             conn.close()
+
+    def _note_senders(self, conn: Any) -> None:
+        """Every address the truth came from (pymavlink's ``clients`` of a ``udpin``): a second SITL sending its
+        truth to this port (a test's, on the default ports) would interleave another vehicle into the track."""
+        senders = getattr(conn, "clients", None)
+        if senders is not None and len(senders) > len(self.truth_senders):
+            self.truth_senders |= set(senders)
+            if len(self.truth_senders) > 1:
+                log.error("ground truth from %d senders (%s): another SITL sends to this port; the judgement is "
+                          "void", len(self.truth_senders), ", ".join(f"{h}:{p}" for h, p in sorted(self.truth_senders)))
 
     def _on_message(self, name: str, msg: Any, writer: TlogWriter, is_truth: bool) -> None:
         if msg is None or msg.get_type() == "BAD_DATA":
