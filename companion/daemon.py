@@ -650,7 +650,8 @@ class Companion:
                                               self._height_above_floor_m(), self.ref_params.floor_margin_m),
                                self._height_above_floor_m(), self.ref_params.floor_margin_m,
                                out.position_m, out.yaw_rad)
-        self._emit(self.modes.update(self.clock(), self.vehicle.status(), st.odometry_ok, self._failsafe_refusal))
+        now = self.clock()
+        self._emit(self.modes.update(now, self.vehicle.status(), st.odometry_ok, self._failsafe_refusal))
         cmd = self.motion.command(self._pose())
         op = self.motion.operator_of(cmd)
         scripted = cmd.source == Source.SCRIPT
@@ -667,7 +668,7 @@ class Companion:
                           height_above_takeoff_m=height,
                           height_verified=st.height.verified(stamp), command_into_unknown=ob.scripts_into_unknown,
                           height_uncertainty_m=st.height.uncertainty_m(stamp),
-                          baro_height_m=self.vehicle.baro_height(self.clock()))
+                          baro_height_m=self.vehicle.baro_height(now))
         held = self.position_hold.step(stamp, step.ref, None if out is None else out.position_m,
                                       math.nan if out is None else out.yaw_rad, out is not None and out.odometry_ok,
                                       self.modes.in_control)

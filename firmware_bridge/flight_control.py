@@ -18,7 +18,7 @@ from firmware_bridge.modes import FlightMode
 from firmware_bridge.offboard import OffboardService
 from firmware_bridge.state import AttitudeSetpoint, BoardCommand, BridgeState
 from firmware_bridge.velocity_tracker import AttitudeCommand
-from quadlink.frames import R_hq, Rz, wrap_pi
+from quadlink.frames import Rz, wrap_pi
 from quadlink.mavlink import mavlink
 from quadlink.mk.flags import BoardFlightState
 
@@ -105,7 +105,7 @@ class FlightControlService:
             if s.blind and not braking:
                 return self._blind_step(now_s, dt, est)
             v_est = s.v_h_dead_reckoned.copy()
-            drag = None if resting else self._drag_velocity_h(est)
+            drag = None if resting else self.offboard.drag_velocity_h(est)
             if drag is not None:   # the brake acts on what the drag says (no tilt error in it)
                 v_est[:2] = drag[:2]
             if not (braking and np.all(np.isfinite(v_est[:2]))):
@@ -244,7 +244,7 @@ class FlightControlService:
         # board's level is ~0.5-1 deg off its own estimate: 0.1-0.3 m/s of slide), never on or at the ground
         # nor while resting on something (thrust under the touchdown test's: a tilt there skids the vehicle)
         drag = None if s.vertical.estimate.pinned or self._level_landing() or self._resting_thrust() \
-            else self._drag_velocity_h(est)
+            else self.offboard.drag_velocity_h(est)
         v_est = np.array([0.0, 0.0, vz_est]) if drag is None else np.array([drag[0], drag[1], vz_est])
         cmd = s.pid_tracker.update(dt, np.array([0.0, 0.0, vz_ref]), yaw_rate, v_est, est.roll_rad, est.pitch_rad)
         thrust = min(cmd.thrust_fraction, ceiling)
@@ -282,17 +282,6 @@ class FlightControlService:
         v_h = -LAND_HOLD_GAIN_1_S * (Rz(-yaw_rad) @ e_ned)[:2]
         speed = float(np.linalg.norm(v_h))
         return v_h * (LAND_HOLD_MAX_M_S / speed) if speed > LAND_HOLD_MAX_M_S else v_h
-
-    def _drag_velocity_h(self, est: Any) -> np.ndarray | None:
-        """The horizontal velocity in H from the drag (firmware_bridge.drag_velocity), if BRG_DRAG_HOLD and learnt in
-        this flight, or on BRG_DRAG_K_NOM where the flight has not moved enough to learn it."""
-        s = self.state
-        if s.params["BRG_DRAG_HOLD"] <= 0.0:
-            return None
-        v_q = s.drag.velocity_q_xy(s.params["BRG_DRAG_K_NOM"])
-        if v_q is None:
-            return None
-        return R_hq(est.roll_rad, est.pitch_rad) @ np.array([v_q[0], v_q[1], 0.0])
 
     def _resting_thrust(self) -> bool:
         """The last thrust is under the touchdown test's (LNDMC_THR_MAX x hover): resting on something."""

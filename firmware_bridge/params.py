@@ -78,7 +78,8 @@ PARAM_SPECS: tuple[ParamSpec, ...] = (
               "the gate's reference takes this share of an accepted odometry velocity, the rest from the IMU "
               "(1: the last accepted velocity)"),
     ParamSpec("BRG_DRAG_HOLD", 1.0, 0.0, 1.0, "bool",
-              "without odometry, hold on the drag-learnt velocity instead of flying level (0: off)"),
+              "without odometry (stale, lost), hold on the drag-learnt velocity instead of the IMU's integral or "
+              "flying level (0: off)"),
     ParamSpec("BRG_DRAG_K_NOM", 0.45, 0.0, 5.0, "1/s",
               "the drag coefficient held on before the flight has moved enough to learn it (the 'Drag learnt' "
               "message gives the vehicle's; PX4's EKF2_MCOEF; 0: none)"),
