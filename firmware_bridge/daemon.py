@@ -570,10 +570,13 @@ class BridgeDaemon:
             ap = self.autopilot
             p50, p99 = self.imu_latency_ms()
             log.info("t=%.1fs mode %s armed %s in_air %s odom %s board %s | imu %d (gaps %d) setpoints %d "
-                     "mav in %d out %d | bad mav %d mk %d | imu->mavlink in-process p50 %.3f p99 %.3f ms",
+                     "mav in %d out %d | bad mav %d mk %d | odometry gated %d by the drag %d (off it at most %.2f m/s) "
+                     "| imu->mavlink in-process p50 %.3f p99 %.3f ms",
                      self.now_s(), ap.mode.name, ap.armed, ap.in_air, ap.odom_ok, ap.board_link_ok,
                      self.stats.imu_samples, self.stats.imu_gaps, self.stats.setpoints_sent, self.stats.mavlink_in,
-                     self.stats.mavlink_out, ap.counters["mavlink_bad"], ap.counters["mk_bad"], p50, p99)
+                     self.stats.mavlink_out, ap.counters["mavlink_bad"], ap.counters["mk_bad"],
+                     ap.counters["odometry_gated"], ap.counters["odometry_drag_gated"],
+                     ap.state.drag_disagreement_max_m_s, p50, p99)
 
     def imu_latency_ms(self) -> tuple[float, float]:
         """p50 and p99 (ms) of IMU bytes read -> HIGHRES_IMU handed to the sockets, last 5000 samples."""

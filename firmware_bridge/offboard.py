@@ -106,13 +106,13 @@ class OffboardService:
                 s.event(mavlink.MAV_SEVERITY_INFO, f"Drag learnt: k {c[0][0]:.2f}/{c[1][0]:.2f} 1/s")
         return est
 
-    def drag_velocity_h(self, est: AttitudeEstimate) -> np.ndarray | None:
+    def drag_velocity_h(self, est: AttitudeEstimate, nominal: bool = True) -> np.ndarray | None:
         """The horizontal velocity in H from the drag (:mod:`firmware_bridge.drag_velocity`), if BRG_DRAG_HOLD and
-        learnt in this flight, or on BRG_DRAG_K_NOM where the flight has not moved enough to learn it."""
+        learnt in this flight, or (``nominal``) on BRG_DRAG_K_NOM where the flight has not moved enough to learn it."""
         s = self.state
         if s.params["BRG_DRAG_HOLD"] <= 0.0:
             return None
-        v_q = s.drag.velocity_q_xy(s.params["BRG_DRAG_K_NOM"])
+        v_q = s.drag.velocity_q_xy(s.params["BRG_DRAG_K_NOM"] if nominal else 0.0)
         if v_q is None:
             return None
         return R_hq(est.roll_rad, est.pitch_rad) @ np.array([v_q[0], v_q[1], 0.0])
@@ -312,6 +312,35 @@ class OffboardService:
             s.event(mavlink.MAV_SEVERITY_INFO, f"Odometry at {s.height_m:.2f} m: closed loop")
         return []
 
+    def _disagrees_with_drag(self, now_s: float, v_h: np.ndarray) -> bool:
+        """The drag gate (BRG_ODOM_DGATE): the odometry's horizontal velocity, through the same low-pass as the
+        drag's force reading, against the drag's velocity (learnt in this flight only, never the nominal). The IMU gate
+        catches jumps; an odometry that reads slower and slower at full quality passes it: in front of the black
+        partition it read 0.0-0.1 m/s for a second with the vehicle at 0.1-0.3 m/s (the drag said so), and the
+        vehicle came to 0.41 m of the partition in TELEOP. A disagreement that lasts BRG_ODOM_DGATE_T refuses the
+        odometry's velocity until it agrees again (a refusal that lasts is an odometry loss, with its brake)."""
+        s = self.state
+        dt = None if s.odom_lp_time_s is None else now_s - s.odom_lp_time_s
+        s.odom_lp_time_s = now_s
+        v = np.asarray(v_h, dtype=float)[:2]
+        if s.odom_v_h_lp is None or dt is None or not 0.0 <= dt <= IMU_PREDICTION_HORIZON_S:
+            s.odom_v_h_lp = v.copy()
+        else:
+            s.odom_v_h_lp = s.odom_v_h_lp + (v - s.odom_v_h_lp) * min(dt / s.drag.force_tau_s, 1.0)
+        drag = self.drag_velocity_h(s.filter.estimate, nominal=False)
+        if drag is None:
+            s.drag_disagree_since_s = None
+            return False
+        s.drag_disagreement_m_s = math.hypot(float(s.odom_v_h_lp[0] - drag[0]), float(s.odom_v_h_lp[1] - drag[1]))
+        s.drag_disagreement_max_m_s = max(s.drag_disagreement_max_m_s, s.drag_disagreement_m_s)
+        gate = s.params["BRG_ODOM_DGATE"]
+        if gate <= 0.0 or s.drag_disagreement_m_s <= gate:
+            s.drag_disagree_since_s = None
+            return False
+        if s.drag_disagree_since_s is None:
+            s.drag_disagree_since_s = now_s
+        return now_s - s.drag_disagree_since_s >= s.params["BRG_ODOM_DGATE_T"]
+
     def _velocity_plausible(self, now_s: float, v_h: np.ndarray) -> bool:
         """The velocity gate (BRG_ODOM_VGATE, like EKF2's innovation gates): in the air, an odometry velocity is used
         only if it is within the gate (horizontally) of the gate's reference: the IMU's prediction, pulled a share
@@ -331,7 +360,15 @@ class OffboardService:
         gate = s.params["BRG_ODOM_VGATE"]
         if not s.in_air:
             s.v_h_gate_ref = np.array(v_h, dtype=float)
+            s.odom_v_h_lp = None
+            s.drag_disagree_since_s = None
             return True
+        if self._disagrees_with_drag(now_s, v_h):
+            s.counters["odometry_drag_gated"] += 1
+            if s.counters["odometry_drag_gated"] in (1, 10, 100, 1000):
+                s.event(mavlink.MAV_SEVERITY_WARNING,
+                        f"Odometry velocity refused: {s.drag_disagreement_m_s:.1f} m/s off the drag")
+            return False
         recent = s.odom_time_s is not None and now_s - s.odom_time_s <= s.params["BRG_ODOM_LOSS_T"]
         reference = s.v_h_gate_ref if recent else s.v_h_dead_reckoned
         jump = math.hypot(float(v_h[0] - reference[0]), float(v_h[1] - reference[1]))

@@ -77,6 +77,10 @@ PARAM_SPECS: tuple[ParamSpec, ...] = (
     ParamSpec("BRG_ODOM_VGATE_K", 0.3, 0.05, 1.0, "fraction",
               "the gate's reference takes this share of an accepted odometry velocity, the rest from the IMU "
               "(1: the last accepted velocity)"),
+    ParamSpec("BRG_ODOM_DGATE", 0.2, 0.0, 5.0, "m/s",
+              "in the air, once the drag is learnt, an odometry velocity whose low-pass has been farther than this "
+              "(horizontally) from the drag's for BRG_ODOM_DGATE_T is not used (0: off)"),
+    ParamSpec("BRG_ODOM_DGATE_T", 0.2, 0.0, 5.0, "s", "how long the disagreement lasts before the drag gate acts"),
     ParamSpec("BRG_DRAG_HOLD", 1.0, 0.0, 1.0, "bool",
               "without odometry (stale, lost), hold on the drag-learnt velocity instead of the IMU's integral or "
               "flying level (0: off)"),

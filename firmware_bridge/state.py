@@ -173,6 +173,13 @@ class BridgeState:
         # the horizontal velocity the accelerometer's drag reading gives, learnt while the odometry is good
         self.drag = DragVelocity()
         self.drag_told = False   # the STATUSTEXT when the fit is first trusted
+        # the odometry's horizontal velocity through the drag's low-pass (every sample in the air, used or not), and
+        # since when it has disagreed with the drag's by more than BRG_ODOM_DGATE (firmware_bridge.offboard)
+        self.odom_v_h_lp: np.ndarray | None = None
+        self.odom_lp_time_s: float | None = None
+        self.drag_disagree_since_s: float | None = None
+        self.drag_disagreement_m_s = 0.0
+        self.drag_disagreement_max_m_s = 0.0   # the largest seen in this flight (the status line; the gate's margin)
         # flight without odometry (take-off phase 1 and the landing after it): accelerometer-only vertical
         self.vertical = VerticalEstimator(vehicle.hover_thrust_fraction, params["MPC_Z_VEL_MAX_UP"],
                                           params["MPC_Z_VEL_MAX_DN"])
@@ -205,6 +212,7 @@ class BridgeState:
         self.stream_interval_s = self.streams.interval_s  # the same dict: the scheduler's table
         self.counters: dict[str, int] = {"mavlink_bad": 0, "mk_bad": 0, "setpoint_rejected": 0,
                                          "odometry_rejected": 0, "odometry_low_quality": 0, "odometry_gated": 0,
+                                         "odometry_drag_gated": 0,
                                          "odometry_vz_gated": 0, "commands": 0, "unsupported_commands": 0,
                                          "commands_refused": 0, "handler_errors": 0, "param_refused": 0}
         self._last_counter_report_s = -math.inf

@@ -865,6 +865,36 @@ def test_odometry_gone_stale_before_its_loss_is_held_on_the_drag_not_on_the_tilt
         assert speed > 0.3, f"the control case held ({speed:.2f} m/s)"                 # 0.61 m/s backward
 
 
+@pytest.mark.parametrize("gate_m_s", [0.15, 0.0])
+def test_an_odometry_reading_slower_and_slower_is_refused_by_the_drag(gate_m_s):
+    """The IMU gate refuses jumps; an odometry that reads slower and slower at full quality walks past it, and the
+    tracker speeds the vehicle up to match it (in front of the black partition: 0.0-0.1 m/s read for a second at
+    0.1-0.3 m/s, 0.41 m from the partition in TELEOP). The drag's velocity, learnt while the odometry was good, says
+    how fast the vehicle goes: with BRG_ODOM_DGATE the odometry's velocity is refused once its low-pass has been
+    farther than that from the drag's for BRG_ODOM_DGATE_T, and the vehicle flies on the drag; 0 is the control."""
+    sim = Sim(ParamTable({"BRG_ODOM_DGATE": gate_m_s, "BRG_ODOM_LOSS_T": 2.0}))
+    sim.baro = True
+    sim.level_error_rad = (math.radians(1.0), math.radians(-1.0))
+    fly_to_hover(sim)
+    sim.step(0.5, setpoint=velocity_body(0, 0, 0))
+    assert sim.command(mavlink.MAV_CMD_DO_SET_MODE, 1, 6, 0)[0] == mavlink.MAV_RESULT_ACCEPTED
+    for vx, vy in ((0.4, 0.0), (0.0, 0.4), (-0.4, 0.0), (0.0, -0.4), (0.0, 0.0)):   # moving about: the drag is learnt
+        sim.step(2.5, setpoint=velocity_body(vx, vy, 0))
+    sim.step(2.0, setpoint=velocity_body(0.3, 0, 0))
+    assert sim.ap.counters["odometry_drag_gated"] == 0                          # a good odometry agrees with it
+    assert sim.ap.state.drag_disagreement_max_m_s < 0.1                         # 0.02 m/s
+    for i in range(20):                                  # the odometry reads 0.03-0.3 m/s slow over 1 s, then stays
+        sim.odom_velocity_error_n = np.array([-0.03 * min(i + 1, 10), 0.0, 0.0])
+        sim.step(0.1, setpoint=velocity_body(0.3, 0, 0))
+    assert sim.ap.mode == FlightMode.OFFBOARD
+    if gate_m_s:
+        assert sim.ap.counters["odometry_drag_gated"] > 0
+        assert any("off the drag" in t for t in sim.statustext)
+        assert sim.v[0] < 0.4, f"flew {sim.v[0]:.2f} m/s for 0.3"                 # 0.34 m/s
+    else:
+        assert sim.v[0] > 0.5, f"the control case flew {sim.v[0]:.2f} m/s"        # 0.59 m/s
+
+
 @pytest.mark.parametrize("k_nominal", [0.45, 0.0])
 def test_without_motion_to_learn_from_the_hold_takes_the_nominal_drag(k_nominal):
     """The companion killed in a hover at 1.9 m drifted 0.56-0.63 m on the way down (SITL, real time, three runs):
