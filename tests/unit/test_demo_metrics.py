@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from harness.demo import metrics
-from harness.demo.report import FlightLog, check_targets, compute_report, setpoints_in_control
+from harness.demo.report import FlightLog, check_targets, compute_report, setpoints_in_control, summary_table
 from quadlink.mavlink import mavlink
 
 
@@ -87,6 +87,27 @@ def test_report_on_synthetic_flight(rng: np.random.Generator) -> None:
     assert all(t["pass"] for t in report["targets"].values())
     bad = check_targets({**report, "min_true_clearance_m": 0.3})
     assert not bad["min_true_clearance_m"]["pass"]
+
+
+def test_a_flight_never_near_a_surface_has_its_estimate_check_not_measured() -> None:
+    """The estimate <= truth share counts only the samples with a true surface within the influence distance
+    (0.9 m): a flight that never came that near has no such sample. The report says the target was not measured
+    (neither PASS nor FAIL), and a measured one still passes or fails on its value."""
+    t = np.arange(0, 20, 0.02)
+    alt = np.clip(t - 1, 0, 1.0)
+    far = FlightLog(
+        t_truth=t, p_ned=np.stack([0 * t, 0 * t, -alt], axis=1), v_ned=np.zeros((t.size, 3)), t_att=t,
+        yaw_true=0 * t, t_dist0=t, dist0_m=np.full(t.size, 1.0), t_dist1=t, dist1_m=np.full(t.size, 1.3),
+        t_fb=t, v_est_h=np.zeros((t.size, 3)), v_cmd_h=np.zeros((t.size, 3)), v_rep_h=np.zeros((t.size, 3)),
+        pan_scan_rate=0 * t, yaw_rate_cmd=0 * t, gyro_yaw_rate=0 * t, obstacle_est_m=np.full(t.size, 1.2),
+        mode=np.full(t.size, 2.0), t_setpoint=np.arange(0, 20, 1 / 30),
+    )
+    report = compute_report(far, {"sitl": 10.0}, "synthetic")
+    assert math.isnan(report["fraction_estimate_le_truth"])
+    target = report["targets"]["fraction_estimate_le_truth"]
+    assert target["pass"] is None and "never within 0.90 m" in target["note"]
+    assert "NOT MEASURED" in summary_table(report) and "FAIL" not in summary_table(report)
+    assert check_targets({**report, "fraction_estimate_le_truth": 0.5})["fraction_estimate_le_truth"]["pass"] is False
 
 
 def test_setpoint_gaps_count_only_while_the_companion_is_in_control() -> None:
