@@ -59,6 +59,17 @@ class _AxisFit:
         return k, mf + k * mv, math.sqrt(var_v)
 
 
+def low_pass(previous: NDArray[np.float64] | None, value: NDArray[np.float64], dt_s: float,
+             tau_s: float) -> NDArray[np.float64]:
+    """One step of a first-order low-pass (time constant ``tau_s``): ``value`` itself when there is no previous
+    output, else the previous output moved toward it by dt/tau of the way (all of it at most). The drag's fit and
+    the bridge's drag gate put the odometry's velocity through the same filter as the force reading."""
+    v = np.asarray(value, dtype=float)
+    if previous is None:
+        return v.copy()
+    return previous + (v - previous) * min(dt_s / max(tau_s, 1e-3), 1.0)
+
+
 @dataclass
 class DragVelocity:
     """Learns f = -k v + b per body axis from the odometry, and gives v from f when asked."""
@@ -87,8 +98,7 @@ class DragVelocity:
             self._v_lp = None
             return
         # the velocity through the force's low-pass, so that the fit compares like with like (no lag between them)
-        self._v_lp = v.copy() if self._v_lp is None else \
-            self._v_lp + (v - self._v_lp) * min(dt_s / max(self.force_tau_s, 1e-3), 1.0)
+        self._v_lp = low_pass(self._v_lp, v, dt_s, self.force_tau_s)
         decay = math.exp(-dt_s / self.memory_s)
         for axis, fit in enumerate(self._axes):
             fit.add(float(self._v_lp[axis]), float(self._f_lp[axis]), dt_s, decay)

@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 
 from firmware_bridge.attitude_filter import AttitudeEstimate
+from firmware_bridge.drag_velocity import low_pass
 from firmware_bridge.geometric_tracker import SetpointRejected, decode_trajectory_setpoint
 from firmware_bridge.modes import FlightMode, TakeoffPhase
 from firmware_bridge.state import AttitudeSetpoint, BridgeState, Outbound, VelocitySetpoint
@@ -312,34 +313,33 @@ class OffboardService:
             s.event(mavlink.MAV_SEVERITY_INFO, f"Odometry at {s.height_m:.2f} m: closed loop")
         return []
 
-    def _disagrees_with_drag(self, now_s: float, v_h: np.ndarray) -> bool:
+    def _disagrees_with_drag(self, now_s: float, v_h: np.ndarray) -> float | None:
         """The drag gate (BRG_ODOM_DGATE): the odometry's horizontal velocity, through the same low-pass as the
-        drag's force reading, against the drag's velocity (learnt in this flight only, never the nominal). The IMU gate
-        catches jumps; an odometry that reads slower and slower at full quality passes it: in front of the black
-        partition it read 0.0-0.1 m/s for a second with the vehicle at 0.1-0.3 m/s (the drag said so), and the
-        vehicle came to 0.41 m of the partition in TELEOP. A disagreement that lasts BRG_ODOM_DGATE_T refuses the
-        odometry's velocity until it agrees again (a refusal that lasts is an odometry loss, with its brake)."""
+        drag's force reading, against the drag's velocity (learnt from this bridge's odometry only, never the
+        nominal). The IMU gate catches jumps; an odometry that reads slower and slower at full quality passes it: in
+        front of the black partition it read 0.0-0.1 m/s for a second with the vehicle at 0.1-0.3 m/s (the drag said
+        so), and the vehicle came to 0.41 m of the partition in TELEOP. Returns the disagreement (m/s) once it has
+        lasted BRG_ODOM_DGATE_T: the odometry's velocity is refused until it agrees again (a refusal that lasts is an
+        odometry loss, with its brake); None while they agree."""
         s = self.state
         dt = None if s.odom_lp_time_s is None else now_s - s.odom_lp_time_s
         s.odom_lp_time_s = now_s
-        v = np.asarray(v_h, dtype=float)[:2]
-        if s.odom_v_h_lp is None or dt is None or not 0.0 <= dt <= IMU_PREDICTION_HORIZON_S:
-            s.odom_v_h_lp = v.copy()
-        else:
-            s.odom_v_h_lp = s.odom_v_h_lp + (v - s.odom_v_h_lp) * min(dt / s.drag.force_tau_s, 1.0)
+        fresh = dt is None or not 0.0 <= dt <= IMU_PREDICTION_HORIZON_S   # a gap restarts the low-pass
+        s.odom_v_h_lp = low_pass(None if fresh else s.odom_v_h_lp, np.asarray(v_h, dtype=float)[:2],
+                                 0.0 if dt is None else dt, s.drag.force_tau_s)
         drag = self.drag_velocity_h(s.filter.estimate, nominal=False)
         if drag is None:
             s.drag_disagree_since_s = None
-            return False
-        s.drag_disagreement_m_s = math.hypot(float(s.odom_v_h_lp[0] - drag[0]), float(s.odom_v_h_lp[1] - drag[1]))
-        s.drag_disagreement_max_m_s = max(s.drag_disagreement_max_m_s, s.drag_disagreement_m_s)
+            return None
+        disagreement = math.hypot(float(s.odom_v_h_lp[0] - drag[0]), float(s.odom_v_h_lp[1] - drag[1]))
+        s.drag_disagreement_max_m_s = max(s.drag_disagreement_max_m_s, disagreement)
         gate = s.params["BRG_ODOM_DGATE"]
-        if gate <= 0.0 or s.drag_disagreement_m_s <= gate:
+        if gate <= 0.0 or disagreement <= gate:
             s.drag_disagree_since_s = None
-            return False
+            return None
         if s.drag_disagree_since_s is None:
             s.drag_disagree_since_s = now_s
-        return now_s - s.drag_disagree_since_s >= s.params["BRG_ODOM_DGATE_T"]
+        return disagreement if now_s - s.drag_disagree_since_s >= s.params["BRG_ODOM_DGATE_T"] else None
 
     def _velocity_plausible(self, now_s: float, v_h: np.ndarray) -> bool:
         """The velocity gate (BRG_ODOM_VGATE, like EKF2's innovation gates): in the air, an odometry velocity is used
@@ -363,11 +363,11 @@ class OffboardService:
             s.odom_v_h_lp = None
             s.drag_disagree_since_s = None
             return True
-        if self._disagrees_with_drag(now_s, v_h):
+        off_drag_m_s = self._disagrees_with_drag(now_s, v_h)
+        if off_drag_m_s is not None:
             s.counters["odometry_drag_gated"] += 1
             if s.counters["odometry_drag_gated"] in (1, 10, 100, 1000):
-                s.event(mavlink.MAV_SEVERITY_WARNING,
-                        f"Odometry velocity refused: {s.drag_disagreement_m_s:.1f} m/s off the drag")
+                s.event(mavlink.MAV_SEVERITY_WARNING, f"Odometry velocity refused: {off_drag_m_s:.1f} m/s off the drag")
             return False
         recent = s.odom_time_s is not None and now_s - s.odom_time_s <= s.params["BRG_ODOM_LOSS_T"]
         reference = s.v_h_gate_ref if recent else s.v_h_dead_reckoned

@@ -178,8 +178,8 @@ class BridgeState:
         self.odom_v_h_lp: np.ndarray | None = None
         self.odom_lp_time_s: float | None = None
         self.drag_disagree_since_s: float | None = None
-        self.drag_disagreement_m_s = 0.0
-        self.drag_disagreement_max_m_s = 0.0   # the largest seen in this flight (the status line; the gate's margin)
+        self.drag_disagreement_max_m_s = 0.0   # the largest seen since the bridge started, across flights, as the
+                                               # drag's fit lives (the status line; the gate's margin)
         # flight without odometry (take-off phase 1 and the landing after it): accelerometer-only vertical
         self.vertical = VerticalEstimator(vehicle.hover_thrust_fraction, params["MPC_Z_VEL_MAX_UP"],
                                           params["MPC_Z_VEL_MAX_DN"])
