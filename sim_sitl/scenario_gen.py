@@ -285,3 +285,15 @@ def scenario_to_dict(scenario: ScenarioConfig) -> dict[str, Any]:
     """The YAML form (``configs/scenarios/*.yaml``) of a scenario."""
     data: dict[str, Any] = to_dict(scenario)
     return data
+
+
+OVERHEAD_MIN_BOTTOM_M = 0.5   # an object reaching the ceiling with its underside this high hangs from it (a soffit)
+CEILING_TOUCH_M = 0.05        # ... "reaching": its top within this of the ceiling (a desk's top is not overhead)
+
+
+def lowest_overhead_m(scenario: ScenarioConfig) -> float:
+    """The lowest overhead above the floor: the ceiling, or the underside of anything hanging from it."""
+    h = scenario.room.height_m
+    hanging = [fp.bottom_up_m for fp in footprints(scenario)
+               if fp.bottom_up_m >= OVERHEAD_MIN_BOTTOM_M and fp.top_up_m >= h - CEILING_TOUCH_M]
+    return float(min([h, *hanging]))

@@ -63,10 +63,10 @@ class JournalTurns:
         self.ticks.run_device(t)
 
     def receive(self, link: VehicleLink, tel: Telemetry, t: float) -> Telemetry:
-        assert self.event is not None and self.station._counted is not None
+        assert self.event is not None
         datagrams = [payload for kind, payload in self.event.outputs if kind == Kind.IN_VEHICLE]
         self.conn.incoming.extend(datagrams)
-        allow = self.station._counted.handed + len(datagrams)
+        allow = self.station.datagrams_handed + len(datagrams)
         return self.station.receive_step(link, tel, t, allow, f"journal event {self.event.index}", 0.0)
 
     def link_ticks_due(self, t: float, t_first: float) -> int:

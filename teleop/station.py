@@ -354,6 +354,12 @@ class Station:
         return None if fb is None else fb.time_usec * 1e-6
 
     @property
+    def datagrams_handed(self) -> int:
+        """Vehicle datagrams the counted link (lock-step or replay) has handed to the MAVLink parser so far."""
+        assert self._counted is not None, "the station runs without a counted link (not lock-stepped or replayed)"
+        return self._counted.handed
+
+    @property
     def telemetry(self) -> Telemetry:
         with self._lock:
             return self._telemetry

@@ -12,7 +12,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import click
 
@@ -32,9 +32,6 @@ from harness.demo.report import (
 from harness.ports import PORT_BLOCK_SIZE, PORT_NAMES, Ports
 from quadlink import CONFIG_DIR
 from quadlink.errors import ConfigError
-
-if TYPE_CHECKING:
-    from sim_sitl.config import ScenarioConfig
 
 log = logging.getLogger("harness.demo")
 
@@ -113,10 +110,11 @@ def companion_config_for_room(out_dir: Path, scenario: str, room_height_error_m:
     ceiling (``reference.room_height_m``), as for an indoor flight (the camera never sees the ceiling; PX4's
     GF_MAX_VER_DIST and ArduPilot's FENCE_ALT_MAX are set the same way). The entry is the room's true height plus
     ``room_height_error_m``; ``None``: the operator entered nothing (only the altitude fence holds). The height
-    entered is the lowest overhead (:func:`lowest_overhead_m`), as the user's guide asks of the operator: the
-    camera never sees above the vehicle's level, so a soffit lower than the ceiling is kept from only by the entry
-    (campaign 24, flight 27: 0.106 m under a soffit 0.36 m below the ceiling entered)."""
+    entered is the lowest overhead (:func:`sim_sitl.scenario_gen.lowest_overhead_m`), as the user's guide asks of
+    the operator: the camera never sees above the vehicle's level, so a soffit lower than the ceiling is kept from
+    only by the entry (campaign 24, flight 27: 0.106 m under a soffit 0.36 m below the ceiling entered)."""
     from sim_sitl.config import load_scenario
+    from sim_sitl.scenario_gen import lowest_overhead_m
 
     if room_height_error_m is None:
         return write_companion_config(out_dir, reference={"room_height_m": None})
@@ -124,18 +122,6 @@ def companion_config_for_room(out_dir: Path, scenario: str, room_height_error_m:
     return write_companion_config(out_dir, reference={"room_height_m": round(entered_m, 2)})
 
 
-OVERHEAD_MIN_BOTTOM_M = 0.5   # an object reaching the ceiling with its underside this high hangs from it (a soffit)
-CEILING_TOUCH_M = 0.05        # ... "reaching": its top within this of the ceiling (a desk's top is not overhead)
-
-
-def lowest_overhead_m(scenario: ScenarioConfig) -> float:
-    """The lowest overhead above the floor: the ceiling, or the underside of anything hanging from it."""
-    from sim_sitl.scenario_gen import footprints
-
-    h = scenario.room.height_m
-    hanging = [fp.bottom_up_m for fp in footprints(scenario)
-               if fp.bottom_up_m >= OVERHEAD_MIN_BOTTOM_M and fp.top_up_m >= h - CEILING_TOUCH_M]
-    return float(min([h, *hanging]))
 
 
 LOCKSTEP_ODOM_LOSS_T_S = 1.0   # the bridge's odometry-loss timeout in lock-step flights (sim seconds)

@@ -67,8 +67,11 @@ class Running:
 
 
 class ProcessDied(RuntimeError):
-    def __init__(self, name: str, returncode: int, tail: str) -> None:
-        super().__init__(f"{name} exited with status {returncode}: {tail}")
+    """A part of the flight ended it: ``name`` exited with ``returncode`` (``tail``: the end of its log), or
+    ``message`` says what else did."""
+
+    def __init__(self, name: str, returncode: int, tail: str, message: str | None = None) -> None:
+        super().__init__(message or f"{name} exited with status {returncode}: {tail}")
         self.name = name
         self.returncode = returncode
 
@@ -77,9 +80,7 @@ class JudgementVoid(ProcessDied):
     """The flight ran, but what judges it cannot be trusted (another vehicle's ground truth in its track)."""
 
     def __init__(self, why: str) -> None:
-        RuntimeError.__init__(self, why)
-        self.name = "judge"
-        self.returncode = 0
+        super().__init__("judge", 0, "", message=why)
 
 
 def _die_with_parent() -> Callable[[], None] | None:

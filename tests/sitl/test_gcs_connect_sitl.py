@@ -16,8 +16,8 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+import flight_harness
 import pytest
-from flight_harness import Vehicle as HarnessVehicle
 
 from harness.demo.parts import BridgePart, CompanionPart, SitlPart
 from quadlink.mavlink import mavlink
@@ -138,13 +138,13 @@ def qgc_connect_sequence(c: Client) -> list[tuple[str, bool]]:
     return results
 
 
-class Vehicle:
+class BridgeUnderTest:
     """SITL (lock-step at real-time pace, no camera) + bridge, its first endpoint a ground station's (``gcs_port``)
     and its second the companion's, and the companion's ground-station port (``vehicle_port``): the flight harness's
     :class:`flight_harness.Vehicle`."""
 
     def __init__(self, tmp: Path) -> None:
-        self.parts = HarnessVehicle(tmp, SitlPart(scenario=None, camera=False, truth=False, speed=1.0,
+        self.parts = flight_harness.Vehicle(tmp, SitlPart(scenario=None, camera=False, truth=False, speed=1.0,
                                                     duration_s=None),
                                     BridgePart(outputs=("gcs_bridge", "autopilot")), CompanionPart())
         self.gcs_port, self.vehicle_port = self.parts.ports.gcs_bridge, self.parts.ports.vehicle
@@ -155,13 +155,13 @@ class Vehicle:
 
 @pytest.fixture(scope="module")
 def vehicle(tmp_path_factory: pytest.TempPathFactory) -> Any:
-    v = Vehicle(tmp_path_factory.mktemp("gcs_connect"))
+    v = BridgeUnderTest(tmp_path_factory.mktemp("gcs_connect"))
     yield v
     v.close()
 
 
 @pytest.mark.parametrize("path", ["bridge", "companion"])
-def test_qgroundcontrol_connect_sequence_is_answered_in_full(vehicle: Vehicle, path: str) -> None:
+def test_qgroundcontrol_connect_sequence_is_answered_in_full(vehicle: BridgeUnderTest, path: str) -> None:
     url = f"udpin:127.0.0.1:{vehicle.gcs_port}" if path == "bridge" else f"udpout:127.0.0.1:{vehicle.vehicle_port}"
     client = Client(url)
     try:

@@ -284,9 +284,9 @@ def test_the_entry_is_the_lowest_overhead_a_soffit_under_the_ceiling(tmp_path: P
     import yaml
 
     from harness.campaign.draws import scenario_to_dict
-    from harness.demo.cli import companion_config_for_room, lowest_overhead_m
+    from harness.demo.cli import companion_config_for_room
     from sim_sitl.config import load_scenario
-    from sim_sitl.scenario_gen import generate_procedural
+    from sim_sitl.scenario_gen import generate_procedural, lowest_overhead_m
 
     soffits = []
     for seed in range(60):
