@@ -35,6 +35,8 @@ from sim_sitl.scene import MATERIAL_CODE, Scene, SceneBody, TextureKey
 
 log = logging.getLogger(__name__)
 
+EDGE_ON_PX = 0.25    # a face whose plane passes nearer the camera than this many pixels' angle (at its nearest corner)
+                     # is seen edge-on and not drawn
 CYLINDER_SIDES = 32  # inscribed polygon: surface within r (1 - cos(pi/32)) = 0.5 % of r of the cylinder
 LIGHT_TOWARD_NED = (0.3, -0.2, -1.0)  # direction to the light: pybullet's lightDirection (0.3, 0.2, 1) z-up
 AMBIENT = 0.6  # pybullet tiny renderer's default light coefficients (ambient, diffuse)
@@ -360,7 +362,16 @@ class RasterRenderer:
         outside = ((z < near_m).all(1) | (z > far_m).all(1) | (Xc[..., 0] > x_lim * z).all(1)
                    | (Xc[..., 0] < -x_lim * z).all(1) | (Xc[..., 1] > y_lim * z).all(1)
                    | (Xc[..., 1] < -y_lim * z).all(1))
-        visible = front & ~outside & ~self._face_glass
+        # a face whose plane passes (almost) through the camera is seen edge-on: it covers no pixel, but its
+        # projected corners are thrown far apart and crossed, cv2 fills a band of the image with it, and the depth of
+        # its plane at those pixels comes out near 0 (a column's side from 1.9 mm off its plane and 2.8 m away: a
+        # 25-row band at 0.03-0.5 m, whose structured-light shadow hid the floor, which read as an object 0.7 m ahead
+        # of the vehicle and stopped a demo's approach). Not drawn: its whole projection lies within EDGE_ON_PX of
+        # the line its plane projects to.
+        gap_m = -(self._plane_d - self._normal @ p)   # the camera's height in front of each face's plane
+        corner_m = np.sqrt(np.einsum("fnk,fnk->fn", Xc, Xc)).min(axis=1)   # to the face's nearest corner
+        edge_on = gap_m < corner_m * (EDGE_ON_PX / max(k.fx, k.fy))
+        visible = front & ~outside & ~self._face_glass & ~edge_on
         order = [np.flatnonzero(visible & (self._face_body == -1))]
         in_view = np.unique(self._face_body[visible & (self._face_body >= 0)])
         for j in self.draw_order(p, in_view):
@@ -384,6 +395,20 @@ class RasterRenderer:
         inv_z += c[2]
         np.maximum(inv_z, np.float32(1.0 / far_m), out=inv_z)  # an edge pixel's ray may meet its plane behind
         depth = np.float32(1.0) / inv_z
+        # a pixel on a face's edge whose ray misses the face meets its plane elsewhere: nearer or farther than any
+        # point of the face, wildly so on a face seen nearly edge-on. The face's depth (linear over it) lies between
+        # its corners' (the near-clipped ones at the near plane): a pixel it fills is kept within that
+        z_corner = Xc[drawn, :, 2]
+        lo = np.zeros(len(drawn) + 1, np.float32)
+        hi = np.full(len(drawn) + 1, np.inf, np.float32)
+        lo[1:] = np.maximum(z_corner.min(axis=1), near_m)
+        hi[1:] = np.maximum(z_corner.max(axis=1), lo[1:])
+        if ids.dtype == np.uint8:
+            lut_lo, lut_hi = np.zeros(256, np.float32), np.full(256, np.inf, np.float32)
+            lut_lo[:len(lo)], lut_hi[:len(hi)] = lo, hi
+            np.clip(depth, cv2.LUT(ids, lut_lo).ravel(), cv2.LUT(ids, lut_hi).ravel(), out=depth)
+        else:
+            np.clip(depth, lo[ids.ravel()], hi[ids.ravel()], out=depth)
         ax = c[3] * u
         ax += c[4] * v
         ax += c[5]
