@@ -1,9 +1,10 @@
 """``quadlink vo-eval PATH [PATH ...]``: run an RGB-D odometry on TUM-format sequences and print TUM's metrics.
 
 Each sequence's colour and depth frames are associated by nearest stamp (TUM's ``associate.py`` rule, at most
-20 ms apart; the colour stamp is the frame's), the odometry runs on every frame, and the 100 Hz ground truth
-(``groundtruth.txt``) is interpolated at the colour stamps (frames in a motion-capture gap longer than
-20 ms are left out of the metrics). Metrics (:mod:`perception.metrics`, checked against ``evo`` in the tests):
+20 ms apart, or the folder's ``associations.txt``; the colour stamp is the frame's), the odometry runs on every
+frame, and the ground truth (``groundtruth.txt``) is interpolated at the colour stamps (frames in a gap of the
+truth longer than twice its median sample interval, 20 ms for TUM's 100 Hz motion capture, are left out of the
+metrics). Metrics (:mod:`perception.metrics`, checked against ``evo`` in the tests):
 RPE over 1 s windows (translation m, rotation deg; RMSE over all pairs 1 s apart), ATE RMSE after Horn
 alignment (rigid, no scale), per-frame RPE (consecutive frames; RMSE), and the wall and CPU time per frame.
 Without ``groundtruth.txt`` only the trajectory and timing are produced.
@@ -27,7 +28,7 @@ from numpy.typing import NDArray
 from perception import metrics
 from perception.odometry import OdometryConfig, OdometryResult, RgbdOdometry
 from quadlink.camera import RgbdFrame
-from quadlink.datasets.tum import TumSequence, read_tum_list, read_tum_trajectory, write_tum_trajectory
+from quadlink.datasets.tum import TumSequence, read_tum_trajectory, write_tum_trajectory
 from quadlink.errors import QuadlinkError
 
 log = logging.getLogger(__name__)
@@ -101,14 +102,24 @@ def run_sequence(frames: list[RgbdFrame], method: str, name: str = "",
                        np.asarray(wall[1:] or wall) * 1e3, np.asarray(cpu[1:] or cpu) * 1e3, fallbacks)
 
 
-def ground_truth_at(folder: Path, stamps_s: NDArray[np.float64], max_gap_s: float = GT_MAX_GAP_S
+def truth_gap_s(stamps_gt_s: NDArray[np.float64]) -> float:
+    """The longest gap between two truth samples a frame's truth is interpolated across: twice the truth's own
+    median sample interval, at least :data:`GT_MAX_GAP_S` (TUM's 100 Hz motion capture: 20 ms, so a dropout
+    leaves its frames out; a clip that keeps only one row per frame, as ``tests/data/tum/fr1_xyz``, is sampled at
+    the frame rate)."""
+    steps = np.diff(np.sort(np.asarray(stamps_gt_s, dtype=float)))
+    return max(GT_MAX_GAP_S, 2.0 * float(np.median(steps))) if steps.size else GT_MAX_GAP_S
+
+
+def ground_truth_at(folder: Path, stamps_s: NDArray[np.float64], max_gap_s: float | None = None
                     ) -> tuple[NDArray[np.bool_], NDArray[np.float64]] | None:
-    """(mask of the stamps with ground truth, its poses there), or None without ``groundtruth.txt``."""
+    """(mask of the stamps with ground truth, its poses there), or None without ``groundtruth.txt``; the
+    interpolation's longest gap is ``max_gap_s``, by default :func:`truth_gap_s` of the file."""
     gt_file = folder / "groundtruth.txt"
     if not gt_file.is_file():
         return None
     gs, gp = read_tum_trajectory(gt_file)
-    return metrics.interpolate_poses(gs, gp, stamps_s, max_gap_s)
+    return metrics.interpolate_poses(gs, gp, stamps_s, truth_gap_s(gs) if max_gap_s is None else max_gap_s)
 
 
 def evaluate(run: SequenceRun, ok: NDArray[np.bool_], gt: NDArray[np.float64]) -> SequenceMetrics:
@@ -129,10 +140,9 @@ def load_frames(path: Path, overrides: dict[str, float | None] | None = None, ma
     p = source.params
     log.info("sequence %s: %d frames, fx %.1f fy %.1f cx %.1f cy %.1f, depth scale %.0f/m",
              path, len(source), p.fx, p.fy, p.cx, p.cy, p.depth_scale)
-    depth_stamp = {name: stamp for stamp, name in read_tum_list(path / "depth.txt")}
     frames = list(source.frames())
     for f in frames:
-        f.meta["depth_offset_s"] = depth_stamp[f.meta["depth"]] - f.stamp_s
+        f.meta["depth_offset_s"] = f.meta["depth_stamp_s"] - f.stamp_s
     return frames
 
 

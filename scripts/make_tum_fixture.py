@@ -18,6 +18,13 @@ associated pair ``start`` of the source folder, and writes, in TUM's layout:
 The clips are chosen for what the tests need: ``fr1_rpy`` holds the fastest hand-held rotation of the shared
 ``tum_fr1_rpy_mid`` (up to 7 degrees between frames, with dropped frames), ``fr3_teddy`` a slower translation with
 motion-capture truth at every frame. PNG frames weigh 0.55-0.63 MB each, so each clip is kept to ten frames.
+
+``fr1_xyz`` is the shared ``tum_fr1_xyz_head`` (all ten frames) with its stamps put back (:func:`retime_fr1_xyz`):
+that folder carries approximate stamps (the first colour stamp + i/30 s) and one motion-capture row per frame,
+each written at its frame's approximate stamp. The benchmark's own stamps are public facts of
+``rgbd_dataset_freiburg1_xyz``: its first ten colour and depth stamps, and the stamps of the ten
+motion-capture rows (the last row at or before each colour stamp, ten rows of the benchmark's ``groundtruth.txt``
+whose values the shared file holds). The frame pairs are the shared folder's: colour image k with depth image k.
 """
 
 from __future__ import annotations
@@ -52,6 +59,15 @@ CLIPS = (
          "a slow hand-held pass (about 15 mm and 1 degree between frames) around a teddy bear, with motion-capture "
          "truth at every frame (the shared tum_fr3_teddy_head's first five frames have none)"),
 )
+
+# rgbd_dataset_freiburg1_xyz (TUM RGB-D benchmark): its first ten colour stamps, first ten depth stamps, and the
+# stamps of the ten motion-capture rows the shared tum_fr1_xyz_head holds (in its frame order)
+FR1_XYZ_RGB_S = (1305031102.175304, 1305031102.211214, 1305031102.243211, 1305031102.275326, 1305031102.311267,
+                 1305031102.343233, 1305031102.375329, 1305031102.411258, 1305031102.443271, 1305031102.475318)
+FR1_XYZ_DEPTH_S = (1305031102.160407, 1305031102.194330, 1305031102.226738, 1305031102.262886, 1305031102.295279,
+                   1305031102.329195, 1305031102.363013, 1305031102.394772, 1305031102.427815, 1305031102.462395)
+FR1_XYZ_TRUTH_S = (1305031102.1658, 1305031102.2058, 1305031102.2359, 1305031102.2658, 1305031102.3058,
+                   1305031102.3358, 1305031102.3659, 1305031102.4058, 1305031102.4359, 1305031102.4658)
 
 GT_MARGIN_S = 0.1
 HEADER = "# {what} of {sequence} (TUM RGB-D benchmark, CC BY 4.0), cut by scripts/make_tum_fixture.py\n"
@@ -110,6 +126,73 @@ recommended intrinsics for the registered depth and the depth scale.
     return size
 
 
+def retime_fr1_xyz(source_root: Path, out_root: Path) -> int:
+    """``fr1_xyz``: the shared ``tum_fr1_xyz_head`` with the benchmark's stamps; returns the bytes of images."""
+    src = source_root / "tum_fr1_xyz_head"
+    out = out_root / "fr1_xyz"
+    rgb = read_tum_list(src / "rgb.txt")
+    depth = read_tum_list(src / "depth.txt")
+    truth = read_tum_list(src / "groundtruth.txt")
+    n = len(FR1_XYZ_RGB_S)
+    if not len(rgb) == len(depth) == len(truth) == n:
+        raise SystemExit(f"{src}: expected {n} colour, depth and truth rows, got {len(rgb)}, {len(depth)}, "
+                         f"{len(truth)}")
+    if out.exists():
+        shutil.rmtree(out)
+    (out / "rgb").mkdir(parents=True)
+    (out / "depth").mkdir()
+    size = 0
+    rgb_lines, depth_lines, pair_lines, truth_lines = [], [], [], []
+    for k in range(n):
+        names = []
+        for (_, old), stamp, folder, lines in ((rgb[k], FR1_XYZ_RGB_S[k], "rgb", rgb_lines),
+                                               (depth[k], FR1_XYZ_DEPTH_S[k], "depth", depth_lines)):
+            name = f"{folder}/{stamp:.6f}.png"
+            shutil.copyfile(src / old, out / name)
+            size += (out / name).stat().st_size
+            lines.append(f"{stamp:.6f} {name}")
+            names.append(name)
+        pair_lines.append(f"{FR1_XYZ_RGB_S[k]:.6f} {names[0]} {FR1_XYZ_DEPTH_S[k]:.6f} {names[1]}")
+        truth_lines.append(f"{FR1_XYZ_TRUTH_S[k]:.4f} {truth[k][1]}")
+    sequence = "rgbd_dataset_freiburg1_xyz"
+    for file, what, columns, lines in (("rgb.txt", "colour images", "timestamp filename", rgb_lines),
+                                       ("depth.txt", "depth maps", "timestamp filename", depth_lines),
+                                       ("associations.txt", "colour/depth pairs",
+                                        "rgb_timestamp rgb_filename depth_timestamp depth_filename", pair_lines),
+                                       ("groundtruth.txt", "ground truth trajectory", "timestamp tx ty tz qx qy qz qw",
+                                        truth_lines)):
+        (out / file).write_text(HEADER.format(what=what, sequence=sequence) + f"# {columns}\n"
+                                + "\n".join(lines) + "\n", encoding="utf-8")
+    shutil.copyfile(src / "camera.yaml", out / "camera.yaml")
+    first, last = FR1_XYZ_RGB_S[0], FR1_XYZ_RGB_S[-1]
+    (out / "README.md").write_text(f"""# fr1_xyz: {n} real RGB-D frames with motion-capture truth, at their own stamps
+
+The first {n} colour and depth frames ({first:.6f} to {last:.6f}, {last - first:.2f} s) of the TUM RGB-D
+benchmark sequence `{sequence}` (J. Sturm, N. Engelhard, F. Endres, W. Burgard, D. Cremers: "A Benchmark for
+the Evaluation of RGB-D SLAM Systems", IROS 2012; Computer Vision Group, TU Munich,
+https://cvg.cit.tum.de/data/datasets/rgbd-dataset), licensed under CC BY 4.0
+(https://creativecommons.org/licenses/by/4.0/): see LICENSE in the folder above.
+
+Why this clip: the shared `tum_fr1_xyz_head` (the same images) carries approximate stamps (the first colour
+stamp + i/30 s) and writes each of its ten motion-capture rows at its frame's approximate stamp. The real colour
+frames are 32-36 ms apart and the rows were taken on the 100 Hz grid (the last row at or before each colour
+stamp, 5-10 ms before it): the rows are 30 or 40 ms apart where the frames are 32 or 36 ms apart, an error of up to
+4 ms (1.5 mm at the clip's 0.37 m/s) in the truth of a frame-to-frame motion, the same for every method.
+
+How it was made: `scripts/make_tum_fixture.py` from the shared folder `tum_fr1_xyz_head` (whose images and rows
+come from the public repository pfontana96/dense-visual-odometry, `tests/test_data`; its
+`filtered_best10_gt.json` lists the ten rows with their stamps). The PNG files are the shared folder's images byte
+for byte, renamed to the benchmark's stamps (`rgb/`, `depth/`: 16-bit, 5000 = 1 m, 0 = missing);
+`rgb.txt` and `depth.txt` give the benchmark's first {n} colour and depth stamps; `associations.txt` pairs colour
+image k with depth image k, as the shared folder does (each depth image 12-17 ms before its colour image; TUM's
+nearest-stamp rule would pair two of them differently and drop a colour frame); `groundtruth.txt` holds the ten
+motion-capture rows with the benchmark's stamps for them; the truth at a colour stamp is interpolated between
+rows 30-40 ms apart (the last frame, after the last row, has none). `camera.yaml` holds TUM's recommended
+intrinsics for the registered depth and the depth scale.
+""", encoding="utf-8")
+    return size
+
+
 LICENSE = """The folders below this one hold short clips of the TUM RGB-D benchmark
 (https://cvg.cit.tum.de/data/datasets/rgbd-dataset), Computer Vision Group, Technical University of Munich:
 
@@ -134,6 +217,9 @@ def main() -> None:
         n = cut(clip, args.source, args.out)
         total += n
         print(f"{args.out / clip.name}: {clip.frames} frames, {n / 1e6:.1f} MB of images")
+    n = retime_fr1_xyz(args.source, args.out)
+    total += n
+    print(f"{args.out / 'fr1_xyz'}: {len(FR1_XYZ_RGB_S)} frames, {n / 1e6:.1f} MB of images")
     print(f"total {total / 1e6:.1f} MB")
 
 

@@ -4,7 +4,9 @@
   ``fx, fy, cx, cy, depth_scale``), colour PNG or JPEG, depth 16-bit PNG. Colour and depth are paired by
   :func:`associate`, the rule of TUM's ``associate.py``: every pair within ``max_dt_s`` (20 ms) is a
   candidate, candidates are taken greedily by increasing stamp difference and each stamp is used at most
-  once (nearest first, not merely the first match in time).
+  once (nearest first, not merely the first match in time). A folder whose pairs were fixed by its maker
+  carries them in ``associations.txt`` (``rgb_stamp rgb_file depth_stamp depth_file`` per line, the output of
+  ``associate.py rgb.txt depth.txt`` that ORB-SLAM's TUM examples read), which then wins.
 * :func:`read_tum_trajectory` / :func:`write_tum_trajectory` — ``timestamp tx ty tz qx qy qz qw`` files
   (the file's quaternion is [x, y, z, w]; quadlink's is [w, x, y, z], converted here only).
 
@@ -89,6 +91,21 @@ def associate(stamps_a: list[float], stamps_b: list[float], max_dt_s: float = MA
     return sorted(pairs)
 
 
+def read_associations(path: Path) -> list[tuple[float, str, float, str]]:
+    """``rgb_stamp rgb_file depth_stamp depth_file`` lines (comments skipped), in colour-stamp order."""
+    out = []
+    for stamp, rest in read_tum_list(path):
+        parts = rest.split()
+        try:
+            if len(parts) != 3:
+                raise ValueError
+            out.append((stamp, parts[0], float(parts[1]), parts[2]))
+        except ValueError as exc:
+            raise DatasetUnavailable(f"{path}: expected 'rgb_stamp rgb_file depth_stamp depth_file', got "
+                                     f"{stamp} {rest!r}") from exc
+    return sorted(out)
+
+
 def read_camera_params(folder: Path, overrides: dict[str, float | None] | None = None) -> TumCameraParams:
     """Intrinsics from ``camera.yaml`` if present, else TUM defaults; ``overrides`` (non-None) win."""
     values: dict[str, float] = dict(TUM_DEFAULT, depth_scale=TUM_DEPTH_SCALE)
@@ -130,12 +147,20 @@ class TumSequence:
         if not self.folder.is_dir():
             raise DatasetUnavailable(f"{self.folder}: not a directory")
         self.params = read_camera_params(self.folder, overrides)
-        rgb = read_tum_list(self.folder / "rgb.txt")
-        depth = read_tum_list(self.folder / "depth.txt")
-        pairs = associate([s for s, _ in rgb], [s for s, _ in depth])
-        if not pairs:
-            raise DatasetUnavailable(f"{self.folder}: no colour/depth pairs within {MAX_ASSOCIATION_DT_S * 1e3:.0f} ms")
-        self._items = [(rgb[i][0], rgb[i][1], depth[j][1]) for i, j in pairs]
+        # (colour stamp, colour file, depth stamp, depth file)
+        self._items: list[tuple[float, str, float, str]]
+        if (self.folder / "associations.txt").is_file():
+            self._items = read_associations(self.folder / "associations.txt")
+            if not self._items:
+                raise DatasetUnavailable(f"{self.folder / 'associations.txt'}: no pairs")
+        else:
+            rgb = read_tum_list(self.folder / "rgb.txt")
+            depth = read_tum_list(self.folder / "depth.txt")
+            pairs = associate([s for s, _ in rgb], [s for s, _ in depth])
+            if not pairs:
+                raise DatasetUnavailable(f"{self.folder}: no colour/depth pairs within "
+                                         f"{MAX_ASSOCIATION_DT_S * 1e3:.0f} ms")
+            self._items = [(rgb[i][0], rgb[i][1], depth[j][0], depth[j][1]) for i, j in pairs]
         if max_frames is not None:
             self._items = self._items[:max_frames]
         self.resize_to = resize_to
@@ -144,11 +169,11 @@ class TumSequence:
         return len(self._items)
 
     def stamps(self) -> list[float]:
-        return [s for s, _, _ in self._items]
+        return [s for s, _, _, _ in self._items]
 
     def frames(self) -> Iterator[RgbdFrame]:
         p = self.params
-        for seq, (stamp, rgb_name, depth_name) in enumerate(self._items):
+        for seq, (stamp, rgb_name, depth_stamp, depth_name) in enumerate(self._items):
             bgr = _read_image(self.folder / rgb_name, cv2.IMREAD_COLOR)
             raw = _read_image(self.folder / depth_name, cv2.IMREAD_UNCHANGED)
             if raw.ndim != 2:
@@ -162,7 +187,8 @@ class TumSequence:
                 rgb = cv2.resize(rgb, self.resize_to, interpolation=cv2.INTER_AREA)
                 depth_m = cv2.resize(depth_m, self.resize_to, interpolation=cv2.INTER_NEAREST)
                 k = k.scaled(factor)
-            yield RgbdFrame(seq, stamp, rgb, depth_m, k, meta={"rgb": rgb_name, "depth": depth_name})
+            yield RgbdFrame(seq, stamp, rgb, depth_m, k,
+                            meta={"rgb": rgb_name, "depth": depth_name, "depth_stamp_s": depth_stamp})
 
 
 def read_tum_trajectory(path: str | Path) -> tuple[NDArray[np.float64], NDArray[np.float64]]:

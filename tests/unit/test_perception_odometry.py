@@ -657,6 +657,47 @@ def test_tum_folder_source_camera_yaml_jpeg_and_overrides(tmp_path: Path) -> Non
         TumSequence(tmp_path / "missing")
 
 
+def test_tum_folder_pairs_from_associations_txt_win_over_the_nearest_stamp_rule(tmp_path: Path) -> None:
+    _write_sequence(tmp_path / "seq", jpeg=False, camera_yaml=None)
+    # the nearest-stamp rule pairs colour k with depth k; the maker's file pairs 0 with 1 and 1 with 0 (to tell them
+    # apart), and leaves frame 2 out
+    (tmp_path / "seq" / "associations.txt").write_text(
+        "# rgb_timestamp rgb_filename depth_timestamp depth_filename\n"
+        f"{1 / 30:.6f} rgb/001.png 0.002000 depth/000.png\n0.000000 rgb/000.png {1 / 30 + 0.002:.6f} depth/001.png\n")
+    frames = list(TumSequence(tmp_path / "seq").frames())
+    assert [f.meta["rgb"] for f in frames] == ["rgb/000.png", "rgb/001.png"]          # colour-stamp order
+    assert [f.meta["depth"] for f in frames] == ["depth/001.png", "depth/000.png"]
+    assert frames[0].meta["depth_stamp_s"] == pytest.approx(1 / 30 + 0.002, abs=1e-6)
+    (tmp_path / "seq" / "associations.txt").write_text("0.0 rgb/000.png depth/000.png\n")
+    with pytest.raises(DatasetUnavailable, match="depth_stamp"):
+        TumSequence(tmp_path / "seq")
+
+
+def test_truth_gap_is_twice_the_truths_own_interval_and_never_under_tum_s_20_ms() -> None:
+    assert cli.truth_gap_s(np.arange(0.0, 1.0, 0.01)) == pytest.approx(cli.GT_MAX_GAP_S)   # 100 Hz
+    dropout = np.r_[np.arange(0.0, 0.5, 0.01), np.arange(0.6, 1.0, 0.01)]
+    assert cli.truth_gap_s(dropout) == pytest.approx(cli.GT_MAX_GAP_S)   # a dropout stays out
+    assert cli.truth_gap_s(np.array([0.0, 0.04, 0.07, 0.10, 0.14])) == pytest.approx(0.07)     # one row per frame
+
+
+def test_the_retimed_fr1_xyz_clip_meets_benchmark_rows_it_does_not_hold() -> None:
+    """tests/data/tum/fr1_xyz holds ten motion-capture rows at the benchmark's stamps. Four other rows of the
+    benchmark's freiburg1_xyz ground truth (quoted from its groundtruth.txt) fall between them: interpolated at
+    their stamps, the clip's truth must meet them to the file's 0.1 mm rounding and the clip's curvature. With the
+    rows at the shared folder's approximate stamps (first colour stamp + i/30 s) it is 3 mm off."""
+    from conftest import tum_clip_path
+
+    other_rows = np.array([[1305031102.1758, 1.3405, 0.6266, 1.6575], [1305031102.2159, 1.3303, 0.6256, 1.6464],
+                           [1305031102.2758, 1.3160, 0.6254, 1.6302], [1305031102.4159, 1.2830, 0.6257, 1.5933]])
+    gs, gp = read_tum_trajectory(tum_clip_path("fr1_xyz") / "groundtruth.txt")
+    approx = gs[0] + 1.0 / 30.0 * np.arange(gs.size) + (1305031102.175304 - 1305031102.1658)
+    for stamps, within_mm in ((gs, (0.0, 0.5)), (approx, (2.0, 5.0))):
+        ok, T = metrics.interpolate_poses(stamps, gp, other_rows[:, 0], cli.truth_gap_s(stamps))
+        assert ok.all()
+        err_mm = np.linalg.norm(T[:, :3, 3] - other_rows[:, 1:], axis=1) * 1e3
+        assert within_mm[0] <= err_mm.max() <= within_mm[1], err_mm
+
+
 def test_vo_eval_cli_prints_metrics_and_writes_trajectory(tum_clip: Path, tmp_path: Path) -> None:
     out = tmp_path / "traj.txt"
     res = CliRunner().invoke(vo_eval, [str(tum_clip), "--out", str(out), "--max-frames", "5"])
