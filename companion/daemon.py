@@ -685,7 +685,7 @@ class Companion:
             self.out.to_gcs(odometry)
         self.camera.ack(frame.seq)
         if out is not None:
-            for m in st.telemetry(stamp, out, ob.min_distance_cm, ob.max_distance_cm):
+            for m in st.telemetry(stamp, out, ob.min_distance_cm, ob.max_distance_cm, self.ref_params):
                 self.out.to_gcs(m)
             self._publish_image(frame, out, step.ref)
         self.recording.write(frame)

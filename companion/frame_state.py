@@ -12,6 +12,8 @@ entry into TELEOP).
 
 from __future__ import annotations
 
+import dataclasses
+import math
 from collections.abc import Iterator
 from typing import Any
 
@@ -23,10 +25,12 @@ from companion.arbiter import Pose
 from companion.frame_step import NO_SCAN, FrameStep, fallback_step, feedback_message, operator_image_meta
 from companion.height import HeightEstimator, HeightParams
 from companion.modes import Mode
+from companion.obstacle_points import sector_distances_m
 from companion.operator_input import OperatorInput
 from companion.pan_scan import PanScanParams, PanScanState, pan_scan
 from companion.reference import ReferenceOutput
 from companion.reference_params import ReferenceParams
+from perception.obstacle_map import ObstacleSectors
 from perception.pipeline import PerceptionOutput
 from quadlink.camera import RgbdFrame
 from quadlink.operator_image import OperatorImageMeta
@@ -110,11 +114,23 @@ class FrameState:
                                      float(out.odometry_fitness), self.reset_counter)
 
     def telemetry(self, stamp_s: float, out: PerceptionOutput, min_distance_cm: int,
-                  max_distance_cm: int) -> Iterator[Any]:
-        """ATTITUDE, LOCAL_POSITION_NED and OBSTACLE_DISTANCE at ``stamp_s`` for the ground stations, one by one."""
+                  max_distance_cm: int, params: ReferenceParams) -> Iterator[Any]:
+        """ATTITUDE, LOCAL_POSITION_NED and OBSTACLE_DISTANCE at ``stamp_s`` for the ground stations, one by one.
+        OBSTACLE_DISTANCE holds the avoidance's points of the last frame step (the floor out, within the height
+        band with ``params.horizontal_only``), sector by sector
+        (:func:`companion.obstacle_points.sector_distances_m`)."""
         yield msgs.attitude_message(stamp_s, out.roll_rad, out.pitch_rad, out.yaw_rad, out.omega_q_rad_s)
         yield msgs.local_position_message(stamp_s, self.position_m(out), out.yaw_rad, out.v_h_m_s)
-        yield msgs.obstacle_distance_message(stamp_s, out.sectors, min_distance_cm, max_distance_cm)
+        yield msgs.obstacle_distance_message(stamp_s, self.obstacle_sectors(out, params), min_distance_cm,
+                                             max_distance_cm)
+
+    def obstacle_sectors(self, out: PerceptionOutput, params: ReferenceParams) -> ObstacleSectors:
+        """Perception's sector summary with its distances replaced by the avoidance's (its unknown sectors kept)."""
+        s = out.sectors
+        band_m = params.vertical_band_m if params.horizontal_only else math.inf
+        distances = sector_distances_m(self.avoidance_points_h_m, s.distances_m, s.increment_deg,
+                                       s.angle_offset_deg, s.min_distance_m, band_m)
+        return dataclasses.replace(s, distances_m=distances)
 
     def feedback(self, stamp_s: float, scan: PanScanState, mode: Mode, gcs_ok: bool, obstacles_fresh: bool) -> Any:
         """TELEOP_FEEDBACK at ``stamp_s`` (:func:`companion.frame_step.feedback_message`)."""

@@ -11,7 +11,8 @@ Conventions stated once here:
   (consumers must not use the estimate), else 1..100.
 * OBSTACLE_DISTANCE: 72 sectors of 5 deg in MAV_FRAME_BODY_FRD (yaw-aligned, i.e. perception's H), sector
   i centred on ``angle_offset + 5 i`` deg clockwise from the heading (angle_offset 0 from perception), cm;
-  unknown = UINT16_MAX, free = max_distance + 1.
+  unknown = UINT16_MAX, free = max_distance + 1; the distances are the avoidance's points
+  (:meth:`companion.frame_state.FrameState.obstacle_sectors`).
 * Times: autopilot time (SITL: simulated time), ms or us as each message asks.
 """
 

@@ -232,6 +232,31 @@ def avoidance_points(points_h_m: ArrayLike | None, params: ReferenceParams,
     return p[keep] if keep is not None else p.copy()
 
 
+def sector_distances_m(points_h_m: ArrayLike | None, map_distances_m: ArrayLike, increment_deg: float,
+                       angle_offset_deg: float, min_distance_m: float, band_m: float) -> NDArray[np.float64]:
+    """OBSTACLE_DISTANCE's sectors (in H, sector i centred at ``angle_offset_deg + i * increment_deg``) as the
+    avoidance sees the map: per sector the horizontal distance of the nearest of its points within ``band_m``
+    of the vehicle's height (``points_h_m``: :func:`avoidance_points`, the floor already left out), at least
+    ``min_distance_m``; a sector without one reads free (inf) where the map observed it lately and unknown (NaN)
+    where it did not (``map_distances_m``: the map's own summary, NaN = unknown). So a ground station is shown
+    what the vehicle keeps away from, not a floor particle the avoidance never acts on."""
+    known = np.asarray(map_distances_m, dtype=float).ravel()
+    out = np.where(np.isnan(known), np.nan, np.inf)
+    n = out.size
+    if points_h_m is None or n == 0:
+        return out
+    p = finite_rows(points_h_m)
+    p = p[np.abs(p[:, 2]) <= band_m]
+    if p.shape[0] == 0:
+        return out
+    inc = math.radians(increment_deg)
+    az = np.arctan2(p[:, 1], p[:, 0]) - math.radians(angle_offset_deg)
+    index = np.floor(az / inc + 0.5).astype(np.intp) % n
+    best = np.full(n, np.inf)
+    np.minimum.at(best, index, np.hypot(p[:, 0], p[:, 1]))
+    return np.where(best < np.inf, np.maximum(best, min_distance_m), out)
+
+
 def nearest_obstacle(points_h_m: ArrayLike | None, params: ReferenceParams) -> tuple[NDArray[np.float64], float] | None:
     """The nearest map point as the avoidance sees it: with ``horizontal_only``, a point within the height band
     counts by its horizontal distance (and is reported projected to z = 0) — the band stands for obstacles
