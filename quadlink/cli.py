@@ -34,6 +34,7 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "trajectory": ("harness.trajectory_cli", "Stream a minimum-snap trajectory (YAML) as MAVLink setpoints."),
     "paper003": ("harness.demo.paper003_cli", "Fly paper 003's hover or oval through the whole stack; its tables."),
     "falsify": ("harness.falsify.cli", "Search the flight space for the lowest clearance (Optuna on Ray); resumable."),
+    "rerender": ("harness.rerender_cli", "Re-render a SITL flight's camera along its true path; flag phantom points."),
 }
 
 

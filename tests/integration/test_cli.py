@@ -14,7 +14,7 @@ def test_help_lists_all_parts() -> None:
     result = CliRunner().invoke(main, ["--help"])
     assert result.exit_code == 0
     names = {"sitl", "bridge", "companion", "teleop", "demo", "campaign", "vo-eval", "identify-yaw", "keygen", "netem",
-             "trajectory", "paper003", "falsify", "replay-companion", "replay-bridge", "replay-teleop"}
+             "trajectory", "paper003", "falsify", "replay-companion", "replay-bridge", "replay-teleop", "rerender"}
     for name in names:
         assert name in result.output
     assert set(SUBCOMMANDS) == names
