@@ -71,9 +71,9 @@ PARAM_SPECS: tuple[ParamSpec, ...] = (
     ParamSpec("BRG_ODOM_VZGATE", 0.5, 0.0, 5.0, "m/s",
               "odometry whose vertical velocity is further than this from the barometer-fused estimate's is refused "
               "(in a take-off, and above 0.3 m on the baro; 0: off)"),
-    ParamSpec("BRG_ODOM_VZBAND", 0.0, 0.0, 5.0, "m/s",
+    ParamSpec("BRG_ODOM_VZBAND", 0.1, 0.0, 5.0, "m/s",
               "the vertical velocity flown is held within this of the barometer-fused estimate's (where the vertical "
-              "gate has a reference; 0, the default: the odometry's as it is)"),
+              "gate has a reference; 0: off, the odometry's as it is)"),
     ParamSpec("BRG_ODOM_VGATE_K", 0.3, 0.05, 1.0, "fraction",
               "the gate's reference takes this share of an accepted odometry velocity, the rest from the IMU "
               "(1: the last accepted velocity)"),
