@@ -18,6 +18,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from companion.reference_params import ReferenceParams
+from perception.obstacle_map import sector_index
 
 
 def finite_rows(points_h_m: ArrayLike) -> NDArray[np.float64]:
@@ -249,9 +250,7 @@ def sector_distances_m(points_h_m: ArrayLike | None, map_distances_m: ArrayLike,
     p = p[np.abs(p[:, 2]) <= band_m]
     if p.shape[0] == 0:
         return out
-    inc = math.radians(increment_deg)
-    az = np.arctan2(p[:, 1], p[:, 0]) - math.radians(angle_offset_deg)
-    index = np.floor(az / inc + 0.5).astype(np.intp) % n
+    index = sector_index(np.arctan2(p[:, 1], p[:, 0]), n, math.radians(angle_offset_deg))
     best = np.full(n, np.inf)
     np.minimum.at(best, index, np.hypot(p[:, 0], p[:, 1]))
     return np.where(best < np.inf, np.maximum(best, min_distance_m), out)

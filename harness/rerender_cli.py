@@ -30,14 +30,16 @@ import click
 import numpy as np
 from numpy.typing import NDArray
 
+from companion.reference_params import ReferenceParams
 from perception.hidden_floor import HiddenFloorConfig, hidden_floor_points_h
 from perception.obstacles import ObstacleConfig, extract_obstacles
 from quadlink.errors import ConfigError
 from quadlink.frames import R_from_quat_wxyz, euler_from_R
+from quadlink.mavlink.tlog import read_tlog
 
 log = logging.getLogger(__name__)
 
-BAND_M = 0.45   # the avoidance's height band (companion.reference_params.ReferenceParams.vertical_band_m)
+BAND_M = ReferenceParams().vertical_band_m   # the avoidance's height band
 
 
 @dataclass(frozen=True)
@@ -71,22 +73,16 @@ class FrameFinding:
 
 def read_truth(path: Path) -> list[TruePose]:
     """The truth log's poses, in time order (LOCAL_POSITION_NED and ATTITUDE_QUATERNION paired by their stamp)."""
-    from pymavlink import mavutil
-
     if not path.is_file():
         raise ConfigError(f"{path}: no truth log (a SITL flight's folder holds truth.tlog)")
-    log_ = mavutil.mavlink_connection(str(path), dialect="common")
     positions: dict[int, tuple[NDArray[np.float64], NDArray[np.float64]]] = {}
     attitudes: dict[int, tuple[NDArray[np.float64], NDArray[np.float64]]] = {}
-    try:
-        while (m := log_.recv_match(type=["LOCAL_POSITION_NED", "ATTITUDE_QUATERNION"])) is not None:
-            if m.get_type() == "LOCAL_POSITION_NED":
-                positions[m.time_boot_ms] = (np.array([m.x, m.y, m.z]), np.array([m.vx, m.vy, m.vz]))
-            else:
-                attitudes[m.time_boot_ms] = (np.array([m.q1, m.q2, m.q3, m.q4]),
-                                             np.array([m.rollspeed, m.pitchspeed, m.yawspeed]))
-    finally:
-        log_.close()
+    for _, m in read_tlog(path):
+        if m.get_type() == "LOCAL_POSITION_NED":
+            positions[m.time_boot_ms] = (np.array([m.x, m.y, m.z]), np.array([m.vx, m.vy, m.vz]))
+        elif m.get_type() == "ATTITUDE_QUATERNION":
+            attitudes[m.time_boot_ms] = (np.array([m.q1, m.q2, m.q3, m.q4]),
+                                         np.array([m.rollspeed, m.pitchspeed, m.yawspeed]))
     poses = []
     for ms in sorted(set(positions) & set(attitudes)):
         (p, v), (q, w) = positions[ms], attitudes[ms]

@@ -88,6 +88,13 @@ class ObstacleSectors:
     frame: str = "H"
 
 
+def sector_index(az_rad: NDArray[np.floating[Any]], sectors: int, angle_offset_rad: float = 0.0) -> NDArray[np.intp]:
+    """The sector of each azimuth (H) when sector i of ``sectors`` is centred at ``angle_offset_rad + i * 2 pi /
+    sectors``, as OBSTACLE_DISTANCE numbers them."""
+    inc = 2 * math.pi / sectors
+    return (np.floor((az_rad - angle_offset_rad) / inc + 0.5).astype(np.intp)) % sectors
+
+
 _NAN = np.array([np.nan])   # appended to the sector ranges: what sector -1 (out of view) reads
 
 
@@ -282,9 +289,7 @@ class ObstacleMap:
         self._observed_s[np.arange(first, last + 1) % self.config.sectors] = stamp_s
 
     def _sector_index(self, az_rad: NDArray[np.floating[Any]]) -> NDArray[np.intp]:
-        n = self.config.sectors
-        inc = 2 * math.pi / n
-        return (np.floor((az_rad + inc / 2) / inc).astype(np.intp)) % n
+        return sector_index(az_rad, self.config.sectors)
 
     def sectors(self, stamp_s: float, floor_drop_m: float | None = None) -> ObstacleSectors:
         """The OBSTACLE_DISTANCE-style summary at ``stamp_s``: per sector the nearest particle within the height
