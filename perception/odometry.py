@@ -157,7 +157,8 @@ class RgbdOdometry:
         """Add a frame; ``R_ckm1_ck_prior`` is the camera rotation since the last frame from the gyro;
         ``depth_offset_s`` = depth stamp - colour stamp (``stamp_s``) for sensors whose depth and colour are not
         taken at once (Kinect v1: up to 20 ms): the depth is turned to the colour instant by the rotation rate
-        (the gyro's, else the last motion's), see :func:`rotate_depth`.
+        (the gyro's, else the last motion's), see :func:`rotate_depth`, and the depth term measures the
+        translation between the depth instants (``register_depth_translation``, see :func:`align_pair`).
 
         If the alignment against the keyframe fails, the previous frame is tried as the reference (when it is
         not the keyframe). A frame whose alignment fails or is refused (fast rotation, blur, little depth) reports
@@ -177,6 +178,9 @@ class RgbdOdometry:
         turn = register and rate is not None and (self._kf is None or self._kf.depth_at_colour_instant)
         cur = prepare_frame(rgb, depth_m, K, cfg, _turn(rate, depth_offset_s) if turn and rate is not None else None)
         cur.depth_at_colour_instant = turn or not register
+        cur.stamp_s = stamp_s
+        if register and cfg.register_depth_translation:
+            cur.depth_offset_s = depth_offset_s
         if self._kf is None:
             self._set_keyframe(cur)
             self._prev = cur
@@ -246,6 +250,8 @@ class RgbdOdometry:
             if rate is not None:
                 cur = prepare_frame(rgb, depth_m, K, cfg, _turn(rate, depth_offset_s))
                 cur.depth_at_colour_instant = True
+                cur.stamp_s = stamp_s
+                cur.depth_offset_s = depth_offset_s if cfg.register_depth_translation else 0.0
                 self._prev = cur
                 self._set_keyframe(cur)
         return OdometryResult(stamp_s, self._T_c0_ck.copy(), T_ckm1_ck, pair.ok, pair.fitness, bridged)

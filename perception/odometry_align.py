@@ -74,6 +74,21 @@ def se3_exp(xi: NDArray[np.float64]) -> Mat4:
     return np.array([[*R[0], t[0]], [*R[1], t[1]], [*R[2], t[2]], [0.0, 0.0, 0.0, 1.0]])
 
 
+_MAX_DEPTH_SCALE = 3.0   # Kinect v1: offsets within +-20 ms of frames 33 ms apart give 0..2
+
+
+def _depth_translation_scale(ref: PreparedFrame, cur: PreparedFrame) -> float:
+    """The depth images' translation over the colour images' between two frames whose depth images were taken
+    ``depth_offset_s`` from their colour images: at constant velocity the camera moves ``v (dt + d_cur - d_ref)``
+    between the depth instants and ``v dt`` between the colour ones (the rotation is registered per frame by
+    rotate_depth); 1 when synchronised or the interval is unknown."""
+    dt = cur.stamp_s - ref.stamp_s
+    d = cur.depth_offset_s - ref.depth_offset_s
+    if d == 0.0 or dt <= 1e-3:
+        return 1.0
+    return float(np.clip(1.0 + d / dt, 0.0, _MAX_DEPTH_SCALE))
+
+
 def align_pair(ref: PreparedFrame, cur: PreparedFrame, config: OdometryConfig,
                R_ckm1_ck_prior: NDArray[np.float64] | None = None, T_init: Mat4 | None = None,
                T_ref_ckm1: Mat4 | None = None, T_motion_prior: Mat4 | None = None) -> PairResult:
@@ -83,6 +98,11 @@ def align_pair(ref: PreparedFrame, cur: PreparedFrame, config: OdometryConfig,
 
     ``T_ref_ckm1`` (the previous frame in a keyframe reference) makes the per-frame sanity bounds apply to
     the motion since the previous frame, ``T_ck_ref · T_ref_ckm1``, instead of the motion from ``ref``.
+
+    Frames whose depth images were not taken at their colour instants (``depth_offset_s`` on the frames; their
+    rotation is registered per frame by :func:`perception.odometry_frame.rotate_depth`) have the depth term compare
+    the two depth instants' geometry: at constant velocity between the frames its translation is
+    ``(dt + d_cur - d_ref) / dt`` times the colour images' (:func:`_depth_translation_scale`).
 
     ``T_motion_prior`` (a prediction of the result ``T_ck_ref``, the constant-velocity one) adds DVO's motion
     prior on the translation: ``|t(T T_prior^-1)|^2 / motion_prior_sigma_m^2`` (Kerl, Sturm, Cremers 2013, the
@@ -95,6 +115,7 @@ def align_pair(ref: PreparedFrame, cur: PreparedFrame, config: OdometryConfig,
     """
     cfg = config
     T = np.eye(4) if T_init is None else T_init.copy()
+    depth_scale = _depth_translation_scale(ref, cur)
     R_prior = None
     if R_ckm1_ck_prior is not None:
         # the nearest rotation (SVD): a prior composed of rounded or calibrated matrices is off SO(3) by ~1e-6
@@ -136,6 +157,11 @@ def align_pair(ref: PreparedFrame, cur: PreparedFrame, config: OdometryConfig,
         eps_level = cfg.convergence_eps
         px_per_rad = 0.0 if li == 0 else math.sqrt(K.fx * K.fy)
         J = rp.J
+        if depth_scale != 1.0:
+            # the depth term's translation is depth_scale times the colour images': its Jacobian's translation
+            # columns scale with it (a right perturbation p -> p - w x p - v moves the depth warp by p - w x p - s v)
+            J = J.copy()
+            J[:3, N:] *= np.float32(depth_scale)
         Jw = np.empty_like(J)
         # both residual kinds in one vector: photometric [0, N), depth [N, 2N)
         nj = 8 if cfg.affine_brightness else 6
@@ -167,7 +193,18 @@ def align_pair(ref: PreparedFrame, cur: PreparedFrame, config: OdometryConfig,
                 evaluated = False
                 break
             evaluated = True
-            np.greater(s[:, 2], 0.999, out=ok_z)
+            if depth_scale != 1.0:
+                # the depth images' points, moved by the depth instants' translation: K (R p + s t)
+                Ph_d = Ph + (Kf @ ((depth_scale - 1.0) * T[:3, 3])).astype(np.float32)[:, None]
+                z = Ph_d[2]
+                izd = np.reciprocal(np.maximum(z, np.float32(1e-3)))
+                s_d = _sample(lc.tex, Ph_d[0] * izd, Ph_d[1] * izd)
+                np.greater(s_d[:, 2], 0.999, out=ok_z)
+                ok_z &= s_d[:, 3] > 0.999
+                depth_samples = s_d[:, 1]
+            else:
+                np.greater(s[:, 2], 0.999, out=ok_z)
+                depth_samples = s[:, 1]
             ok_z &= ok_i
             ok_z &= rp.z_ok
             n_z = int(np.count_nonzero(ok_z)) if use_depth else 0
@@ -180,7 +217,7 @@ def align_pair(ref: PreparedFrame, cur: PreparedFrame, config: OdometryConfig,
                 np.subtract(s[:, 0], pred, out=r[:N])
             else:
                 np.subtract(s[:, 0], rp.I, out=r[:N])
-            np.subtract(s[:, 1], z, out=r[N:])
+            np.subtract(depth_samples, z, out=r[N:])
             r[N:] *= rp.z_norm
             r *= use
             np.multiply(r, r, out=r2)

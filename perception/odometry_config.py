@@ -64,6 +64,8 @@ class OdometryConfig:
                                                      # the current one and the two estimates are fused by their
                                                      # information (DVO-SLAM's local window of keyframes)
     register_depth_in_time: bool = True              # turn an unsynchronised depth image to the colour instant
+    register_depth_translation: bool = True          # and have the depth term compare the depth instants (their
+                                                     # translation at constant velocity, see align_pair)
     max_bridged_frames: int = 5                      # frames in a row that the constant-velocity prior may bridge
                                                      # when alignments fail (0.17 s at 30 Hz: a multirotor's
                                                      # velocity changes little in that time); a safety bound,

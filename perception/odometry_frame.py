@@ -68,6 +68,9 @@ class PreparedFrame:
     # against the same reference starts from them (one fixed-point step an iteration instead of five at first)
     scales: dict[int, tuple[float, float]] = field(default_factory=dict)
     depth_at_colour_instant: bool = True   # False: an unsynchronised depth image that could not be turned yet
+    stamp_s: float = 0.0                   # the colour image's stamp
+    depth_offset_s: float = 0.0            # the depth image's stamp minus the colour's, when the depth term is to
+                                           # compare the depth instants (see align_pair); else 0
 
     def reference(self, level: int, max_points: int, gradient_fraction: float, affine: bool) -> _Reference:
         key = (level, max_points, gradient_fraction, affine)
