@@ -136,6 +136,7 @@ class RgbdOdometry:
         self.refined_keyframes = 0               # keyframes fused with a second alignment (keyframe_refinement)
         self.rejected_refinements = 0            # fusions refused by the step gate (see _refine)
         self.fallbacks = 0                       # frames not aligned, bridged by the motion prior
+        self.restarts = 0                        # frames aligned again from rest (restart_from_rest)
         self.lost = 0                            # frames not aligned and without a motion prior (pose held)
         self._bridged = 0                        # consecutive bridged frames (the constant velocity's age)
 
@@ -193,6 +194,15 @@ class RgbdOdometry:
         # the constant-velocity prediction is a prior only when it comes from aligned frames
         T_mp = T_start if T_pred is not None and self._bridged == 0 else None
         pair = self.align(self._kf, cur, R_kf_ck_prior, T_start, self._T_kf_ckm1, T_mp)
+        restarted = False
+        if cfg.restart_from_rest and T_pred is not None and pair.fitness < cfg.keyframe_min_fitness:
+            # a poor fit from the constant-velocity start may be a wrong basin that the start itself carries on
+            # (a periodic texture: one period a frame, 2 m/s for a 7 cm stripe at 30 Hz, fit after fit): aligned
+            # again from rest (the previous frame's pose, the gyro's rotation), a good fit there wins
+            alt = self.align(self._kf, cur, R_kf_ck_prior, T_ckm1_kf, self._T_kf_ckm1)
+            if alt.ok and alt.fitness >= cfg.keyframe_min_fitness:
+                pair, restarted = alt, True
+                self.restarts += 1
         T_kf_ck: Mat4 | None = None
         if pair.ok:
             T_kf_ck = inv_T(pair.T_ck_ckm1)
@@ -200,7 +210,8 @@ class RgbdOdometry:
         elif self._prev is not None and self._prev is not self._kf:
             pair = self.align(self._prev, cur, R_ckm1_ck_prior, T_pred)
             T_ckm1_ck = inv_T(pair.T_ck_ckm1)
-        if pair.ok and T_pred is not None and self._bridged == 0 and cfg.max_translation_jump_m > 0.0:
+        if pair.ok and T_pred is not None and self._bridged == 0 and cfg.max_translation_jump_m > 0.0 \
+                and not restarted:   # a restart is measured against the constant velocity it overturns
             # a multirotor cannot change its velocity by more than a few g: a per-frame translation far from the
             # constant-velocity one is an alignment in a wrong basin, however good its photometric fit
             t_pred = inv_T(T_pred)[:3, 3]

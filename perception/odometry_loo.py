@@ -54,6 +54,7 @@ VARIANTS: dict[str, dict[str, Any]] = {
     "frame-to-frame (no keyframes)": {**NO_PRIOR, "keyframe_max_frames": 1},
     "no keyframe window": {**NO_PRIOR, "keyframe_refinement": False},
     "depth turned, not moved, to its instant": {**NO_PRIOR, "register_depth_translation": False},
+    "no restart from rest": {**NO_PRIOR, "restart_from_rest": False},
     "photometric only (no depth term)": {**NO_PRIOR, "depth_weight": 0.0},
     "least squares (no t-weights)": {**NO_PRIOR, "t_dof": 1e9},
 }
