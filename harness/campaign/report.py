@@ -23,6 +23,8 @@ from quadlink.safety import CLEARANCE_BOUND_M, SAFE_DISTANCE_M
 
 TARGET_M = CLEARANCE_BOUND_M
 WORST_N = 5
+TAKEOFF_S = 5.0   # a take-off to 1 m takes 2-3 s: a flight airborne for less came down in its take-off (the bridge
+                  # lands a take-off without odometry); its session was not flown
 
 
 def _worst_axis(d: dict[str, float] | None) -> float:
@@ -112,6 +114,8 @@ def summarize(results: list[FlightResult], options: CampaignOptions, wall_s: flo
             "retried": [r["index"] for r in rows if r["retried"]],
             # a flight that never left the ground says nothing about the envelope: listed, not hidden
             "did_not_take_off": [r["index"] for r in rows if not (r.get("max_height_m", 0.0) > 0.5)],
+            "landed_in_takeoff": [r["index"] for r in rows if r.get("max_height_m", 0.0) > 0.5
+                                  and r.get("flying_time_s", math.inf) < TAKEOFF_S],
             "min_nonfloor_distance_m": float(d.min()) if d.size else math.nan,
             "share_below_target": float(np.mean(d < TARGET_M)) if d.size else math.nan,
             "share_below_safe_distance": float(np.mean(d < SAFE_DISTANCE_M)) if d.size else math.nan,
@@ -187,7 +191,8 @@ def summary_text(campaign: dict[str, Any]) -> str:
     lines += [
         "",
         f"flights {s['flights']} (ok {s['ok']}; failed {s['failed'] or 'none'}; retried (*) {s['retried'] or 'none'}; "
-        f"did not take off {s['did_not_take_off'] or 'none'})",
+        f"did not take off {s['did_not_take_off'] or 'none'}; landed in the take-off, under {TAKEOFF_S:.0f} s "
+        f"airborne {s.get('landed_in_takeoff') or 'none'})",
         f"min true distance to walls/obstacles/ceiling: {s['min_nonfloor_distance_m']:.3f} m; "
         f"below {TARGET_M} m in {100 * s['share_below_target']:.0f} % of flights, below {SAFE_DISTANCE_M} m in "
         f"{100 * s['share_below_safe_distance']:.0f} %",

@@ -236,8 +236,10 @@ def test_report_summary_from_flight_envelopes(tmp_path: Path) -> None:
         env = envelope(read_truth(path), s)
         results.append(FlightResult(k, "ok", 2 if k == 1 else 1, str(tmp_path / f"flight-{k:04d}"),
                                     report={"velocity_rmse_m_s": {"x": 0.01 * k, "y": 0.0},
-                                            "setpoint_gaps_over_100ms": int(k == 3)},
-                                    envelope={"min_nonfloor_m": env.min_nonfloor_m, "surface": env.surface},
+                                            "setpoint_gaps_over_100ms": int(k == 3),
+                                            "flying_time_s": 2.5 if k == 4 else 30.0},
+                                    envelope={"min_nonfloor_m": env.min_nonfloor_m, "surface": env.surface,
+                                              "max_height_m": 1.0},
                                     draws={"sitl_seed": k}))
     campaign = summarize(results, CampaignOptions(6, 1, tmp_path), 600.0)
     s_ = campaign["summary"]
@@ -248,6 +250,9 @@ def test_report_summary_from_flight_envelopes(tmp_path: Path) -> None:
     assert s_["retried"] == [1] and s_["share_with_setpoint_gaps"] == pytest.approx(1 / 6)
     assert s_["flights_per_hour"] == pytest.approx(36.0)
     assert "flight    2: 0.300 m" in summary_text(campaign)
+    # a flight that came down in its take-off (2.5 s airborne) is listed: its session was not flown
+    assert s_["landed_in_takeoff"] == [4] and s_["did_not_take_off"] == []
+    assert "landed in the take-off, under 5 s airborne [4]" in summary_text(campaign)
 
 
 def test_progress_line_eta() -> None:
