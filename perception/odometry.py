@@ -200,7 +200,10 @@ class RgbdOdometry:
             # (a periodic texture: one period a frame, 2 m/s for a 7 cm stripe at 30 Hz, fit after fit): aligned
             # again from rest (the previous frame's pose, the gyro's rotation), a good fit there wins
             alt = self.align(self._kf, cur, R_kf_ck_prior, T_ckm1_kf, self._T_kf_ckm1)
-            if alt.ok and alt.fitness >= cfg.keyframe_min_fitness:
+            # from rest, the jump gate's bound applies to the motion itself: no faster than that from standstill
+            step_m = float(np.linalg.norm((T_ckm1_kf @ inv_T(alt.T_ck_ckm1))[:3, 3]))
+            if alt.ok and alt.fitness >= cfg.keyframe_min_fitness \
+                    and (cfg.max_translation_jump_m <= 0.0 or step_m <= cfg.max_translation_jump_m):
                 pair, restarted = alt, True
                 self.restarts += 1
         T_kf_ck: Mat4 | None = None
@@ -211,7 +214,7 @@ class RgbdOdometry:
             pair = self.align(self._prev, cur, R_ckm1_ck_prior, T_pred)
             T_ckm1_ck = inv_T(pair.T_ck_ckm1)
         if pair.ok and T_pred is not None and self._bridged == 0 and cfg.max_translation_jump_m > 0.0 \
-                and not restarted:   # a restart is measured against the constant velocity it overturns
+                and not restarted:   # a restart is not measured against the constant velocity it overturns
             # a multirotor cannot change its velocity by more than a few g: a per-frame translation far from the
             # constant-velocity one is an alignment in a wrong basin, however good its photometric fit
             t_pred = inv_T(T_pred)[:3, 3]

@@ -67,8 +67,9 @@ class OdometryConfig:
     register_depth_translation: bool = True          # and have the depth term compare the depth instants (their
                                                      # translation at constant velocity, see align_pair)
     restart_from_rest: bool = True                   # a fit below keyframe_min_fitness from the constant-velocity
-                                                     # start is aligned again from rest; the better fit (at least
-                                                     # keyframe_min_fitness) wins
+                                                     # start is aligned again from rest; that fit wins if it is at
+                                                     # least keyframe_min_fitness and its step from rest within
+                                                     # max_translation_jump_m
     max_bridged_frames: int = 5                      # frames in a row that the constant-velocity prior may bridge
                                                      # when alignments fail (0.17 s at 30 Hz: a multirotor's
                                                      # velocity changes little in that time); a safety bound,
