@@ -179,9 +179,9 @@ class RgbdOdometry:
         turn = register and rate is not None and (self._kf is None or self._kf.depth_at_colour_instant)
         cur = prepare_frame(rgb, depth_m, K, cfg, _turn(rate, depth_offset_s) if turn and rate is not None else None)
         cur.depth_at_colour_instant = turn or not register
-        cur.stamp_s = stamp_s
-        if register and cfg.register_depth_translation:
-            cur.depth_offset_s = depth_offset_s
+        # the depth term compares the depth instants (align_pair) when the depth image is unsynchronised
+        depth_term_offset_s = depth_offset_s if register and cfg.register_depth_translation else 0.0
+        cur.stamp_s, cur.depth_offset_s = stamp_s, depth_term_offset_s
         if self._kf is None:
             self._set_keyframe(cur)
             self._prev = cur
@@ -264,8 +264,7 @@ class RgbdOdometry:
             if rate is not None:
                 cur = prepare_frame(rgb, depth_m, K, cfg, _turn(rate, depth_offset_s))
                 cur.depth_at_colour_instant = True
-                cur.stamp_s = stamp_s
-                cur.depth_offset_s = depth_offset_s if cfg.register_depth_translation else 0.0
+                cur.stamp_s, cur.depth_offset_s = stamp_s, depth_term_offset_s
                 self._prev = cur
                 self._set_keyframe(cur)
         return OdometryResult(stamp_s, self._T_c0_ck.copy(), T_ckm1_ck, pair.ok, pair.fitness, bridged)

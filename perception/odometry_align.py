@@ -196,7 +196,7 @@ def align_pair(ref: PreparedFrame, cur: PreparedFrame, config: OdometryConfig,
             if depth_scale != 1.0:
                 # the depth images' points, moved by the depth instants' translation: K (R p + s t)
                 Ph_d = Ph + (Kf @ ((depth_scale - 1.0) * T[:3, 3])).astype(np.float32)[:, None]
-                z = Ph_d[2]
+                z = Ph_d[2]   # the depth residual's predicted depth: the depth instant's
                 izd = np.reciprocal(np.maximum(z, np.float32(1e-3)))
                 s_d = _sample(lc.tex, Ph_d[0] * izd, Ph_d[1] * izd)
                 np.greater(s_d[:, 2], 0.999, out=ok_z)
