@@ -510,7 +510,10 @@ def _inset(uv: NDArray[np.float64], d_px: float) -> NDArray[np.float64]:
     """Convex polygons (G, n, 2) in pixels with every edge moved ``d_px`` inward.
 
     A polygon that vanishes (thinner than 2 d_px: it covers no pixel centre) comes back as NaN; one with a
-    degenerate edge (repeated or collinear vertices) comes back unchanged.
+    degenerate edge (repeated or collinear vertices) comes back unchanged. Past vanishing the moved edges cross
+    outside each other and the signed area may keep its sign (a sliver's bow-tie: a column's side seen just past
+    ``EDGE_ON_PX`` 4 m away had a corner thrown 490 px along it, and cv2 filled a wedge across the image; a small
+    triangle comes back turned 180 degrees): an output with a corner outside any moved edge has vanished.
     """
     n = uv.shape[1]
     nxt, prv = np.r_[1:n, 0], np.r_[n - 1, 0:n - 1]
@@ -528,7 +531,13 @@ def _inset(uv: NDArray[np.float64], d_px: float) -> NDArray[np.float64]:
     degenerate = ~np.isfinite(out).all(axis=(1, 2)) | (np.abs(det) < 1e-6).any(axis=1)
     ox, oy = out[..., 0], out[..., 1]
     new_area2 = np.sum(ox * oy[:, nxt] - ox[:, nxt] * oy, axis=1)
-    vanished = ~degenerate & (new_area2 * area2 <= 0)
+    # every corner of a polygon that is left lies on the inner side of every moved edge; past vanishing the
+    # corners are where the moved edges cross outside each other (a bow-tie, or a triangle turned 180 degrees)
+    with np.errstate(invalid="ignore"):
+        inner = np.einsum("gjk,gik->gij", nrm, out) - c[:, None, :]   # corner i against moved edge j
+        tol = 1e-6 * (1.0 + np.abs(out).max(axis=(1, 2)))
+        crossed = (inner < -tol[:, None, None]).any(axis=(1, 2))
+    vanished = ~degenerate & ((new_area2 * area2 <= 0) | crossed)
     out[degenerate] = uv[degenerate]
     out[vanished | (area2 == 0)] = np.nan
     return out
