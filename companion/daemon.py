@@ -763,6 +763,12 @@ class Companion:
                 self._emit([GcsReply(mavlink.MAVLink_named_value_float_message(
                     ms, b"DATA_AGE", float(self.stats.data_ages_s[-1]))),
                     GcsReply(mavlink.MAVLink_named_value_int_message(ms, b"LATE_HOLD", int(self.latency.holding)))])
+            out = self.state.last_output
+            if out is not None:   # the odometry's frames that were not plainly aligned, since the start
+                c = out.odometry_counts
+                self._emit(GcsReply(mavlink.MAVLink_named_value_int_message(ms, name, value)) for name, value in (
+                    (b"ODO_BRIDGE", c.fallbacks), (b"ODO_HELD", c.lost), (b"ODO_JUMP", c.rejected_jumps),
+                    (b"ODO_RESTRT", c.restarts)))
         elif task == Task.FALLBACK:   # keeps the autopilot's stream alive without a camera (frame_step.fallback_step)
             stamp = self.time.estimate_s(now)
             op = self.motion.operator_of(self.motion.command(self._pose()))
@@ -772,8 +778,9 @@ class Companion:
             self._send_feedback(self.time.estimate_s(now))
         elif task == Task.PROGRESS:
             st = self.state
+            counts = st.last_output.odometry_counts.summary() if st.last_output is not None else ""
             log.info("%s", self.progress.line(self.stats, self.modes.mode.name, st.odometry_ok, self.modes.gcs_ok,
-                                              st.height.summary(), self.command_clock.summary()))
+                                              st.height.summary(), self.command_clock.summary(), counts))
             self.stats.trim()
 
     def close(self) -> None:

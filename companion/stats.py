@@ -38,11 +38,12 @@ class Stats:
     data_ages_s: list[float] = field(default_factory=list)   # camera stamp -> setpoint (companion.latency)
     frames_skipped: int = 0         # frames read past to process the newest (a backlog is never processed)
 
-    def summary(self, odometry_ok: bool, gcs_ok: bool) -> str:
+    def summary(self, odometry_ok: bool, gcs_ok: bool, odometry_counts: str = "") -> str:
+        counts = f" ({odometry_counts})" if odometry_counts else ""
         return (f"frame->setpoint p50 {_recent_median_ms(self.latencies_s)} "
                 f"(perception {_recent_median_ms(self.perception_s)}, data age p50 "
                 f"{_recent_median_ms(self.data_ages_s)} max {_recent_max_ms(self.data_ages_s)}, skipped "
-                f"{self.frames_skipped})  odometry {'ok' if odometry_ok else 'FAIL'}  "
+                f"{self.frames_skipped})  odometry {'ok' if odometry_ok else 'FAIL'}{counts}  "
                 f"gcs link {'ok' if gcs_ok else 'lost'}  manual {self.manual_controls}  "
                 f"routed {self.routed_to_gcs} to GCS / {self.routed_to_autopilot} to autopilot")
 
@@ -63,7 +64,9 @@ class ProgressLine:
         self.period_s = period_s
         self._frames = 0
 
-    def line(self, stats: Stats, mode_name: str, odometry_ok: bool, gcs_ok: bool, height: str, commands: str) -> str:
+    def line(self, stats: Stats, mode_name: str, odometry_ok: bool, gcs_ok: bool, height: str, commands: str,
+             odometry_counts: str = "") -> str:
         fps = (stats.frames - self._frames) / self.period_s
         self._frames = stats.frames
-        return f"mode {mode_name}  camera {fps:.1f} fps  {stats.summary(odometry_ok, gcs_ok)}  {height}  {commands}"
+        return (f"mode {mode_name}  camera {fps:.1f} fps  {stats.summary(odometry_ok, gcs_ok, odometry_counts)}  "
+                f"{height}  {commands}")

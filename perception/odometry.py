@@ -49,6 +49,22 @@ __all__ = ["Image", "Mat4", "OdometryConfig", "OdometryResult", "PairResult", "P
 
 
 @dataclass(frozen=True)
+class OdometryCounts:
+    """What the odometry did with the frames that were not plainly aligned, since it started: bridged by the
+    motion prior (``fallbacks``), held without one (``lost``), alignments refused by the jump gate
+    (``rejected_jumps``) and frames aligned again from rest (``restarts``)."""
+
+    fallbacks: int = 0
+    lost: int = 0
+    rejected_jumps: int = 0
+    restarts: int = 0
+
+    def summary(self) -> str:
+        return (f"bridged {self.fallbacks}, held {self.lost}, jumps refused {self.rejected_jumps}, "
+                f"restarts {self.restarts}")
+
+
+@dataclass(frozen=True)
 class OdometryResult:
     """Chained camera pose ``T_c0_ck`` (camera k in the first camera frame) and the last pair's quality.
 
@@ -152,6 +168,10 @@ class RgbdOdometry:
     @property
     def T_c0_ck(self) -> Mat4:
         return self._T_c0_ck.copy()
+
+    @property
+    def counts(self) -> OdometryCounts:
+        return OdometryCounts(self.fallbacks, self.lost, self.rejected_jumps, self.restarts)
 
     def process(self, stamp_s: float, rgb: NDArray[np.uint8], depth_m: NDArray[np.float32], K: CameraIntrinsics,
                 R_ckm1_ck_prior: NDArray[np.float64] | None = None, depth_offset_s: float = 0.0) -> OdometryResult:

@@ -24,7 +24,7 @@ from perception.hidden_floor import HiddenFloorConfig, HiddenFloorConfirm, hidde
 from perception.level import LevelConfig, OdometryLevel
 from perception.obstacle_map import ObstacleMap, ObstacleMapConfig, ObstacleSectors
 from perception.obstacles import ObstacleConfig, extract_obstacles
-from perception.odometry import OdometryConfig, RgbdOdometry
+from perception.odometry import OdometryConfig, OdometryCounts, RgbdOdometry
 from perception.ukf import Ukf, UkfConfig
 from perception.velocity import VelocityConfig, VelocityEstimator, body_pose_in_world
 from quadlink.attitude import AttitudeConfig, AttitudeFilter, orthonormalise
@@ -81,6 +81,7 @@ class PerceptionOutput:
     floor_height_m: float | None = None     # body centre above the floor seen in this frame (perception.floor)
     obstacle_ages_s: NDArray[np.float64] | None = None  # M: seconds since each map particle was measured
     obstacle_open_top: NDArray[np.bool_] | None = None  # M: no ray passed over the particle (ObstacleMap.open_top)
+    odometry_counts: OdometryCounts = OdometryCounts()  # the odometry's bridged/held/refused/restarted frames so far
 
 
 class PerceptionPipeline:
@@ -220,4 +221,4 @@ class PerceptionPipeline:
             nearest_obstacle_h_m=self._map.nearest_h(), processing_time_s=self._clock() - t_start,
             yaw_rate_rad_s=yaw_rate, estimator=cfg.estimator,
             floor_height_m=None if floor is None else floor.height_m, obstacle_ages_s=self._map.ages_s,
-            obstacle_open_top=self._map.open_top)
+            obstacle_open_top=self._map.open_top, odometry_counts=self._odometry.counts)

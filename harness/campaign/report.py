@@ -56,6 +56,8 @@ def flight_row(r: FlightResult) -> dict[str, Any]:
         "busy_neighbours": draws.get("starvation", {}).get("busy_neighbours"),
         "data_age_p50_ms": rep.get("data_age_ms", {}).get("p50", math.nan),
         "data_age_max_ms": rep.get("data_age_ms", {}).get("max", math.nan),
+        "odometry_jumps_refused": rep.get("odometry_counts", {}).get("jumps_refused"),
+        "odometry_restarts": rep.get("odometry_counts", {}).get("restarts"),
         "replay": f"quadlink demo --replay {r.folder}",
     }
 

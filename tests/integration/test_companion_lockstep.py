@@ -22,6 +22,7 @@ from companion.cameras import StreamCamera
 from companion.config import CompanionConfig, ModeParams, PanScanConfig, TimingConfig
 from companion.daemon import Companion
 from companion.lockstep_links import AUTOPILOT_IN, AUTOPILOT_OUT, CAMERA_IN, GCS_IN, GCS_OUT, join_lockstep
+from perception.odometry import OdometryCounts
 from perception.pipeline import ObstacleSectors, PerceptionOutput
 from perception.synthetic import pose, qvga_intrinsics, render
 from quadlink.camera import CameraStreamServer, RgbdFrame
@@ -45,6 +46,7 @@ class StandInPipeline:
         self.frames = 0
         self.daemon: Companion | None = None
         self.imu_stamp_at_frame: list[float | None] = []
+        self.odometry_counts = OdometryCounts()
 
     def on_imu(self, stamp_s: float, gyro: np.ndarray, accel: np.ndarray) -> None:
         pass
@@ -56,7 +58,8 @@ class StandInPipeline:
         distances = np.full(72, np.inf)
         return PerceptionOutput(frame.stamp_s, 0.0, 0.0, 0.0, np.zeros(3), np.zeros(3), np.eye(3) * 1e-3,
                                 np.array([0.0, 0.0, -1.0]), True, 0.9, np.zeros((0, 3)), np.zeros((0, 3)),
-                                ObstacleSectors(frame.stamp_s, distances, 5.0, 0.0, 0.3, 4.0), None, 0.001)
+                                ObstacleSectors(frame.stamp_s, distances, 5.0, 0.0, 0.3, 4.0), None, 0.001,
+                                odometry_counts=self.odometry_counts)
 
 
 class Peer:
@@ -336,6 +339,27 @@ def test_the_same_flight_sends_the_same_bytes_whatever_the_wall_time() -> None:
     assert len(bridge_fast) >= 20 and len(gcs_fast) >= 40, (len(bridge_fast), len(gcs_fast))
     assert bridge_fast == bridge_slow
     assert gcs_fast == gcs_slow
+
+
+def test_the_ground_station_reads_the_odometrys_counts(rig: LockstepRig) -> None:
+    """A frame the odometry bridged, held, refused or aligned again is counted where a ground station (and the
+    tlog the campaign reports read) can see it: NAMED_VALUE_INT ODO_* with the pipeline's last counts, once a
+    second of simulated time."""
+    rig.pipeline.odometry_counts = OdometryCounts(fallbacks=3, lost=1, rejected_jumps=2, restarts=4)
+    rig.autopilot_heartbeat()
+    rig.gcs_heartbeat()
+    while rig.k <= 101:
+        if rig.k:
+            rig.imu_chunk(rig.k - 1)
+        if rig.k in (10, 60):
+            rig.publish_frame(t_of(rig.k) - 0.005)
+        rig.step()
+    assert rig.pipeline.frames >= 1
+    named = {}
+    for _, m in rig.gcs.of_type("NAMED_VALUE_INT"):
+        named[str(m.name)] = m.value
+    assert {k: v for k, v in named.items() if k.startswith("ODO_")} == \
+        {"ODO_BRIDGE": 3, "ODO_HELD": 1, "ODO_JUMP": 2, "ODO_RESTRT": 4}
 
 
 def test_a_stop_during_a_wait_for_an_announced_datagram_ends_the_loop(rig: LockstepRig) -> None:

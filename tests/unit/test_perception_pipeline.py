@@ -154,6 +154,21 @@ def test_obstacle_points_of_an_output_stay_as_they_were_at_that_frame(recording:
         assert np.array_equal(out.obstacle_points_h_m, points)
 
 
+def test_each_output_counts_the_frames_the_odometry_could_not_align_so_far(recording: Recording) -> None:
+    """Two blank frames (a dropout) in a flight: the odometry bridges them on the motion prior, and every output
+    carries the counts as they stood at its frame (what the companion reports as ODO_*)."""
+    keys = sorted(recording.frames)
+    dark = set(keys[30:32])
+    frames = {i: (dataclasses.replace(f, rgb=np.zeros_like(f.rgb), depth_m=np.zeros_like(f.depth_m))
+                  if i in dark else f)
+              for i, f in recording.frames.items()}
+    outs = _fly("filters", dataclasses.replace(recording, frames=frames), until_s=1.5)
+    bridged = np.cumsum([not o.odometry_ok for o in outs])
+    assert bridged[-1] == 2
+    assert [o.odometry_counts.fallbacks for o in outs] == bridged.tolist()
+    assert all(o.odometry_counts.lost == 0 and o.odometry_counts.rejected_jumps == 0 for o in outs)
+
+
 def test_bad_inputs_are_rejected_without_crashing() -> None:
     veh = load_vehicle()
     pipe = PerceptionPipeline(PerceptionConfig(), K, veh.camera.R_qc_matrix, np.asarray(veh.camera.p_qc_m),
