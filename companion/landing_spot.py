@@ -134,7 +134,10 @@ def clearing_azimuth_rad(points_h_m: ArrayLike | None, height_m: float | None, p
     ``fallback_yaw_rad`` (the camera's axis: the way it sees) when no sectors are known. Chosen once per
     clearing (the daemon keeps it in the world): re-chosen every frame, the way off a desk flipped between
     straight back and the camera's axis and went nowhere (a re-flown campaign flight). With ``room`` (a predicate
-    on an azimuth in H: :func:`room_to_clear`) only the directions it allows are taken; None if none is."""
+    on an azimuth in H: :func:`room_to_clear`) only the directions it allows are taken; None if none is. A direction
+    along which the footprint does not clear the object within the look-ahead is no way off (campaign 20261216's
+    flight 13: the one way with room led along a box that filled a corridor's end; taken, it kept the narrow rule
+    from being asked, and the landing came down the box's side at 0.272 m after 30 s)."""
     away: NDArray[np.float64] | None = None
     tops = _objects_below(points_h_m, height_m, max(floor_margin_m, params.min_top_m),
                           within_m=CLEARING_LOOKAHEAD_M + params.footprint_radius_m)
@@ -161,11 +164,14 @@ def clearing_azimuth_rad(points_h_m: ArrayLike | None, height_m: float | None, p
             continue
         if room is not None and not room(az):
             continue
+        to_clear_m = distance_to_clear_m(tops_xy, az, params.footprint_radius_m)
+        if to_clear_m > CLEARING_LOOKAHEAD_M:   # along the object as far as the look-ahead: no way off it
+            continue
         width = 2.0 * math.pi / n
         steps = int(math.ceil(guard_rad / width))
         free = min(float(s[sector_index(az + j * width, n, sector_offset_rad)]) for j in range(-steps, steps + 1))
         score = min(free, CLEARING_LOOKAHEAD_M) + (0.5 * float(u[:2] @ away) if away is not None else 0.0) \
-            - distance_to_clear_m(tops_xy, az, params.footprint_radius_m)
+            - to_clear_m
         if score > best_score:
             best, best_score = az, score
     return best

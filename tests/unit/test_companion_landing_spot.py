@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from companion.landing_spot import (
+    CLEARING_LOOKAHEAD_M,
     BelowMemory,
     ClearingSurvey,
     LandingSpotParams,
@@ -203,6 +204,26 @@ def test_the_way_off_takes_only_directions_with_room() -> None:
                                 room=lambda az: room_to_clear(boxed_in, az, 0.9, 0.40)) is None
     # no sectors known: the direct way off, if it has room
     assert clearing_azimuth_rad(box, height_m, P, FLOOR_MARGIN_M, 0.0, None, room=lambda az: False) is None
+
+
+def test_a_way_that_never_clears_the_object_is_no_way_off() -> None:
+    """Campaign 20261216, flight 13: beside a box that filled the end of a 1.44 m corridor, with the corridor's
+    walls moved in by the map's drift margin, the one way with the full lateral margin led along the box (its
+    footprint never clear within the look-ahead); taken, it kept the narrow rule from being asked, every way it
+    chose lost its room, and after 30 s the landing came down the box's side at 0.272 m. A way that never clears
+    is none: with only such a way, no way; given the way back along the corridor, that one."""
+    height_m = 1.5
+    box = np.vstack([_top(x, 0.0, 0.8, height_m - 0.7) for x in np.arange(0.3, 4.0, 0.7)])   # 3.9 m of box ahead
+    free = np.full(72, np.inf)
+    guard = math.radians(15)
+    tops = tops_xy_m(box, height_m, P, FLOOR_MARGIN_M)
+    assert distance_to_clear_m(tops, 0.0, P.footprint_radius_m) > CLEARING_LOOKAHEAD_M
+    along_the_box = clearing_azimuth_rad(box, height_m, P, FLOOR_MARGIN_M, 0.0, free, guard,
+                                         room=lambda az: math.cos(az) > 0.99)
+    assert along_the_box is None
+    az = clearing_azimuth_rad(box, height_m, P, FLOOR_MARGIN_M, 0.0, free, guard,
+                              room=lambda az: abs(math.cos(az)) > 0.99)
+    assert az is not None and math.cos(az) < -0.99     # back along the corridor, off the box's end
 
 
 def test_a_narrow_way_off_the_edge_of_a_box_in_a_cluttered_room() -> None:
