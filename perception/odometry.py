@@ -44,8 +44,8 @@ from perception.odometry_frame import Image, PreparedFrame, prepare_frame, rotat
 from quadlink.camera_frame import CameraIntrinsics
 from quadlink.lie import inv_T, skew, so3_log
 
-__all__ = ["Image", "Mat4", "OdometryConfig", "OdometryResult", "PairResult", "PreparedFrame", "RgbdOdometry",
-           "prepare_frame", "rotate_depth", "se3_exp"]
+__all__ = ["Image", "Mat4", "OdometryConfig", "OdometryCounts", "OdometryResult", "PairResult", "PreparedFrame",
+           "RgbdOdometry", "prepare_frame", "rotate_depth", "se3_exp"]
 
 
 @dataclass(frozen=True)
