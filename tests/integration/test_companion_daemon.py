@@ -23,6 +23,7 @@ from companion.journal import JournalWriter, Kind
 from companion.messages import TYPE_MASK_VELOCITY_YAW_RATE, UINT16_UNKNOWN
 from companion.modes import Mode
 from companion.replay import replay_journal
+from perception.odometry import OdometryCounts
 from perception.pipeline import ObstacleSectors, PerceptionConfig
 from perception.synthetic import pose, qvga_intrinsics, render
 from quadlink.camera import CameraStreamServer, FrameRecordWriter, RgbdFrame, read_frame_recording
@@ -61,6 +62,7 @@ class FakeOutput:
     floor_height_m: float | None = None
     obstacle_ages_s: np.ndarray | None = None   # None: ages unknown, no drift margin (the map always gives them)
     obstacle_open_top: np.ndarray | None = None   # None: every top seen over (no upward extension)
+    odometry_counts: OdometryCounts = field(default_factory=OdometryCounts)
 
 
 def test_the_fake_output_has_the_fields_of_perceptions_output() -> None:
