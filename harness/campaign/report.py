@@ -10,6 +10,7 @@ setpoint gaps over 100 ms, the five worst flights with the command that replays 
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 from pathlib import Path
@@ -99,6 +100,15 @@ def _finite(rows: list[dict[str, Any]], key: str) -> np.ndarray:
                        and math.isfinite(row[key])], dtype=float)
 
 
+def _option_json(value: Any) -> Any:
+    """A campaign option as JSON: a path as its string, a dataclass (the starvation range) as its fields."""
+    if isinstance(value, Path):
+        return str(value)
+    if dataclasses.is_dataclass(value) and not isinstance(value, type):
+        return dataclasses.asdict(value)
+    return value
+
+
 def summarize(results: list[FlightResult], options: CampaignOptions, wall_s: float) -> dict[str, Any]:
     rows = [flight_row(r) for r in results]
     flown = [row for row in rows if math.isfinite(row["min_nonfloor_distance_m"])]
@@ -108,7 +118,7 @@ def summarize(results: list[FlightResult], options: CampaignOptions, wall_s: flo
     worst = sorted(flown, key=lambda row: row["min_nonfloor_distance_m"])[:WORST_N]
     by_manoeuvre = manoeuvres.table([m for r in results for m in manoeuvres.flight_manoeuvres(Path(r.folder), r.index)])
     return {
-        "options": {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(options).items()},
+        "options": {k: _option_json(v) for k, v in vars(options).items()},
         "flights": rows,
         "summary": {
             "flights": len(rows), "ok": sum(r["status"] == "ok" for r in rows),

@@ -11,9 +11,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from harness.campaign.draws import CAMERA_TILT_DEG, draw_flight, write_flight_files
+from harness.campaign.draws import CAMERA_TILT_DEG, StarvationRange, draw_flight, write_flight_files
 from harness.campaign.offboard_client import plan_end_s, setpoint_at
-from harness.campaign.report import summarize, summary_text
+from harness.campaign.report import summarize, summary_text, write_campaign
 from harness.campaign.runner import CampaignOptions, FlightResult, flight_ports, progress_line
 from harness.campaign.safety import envelope, read_truth
 from harness.campaign.sessions import MOTION_OFFSET_RAD, generate_session
@@ -253,6 +253,26 @@ def test_report_summary_from_flight_envelopes(tmp_path: Path) -> None:
     # a flight that came down in its take-off (2.5 s airborne) is listed: its session was not flown
     assert s_["landed_in_takeoff"] == [4] and s_["did_not_take_off"] == []
     assert "landed in the take-off, under 5 s airborne [4]" in summary_text(campaign)
+
+
+def test_a_starved_campaigns_report_is_written_with_its_starvation_range(tmp_path: Path) -> None:
+    """``quadlink campaign --realtime --cpu-share`` flew its flights, then failed to write campaign.json: the
+    starvation range (a dataclass) was not JSON. The options are written with the range's fields."""
+    import json
+
+    path = tmp_path / "t.tlog"
+    _truth_log(path, [1.0] * 20, list(np.linspace(2.0, 0.8, 20)))
+    env = envelope(read_truth(path), ScenarioConfig(room=RoomConfig(size_m=(6.0, 6.0), height_m=2.5)))
+    result = FlightResult(0, "ok", 1, str(tmp_path / "flight-0000"), report={"flying_time_s": 20.0},
+                          envelope={"min_nonfloor_m": env.min_nonfloor_m, "surface": env.surface, "max_height_m": 1.0},
+                          draws={"starvation": {"cpu_cores": 0.35, "busy_neighbours": 1}})
+    options = CampaignOptions(1, 5, tmp_path, realtime=True, deterministic=False,
+                              starve=StarvationRange(0.35, 0.35, 1.0))
+    write_campaign([result], options, 60.0)
+    written = json.loads((tmp_path / "campaign.json").read_text())
+    assert written["options"]["starve"] == {"cores_lo": 0.35, "cores_hi": 0.35, "contention_p": 1.0}
+    assert written["options"]["out_dir"] == str(tmp_path)
+    assert written["summary"]["min_nonfloor_distance_m"] == pytest.approx(0.8, abs=0.006)
 
 
 def test_progress_line_eta() -> None:
