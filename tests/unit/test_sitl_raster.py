@@ -324,7 +324,7 @@ def _convex_polygon(n: int, a_px: float, b_px: float, angle_rad: float, centre: 
        phases=st.lists(st.floats(0.0, 1.0), min_size=8, max_size=8, unique=True), clockwise=st.booleans())
 def test_an_inset_polygon_stays_inside_its_face_or_vanishes(n, a_px, b_px, angle_rad, centre, phases, clockwise):
     """Any convex polygon (long thin slivers above all), moved EDGE_INSET_PX inward: either nothing (NaN) or a
-    convex polygon of the same orientation inside the original, never a corner thrown outside it."""
+    polygon whose every corner lies inside the original (each edge's half-plane), never one thrown outside it."""
     poly = _convex_polygon(n, a_px, b_px, angle_rad, centre, phases, clockwise)
     out = _inset(poly[None], EDGE_INSET_PX)[0]
     if np.isnan(out).any():
