@@ -111,7 +111,7 @@ from companion.router import route_from_autopilot
 from companion.scheduler import PeriodicTasks, Task
 from companion.security import GcsSecurity
 from companion.seen_ground import SeenGround
-from companion.stats import PROGRESS_EVERY_S, ProgressLine, Stats
+from companion.stats import PROGRESS_EVERY_S, AirborneCounts, ProgressLine, Stats
 from companion.timesync import AutopilotTime, TimeSync
 from companion.trajectory_follow import feed_forward_after_safety
 from companion.vehicle_state import VehicleState
@@ -180,6 +180,7 @@ class Companion:
         self.sysid, self.compid, self.ap_compid = ident.system_id, ident.component_id, ident.autopilot_component_id
         self.errors = ErrorCounter(clock)
         self.stats = Stats()
+        self.air_counts = AirborneCounts()   # the odometry's counts from the take-off to the landing
         self.perception = PerceptionStage(pipeline_factory, self.stats, self.errors)
         self.out = Outbox(self.autopilot, self.gcs, self.sysid, self.compid, self.ap_compid, self.errors, self.stats,
                           tlog, wall)
@@ -630,6 +631,7 @@ class Companion:
         if out is not None:
             st.last_output = out
             self.stats.perception_s.append(float(out.processing_time_s))
+            self.air_counts.on_output(out.odometry_counts, self.modes.mode != Mode.IDLE)
         height = st.height.update(stamp, height_m(out), None if out is None else out.floor_height_m)
         if self.modes.mode == Mode.IDLE:
             self.below.clear()   # a new flight, a new odometry world
@@ -764,11 +766,12 @@ class Companion:
                     ms, b"DATA_AGE", float(self.stats.data_ages_s[-1]))),
                     GcsReply(mavlink.MAVLink_named_value_int_message(ms, b"LATE_HOLD", int(self.latency.holding)))])
             out = self.state.last_output
-            if out is not None:   # the odometry's frames that were not plainly aligned, since the start
-                c = out.odometry_counts
+            if out is not None:   # the odometry's frames that were not plainly aligned: since the start, in the air
+                c, a = out.odometry_counts, self.air_counts.counts
                 self._emit(GcsReply(mavlink.MAVLink_named_value_int_message(ms, name, value)) for name, value in (
                     (b"ODO_BRIDGE", c.fallbacks), (b"ODO_HELD", c.lost), (b"ODO_JUMP", c.rejected_jumps),
-                    (b"ODO_RESTRT", c.restarts)))
+                    (b"ODO_RESTRT", c.restarts), (b"AIR_BRIDGE", a.fallbacks), (b"AIR_HELD", a.lost),
+                    (b"AIR_JUMP", a.rejected_jumps), (b"AIR_RESTRT", a.restarts)))
         elif task == Task.FALLBACK:   # keeps the autopilot's stream alive without a camera (frame_step.fallback_step)
             stamp = self.time.estimate_s(now)
             op = self.motion.operator_of(self.motion.command(self._pose()))
@@ -778,7 +781,8 @@ class Companion:
             self._send_feedback(self.time.estimate_s(now))
         elif task == Task.PROGRESS:
             st = self.state
-            counts = st.last_output.odometry_counts.summary() if st.last_output is not None else ""
+            counts = "" if st.last_output is None else \
+                f"{st.last_output.odometry_counts.summary()}; in the air {self.air_counts.counts.summary()}"
             log.info("%s", self.progress.line(self.stats, self.modes.mode.name, st.odometry_ok, self.modes.gcs_ok,
                                               st.height.summary(), self.command_clock.summary(), counts))
             self.stats.trim()

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+from perception.odometry import OdometryCounts
+
 PROGRESS_EVERY_S = 5.0
 
 
@@ -70,3 +72,20 @@ class ProgressLine:
         self._frames = stats.frames
         return (f"mode {mode_name}  camera {fps:.1f} fps  {stats.summary(odometry_ok, gcs_ok, odometry_counts)}  "
                 f"{height}  {commands}")
+
+
+class AirborneCounts:
+    """The odometry's counts (:class:`perception.odometry.OdometryCounts`) of the frames taken while the vehicle is
+    off the ground: the odometry's own totals include the frames on the ground before a take-off (a camera close to
+    the floor: 100-300 bridged frames a flight in the SITL), which hide what it did in the air."""
+
+    def __init__(self) -> None:
+        self.counts = OdometryCounts()
+        self._last: OdometryCounts | None = None
+
+    def on_output(self, counts: OdometryCounts, airborne: bool) -> None:
+        """A frame's output with the odometry's totals as they stood at it; ``airborne``: the vehicle was off the
+        ground for it (its counts since the last output are the air's)."""
+        if airborne and self._last is not None:
+            self.counts = self.counts.plus(counts.since(self._last))
+        self._last = counts

@@ -63,6 +63,18 @@ class OdometryCounts:
         return (f"bridged {self.fallbacks}, held {self.lost}, jumps refused {self.rejected_jumps}, "
                 f"restarts {self.restarts}")
 
+    def since(self, earlier: OdometryCounts) -> OdometryCounts:
+        """The frames counted since ``earlier`` (a counter that went down was reset in between: all of its count is
+        new)."""
+        def d(now: int, then: int) -> int:
+            return now - then if now >= then else now
+        return OdometryCounts(d(self.fallbacks, earlier.fallbacks), d(self.lost, earlier.lost),
+                              d(self.rejected_jumps, earlier.rejected_jumps), d(self.restarts, earlier.restarts))
+
+    def plus(self, other: OdometryCounts) -> OdometryCounts:
+        return OdometryCounts(self.fallbacks + other.fallbacks, self.lost + other.lost,
+                              self.rejected_jumps + other.rejected_jumps, self.restarts + other.restarts)
+
 
 @dataclass(frozen=True)
 class OdometryResult:

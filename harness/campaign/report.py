@@ -59,6 +59,7 @@ def flight_row(r: FlightResult) -> dict[str, Any]:
         "data_age_max_ms": rep.get("data_age_ms", {}).get("max", math.nan),
         "odometry_jumps_refused": rep.get("odometry_counts", {}).get("jumps_refused"),
         "odometry_restarts": rep.get("odometry_counts", {}).get("restarts"),
+        "odometry_bridged_airborne": rep.get("odometry_counts_airborne", {}).get("bridged"),
         "replay": f"quadlink demo --replay {r.folder}",
     }
 

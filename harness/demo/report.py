@@ -71,7 +71,7 @@ class FlightLog:
     t_setpoint: np.ndarray = field(default_factory=lambda: np.zeros(0))
     force: dict[str, np.ndarray] = field(default_factory=dict)
     command_age: dict[str, float] = field(default_factory=dict)    # the companion's last CMD_* values
-    odometry_counts: dict[str, int] = field(default_factory=dict)  # the companion's last ODO_* values
+    odometry_counts: dict[str, int] = field(default_factory=dict)  # the companion's last ODO_*, AIR_* values
     data_age_s: np.ndarray = field(default_factory=lambda: np.zeros(0))  # DATA_AGE samples: camera stamp -> setpoint
     late_hold: np.ndarray = field(default_factory=lambda: np.zeros(0))   # LATE_HOLD samples (1: holding for latency)
     link: dict[str, Any] = field(default_factory=dict)             # link.json
@@ -112,7 +112,7 @@ def load_flight(out_dir: Path) -> FlightLog:
                 sp.append(m.time_boot_ms / 1e3)
             elif kind in ("NAMED_VALUE_INT", "NAMED_VALUE_FLOAT") and str(m.name).startswith("CMD_"):
                 flight.command_age[str(m.name)] = float(m.value)
-            elif kind == "NAMED_VALUE_INT" and str(m.name).startswith("ODO_"):
+            elif kind == "NAMED_VALUE_INT" and str(m.name).startswith(("ODO_", "AIR_")):
                 flight.odometry_counts[str(m.name)] = int(m.value)
             elif kind == "NAMED_VALUE_FLOAT" and m.name == "DATA_AGE":
                 age.append(float(m.value))
@@ -254,8 +254,10 @@ def compute_report(flight: FlightLog, cpu_s: dict[str, float] | None = None, sce
         report["data_age_ms"] = age
     if flight.odometry_counts:   # the companion's odometry: frames it bridged, held, refused, aligned again
         c = flight.odometry_counts
-        report["odometry_counts"] = {"bridged": c.get("ODO_BRIDGE", 0), "held": c.get("ODO_HELD", 0),
-                                     "jumps_refused": c.get("ODO_JUMP", 0), "restarts": c.get("ODO_RESTRT", 0)}
+        for key, prefix in (("odometry_counts", "ODO_"), ("odometry_counts_airborne", "AIR_")):
+            if any(name.startswith(prefix) for name in c):   # since the start; from the take-off to the landing
+                report[key] = {"bridged": c.get(f"{prefix}BRIDGE", 0), "held": c.get(f"{prefix}HELD", 0),
+                               "jumps_refused": c.get(f"{prefix}JUMP", 0), "restarts": c.get(f"{prefix}RESTRT", 0)}
     if cpu_s:
         report["cpu_core_s_per_sim_s"] = {k: (v / duration if duration > 0 else math.nan) for k, v in cpu_s.items()}
     report["targets"] = check_targets(report)

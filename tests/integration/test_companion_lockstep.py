@@ -344,13 +344,15 @@ def test_the_same_flight_sends_the_same_bytes_whatever_the_wall_time() -> None:
 def test_the_ground_station_reads_the_odometrys_counts(rig: LockstepRig) -> None:
     """A frame the odometry bridged, held, refused or aligned again is counted where a ground station (and the
     tlog the campaign reports read) can see it: NAMED_VALUE_INT ODO_* with the pipeline's last counts, once a
-    second of simulated time."""
-    rig.pipeline.odometry_counts = OdometryCounts(fallbacks=3, lost=1, rejected_jumps=2, restarts=4)
+    second of simulated time, and AIR_* with those counted while the vehicle was off the ground."""
+    rig.pipeline.odometry_counts = OdometryCounts(fallbacks=1)
     rig.autopilot_heartbeat()
     rig.gcs_heartbeat()
     while rig.k <= 101:
         if rig.k:
             rig.imu_chunk(rig.k - 1)
+        if rig.k == 60:   # the counts grew between the two frames, on the ground
+            rig.pipeline.odometry_counts = OdometryCounts(fallbacks=3, lost=1, rejected_jumps=2, restarts=4)
         if rig.k in (10, 60):
             rig.publish_frame(t_of(rig.k) - 0.005)
         rig.step()
@@ -360,6 +362,9 @@ def test_the_ground_station_reads_the_odometrys_counts(rig: LockstepRig) -> None
         named[str(m.name)] = m.value
     assert {k: v for k, v in named.items() if k.startswith("ODO_")} == \
         {"ODO_BRIDGE": 3, "ODO_HELD": 1, "ODO_JUMP": 2, "ODO_RESTRT": 4}
+    # the vehicle never left the ground (IDLE): none of it happened in the air
+    assert {k: v for k, v in named.items() if k.startswith("AIR_")} == \
+        {"AIR_BRIDGE": 0, "AIR_HELD": 0, "AIR_JUMP": 0, "AIR_RESTRT": 0}
 
 
 def test_a_stop_during_a_wait_for_an_announced_datagram_ends_the_loop(rig: LockstepRig) -> None:

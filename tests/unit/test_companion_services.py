@@ -15,7 +15,7 @@ from companion.recording import FrameRecording
 from companion.reference_params import ReferenceParams
 from companion.router import route_from_autopilot, route_from_gcs
 from companion.scheduler import Deadlines, PeriodicTasks, StampTicker, Task
-from companion.stats import ProgressLine, Stats
+from companion.stats import AirborneCounts, ProgressLine, Stats
 from quadlink.mavlink import mavlink
 
 ME = 191
@@ -145,3 +145,22 @@ def test_a_failing_frame_recording_stops_and_the_loop_goes_on() -> None:
     rec.close()
     assert writer.written == 2 and not writer.closed   # stopped at the failure; nothing more to close
     FrameRecording(None).write(frame)   # no recording: nothing to do
+
+
+def test_airborne_counts_take_only_the_frames_in_the_air() -> None:
+    """The odometry's totals include the ground before the take-off; the air's counts take each output's increase
+    only while the vehicle is off the ground, and a reset odometry's counts (lower than before) are all new."""
+    from perception.odometry import OdometryCounts
+
+    air = AirborneCounts()
+    air.on_output(OdometryCounts(fallbacks=200, lost=8), airborne=False)     # on the ground: bridged, held
+    air.on_output(OdometryCounts(fallbacks=210, lost=8), airborne=False)
+    assert air.counts == OdometryCounts()
+    air.on_output(OdometryCounts(fallbacks=213, lost=8, rejected_jumps=1), airborne=True)
+    air.on_output(OdometryCounts(fallbacks=213, lost=9, rejected_jumps=1, restarts=2), airborne=True)
+    assert air.counts == OdometryCounts(fallbacks=3, lost=1, rejected_jumps=1, restarts=2)
+    air.on_output(OdometryCounts(fallbacks=2), airborne=True)    # the odometry was reset: its 2 bridged are new
+    assert air.counts == OdometryCounts(fallbacks=5, lost=1, rejected_jumps=1, restarts=2)
+    air.on_output(OdometryCounts(fallbacks=50), airborne=False)  # landed: the ground's frames stay out
+    assert air.counts.fallbacks == 5
+

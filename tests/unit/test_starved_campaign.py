@@ -85,6 +85,16 @@ def test_the_companions_data_age_is_read_back_from_its_tlog(tmp_path: Path) -> N
     assert data_age_figures(FlightLog()) == {}
 
 
+def test_the_odometrys_counts_since_the_start_and_in_the_air_are_read_back_from_its_tlog(tmp_path: Path) -> None:
+    mav = mavlink.MAVLink(None, srcSystem=1, srcComponent=191)
+    with TlogWriter(tmp_path / "companion.tlog") as w:
+        for k, (total, air) in enumerate(((120, 0), (205, 3))):   # the last value of each name is the flight's
+            w.write(mavlink.MAVLink_named_value_int_message(k * 1000, b"ODO_BRIDGE", total).pack(mav), 0.0)
+            w.write(mavlink.MAVLink_named_value_int_message(k * 1000, b"AIR_BRIDGE", air).pack(mav), 0.0)
+            w.write(mavlink.MAVLink_named_value_int_message(k * 1000, b"AIR_JUMP", k).pack(mav), 0.0)
+    assert load_flight(tmp_path).odometry_counts == {"ODO_BRIDGE": 205, "AIR_BRIDGE": 3, "AIR_JUMP": 1}
+
+
 def _row(cores: float, d: float, age: float, busy: int = 1) -> dict[str, Any]:
     return {"cpu_share_cores": cores, "busy_neighbours": busy, "min_nonfloor_distance_m": d,
             "data_age_p50_ms": age, "data_age_max_ms": 3 * age}
