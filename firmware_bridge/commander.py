@@ -114,6 +114,7 @@ class CommanderService:
         s.blind = False
         s.takeoff_phase = None
         s.blind_descent = None
+        s.level_trim_rad[:] = 0.0
         s.reset_trackers()
 
     def check_links(self, now_s: float) -> None:

@@ -35,6 +35,14 @@ ODOM_LOST_BRAKE_TILT_RAD = 0.15   # ~1.5 m/s^2: 0.4 m/s braked in under 0.3 s
 LAND_HOLD_GAIN_1_S = 1.0          # LAND's and TAKEOFF's position hold: m/s back per m away from where it began
 LAND_HOLD_MAX_M_S = 0.15
 LAND_HOLD_REANCHOR_M = 0.5        # farther than this from the anchor (an odometry reset): a new anchor
+# the board's level: it holds its own attitude estimate, whose error (its accelerometer's bias, the drag it reads as
+# tilt, its gyro bias times its filter's 8 s) is 0.5-2 deg; campaign 20261217's flight 6 came down the last 0.3 m of
+# its landing "level" at 2 deg of true roll and slid 0.07 m toward a partition. In steady flight on odometry the
+# command minus the bridge's estimate (pulled to the odometry's tilt) is that error: commanded, it is level by the
+# bridge's estimate
+LEVEL_TRIM_TAU_S = 2.0
+LEVEL_TRIM_STEADY_RAD_S = 0.1     # learnt only while the roll and pitch rates are below this (the board has settled)
+LEVEL_TRIM_MAX_RAD = math.radians(5.0)
 DRAG_HOLD_TILT_RAD = 0.1          # the hold on the drag's velocity corrects a slide of tenths of m/s: ~1 m/s^2 is ample
 CONTROL_DT_S = 0.01  # nominal step (every 5th IMU sample); the measured dt is bounded to [1 ms, 100 ms]
 YAW_TRACK_GAIN_1_S = 2.0  # an absolute yaw target is tracked through the yaw-rate command
@@ -114,7 +122,8 @@ class FlightControlService:
                 v_est[2] = s.vertical.vz_m_s
             cmd = s.pid_tracker.update(dt, v_ref, 0.0, v_est, est.roll_rad, est.pitch_rad)
             if not braking:
-                cmd = AttitudeCommand(0.0, 0.0, 0.0, cmd.thrust_fraction, cmd.a_des_h_m_s2, cmd.saturated)
+                roll, pitch = (0.0, 0.0) if resting else self._level()
+                cmd = AttitudeCommand(roll, pitch, 0.0, cmd.thrust_fraction, cmd.a_des_h_m_s2, cmd.saturated)
             else:   # a gentle brake: the velocity it acts on is a dead reckoning
                 roll = min(max(cmd.roll_rad, -ODOM_LOST_BRAKE_TILT_RAD), ODOM_LOST_BRAKE_TILT_RAD)
                 pitch = min(max(cmd.pitch_rad, -ODOM_LOST_BRAKE_TILT_RAD), ODOM_LOST_BRAKE_TILT_RAD)
@@ -179,6 +188,7 @@ class FlightControlService:
             cmd = s.tracker.update(dt, v_ref, yaw_rate, v_est, est.roll_rad, est.pitch_rad)
         if s.mode == FlightMode.LAND:
             self._detect_touchdown(now_s, cmd, abs(v_est[2]))
+        self._learn_level_trim(dt, est)
         return self._finish(cmd)
 
     def _blind_step(self, now_s: float, dt: float, est: Any) -> BoardCommand:
@@ -248,7 +258,8 @@ class FlightControlService:
         v_est = np.array([0.0, 0.0, vz_est]) if drag is None else np.array([drag[0], drag[1], vz_est])
         cmd = s.pid_tracker.update(dt, np.array([0.0, 0.0, vz_ref]), yaw_rate, v_est, est.roll_rad, est.pitch_rad)
         thrust = min(cmd.thrust_fraction, ceiling)
-        roll = pitch = 0.0
+        # level by the bridge's estimate in the air; on or at the ground the board's own level (a tilt there skids)
+        roll, pitch = (0.0, 0.0) if s.vertical.estimate.pinned or self._resting_thrust() else self._level()
         if drag is not None:
             roll = min(max(cmd.roll_rad, -DRAG_HOLD_TILT_RAD), DRAG_HOLD_TILT_RAD)
             pitch = min(max(cmd.pitch_rad, -DRAG_HOLD_TILT_RAD), DRAG_HOLD_TILT_RAD)
@@ -282,6 +293,28 @@ class FlightControlService:
         v_h = -LAND_HOLD_GAIN_1_S * (Rz(-yaw_rad) @ e_ned)[:2]
         speed = float(np.linalg.norm(v_h))
         return v_h * (LAND_HOLD_MAX_M_S / speed) if speed > LAND_HOLD_MAX_M_S else v_h
+
+    def _level(self) -> tuple[float, float]:
+        """The (roll, pitch) to command for level flight: the trim learnt in this flight (0 before any; 0 with
+        BRG_LVL_TRIM off)."""
+        s = self.state
+        if s.params["BRG_LVL_TRIM"] <= 0.0:
+            return 0.0, 0.0
+        return float(s.level_trim_rad[0]), float(s.level_trim_rad[1])
+
+    def _learn_level_trim(self, dt: float, est: Any) -> None:
+        """Low-pass the board's level error, the last command minus the bridge's estimate, while the odometry is
+        good and the attitude steady, in the air and not in the level landing (see LEVEL_TRIM_TAU_S)."""
+        s = self.state
+        if not s.odom_ok or s.vertical.estimate.pinned or self._resting_thrust() or self._level_landing() \
+                or max(abs(est.rollspeed_rad_s), abs(est.pitchspeed_rad_s)) > LEVEL_TRIM_STEADY_RAD_S:
+            return
+        c = s.last_board_command
+        error = np.array([c.roll_rad - est.roll_rad, c.pitch_rad - est.pitch_rad])
+        if not np.all(np.isfinite(error)):
+            return
+        s.level_trim_rad += min(dt / LEVEL_TRIM_TAU_S, 1.0) * (error - s.level_trim_rad)
+        np.clip(s.level_trim_rad, -LEVEL_TRIM_MAX_RAD, LEVEL_TRIM_MAX_RAD, out=s.level_trim_rad)
 
     def _resting_thrust(self) -> bool:
         """The last thrust is under the touchdown test's (LNDMC_THR_MAX x hover): resting on something."""

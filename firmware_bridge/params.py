@@ -89,6 +89,9 @@ PARAM_SPECS: tuple[ParamSpec, ...] = (
               "message gives the vehicle's; PX4's EKF2_MCOEF; 0: none)"),
     ParamSpec("BRG_LAND_LVL_ALT", 0.3, 0.0, 2.0, "m",
               "LAND: below this baro height, descend level on the baro (0: off)"),
+    ParamSpec("BRG_LVL_TRIM", 1.0, 0.0, 1.0, "bool",
+              "fly 'level' (the level landing, the blind descent) level by the bridge's attitude estimate: the "
+              "board's error, learnt in steady flight on odometry, commanded away (0: the board's own level)"),
 ) + GEOMETRIC_PARAM_SPECS  # BRG_TRACKER (0 PID, 1 geometric) and the geometric tracker's gains (issue 19)
 
 SPECS_BY_NAME: dict[str, ParamSpec] = {p.name: p for p in PARAM_SPECS}

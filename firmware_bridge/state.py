@@ -205,6 +205,9 @@ class BridgeState:
         self.on_ground_armed_since_s: float | None = None
         self.last_command: AttitudeCommand | None = None
         self.last_board_command = BoardCommand(0.0, 0.0, 0.0, 0.0, False)
+        # (roll, pitch) the board is commanded for level by the bridge's estimate: the board holds its own estimate,
+        # off the true level by its errors; learnt in steady flight on odometry (flight_control), 0 on the ground
+        self.level_trim_rad = np.zeros(2)
         self.control_time_s: float | None = None
         self.yaw_sp_rad: float | None = None
         # streams and counters

@@ -810,7 +810,8 @@ def test_without_odometry_the_drag_learnt_in_flight_holds_what_a_level_command_l
     the odometry is lost, "level" slides (the companion-less landing drifted ~0.5 m, a failed take-off 0.2 m/s
     into a wall). The accelerometer's body x/y reading is the drag, proportional to the velocity and blind to the
     tilt: learnt from the odometry while it was good (the flight moves about a little), it holds the vehicle."""
-    sim = Sim(ParamTable({"BRG_DRAG_HOLD": drag_hold}))
+    # the level trim off: "level" is the board's own (test_the_level_landing_is_level_by_the_bridges_estimate)
+    sim = Sim(ParamTable({"BRG_DRAG_HOLD": drag_hold, "BRG_LVL_TRIM": 0.0}))
     sim.baro = True
     sim.level_error_rad = (math.radians(1.0), math.radians(-1.0))
     fly_to_hover(sim)
@@ -901,7 +902,7 @@ def test_without_motion_to_learn_from_the_hold_takes_the_nominal_drag(k_nominal)
     a take-off and a hover teach the drag fit too little motion, so the blind descent flew level on the board's own
     estimate. With BRG_DRAG_K_NOM the hold uses that k and the bias the hover gave. The default (0.45 1/s, the
     SITL's identified drag) is 1.8x this model's k (0.25): a wrong nominal still holds; 0 is the control."""
-    sim = Sim(ParamTable({"BRG_DRAG_K_NOM": k_nominal}))
+    sim = Sim(ParamTable({"BRG_DRAG_K_NOM": k_nominal, "BRG_LVL_TRIM": 0.0}))   # "level": the board's own
     sim.baro = True
     sim.level_error_rad = (math.radians(1.0), math.radians(-1.0))
     fly_to_hover(sim)
@@ -915,6 +916,35 @@ def test_without_motion_to_learn_from_the_hold_takes_the_nominal_drag(k_nominal)
         assert moved < 0.08, f"slid {moved:.2f} m holding on the nominal drag"   # 0.01 m
     else:
         assert moved > 0.15, f"the control case slid only {moved:.2f} m"        # 0.21 m
+
+
+@pytest.mark.parametrize("trim", [1.0, 0.0])
+def test_the_level_landing_is_level_by_the_bridges_estimate(trim):
+    """Campaign 20261217's flight 6: the last 0.3 m of a landing are flown level (BRG_LAND_LVL_ALT), and "level" was
+    the board's own estimate, 2 deg off: the vehicle came down at 2 deg of roll and slid 0.07 m toward a partition.
+    With BRG_LVL_TRIM the board's error, learnt in the hover on odometry (the command minus the bridge's estimate),
+    is commanded away; 0 is the control (the board's level)."""
+    sim = Sim(ParamTable({"BRG_LVL_TRIM": trim}))
+    sim.baro = True
+    sim.level_error_rad = (math.radians(2.0), math.radians(-1.0))
+    fly_to_hover(sim)
+    sim.step(5.0)                                          # a hover on odometry: the velocity loop holds it
+    learnt = sim.ap.state.level_trim_rad.copy()
+    assert learnt == pytest.approx(-np.radians([2.0, -1.0]), abs=math.radians(0.2))
+    assert sim.command(mavlink.MAV_CMD_NAV_LAND)[0] == mavlink.MAV_RESULT_ACCEPTED
+    start = None
+    for _ in range(500):                                   # at most 10 s
+        sim.step(0.02)
+        if start is None and -sim.p[2] < 0.3:
+            start = sim.p[:2].copy()                        # the level part begins (the baro is the truth here)
+        if not sim.ap.armed_cmd:
+            break
+    assert not sim.ap.armed_cmd and start is not None
+    slid = float(np.linalg.norm(sim.p[:2] - start))
+    if trim:
+        assert slid < 0.02, f"slid {slid:.3f} m in the level part"          # 0.001 m
+    else:
+        assert slid > 0.04, f"the control slid only {slid:.3f} m"           # 0.064 m
 
 
 def test_land_holds_the_place_where_it_began():
