@@ -58,13 +58,20 @@ def drifted_toward(points_h_m: ArrayLike | None, ages_s: ArrayLike | None,
 
 COLUMN_GRID_M = 0.05   # one upward extension per cell of this size: a wall's particles come in copies
 TOP_NEAR_M = 0.1       # a top seen over within about this (one cell of it, or the next) horizontally caps a point
+TOP_LEVEL_M = 0.10     # ... and so does one up to this much lower than it: the map's copies of one flat top scatter
+                       # (the measurement's noise, 2 cm per m of range, and eq. 14's, 2 cm after 6 s, 4 cm after the
+                       # near field's 20 s), and open copies of a box's top edge (its probe fell in the projector's
+                       # shadow past the edge, in the blind zone) stood 2 and 6 cm (aged 6.5 s) above their seen-over
+                       # neighbours, uncapped: extended to columns 0.42 and 0.34 m away, they pushed the vehicle
+                       # hovering over the box up to 0.5 m aside (the LAND-over-a-box test)
 
 
 def with_open_tops(points: ArrayLike, open_top: ArrayLike | None, height_m: float | None = None,
                    floor_margin_m: float = 0.0) -> NDArray[np.float64]:
     """The points, plus one at the vehicle's level (z = 0) above each point below it whose top no ray passed over
     (``open_top``, perception's ``ObstacleMap.open_top``) and that no top seen over caps (a point the rays passed
-    over, higher, within about ``TOP_NEAR_M`` horizontally: a box's top edge above its front face): the surface it
+    over, higher or level with it to ``TOP_LEVEL_M``, within about ``TOP_NEAR_M`` horizontally: a box's top edge
+    above its front face, the rest of a flat top beside one of its copies): the surface it
     samples may reach the vehicle's height, as a wall the camera saw from lower down does, so it acts on the
     avoidance by its horizontal distance and counts as beside the vehicle, not below it
     (:mod:`companion.landing_spot`). Not for points of the floor (within ``floor_margin_m`` of it, ``height_m`` below
@@ -83,21 +90,25 @@ def with_open_tops(points: ArrayLike, open_top: ArrayLike | None, height_m: floa
     q = points_h_m[up]
     if not q.shape[0]:
         return points_h_m
-    _, first = np.unique(_cell_keys(np.floor(q[:, :2] / COLUMN_GRID_M).astype(np.int64)), return_index=True)
-    q = q[first]
     seen = points_h_m[~flags & finite]
     if seen.shape[0]:
-        q = q[~_capped(q, seen)]
+        q = q[~_capped(q, seen)]   # before the thinning: a cell keeps its column if any of its points is uncapped
+    if not q.shape[0]:
+        return points_h_m
+    _, first = np.unique(_cell_keys(np.floor(q[:, :2] / COLUMN_GRID_M).astype(np.int64)), return_index=True)
+    q = q[first]
     columns = np.column_stack([q[:, 0], q[:, 1], np.zeros(q.shape[0])])
     return np.concatenate([points_h_m, columns]) if columns.shape[0] else points_h_m
 
 
 def _capped(q: NDArray[np.float64], seen: NDArray[np.float64]) -> NDArray[np.bool_]:
-    """Which points of ``q`` have a seen-over point higher than them (smaller z) in their ``TOP_NEAR_M`` cell or
-    the eight around it: per cell the highest seen point, then nine sorted look-ups (no tree per frame)."""
-    # only the seen points that could cap one: higher than the lowest candidate, near the candidates' box
+    """Which points of ``q`` have a seen-over point higher than them (smaller z), or less than ``TOP_LEVEL_M`` lower,
+    in their ``TOP_NEAR_M`` cell or the eight around it: per cell the highest seen point, then nine sorted look-ups
+    (no tree per frame)."""
+    # only the seen points that could cap one: not too low for the lowest candidate, near the candidates' box
     lo, hi = q[:, :2].min(axis=0) - 2 * TOP_NEAR_M, q[:, :2].max(axis=0) + 2 * TOP_NEAR_M
-    near = (seen[:, 2] < q[:, 2].max()) & (seen[:, :2] >= lo).all(axis=1) & (seen[:, :2] <= hi).all(axis=1)
+    near = (seen[:, 2] < q[:, 2].max() + TOP_LEVEL_M) & (seen[:, :2] >= lo).all(axis=1) \
+        & (seen[:, :2] <= hi).all(axis=1)
     seen = seen[near]
     if not seen.shape[0]:
         return np.zeros(q.shape[0], dtype=bool)
@@ -112,7 +123,7 @@ def _capped(q: NDArray[np.float64], seen: NDArray[np.float64]) -> NDArray[np.boo
         for dj in (-1, 0, 1):
             kk = _cell_keys(qc + np.array([di, dj]))
             i = np.minimum(np.searchsorted(uk, kk), uk.size - 1)
-            capped |= (uk[i] == kk) & (highest[i] < q[:, 2])
+            capped |= (uk[i] == kk) & (highest[i] < q[:, 2] + TOP_LEVEL_M)
     return capped
 
 

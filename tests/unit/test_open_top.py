@@ -124,3 +124,35 @@ def test_a_box_face_under_a_top_seen_over_is_not_extended() -> None:
     assert object_below(extended, height_m, LandingSpotParams(), floor_margin_m=0.1) is not None
     # the same face with no top seen (a wall's foot seen from below): extended
     assert with_open_tops(face, np.ones(face.shape[0], dtype=bool), height_m, 0.1).shape[0] > face.shape[0]
+
+
+def test_an_open_copy_on_a_flat_top_is_capped_by_its_seen_over_neighbours(rng: np.random.Generator) -> None:
+    """A box's top 0.65 m under the vehicle, seen over, its copies scattered by the map's noise (2 cm); one copy of a
+    point at the top's edge came in open (its probe fell in the projector's shadow past the edge) and stands 2 or 6 cm
+    above the rest: it is the top, not a wall's foot seen from below, so no column at the vehicle's level (a LAND test's
+    hover was pushed 0.5 m off the box by it, the column 0.42 m away)."""
+    height_m = 1.05
+    top = np.array([[x, y, 0.65] for x in np.arange(0.3, 0.8, 0.05) for y in np.arange(-0.2, 0.21, 0.05)])
+    top[:, 2] += rng.normal(0.0, 0.01, top.shape[0]).clip(-0.015, 0.015)
+    for copy_z_m in (0.63, 0.59):   # 2 cm above the rest; 6 cm, as a copy aged 6.5 s stood (eq. 14's noise)
+        edge_copy = np.array([[0.42, -0.06, copy_z_m]])
+        p = np.concatenate([top, edge_copy])
+        flags = np.r_[np.zeros(top.shape[0], dtype=bool), True]
+        assert with_open_tops(p, flags, height_m, 0.1).shape == p.shape
+    # the control: with the top seen 15 cm lower than it (a step, not the same face) the copy is a column
+    lower = top + np.array([0.0, 0.0, 0.15])
+    assert with_open_tops(np.concatenate([lower, edge_copy]), flags, height_m, 0.1).shape[0] == p.shape[0] + 1
+
+
+def test_a_wall_rising_from_a_table_top_keeps_its_column() -> None:
+    """A wall (open: seen from below) standing on a table top the camera saw over: its points at the table's level or
+    below are capped, the ones above it are not, and the wall's cells keep their column whichever point came first."""
+    height_m = 1.2
+    table = np.array([[x, y, 0.5] for x in (0.3, 0.35, 0.4) for y in (-0.1, 0.0, 0.1)])
+    wall = np.array([[0.45, y, z] for y in (-0.1, 0.0, 0.1) for z in (0.52, 0.3, 0.1)])  # the capped one first per cell
+    p = np.concatenate([table, wall])
+    flags = np.r_[np.zeros(table.shape[0], dtype=bool), np.ones(wall.shape[0], dtype=bool)]
+    extended = with_open_tops(p, flags, height_m, 0.1)
+    columns = extended[p.shape[0]:]
+    assert columns.shape[0] == 3
+    assert np.allclose(columns[:, 0], 0.45) and np.allclose(columns[:, 2], 0.0)
