@@ -392,32 +392,58 @@ def companion_config_with(out_dir: Path, **sections: object) -> Path:
 
 
 # ---------------------------------------------------------------- client scripts beside the flight
-@contextlib.contextmanager
-def mavsdk_server(system_url: str, log_path: Path) -> Iterator[int]:
-    """The classic API's ``mavsdk_server`` (the one mavsdk_grpc ships), started here rather than by
-    ``System.connect``: on a free gRPC port, its output in ``log_path``, and stopped when the flight ends (a server
-    left running holds its port and keeps talking to the companion). Yields the gRPC port for
-    ``System(mavsdk_server_address="127.0.0.1", port=...)``."""
-    import subprocess
-    from importlib.resources import files
+class MavsdkServer:
+    """The classic API's ``mavsdk_server`` (the one mavsdk_grpc ships) for :func:`mavsdk_server`: on a free gRPC port
+    (``port``), its output in ``log_path``; started by :meth:`start` (:func:`connect_classic` calls it from the client
+    script's thread, while the harness runs the flight)."""
 
-    binary = files("mavsdk_grpc") / "bin" / "mavsdk_server"
-    port = free_port()
-    with open(log_path, "wb") as log:
-        proc = subprocess.Popen([str(binary), "-p", str(port), system_url], stdout=log, stderr=subprocess.STDOUT)
-    try:
-        yield port
-    finally:
-        proc.terminate()
+    def __init__(self, system_url: str, log_path: Path) -> None:
+        self.system_url = system_url
+        self.log_path = log_path
+        self.port = free_port()
+        self._proc: Any = None
+
+    def start(self) -> None:
+        import subprocess
+        from importlib.resources import files
+
+        if self._proc is not None:
+            return
+        binary = files("mavsdk_grpc") / "bin" / "mavsdk_server"
+        with open(self.log_path, "wb") as log:
+            self._proc = subprocess.Popen([str(binary), "-p", str(self.port), self.system_url], stdout=log,
+                                          stderr=subprocess.STDOUT)
+
+    def stop(self) -> None:
+        import subprocess
+
+        if self._proc is None:
+            return
+        self._proc.terminate()
         try:
-            proc.wait(5.0)
+            self._proc.wait(5.0)
         except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait(5.0)
+            self._proc.kill()
+            self._proc.wait(5.0)
 
 
-async def connect_classic(port: int, timeout_s: float = 60.0) -> Any:
-    """A classic-API ``System`` connected to the ``mavsdk_server`` on gRPC ``port`` (:func:`mavsdk_server`).
+@contextlib.contextmanager
+def mavsdk_server(system_url: str, log_path: Path) -> Iterator[MavsdkServer]:
+    """A :class:`MavsdkServer`, stopped when the block ends (a server left running holds its port and keeps talking to
+    the companion). It is started by :func:`connect_classic` in the client script, not here: mavsdk_server declares
+    the vehicle found once only, at the first HEARTBEAT it hears, and only if it has heard the autopilot (compid 1)
+    by then; started while the lock-step flight stood still between the harness's steps, it heard the companion's
+    own heartbeat before anything of the paused autopilot, and never opened its gRPC port (CI on ``1c055a8``: stuck
+    in connect, "Component Autopilot added" after "Discovered component Companion Computer")."""
+    server = MavsdkServer(system_url, log_path)
+    try:
+        yield server
+    finally:
+        server.stop()
+
+
+async def connect_classic(server: MavsdkServer, timeout_s: float = 60.0) -> Any:
+    """A classic-API ``System`` connected to ``server`` (:func:`mavsdk_server`), which it starts.
 
     The server opens its gRPC port only once it has discovered the vehicle, and a gRPC channel that meets a closed
     port backs off before it tries again (1 s, x1.6 per failure, up to 120 s): a ``connect()`` begun before the
@@ -428,6 +454,8 @@ async def connect_classic(port: int, timeout_s: float = 60.0) -> Any:
 
     from mavsdk_grpc import System
 
+    server.start()
+    port = server.port
     deadline = time.monotonic() + timeout_s
     while True:
         try:

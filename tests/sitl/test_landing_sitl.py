@@ -138,7 +138,7 @@ def _mavsdk_land(f: Flight, api: str, out_dir: Path) -> str:
         from mavsdk_grpc.action import ActionError
 
         script.step("connect")
-        drone = await connect_classic(grpc_port)
+        drone = await connect_classic(server)
         async for state in drone.core.connection_state():
             if state.is_connected:
                 break
@@ -154,7 +154,7 @@ def _mavsdk_land(f: Flight, api: str, out_dir: Path) -> str:
         ClientScript(f).run(native, hold)
     else:
         log = out_dir / "mavsdk_server.log"
-        with mavsdk_server(url, log) as grpc_port:
+        with mavsdk_server(url, log) as server:
             ClientScript(f, logs=(log,)).run(classic, hold)
     return seen["result"]
 

@@ -172,7 +172,7 @@ def _fly_mavsdk(f: Flight, api: str, out_dir: Path) -> dict[str, Any]:
         from mavsdk_grpc.telemetry import FlightMode
 
         script.step("connect")
-        drone = await connect_classic(grpc_port)
+        drone = await connect_classic(server)
         await asyncio.wait_for(_first(drone.core.connection_state(), lambda s: s.is_connected), 60.0)
         await _flight_plan(script, seen, f, drone.telemetry.flight_mode, FlightMode, drone.action, drone.offboard,
                            VelocityBodyYawspeed)
@@ -182,7 +182,7 @@ def _fly_mavsdk(f: Flight, api: str, out_dir: Path) -> dict[str, Any]:
     if api == "native":
         ClientScript(f).run(native)
     else:
-        with mavsdk_server(url, out_dir / "mavsdk_server.log") as grpc_port:
+        with mavsdk_server(url, out_dir / "mavsdk_server.log") as server:
             ClientScript(f, logs=(out_dir / "mavsdk_server.log",)).run(classic)
     f.run_for(3.0, None)
     return seen
@@ -309,7 +309,7 @@ def _land_beside_the_wall_classic(f: Flight, out_dir: Path) -> dict[str, Any]:
         from mavsdk_grpc.telemetry import FlightMode
 
         script.step("connect")
-        drone = await connect_classic(grpc_port)
+        drone = await connect_classic(server)
         await asyncio.wait_for(_first(drone.core.connection_state(), lambda s: s.is_connected), 60.0)
         script.step("arm")
         await drone.action.arm()
@@ -332,7 +332,7 @@ def _land_beside_the_wall_classic(f: Flight, out_dir: Path) -> dict[str, Any]:
         await drone.action.land()   # raises ActionError on COMMAND_DENIED
         seen["land_accepted"] = True
 
-    with mavsdk_server(url, out_dir / "mavsdk_server.log") as grpc_port:
+    with mavsdk_server(url, out_dir / "mavsdk_server.log") as server:
         ClientScript(f, logs=(out_dir / "mavsdk_server.log",)).run(classic)
     f.run_for(20.0, None, until=lambda: f.log.touchdown(seen["t_land"]) is not None and f.t_s > seen["t_land"] + 2)
     return seen
