@@ -13,6 +13,7 @@ the first frame) for the position/yaw outputs.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -30,8 +31,17 @@ class VelocityConfig:
     position_filter: OneEuroConfig = OneEuroConfig(min_cutoff_hz=2.0, beta=4.0, d_cutoff_hz=1.0)
     rotation_filter: OneEuroConfig = OneEuroConfig(min_cutoff_hz=3.0, beta=2.0, d_cutoff_hz=1.0)
     sigma_m_s: float = 0.05          # 1-sigma of each velocity component when the odometry is ok
-    sigma_lost_m_s: float = 1.0      # ... when it failed (the estimate is held)
+    sigma_lost_m_s: float = 1.0      # ... when it failed (the estimate is held, decaying)
     max_dt_s: float = 0.5            # a longer gap restarts the differentiation
+    lost_decay_s: float = 0.5        # while the odometry fails, the last velocity decays to 0 with this time
+                                     # constant (0: held as it was): the map's time update (eq. 14) moves on it,
+                                     # and the vehicle, in HOLD, brakes. Held, a wrong last reading (3.5 m/s of
+                                     # climb read in front of the SITL's black partition) moved the map 1 m in
+                                     # 0.6 s of failure and its floor became a wall at the vehicle's level
+
+    def __post_init__(self) -> None:
+        if not self.lost_decay_s >= 0.0:
+            raise ValueError(f"lost_decay_s must be >= 0 s, got {self.lost_decay_s}")
 
 
 @dataclass(frozen=True)
@@ -71,6 +81,7 @@ class VelocityEstimator:
         self._prev_p: list[float] | None = None
         self._prev_t: float | None = None
         self._last_v_c = np.zeros(3)
+        self._last_valid_s: float | None = None
         # the two covariances handed out (read-only, shared by every estimate)
         self._cov_ok = _read_only(np.eye(3) * self.config.sigma_m_s**2)
         self._cov_lost = _read_only(np.eye(3) * self.config.sigma_lost_m_s**2)
@@ -81,6 +92,7 @@ class VelocityEstimator:
         self._prev_p = None
         self._prev_t = None
         self._last_v_c = np.zeros(3)
+        self._last_valid_s = None
 
     def update(self, stamp_s: float, T_c0_ck: NDArray[np.float64], odometry_ok: bool, omega_q_rad_s: Vec3,
                roll_rad: float, pitch_rad: float) -> VelocityEstimate:
@@ -94,10 +106,13 @@ class VelocityEstimator:
                 dp = [(a - b) / dt for a, b in zip(p_hat, self._prev_p, strict=True)]
                 # eq. (10): R_hat^T dp / dT, as q_hat^-1 ⊗ dp ⊗ q_hat
                 self._last_v_c = np.array(qmul(qmul(_conj(q_hat), (0.0, *dp)), q_hat)[1:])
+                self._last_valid_s = stamp_s
                 valid = True
         if self._prev_t is None or stamp_s > self._prev_t:
             self._prev_p, self._prev_t = p_hat, stamp_s
         v_c = self._last_v_c
+        if not valid and cfg.lost_decay_s > 0.0 and self._last_valid_s is not None:
+            v_c = v_c * math.exp(-max(stamp_s - self._last_valid_s, 0.0) / cfg.lost_decay_s)
         wx, wy, wz = np.asarray(omega_q_rad_s, dtype=float).tolist()
         px, py, pz = self.p_qc_m.tolist()
         # eq. (12): - omega x Q p_C, written out (np.cross costs ~50 us on 3-vectors)

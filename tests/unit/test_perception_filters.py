@@ -141,6 +141,33 @@ def test_velocity_pure_translation_in_h() -> None:
     assert np.allclose(out.v_q_m_s, R.T @ v_w, atol=2e-3)
 
 
+def test_a_failed_odometrys_last_velocity_decays_to_zero() -> None:
+    """While the odometry fails the last velocity is not held for good (the map's time update moves on it): after
+    one decay time it is e^-1 of what it was, after three e^-3, and the next good frame measures again. Held
+    (``lost_decay_s`` 0), it stays (the control)."""
+    veh = load_vehicle()
+    R_qc, p_qc = veh.camera.R_qc_matrix, np.asarray(veh.camera.p_qc_m)
+    v_w = np.array([0.4, -0.2, 0.1])
+    times = np.arange(60) / 30
+    poses = _camera_pose_sequence(R_qc, p_qc, lambda t: (np.eye(3), v_w * t), times)
+
+    def fly(config: VelocityConfig) -> list:
+        est = VelocityEstimator(R_qc, p_qc, config)
+        out = [est.update(t, T, True, np.zeros(3), 0.0, 0.0) for t, T in zip(times[:30], poses[:30])]
+        t_ok = times[29]
+        out += [est.update(t_ok + dt, poses[29], False, np.zeros(3), 0.0, 0.0) for dt in (0.5, 1.5)]
+        return out
+
+    ok, one, three = fly(VelocityConfig(lost_decay_s=0.5))[-3:]
+    assert ok.valid and np.allclose(ok.v_h_m_s, v_w, atol=5e-3)
+    assert not one.valid and np.allclose(one.v_h_m_s, ok.v_h_m_s * math.exp(-1.0), atol=1e-9)
+    assert not three.valid and np.allclose(three.v_h_m_s, ok.v_h_m_s * math.exp(-3.0), atol=1e-9)
+    held = fly(VelocityConfig(lost_decay_s=0.0))[-1]
+    assert np.allclose(held.v_h_m_s, ok.v_h_m_s, atol=1e-9)
+    with pytest.raises(ValueError, match="lost_decay_s"):
+        VelocityConfig(lost_decay_s=-1.0)
+
+
 def test_velocity_constant_rotation_lever_arm_is_removed() -> None:
     """Yawing in place: the camera moves on a circle (lever arm), the body does not -> v ~ 0 (eq. 12)."""
     veh = load_vehicle()
