@@ -245,19 +245,12 @@ class RgbdOdometry:
         elif self._prev is not None and self._prev is not self._kf:
             pair = self.align(self._prev, cur, R_ckm1_ck_prior, T_pred)
             T_ckm1_ck = inv_T(pair.T_ck_ckm1)
-        if pair.ok and T_pred is not None and cfg.max_translation_jump_m > 0.0 \
+        if pair.ok and T_pred is not None and self._bridged == 0 and cfg.max_translation_jump_m > 0.0 \
                 and not restarted:   # a restart is not measured against the constant velocity it overturns
             # a multirotor cannot change its velocity by more than a few g: a per-frame translation far from the
-            # constant-velocity one is an alignment in a wrong basin, however good its photometric fit. After
-            # bridged frames the prediction is the last aligned motion carried on, and each bridged frame may have
-            # changed the velocity by as much again: the bound grows with them. Ungated there, the first alignment
-            # after a bridged frame was taken whatever it said: in front of the SITL's black partition two in a
-            # row read 1.1 and then 3.6 m/s of climb (the vehicle at 0.2 m/s), q 89 and 71, and the motion prior carried
-            # the 3.6 m/s on, moving the companion's pose 1 m down in five frames (its repulsion, on the map seen
-            # from there, pushed the vehicle toward the partition at 0.8 m/s)
+            # constant-velocity one is an alignment in a wrong basin, however good its photometric fit
             t_pred = inv_T(T_pred)[:3, 3]
-            bound_m = cfg.max_translation_jump_m * (1 + self._bridged)
-            if float(np.linalg.norm(T_ckm1_ck[:3, 3] - t_pred)) > bound_m:
+            if float(np.linalg.norm(T_ckm1_ck[:3, 3] - t_pred)) > cfg.max_translation_jump_m:
                 self.rejected_jumps += 1
                 pair = dataclasses.replace(pair, ok=False)
                 T_kf_ck = None

@@ -48,8 +48,7 @@ class OdometryConfig:
     max_rotation_rad: float = 0.6
     max_translation_jump_m: float = 0.03             # per-frame translation this far from the constant-velocity
                                                      # prediction is a wrong alignment (0.9 m/s gained in 33 ms
-                                                     # at 30 Hz, ~3 g; SITL: a hovering vehicle "jumped" 9 cm);
-                                                     # x (1 + n) after n bridged frames
+                                                     # at 30 Hz, ~3 g; SITL: a hovering vehicle "jumped" 9 cm)
     convergence_eps: float = 2e-5                    # |delta| (m, rad) below which a level stops
     coarse_convergence_px: float = 0.1               # update (in the level's pixels) below which a coarse level stops
     affine_brightness: bool = False                  # estimate a brightness gain and bias per pair (exposure)
