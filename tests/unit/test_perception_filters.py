@@ -143,8 +143,7 @@ def test_velocity_pure_translation_in_h() -> None:
 
 def test_a_failed_odometrys_last_velocity_decays_to_zero() -> None:
     """While the odometry fails the last velocity is not held for good (the map's time update moves on it): after
-    one decay time it is e^-1 of what it was, after three e^-3, and the next good frame measures again. Held
-    (``lost_decay_s`` 0), it stays (the control)."""
+    one decay time it is e^-1 of what it was, after three e^-3. Held (``lost_decay_s`` 0), it stays (the control)."""
     veh = load_vehicle()
     R_qc, p_qc = veh.camera.R_qc_matrix, np.asarray(veh.camera.p_qc_m)
     v_w = np.array([0.4, -0.2, 0.1])
