@@ -54,15 +54,18 @@ SWITCH_INTERVAL_S = 0.0005
 @click.option("--journal", "journal_path", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="journal every input the bridge handles, with its clocks and what it wrote "
                    "(firmware_bridge.journal; ~0.1 MB/s): `quadlink replay-bridge FILE` re-runs it bit for bit")
+@click.option("--tlog", "tlog_path", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              help="record every MAVLink packet sent on the ground-station links (--gcs-link) to this .tlog, as sent")
 def command(mk_cmd: str | None, mk_imu: str | None, mavlink_urls: tuple[str, ...], sysid: int | None,
             config_name: str, params_path: Path | None, rt_priority: int | None, duration: float | None,
             signing_key: Path | None, require_signing: bool | None, gcs_links: tuple[int, ...],
-            lockstep_url: str | None, journal_path: Path | None) -> None:
+            lockstep_url: str | None, journal_path: Path | None, tlog_path: Path | None) -> None:
     from firmware_bridge.daemon import BridgeConfig, BridgeDaemon
     from firmware_bridge.journal import JournalWriter
     from firmware_bridge.params import load_param_file
     from quadlink.config import to_dict
     from quadlink.errors import LinkError
+    from quadlink.mavlink.tlog import TlogWriter
 
     try:
         config = load_config(find_config(config_name), BridgeConfig)
@@ -105,12 +108,20 @@ def command(mk_cmd: str | None, mk_imu: str | None, mavlink_urls: tuple[str, ...
         except OSError as exc:
             raise LinkError(f"journal {journal_path}: {exc}") from exc
         log.info("journaling every input to %s (quadlink replay-bridge %s)", journal_path, journal_path)
-    daemon = BridgeDaemon(config, vehicle, params_path, journal=journal)
+    try:
+        tlog = TlogWriter(tlog_path) if tlog_path is not None else None
+    except OSError as exc:
+        if journal is not None:
+            journal.close()
+        raise LinkError(f"tlog {tlog_path}: {exc}") from exc
+    daemon = BridgeDaemon(config, vehicle, params_path, journal=journal, tlog=tlog)
     try:
         daemon.open()
     except BaseException:
         if journal is not None:
             journal.close()
+        if tlog is not None:
+            tlog.close()
         raise  # LinkError (a lock-step coordinator that never answers too) -> one-line error, exit 2
     previous = {sig: signal.signal(sig, lambda *_: daemon.stop()) for sig in STOP_SIGNALS}   # quadlink.signals
     log.info("bridge running (Ctrl-C to stop)")
@@ -125,6 +136,8 @@ def command(mk_cmd: str | None, mk_imu: str | None, mavlink_urls: tuple[str, ...
         daemon.close()
         if journal is not None:
             journal.close()
+        if tlog is not None:
+            tlog.close()
         for sig, handler in previous.items():
             signal.signal(sig, handler)
         s = daemon.stats

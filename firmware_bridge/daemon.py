@@ -69,6 +69,7 @@ from quadlink.lockstep import (
 from quadlink.mavlink import mavlink
 from quadlink.mavlink.connection import open_mavlink
 from quadlink.mavlink.security import SecurityConfig, enable_signing
+from quadlink.mavlink.tlog import TlogWriter
 from quadlink.mk import messages as mk
 from quadlink.mk.protocol import ADDR_FC, FrameDecoder, encode_frame
 from quadlink.realtime import MAX_PRIORITY
@@ -139,18 +140,23 @@ class BridgeDaemon:
 
     ``journal``: every input the main thread handles, every housekeeping turn, the clocks read and the bytes written
     in them (:mod:`firmware_bridge.journal`). ``daemon_clock``: the daemon's clock whatever the mode (a journal's
-    replay gives back the recorded readings)."""
+    replay gives back the recorded readings). ``tlog``: every packet sent on the ground-station links
+    (``config.ground_station_links``), as sent: what a ground station there receives, lossless."""
 
     def __init__(self, config: BridgeConfig, vehicle: VehicleConfig, params_path: Path | None = None,
                  clock: Callable[[], float] = time.monotonic, unix_clock: Callable[[], float] = time.time,
                  stream_opener: Callable[[str], ByteStream] = open_stream,
                  mavlink_opener: Callable[..., Any] = open_mavlink, journal: JournalWriter | None = None,
-                 daemon_clock: Callable[[], float] | None = None) -> None:
+                 daemon_clock: Callable[[], float] | None = None, tlog: TlogWriter | None = None) -> None:
         self.config = config
         self.vehicle = vehicle
         self.lockstep_mode = config.lockstep_url is not None
         self.journal = journal
         self._reader_clock = clock   # the reader threads' (never journaled: only the main thread writes the journal)
+        # what the ground-station links were sent, as sent; stamped on the Unix clock, never journaled (the stamps
+        # change nothing the bridge does)
+        self.tlog = tlog
+        self._tlog_clock = unix_clock
         self._step_t_s = 0.0  # lock-step: the current step's simulated time
         own_clock = daemon_clock or (self._step_clock if self.lockstep_mode else clock)
         if journal is not None:
@@ -624,6 +630,8 @@ class BridgeDaemon:
                     conn.mav.send(item.msg)
                     if self.journal is not None:
                         self.journal.mavlink_sent(i, item.msg.get_msgbuf())
+                    if self.tlog is not None and i in self.config.ground_station_links:
+                        self.tlog.write(item.msg.get_msgbuf(), self._tlog_clock())
                     self.stats.mavlink_out += 1
                 except (OSError, RuntimeError) as exc:  # RuntimeError: pymavlink udpin's client set changed
                     self.stats.send_errors += 1

@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import signal
+from pathlib import Path
 
 import click
 
@@ -39,6 +40,9 @@ log = logging.getLogger(__name__)
 @click.option("--camera-port", type=int, default=5762, show_default=True, help="camera stream TCP port")
 @click.option("--truth", default="udpout:127.0.0.1:14560", show_default=True,
               help="ground-truth MAVLink endpoint (udpout:HOST:PORT, 'none' to disable)")
+@click.option("--truth-tlog", "truth_tlog", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              help="also write every ground-truth packet to this .tlog as it is sent (lossless, unlike a UDP "
+                   "listener on a starved machine; with --truth none, only here)")
 @click.option("--duration", type=float, default=None, help="stop after this many simulated seconds")
 @click.option("--board", type=click.Choice(["model", "avr"]), default=None,
               help="what flies: the Python board model or the firmware binary in simavr (default: the config's, model)")
@@ -47,7 +51,7 @@ log = logging.getLogger(__name__)
 def command(scenario: str | None, config_path: str | None, lockstep: bool, lockstep_port: int | None,
             lockstep_participants: str, end_after_operator_s: float | None, speed: float | None,
             camera_res: str | None, no_camera: bool, renderer: RendererName | None, pty: bool, port1: int, port2: int,
-            camera_port: int, truth: str, duration: float | None, board: str | None,
+            camera_port: int, truth: str, truth_tlog: Path | None, duration: float | None, board: str | None,
             firmware_elf: str | None) -> None:
     from sim_sitl.runner import Sitl, SitlOptions, parse_resolution
 
@@ -71,7 +75,8 @@ def command(scenario: str | None, config_path: str | None, lockstep: bool, locks
         except ValueError as exc:
             raise ConfigError(f"--camera-res: {exc}") from exc
     opts = SitlOptions(config=cfg, scenario=scenario, port1=port1, port2=port2, camera_port=camera_port,
-                       camera=not no_camera, camera_res=res, truth_url=None if truth == "none" else truth, pty=pty,
+                       camera=not no_camera, camera_res=res, truth_url=None if truth == "none" else truth,
+                       truth_tlog=truth_tlog, pty=pty,
                        lockstep=lockstep or lockstep_port is not None, speed=speed, duration_s=duration,
                        lockstep_port=lockstep_port, end_after_operator_s=end_after_operator_s,
                        lockstep_participants=tuple(p.strip() for p in lockstep_participants.split(",") if p.strip()))

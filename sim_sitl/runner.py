@@ -17,11 +17,13 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
 from quadlink.camera import CameraStreamServer
 from quadlink.lockstep import DEFAULT_DONE_TIMEOUT_S, PARTICIPANTS, Coordinator, LockstepError, wait_for_units
+from quadlink.mavlink.tlog import TlogWriter
 from quadlink.mk.flags import BoardError
 from quadlink.mk.messages import ImuSample, encode_message
 from quadlink.vehicle import load_vehicle
@@ -51,6 +53,9 @@ class SitlOptions:
     camera: bool = True
     camera_res: tuple[int, int] | None = None  # (width, height); None = vehicle config
     truth_url: str | None = "udpout:127.0.0.1:14560"
+    # every truth packet also written here, as sent (a judge reads it whole: a listener's UDP socket may drop
+    # packets when its process is starved); None: not recorded
+    truth_tlog: Path | None = None
     pty: bool = False
     lockstep: bool = False
     speed: float | None = None  # None: real time (1.0), or unpaced while lock-step consumers gate; 0: unpaced
@@ -94,9 +99,11 @@ class Sitl:
     ``clock`` is the wall clock every wait and pacing decision reads (sim time is the vehicle's own).
     """
 
-    def __init__(self, options: SitlOptions | None = None, clock: Callable[[], float] = time.monotonic) -> None:
+    def __init__(self, options: SitlOptions | None = None, clock: Callable[[], float] = time.monotonic,
+                 unix_clock: Callable[[], float] = time.time) -> None:
         self.options = opts = options or SitlOptions()
         self._clock = clock
+        self.unix_clock = unix_clock   # the truth tlog's record stamps only
         cfg = opts.config
         self.vehicle = load_vehicle(cfg.vehicle)
         self.scenario = load_scenario(opts.scenario or cfg.scenario)
@@ -132,6 +139,13 @@ class Sitl:
         self.line2 = SerialLine(link.baud, link.bits_per_byte, link.tx_buffer_bytes, link.late_after_s)
         self.protocol = Port1Protocol()
         self.truth_encoder = TruthEncoder()
+        self.truth_tlog: TlogWriter | None = None
+        if opts.truth_tlog is not None:
+            try:
+                self.truth_tlog = TlogWriter(opts.truth_tlog)
+            except OSError:
+                self.close()
+                raise
         self._truth_period_s = 1.0 / cfg.truth_rate_hz
         self._next_truth_s = 0.0
         self._camera_period_s = 1.0 / self.vehicle.camera.rate_hz
@@ -222,6 +236,8 @@ class Sitl:
     def close(self) -> None:
         if hasattr(self, "ports"):
             self.ports.close()
+        if getattr(self, "truth_tlog", None) is not None:
+            self.truth_tlog.close()  # type: ignore[union-attr]   # later writes are ignored
         if getattr(self, "coordinator", None) is not None:
             self.coordinator.close()  # type: ignore[union-attr]
         if self._thread is None or not self._thread.is_alive():
@@ -442,7 +458,7 @@ class Sitl:
         if self.camera is not None and t + 1e-9 >= self._next_camera_s:
             self._next_camera_s += self._camera_period_s
             pending = self._render_camera(res.state, t)
-        if self.truth is not None and t + 1e-9 >= self._next_truth_s:
+        if (self.truth is not None or self.truth_tlog is not None) and t + 1e-9 >= self._next_truth_s:
             self._next_truth_s += self._truth_period_s
             self._send_truth(res.state, t)
         self._bytes_out[0] += len(out1)
@@ -511,11 +527,16 @@ class Sitl:
         return seq if gated and server.client_count > 0 else None
 
     def _send_truth(self, state: RigidState, t_s: float) -> None:
-        assert self.truth is not None
         any_m, obstacle_m = self.sim.world.nearest_distances(state.p_ned_m)
         p_local = state.p_ned_m - self.sim.world.start_p_ned_m
-        self.truth.send(self.truth_encoder.encode(t_s, p_local, state.v_ned_m_s, state.R_ned_q,
-                                                  state.omega_q_rad_s, any_m, obstacle_m))
+        packets = self.truth_encoder.encode(t_s, p_local, state.v_ned_m_s, state.R_ned_q, state.omega_q_rad_s,
+                                            any_m, obstacle_m)
+        if self.truth is not None:
+            self.truth.send(packets)
+        if self.truth_tlog is not None:
+            stamp_s = self.unix_clock()
+            for packet in packets:
+                self.truth_tlog.write(packet, stamp_s)
 
     # ------------------------------------------------------------------ serial I/O and the waits
     def _serve_serial(self, timeout_s: float = 0.0) -> int:

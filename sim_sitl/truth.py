@@ -35,6 +35,12 @@ class TruthEncoder:
         self.mav = mavlink.MAVLink(None, srcSystem=system_id, srcComponent=component_id)
         self._last_heartbeat_ms: int | None = None
 
+    def _pack(self, msg: object) -> bytes:
+        """Pack one message with the next sequence number (a listener counts its losses by them)."""
+        buf = bytes(msg.pack(self.mav))  # type: ignore[attr-defined]
+        self.mav.seq = (self.mav.seq + 1) % 256
+        return buf
+
     def encode(self, t_s: float, p_local_ned_m: NDArray[np.float64], v_ned_m_s: NDArray[np.float64],
                R_ned_q: NDArray[np.float64], omega_q_rad_s: NDArray[np.float64], nearest_any_m: float,
                nearest_obstacle_m: float) -> list[bytes]:
@@ -42,20 +48,19 @@ class TruthEncoder:
         out = []
         if self._last_heartbeat_ms is None or ms - self._last_heartbeat_ms >= 1000:
             self._last_heartbeat_ms = ms
-            out.append(mavlink.MAVLink_heartbeat_message(
-                mavlink.MAV_TYPE_QUADROTOR, mavlink.MAV_AUTOPILOT_INVALID, 0, 0, mavlink.MAV_STATE_ACTIVE, 3
-            ).pack(self.mav))
+            out.append(self._pack(mavlink.MAVLink_heartbeat_message(
+                mavlink.MAV_TYPE_QUADROTOR, mavlink.MAV_AUTOPILOT_INVALID, 0, 0, mavlink.MAV_STATE_ACTIVE, 3)))
         p, v = np.asarray(p_local_ned_m, dtype=float), np.asarray(v_ned_m_s, dtype=float)
-        out.append(mavlink.MAVLink_local_position_ned_message(ms, *map(float, p), *map(float, v)).pack(self.mav))
+        out.append(self._pack(mavlink.MAVLink_local_position_ned_message(ms, *map(float, p), *map(float, v))))
         q = [float(x) for x in quat_wxyz_from_R(R_ned_q)]
         w = [float(x) for x in np.asarray(omega_q_rad_s, dtype=float)]
-        out.append(mavlink.MAVLink_attitude_quaternion_message(ms, q[0], q[1], q[2], q[3], w[0], w[1], w[2],
-                                                               [0.0, 0.0, 0.0, 0.0]).pack(self.mav))
+        out.append(self._pack(mavlink.MAVLink_attitude_quaternion_message(ms, q[0], q[1], q[2], q[3], w[0], w[1], w[2],
+                                                                          [0.0, 0.0, 0.0, 0.0])))
         for sensor_id, d_m in ((TRUTH_SENSOR_ANY_SURFACE, nearest_any_m), (TRUTH_SENSOR_NON_FLOOR, nearest_obstacle_m)):
             d_cm = DISTANCE_MAX_CM + 1 if not math.isfinite(d_m) else min(int(round(d_m * 100.0)), DISTANCE_MAX_CM + 1)
-            out.append(mavlink.MAVLink_distance_sensor_message(
+            out.append(self._pack(mavlink.MAVLink_distance_sensor_message(
                 ms, 0, DISTANCE_MAX_CM, d_cm, mavlink.MAV_DISTANCE_SENSOR_UNKNOWN, sensor_id,
-                mavlink.MAV_SENSOR_ROTATION_NONE, 0, 0.0, 0.0, [0.0, 0.0, 0.0, 0.0], 100).pack(self.mav))
+                mavlink.MAV_SENSOR_ROTATION_NONE, 0, 0.0, 0.0, [0.0, 0.0, 0.0, 0.0], 100)))
         return out
 
 

@@ -161,7 +161,8 @@ def build_specs(scenario: str, script: Path, out_dir: Path, ports: Ports, lockst
     vehicle_port, image_port = (ports.vehicle_netem, ports.image_netem) if via_netem else (ports.vehicle, ports.image)
     sitl = SitlPart(scenario, lockstep=lockstep, deterministic=deterministic, end_after_operator_s=settle_s,
                     duration_s=duration_s if deterministic else float(f"{duration_s + SITL_DURATION_MARGIN_S:.0f}"),
-                    config=sitl_config, board=board, speed=None if speed == 1.0 else speed)
+                    config=sitl_config, board=board, speed=None if speed == 1.0 else speed,
+                    truth_tlog=out_dir / "truth.tlog")
     stepped: tuple[str, ...] = ()
     if deterministic:
         stepped = ("--lockstep", f"tcp://127.0.0.1:{ports.lockstep}")
@@ -184,7 +185,7 @@ def build_specs(scenario: str, script: Path, out_dir: Path, ports: Ports, lockst
         raise ConfigError(f"unknown operator {operator!r} (haptic or offboard)")
     return [
         sitl.spec(ports),
-        BridgePart(params, journal=out_dir / BRIDGE_JOURNAL_NAME if journal else None,
+        BridgePart(params, journal=out_dir / BRIDGE_JOURNAL_NAME if journal else None, tlog=out_dir / "bridge.tlog",
                    deterministic=deterministic).spec(ports),
         CompanionPart(companion_config, image_stream=view, tlog=out_dir / "companion.tlog", signing_key=signing_key,
                       record_frames=out_dir / "frames.qlcf" if record_frames else None,
@@ -236,8 +237,10 @@ def run_demo(scenario: str, duration_s: float, out_dir: Path, script: Path, lock
     ports = Ports(port_offset, port_base)
     stack = Stack(out_dir / "logs")
     recorder = Recorder()
-    recorder.record("truth", f"udpin:127.0.0.1:{ports.truth}", out_dir / "truth.tlog", is_truth=True)
-    recorder.record("bridge", f"udpin:127.0.0.1:{ports.gcs_bridge}", out_dir / "bridge.tlog")
+    # the live state (progress, the senders' check, armed for the settle); the logs are the senders' own (the
+    # SITL's --truth-tlog, the bridge's --tlog): a UDP listener in this process drops packets when it is starved
+    recorder.record("truth", f"udpin:127.0.0.1:{ports.truth}", None, is_truth=True)
+    recorder.record("bridge", f"udpin:127.0.0.1:{ports.gcs_bridge}", None)
     interrupted = False
     failure: ProcessDied | None = None
     proxies: LinkProxies | None = None

@@ -36,6 +36,7 @@ class SitlPart:
     config: str | None = None              # the SITL's configuration file (None: configs/sitl.yaml)
     board: str | None = None               # "avr": the FlightCtrl firmware's binary in simavr
     firmware_elf: Path | None = None
+    truth_tlog: Path | None = None         # the truth as sent, written by the SITL (the judge's record)
     ready_after_s: float = 4.0
 
     def spec(self, ports: Ports) -> ProcessSpec:
@@ -45,6 +46,8 @@ class SitlPart:
         # without truth, say so: the SITL's default sends it to the demo's truth port, where another flight's judge
         # may be listening (a test's SITL polluted a demo's truth track so)
         a += ["--truth", f"udpout:127.0.0.1:{ports.truth}" if self.truth else "none"]
+        if self.truth_tlog is not None:
+            a += ["--truth-tlog", str(self.truth_tlog)]
         if not self.camera:
             a.append("--no-camera")
         if self.duration_s is not None:
@@ -72,6 +75,7 @@ class BridgePart:
     params: Path | None = None
     outputs: tuple[str, ...] = ("autopilot", "gcs_bridge")
     journal: Path | None = None            # its input journal (quadlink replay-bridge)
+    tlog: Path | None = None               # what it sent to the ground station (``gcs_bridge``), as sent
     deterministic: bool = False            # a participant of the deterministic lock-step
     ready_after_s: float = 2.0
 
@@ -83,6 +87,8 @@ class BridgePart:
             a += ["--params", str(self.params)]
         if self.journal is not None:
             a += ["--journal", str(self.journal)]
+        if self.tlog is not None:
+            a += ["--tlog", str(self.tlog)]
         if self.deterministic:
             a += ["--lockstep", _lockstep_url(ports)]
         return ProcessSpec("bridge", tuple(a), ready_after_s=self.ready_after_s)

@@ -1,6 +1,10 @@
-"""Record MAVLink UDP streams to .tlog files while the demo flies, and keep the latest truth state.
+"""Watch MAVLink UDP streams while the demo flies (the latest truth state, the vehicle's armed state), and
+optionally record them to .tlog files.
 
-One thread per endpoint (blocking reads with a timeout); :meth:`Recorder.stop` joins them.
+One thread per endpoint (blocking reads with a timeout); :meth:`Recorder.stop` joins them. A listener's socket
+drops datagrams when its thread is starved, so the flight's logs are written by their senders (the SITL's
+``--truth-tlog``, the bridge's ``--tlog``); what this listener lost is counted from the MAVLink sequence numbers
+(:attr:`Recorder.lost`) and logged.
 """
 
 from __future__ import annotations
@@ -39,21 +43,25 @@ class Recorder:
         self.truth = TruthState()
         self.vehicle_armed: bool | None = None   # from the autopilot's HEARTBEAT on a non-truth stream
         self.counts: dict[str, int] = {}
+        self.lost: dict[str, int] = {}   # packets a stream's sequence numbers say this listener missed
         self._writers: list[TlogWriter] = []
         self.truth_senders: set[Any] = set()   # the addresses the truth came from: more than one voids the judgement
 
-    def record(self, name: str, url: str, path: Path, is_truth: bool = False) -> None:
+    def record(self, name: str, url: str, path: Path | None, is_truth: bool = False) -> None:
+        """Listen on ``url``; ``path``: also write what arrives to this .tlog (None: watch only)."""
         conn = open_mavlink(url, source_system=GROUND_SYSTEM_ID, source_component=GROUND_COMPONENT_ID)
-        writer = TlogWriter(path)
-        self._writers.append(writer)
+        writer = TlogWriter(path) if path is not None else None
+        if writer is not None:
+            self._writers.append(writer)
         self.counts[name] = 0
+        self.lost[name] = 0
         thread = threading.Thread(target=self._loop, args=(name, conn, writer, is_truth), name=f"rec-{name}",
                                   daemon=True)
         thread.start()
         self._threads.append(thread)
-        log.info("recording %s from %s to %s", name, url, path)
+        log.info("watching %s on %s%s", name, url, f", recording to {path}" if path is not None else "")
 
-    def _loop(self, name: str, conn: Any, writer: TlogWriter, is_truth: bool) -> None:
+    def _loop(self, name: str, conn: Any, writer: TlogWriter | None, is_truth: bool) -> None:
         try:
             while not self._stop.is_set():
                 self._on_message(name, conn.recv_match(blocking=True, timeout=0.2), writer, is_truth)
@@ -65,6 +73,10 @@ class Recorder:
                 self._on_message(name, msg, writer, is_truth)
             if is_truth:
                 self._note_senders(conn)
+            self.lost[name] = int(getattr(conn, "mav_loss", 0))
+            if self.lost[name]:
+                log.warning("%s: this listener missed at least %d of %d packets (a starved process; the sender's "
+                            "own log has them)", name, self.lost[name], self.lost[name] + self.counts[name])
         finally:
             conn.close()
 
@@ -78,10 +90,11 @@ class Recorder:
                 log.error("ground truth from %d senders (%s): another SITL sends to this port; the judgement is "
                           "void", len(self.truth_senders), ", ".join(f"{h}:{p}" for h, p in sorted(self.truth_senders)))
 
-    def _on_message(self, name: str, msg: Any, writer: TlogWriter, is_truth: bool) -> None:
+    def _on_message(self, name: str, msg: Any, writer: TlogWriter | None, is_truth: bool) -> None:
         if msg is None or msg.get_type() == "BAD_DATA":
             return
-        writer.write(msg.get_msgbuf(), time.time())
+        if writer is not None:
+            writer.write(msg.get_msgbuf(), time.time())
         self.counts[name] += 1
         if is_truth:
             self._update_truth(msg)

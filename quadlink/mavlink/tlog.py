@@ -7,16 +7,22 @@ the tools show plausible dates.
 
 from __future__ import annotations
 
+import logging
 import struct
 import threading
 from pathlib import Path
 from typing import Any, BinaryIO
 
 _STAMP = struct.Struct(">Q")
+log = logging.getLogger(__name__)
 
 
 class TlogWriter:
-    """Append MAVLink packets with their time to a .tlog file (thread-safe; flushes on close)."""
+    """Append MAVLink packets with their time to a .tlog file (thread-safe; flushes on close).
+
+    A write error (a full disk) stops the recording with one logged error and ``failed`` set, never the caller:
+    the flight loops that record must not stop for their log. Opening the file raises :class:`OSError` as usual.
+    """
 
     def __init__(self, path: str | Path) -> None:
         self.path = Path(path)
@@ -24,19 +30,35 @@ class TlogWriter:
         self._file: BinaryIO = open(self.path, "wb")  # noqa: SIM115 - closed in close()
         self._lock = threading.Lock()
         self.records = 0
+        self.failed: OSError | None = None
 
     def write(self, packet: bytes, stamp_s: float) -> None:
         """Log one raw MAVLink packet (``msg.get_msgbuf()``) taken at ``stamp_s`` (Unix seconds)."""
         with self._lock:
             if self._file.closed:
                 return
-            self._file.write(_STAMP.pack(int(stamp_s * 1e6)) + bytes(packet))
+            try:
+                self._file.write(_STAMP.pack(int(stamp_s * 1e6)) + bytes(packet))
+            except OSError as exc:
+                self._fail(exc)
+                return
             self.records += 1
+
+    def _fail(self, exc: OSError) -> None:
+        self.failed = exc
+        log.error("%s: recording stopped after %d packets: %s", self.path, self.records, exc)
+        try:
+            self._file.close()
+        except OSError:
+            pass   # the buffered tail cannot be written either
 
     def close(self) -> None:
         with self._lock:
             if not self._file.closed:
-                self._file.close()
+                try:
+                    self._file.close()
+                except OSError as exc:
+                    self._fail(exc)
 
     def __enter__(self) -> TlogWriter:
         return self

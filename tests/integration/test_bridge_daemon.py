@@ -29,6 +29,7 @@ from quadlink.errors import LinkError
 from quadlink.frames import GRAVITY_M_S2
 from quadlink.mavlink import mavlink
 from quadlink.mavlink.connection import open_mavlink
+from quadlink.mavlink.tlog import TlogWriter, read_tlog
 from quadlink.mk import messages as mk
 from quadlink.mk.protocol import ADDR_FC, FrameDecoder, encode_frame
 from quadlink.vehicle import VehicleConfig
@@ -290,3 +291,64 @@ def test_a_journaled_bridge_re_runs_bit_for_bit_and_a_changed_reading_is_found(g
     st.tuples(st.just("link"), st.sampled_from(["imu", "cmd"]), st.text(max_size=40))))
 def test_every_reader_item_survives_the_journal(item):
     assert decode_input(encode_input(item)) == item
+
+
+def test_the_tlog_holds_what_the_ground_station_link_was_sent_and_nothing_else(tmp_path):
+    """``--tlog``: every packet sent on the ground-station link (link 1), byte for byte and in order, as a ground
+    station there received it; the companion link's own replies (a parameter read asked on link 0) are not in it."""
+    board = FakeBoard(chunks=150)
+    companion = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    companion.bind(("127.0.0.1", 0))
+    ground = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    ground.bind(("127.0.0.1", 0))
+    config = BridgeConfig(mk_cmd_url=board.cmd_url, mk_imu_url=board.imu_url,
+                          mavlink_urls=(f"udpout:127.0.0.1:{companion.getsockname()[1]}",
+                                        f"udpout:127.0.0.1:{ground.getsockname()[1]}"),
+                          params_file=str(tmp_path / "p.yaml"))
+    tlog = TlogWriter(tmp_path / "bridge.tlog")
+    daemon = BridgeDaemon(config, VehicleConfig(), tlog=tlog)
+    received: dict[str, list[bytes]] = {"companion": [], "ground": []}
+    done = threading.Event()
+
+    def read(name: str, sock: socket.socket) -> None:   # read as it comes: a socket's buffer holds ~0.5 s of it
+        sock.settimeout(0.1)
+        while not done.is_set():
+            try:
+                received[name].append(sock.recv(65536))
+            except TimeoutError:
+                continue
+
+    readers = [threading.Thread(target=read, args=(n, s), daemon=True)
+               for n, s in (("companion", companion), ("ground", ground))]
+    for r in readers:
+        r.start()
+    daemon.open()
+    thread = threading.Thread(target=daemon.run, kwargs={"duration_s": 30.0}, daemon=True)
+    thread.start()
+    try:
+        deadline = time.monotonic() + 5.0
+        while not received["companion"] and time.monotonic() < deadline:
+            time.sleep(0.01)
+        ask = mavlink.MAVLink(None, 255, 190)
+        companion.sendto(ask.param_request_read_encode(1, 1, b"MIS_TAKEOFF_ALT", -1).pack(ask),
+                         ("127.0.0.1", daemon.mavlinks[0].port.getsockname()[1]))
+        board.thread.join(timeout=15.0)
+        time.sleep(0.3)   # the last datagrams in flight
+    finally:
+        daemon.stop()
+        thread.join(timeout=5.0)
+        daemon.close()
+        tlog.close()
+        done.set()
+        for r in readers:
+            r.join(timeout=2.0)
+        companion.close()
+        ground.close()
+        board.close()
+    logged = [bytes(m.get_msgbuf()) for _, m in read_tlog(tmp_path / "bridge.tlog")]
+    assert len(logged) > 700 and tlog.failed is None   # 1.5 s of board time: 750 HIGHRES_IMU alone
+    assert logged == received["ground"]
+    answered = [m for d in received["companion"] for m in mavlink.MAVLink(None).parse_buffer(d) or []
+                if m.get_type() == "PARAM_VALUE"]
+    assert [m.param_id for m in answered] == ["MIS_TAKEOFF_ALT"]   # asked on link 0, answered there only
+    assert not any(b"MIS_TAKEOFF_ALT" in p for p in logged)

@@ -44,3 +44,17 @@ def test_pymavlink_mavutil_reads_our_tlog(tmp_path: Path) -> None:
     finally:
         log.close()   # an unclosed file surfaced as an unraisable ResourceWarning in a later test
     assert types.count("TELEOP_FEEDBACK") == 20 and types.count("HEARTBEAT") == 20
+
+
+def test_a_full_disk_stops_the_recording_not_the_caller(caplog) -> None:
+    """/dev/full: every write fails with ENOSPC once the buffer is flushed; the writer logs it once, says so in
+    ``failed`` and ignores the rest (a flight loop that records must not stop for its log)."""
+    codec = mavlink.MAVLink(None, srcSystem=1, srcComponent=1)
+    packet = codec.heartbeat_encode(2, 12, 0, 0, 4).pack(codec)
+    log = TlogWriter("/dev/full")
+    for k in range(2000):   # ~60 kB: past any write buffer
+        log.write(packet, 1_700_000_000.0 + k)
+    log.close()
+    assert log.failed is not None and log.failed.errno == 28
+    assert 0 < log.records < 2000
+    assert [r.levelname for r in caplog.records if "recording stopped" in r.getMessage()] == ["ERROR"]

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from quadlink.mavlink import mavlink
+from quadlink.mavlink.tlog import read_tlog
 from quadlink.vehicle import load_vehicle
 from sim_sitl.config import RoomConfig, ScenarioConfig, SceneObject, SitlConfig, load_scenario
 from sim_sitl.runner import Sitl, SitlOptions
@@ -73,13 +74,15 @@ def test_floor_type_objects_are_excluded_from_the_obstacle_distance():
 
 
 @pytest.mark.sitl
-def test_truth_stream_over_udp_at_50_hz_in_sim_time():
+def test_truth_stream_over_udp_at_50_hz_in_sim_time(tmp_path):
+    """The stream over UDP, and the same packets in the SITL's own truth tlog (``--truth-tlog``), in order."""
     rx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     rx.bind(("127.0.0.1", 0))
     rx.settimeout(0.5)
     port = rx.getsockname()[1]
     opts = SitlOptions(config=SitlConfig(scenario="empty"), port1=0, port2=0, camera=False, speed=4.0,
-                       truth_url=f"udpout:127.0.0.1:{port}", duration_s=2.0, progress_every_s=60.0)
+                       truth_url=f"udpout:127.0.0.1:{port}", duration_s=2.0, progress_every_s=60.0,
+                       truth_tlog=tmp_path / "truth.tlog")
     sitl = Sitl(opts).start()
     packets = []
     try:
@@ -108,3 +111,5 @@ def test_truth_stream_over_udp_at_50_hz_in_sim_time():
     walls = [m.current_distance for m in d if m.id == 1]
     assert floor[-1] == pytest.approx(10, abs=1)  # CoM 10 cm above the floor (landing gear)
     assert walls[-1] == pytest.approx(500, abs=1)  # centre of the 10 m room
+    logged = [bytes(m.get_msgbuf()) for _, m in read_tlog(tmp_path / "truth.tlog")]
+    assert logged == packets and sitl.truth_tlog is not None and sitl.truth_tlog.failed is None
