@@ -15,5 +15,18 @@ echo "[test] mypy"
 .venv/bin/mypy quadlink harness firmware_bridge perception companion teleop sim_sitl
 echo "[test] mkdocs build --strict"
 .venv/bin/mkdocs build --strict --quiet --site-dir "$(mktemp -d)"
-echo "[test] pytest -m '$marker'"
-exec .venv/bin/python -m pytest -m "$marker" -q "$@"
+if [ "$#" -gt 0 ]; then   # the caller chose what to run: one process, as asked
+  echo "[test] pytest -m '$marker' $*"
+  exec .venv/bin/python -m pytest -m "$marker" -q "$@"
+fi
+# the pure tests (no sockets, no processes, no wall clock) on two workers; then everything else in one process:
+# the flights and the real-time tests measure timing and must not share the machine with each other
+echo "[test] pytest -m '$marker' tests/unit tests/protocol on 2 workers"
+status=0
+.venv/bin/python -m pytest -m "$marker" -q -n 2 tests/unit tests/protocol || status=$?
+[ "$status" = 5 ] && status=0   # 5: nothing selected (the slow set has no pure tests)
+echo "[test] pytest -m '$marker' (the rest)"
+rest=0
+.venv/bin/python -m pytest -m "$marker" -q --ignore=tests/unit --ignore=tests/protocol || rest=$?
+[ "$rest" = 5 ] && rest=0
+[ "$status" = 0 ] && [ "$rest" = 0 ]

@@ -15,11 +15,19 @@ from pathlib import Path
 import pytest
 
 from companion.replay import replay_journal
+from firmware_bridge.replay import replay_bridge_journal
 from harness.campaign.draws import StarvationRange, draw_flight
 from harness.campaign.runner import CampaignOptions, fly, run_campaign
 from harness.campaign.safety import envelope, read_truth
 from harness.cpu_share import CpuShare, CpuShareUnavailable
-from harness.demo.cli import PORT_BLOCK_SIZE, compare_reports, run_demo
+from harness.demo.cli import (
+    BRIDGE_JOURNAL_NAME,
+    JOURNAL_NAME,
+    PORT_BLOCK_SIZE,
+    TELEOP_JOURNAL_NAME,
+    compare_reports,
+    run_demo,
+)
 from harness.demo.report import compute_report, load_flight
 from harness.ports import PORT_SLOT_STRIDE, free_port_base, free_port_offset
 from quadlink import CONFIG_DIR
@@ -29,6 +37,7 @@ from quadlink.mavlink.tlog import read_tlog
 from quadlink.safety import CLEARANCE_BOUND_M
 from sim_sitl.config import ScenarioConfig, load_scenario
 from sim_sitl.scenario_gen import nearest_obstacle_2d
+from teleop.replay import replay_teleop_journal
 
 pytestmark = pytest.mark.sitl
 
@@ -158,10 +167,16 @@ def test_same_seed_twice_gives_identical_metrics(tmp_path: Path) -> None:
     for log in ("truth.tlog", "companion.tlog", "bridge.tlog"):
         a, b = _payloads(Path(first.folder) / log), _payloads(Path(second.folder) / log)
         assert len(a) > 1000 and a == b, log
-    # and the journal re-runs that companion byte for byte (quadlink replay-companion)
-    assert not (Path(first.folder) / "companion.qljn").exists()
-    replay = replay_journal(Path(second.folder) / "companion.qljn")
+    # and the journals re-run their processes byte for byte (issue 28): the companion, the bridge, the ground station
+    # (the longer journaled flight, with the commands' exit statuses, is test_companion_journal_sitl.py: slow)
+    assert not (Path(first.folder) / JOURNAL_NAME).exists()
+    replay = replay_journal(Path(second.folder) / JOURNAL_NAME)
     assert replay.divergence is None and replay.by_kind.get("FRAME", 0) > 300, replay
+    bridge = replay_bridge_journal(Path(second.folder) / BRIDGE_JOURNAL_NAME)
+    assert bridge.identical and bridge.writes_compared > 5000, bridge.summary()
+    assert first.draws["operator"]["kind"] == "haptic"   # the draw this test pins: a ground station to re-run
+    teleop = replay_teleop_journal(Path(second.folder) / TELEOP_JOURNAL_NAME)
+    assert teleop.identical and teleop.writes_compared > 1000, teleop.summary()
 
 
 def test_a_starved_real_time_campaign_flight_holds_its_share_and_reports_its_latency(tmp_path: Path) -> None:

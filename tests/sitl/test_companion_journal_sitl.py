@@ -40,6 +40,7 @@ steps:
 """
 
 
+@pytest.mark.slow   # CI: the same-seed campaign test re-runs the three journals of its flight (the CI suite's time)
 def test_a_flights_companion_re_runs_from_its_journal_bit_for_bit(tmp_path: Path) -> None:
     script = tmp_path / "operator.yaml"
     script.write_text(SCRIPT)
