@@ -239,8 +239,8 @@ def run_demo(scenario: str, duration_s: float, out_dir: Path, script: Path, lock
     recorder = Recorder()
     # the live state (progress, the senders' check, armed for the settle); the logs are the senders' own (the
     # SITL's --truth-tlog, the bridge's --tlog): a UDP listener in this process drops packets when it is starved
-    recorder.record("truth", f"udpin:127.0.0.1:{ports.truth}", None, is_truth=True)
-    recorder.record("bridge", f"udpin:127.0.0.1:{ports.gcs_bridge}", None)
+    recorder.watch("truth", f"udpin:127.0.0.1:{ports.truth}", is_truth=True)
+    recorder.watch("bridge", f"udpin:127.0.0.1:{ports.gcs_bridge}")
     interrupted = False
     failure: ProcessDied | None = None
     proxies: LinkProxies | None = None

@@ -1,5 +1,5 @@
-"""Watch MAVLink UDP streams while the demo flies (the latest truth state, the vehicle's armed state), and
-optionally record them to .tlog files.
+"""Watch MAVLink UDP streams while the demo flies (the latest truth state, the vehicle's armed state, the truth's
+senders); it records nothing.
 
 One thread per endpoint (blocking reads with a timeout); :meth:`Recorder.stop` joins them. A listener's socket
 drops datagrams when its thread is starved, so the flight's logs are written by their senders (the SITL's
@@ -11,15 +11,12 @@ from __future__ import annotations
 
 import logging
 import threading
-import time
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Any
 
 from quadlink.ids import GROUND_COMPONENT_ID, GROUND_SYSTEM_ID, TRUTH_SENSOR_ANY_SURFACE, TRUTH_SENSOR_NON_FLOOR
 from quadlink.mavlink import mavlink
 from quadlink.mavlink.connection import open_mavlink
-from quadlink.mavlink.tlog import TlogWriter
 
 log = logging.getLogger(__name__)
 
@@ -44,33 +41,28 @@ class Recorder:
         self.vehicle_armed: bool | None = None   # from the autopilot's HEARTBEAT on a non-truth stream
         self.counts: dict[str, int] = {}
         self.lost: dict[str, int] = {}   # packets a stream's sequence numbers say this listener missed
-        self._writers: list[TlogWriter] = []
         self.truth_senders: set[Any] = set()   # the addresses the truth came from: more than one voids the judgement
 
-    def record(self, name: str, url: str, path: Path | None, is_truth: bool = False) -> None:
-        """Listen on ``url``; ``path``: also write what arrives to this .tlog (None: watch only)."""
+    def watch(self, name: str, url: str, is_truth: bool = False) -> None:
+        """Listen on ``url`` until :meth:`stop`."""
         conn = open_mavlink(url, source_system=GROUND_SYSTEM_ID, source_component=GROUND_COMPONENT_ID)
-        writer = TlogWriter(path) if path is not None else None
-        if writer is not None:
-            self._writers.append(writer)
         self.counts[name] = 0
         self.lost[name] = 0
-        thread = threading.Thread(target=self._loop, args=(name, conn, writer, is_truth), name=f"rec-{name}",
-                                  daemon=True)
+        thread = threading.Thread(target=self._loop, args=(name, conn, is_truth), name=f"rec-{name}", daemon=True)
         thread.start()
         self._threads.append(thread)
-        log.info("watching %s on %s%s", name, url, f", recording to {path}" if path is not None else "")
+        log.info("watching %s on %s", name, url)
 
-    def _loop(self, name: str, conn: Any, writer: TlogWriter | None, is_truth: bool) -> None:
+    def _loop(self, name: str, conn: Any, is_truth: bool) -> None:
         try:
             while not self._stop.is_set():
-                self._on_message(name, conn.recv_match(blocking=True, timeout=0.2), writer, is_truth)
+                self._on_message(name, conn.recv_match(blocking=True, timeout=0.2), is_truth)
                 if is_truth:
                     self._note_senders(conn)
             # what the senders sent before they stopped is still in the socket: a log cut short at a moment of
             # the wall clock would make two identical flights' logs differ (issue 15)
             while (msg := conn.recv_match(blocking=False)) is not None:
-                self._on_message(name, msg, writer, is_truth)
+                self._on_message(name, msg, is_truth)
             if is_truth:
                 self._note_senders(conn)
             self.lost[name] = int(getattr(conn, "mav_loss", 0))
@@ -90,11 +82,9 @@ class Recorder:
                 log.error("ground truth from %d senders (%s): another SITL sends to this port; the judgement is "
                           "void", len(self.truth_senders), ", ".join(f"{h}:{p}" for h, p in sorted(self.truth_senders)))
 
-    def _on_message(self, name: str, msg: Any, writer: TlogWriter | None, is_truth: bool) -> None:
+    def _on_message(self, name: str, msg: Any, is_truth: bool) -> None:
         if msg is None or msg.get_type() == "BAD_DATA":
             return
-        if writer is not None:
-            writer.write(msg.get_msgbuf(), time.time())
         self.counts[name] += 1
         if is_truth:
             self._update_truth(msg)
@@ -119,5 +109,3 @@ class Recorder:
         self._stop.set()
         for thread in self._threads:
             thread.join(timeout=2.0)
-        for writer in self._writers:
-            writer.close()
