@@ -30,6 +30,7 @@ from harness.demo.cli import (
     run_demo,
 )
 from harness.demo.report import compute_report, load_flight
+from harness.machine_speed import REFERENCE_WORK_CPU_S, STARVED_CORES_AT_REFERENCE, scaled_cores, work_cpu_s
 from harness.ports import PORT_SLOT_STRIDE, free_port_base, free_port_offset
 from quadlink import CONFIG_DIR
 from quadlink.config import load_config
@@ -183,27 +184,29 @@ def test_same_seed_twice_gives_identical_metrics(tmp_path: Path) -> None:
     assert teleop.identical and teleop.writes_compared > 1000, teleop.summary()
 
 
-@pytest.mark.slow   # the share is in absolute cores, and this machine now runs the code ~2.2x slower than when it was
-#                     chosen (bench_companion on 7e86f17: 0.265 then, 0.597 core-s/s now): CI on 39d0bc8 failed the
-#                     mobility bounds here (flying 2.56 s; moved 0.34 m), the clearance held. Back in CI once the share
-#                     is relative to a measured machine speed (docs/changelog.md, round 3)
+@pytest.mark.slow   # a 25 s real-time flight: CI's time (it left CI on 39d0bc8 when its share was in absolute cores
+#                     and this machine ran ~2x slower than when the share was chosen)
 def test_a_starved_real_time_campaign_flight_holds_its_share_and_reports_its_latency(tmp_path: Path) -> None:
-    """Issue 30: a campaign flight in real time with the bridge and the companion held to 0.35 core beside a busy
-    process (the draw pinned to one share): the share was applied (the kernel throttled it), the companion's data
-    age is in the report, and the honest judge finds the envelope kept."""
+    """Issue 30: a campaign flight in real time with the bridge and the companion held to 0.35 core of the machine
+    that validated it (scaled to this machine's speed now, harness/machine_speed.py) beside a busy process (the draw
+    pinned to one share): the share was applied (the kernel throttled it), the companion's data age is in the
+    report, and the honest judge finds the envelope kept."""
     try:
         with CpuShare(1.0):
             pass
     except CpuShareUnavailable as exc:
         pytest.skip(f"no CPU share can be set here: {exc}")
+    work_s = work_cpu_s()
+    cores = round(scaled_cores(STARVED_CORES_AT_REFERENCE, work_s, REFERENCE_WORK_CPU_S), 3)
+    print(f"share {cores} core (the work took {work_s:.3f} s, {REFERENCE_WORK_CPU_S:.3f} s at the reference)")
     options = CampaignOptions(1, 20261205, tmp_path, duration_s=25.0, parallel=1,
                               port_offset=OFFSET + 2 * PORT_SLOT_STRIDE, deterministic=False, realtime=True,
-                              starve=StarvationRange(0.35, 0.35, 1.0))
+                              starve=StarvationRange(cores, cores, 1.0))
     (r,) = run_campaign(options, echo=lambda s: None)
     assert r.status == "ok", r.failure
-    assert r.draws["starvation"] == {"cpu_cores": 0.35, "busy_neighbours": 1}
+    assert r.draws["starvation"] == {"cpu_cores": cores, "busy_neighbours": 1}
     share = r.report["cpu_share"]
-    assert share["cores"] == 0.35 and share["throttled_s"] > 0.0, share
+    assert share["cores"] == cores and share["throttled_s"] > 0.0, share
     age = r.report["data_age_ms"]
     assert age["samples"] >= 15 and 0.0 < age["p50"] < age["max"], age
     # a mobility bound: starved, the odometry may be lost in the air and the bridge lands (its failsafe), and the

@@ -1,8 +1,9 @@
-"""Issue 30: the envelope on a starved CPU. The companion and the bridge held to 0.35 of a core (CFS bandwidth
-control over a 20 ms period: an Odroid-class budget for this machine) with a busy process beside the stack, an
-operator pushing toward the south wall for 30 s in real time, the shipped failsafe timeouts: the vehicle keeps
-0.40 m from every surface, failsafes included. Without a cgroup to use (no root), two busy neighbours starve it
-instead, and the test says so."""
+"""Issue 30: the envelope on a starved CPU. The companion and the bridge held to 0.35 of a core of this machine as
+it ran when that share was validated (CFS bandwidth control over a 20 ms period: an Odroid-class budget), scaled to
+the machine's speed now (harness/machine_speed.py), with a busy process beside the stack, an operator pushing
+toward the south wall for 30 s in real time, the shipped failsafe timeouts: the vehicle keeps 0.40 m from every
+surface, failsafes included. Without a cgroup to use (no root), two busy neighbours starve it instead, and the test
+says so."""
 
 from __future__ import annotations
 
@@ -15,12 +16,12 @@ import pytest
 from flight_harness import flight
 
 from harness.cpu_share import BusyNeighbour, CpuShare, CpuShareUnavailable
+from harness.machine_speed import REFERENCE_WORK_CPU_S, STARVED_CORES_AT_REFERENCE, scaled_cores, work_cpu_s
 from harness.ports import free_port_offset
 
 pytestmark = [pytest.mark.sitl, pytest.mark.timeout(900)]
 
 MIN_CLEARANCE_M = 0.40
-COMPANION_CORES = 0.35
 OFFSET = free_port_offset()   # harness.ports: free now, reserved for this session
 
 
@@ -32,16 +33,17 @@ def _status_figures(log: Path) -> list[tuple[float, float]]:
     return out
 
 
-@pytest.mark.slow   # the share is in absolute cores, and this machine now runs the code ~2.2x slower than when it was
-#                     chosen (bench_companion on 7e86f17: 0.265 then, 0.597 core-s/s now): CI on 39d0bc8 failed the
-#                     mobility bounds here (flying 2.56 s; moved 0.34 m), the clearance held. Back in CI once the share
-#                     is relative to a measured machine speed (docs/changelog.md, round 3)
+@pytest.mark.slow   # a 30 s real-time flight (~2.5 min): CI's time (it left CI on 39d0bc8 when its share was in
+#                     absolute cores and this machine ran ~2x slower than when the share was chosen)
 def test_a_starved_companion_pushed_into_a_wall_keeps_its_distance(tmp_path: Path) -> None:
+    work_s = work_cpu_s()
+    cores = round(scaled_cores(STARVED_CORES_AT_REFERENCE, work_s, REFERENCE_WORK_CPU_S), 3)
     with contextlib.ExitStack() as stack:
         try:
-            share: CpuShare | None = stack.enter_context(CpuShare(COMPANION_CORES))
+            share: CpuShare | None = stack.enter_context(CpuShare(cores))
             stack.enter_context(BusyNeighbour(1))
-            how = f"{COMPANION_CORES} core (cgroup v{share.version}) + a busy neighbour"
+            how = (f"{cores} core (0.35 core of the machine that validated it: the work took {work_s:.3f} s, "
+                   f"{REFERENCE_WORK_CPU_S:.3f} s at the reference; cgroup v{share.version}) + a busy neighbour")
         except CpuShareUnavailable as exc:
             share = None
             stack.enter_context(BusyNeighbour(2))
