@@ -29,13 +29,7 @@ from pathlib import Path
 from harness.campaign.draws import StarvationRange
 from harness.campaign.runner import CampaignOptions, FlightResult, run_campaign
 from harness.cpu_share import CpuShare, CpuShareUnavailable
-from harness.machine_speed import (
-    REFERENCE_DATE,
-    REFERENCE_WORK_CPU_S,
-    STARVED_CORES_AT_REFERENCE,
-    scaled_cores,
-    work_cpu_s,
-)
+from harness.machine_speed import REFERENCE_DATE, REFERENCE_WORK_CPU_S, starved_cores, work_cpu_s
 from quadlink.safety import CLEARANCE_BOUND_M
 
 
@@ -75,7 +69,7 @@ def main() -> int:
     work_s = work_cpu_s()
     print(f"machine speed: the fixed work took {work_s:.3f} CPU-s ({REFERENCE_WORK_CPU_S:.3f} s on the reference, "
           f"{REFERENCE_DATE}): 1 core here is {REFERENCE_WORK_CPU_S / work_s:.2f} core there; the starved flights' "
-          f"validated 0.35 core is {scaled_cores(STARVED_CORES_AT_REFERENCE, work_s, REFERENCE_WORK_CPU_S):.2f} core "
+          f"validated 0.35 core is {starved_cores(work_s):.2f} core "
           "here (harness/machine_speed.py)")
     figures: dict[str, dict[str, object]] = {}
     for share in shares:

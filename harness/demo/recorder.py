@@ -59,8 +59,8 @@ class Recorder:
                 self._on_message(name, conn.recv_match(blocking=True, timeout=0.2), is_truth)
                 if is_truth:
                     self._note_senders(conn)
-            # what the senders sent before they stopped is still in the socket: a log cut short at a moment of
-            # the wall clock would make two identical flights' logs differ (issue 15)
+            # what the senders sent before they stopped is still in the socket: read it, so the counts, the missed
+            # packets and the truth senders' check cover the whole flight
             while (msg := conn.recv_match(blocking=False)) is not None:
                 self._on_message(name, msg, is_truth)
             if is_truth:

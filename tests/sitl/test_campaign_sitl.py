@@ -30,7 +30,7 @@ from harness.demo.cli import (
     run_demo,
 )
 from harness.demo.report import compute_report, load_flight
-from harness.machine_speed import REFERENCE_WORK_CPU_S, STARVED_CORES_AT_REFERENCE, scaled_cores, work_cpu_s
+from harness.machine_speed import REFERENCE_WORK_CPU_S, starved_cores, work_cpu_s
 from harness.ports import PORT_SLOT_STRIDE, free_port_base, free_port_offset
 from quadlink import CONFIG_DIR
 from quadlink.config import load_config
@@ -197,7 +197,7 @@ def test_a_starved_real_time_campaign_flight_holds_its_share_and_reports_its_lat
     except CpuShareUnavailable as exc:
         pytest.skip(f"no CPU share can be set here: {exc}")
     work_s = work_cpu_s()
-    cores = round(scaled_cores(STARVED_CORES_AT_REFERENCE, work_s, REFERENCE_WORK_CPU_S), 3)
+    cores = starved_cores(work_s)
     print(f"share {cores} core (the work took {work_s:.3f} s, {REFERENCE_WORK_CPU_S:.3f} s at the reference)")
     options = CampaignOptions(1, 20261205, tmp_path, duration_s=25.0, parallel=1,
                               port_offset=OFFSET + 2 * PORT_SLOT_STRIDE, deterministic=False, realtime=True,

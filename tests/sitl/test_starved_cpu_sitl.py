@@ -16,7 +16,7 @@ import pytest
 from flight_harness import flight
 
 from harness.cpu_share import BusyNeighbour, CpuShare, CpuShareUnavailable
-from harness.machine_speed import REFERENCE_WORK_CPU_S, STARVED_CORES_AT_REFERENCE, scaled_cores, work_cpu_s
+from harness.machine_speed import REFERENCE_WORK_CPU_S, starved_cores, work_cpu_s
 from harness.ports import free_port_offset
 
 pytestmark = [pytest.mark.sitl, pytest.mark.timeout(900)]
@@ -37,7 +37,7 @@ def _status_figures(log: Path) -> list[tuple[float, float]]:
 #                     absolute cores and this machine ran ~2x slower than when the share was chosen)
 def test_a_starved_companion_pushed_into_a_wall_keeps_its_distance(tmp_path: Path) -> None:
     work_s = work_cpu_s()
-    cores = round(scaled_cores(STARVED_CORES_AT_REFERENCE, work_s, REFERENCE_WORK_CPU_S), 3)
+    cores = starved_cores(work_s)
     with contextlib.ExitStack() as stack:
         try:
             share: CpuShare | None = stack.enter_context(CpuShare(cores))
