@@ -167,6 +167,8 @@ class RgbdOdometry:
         self.restarts = 0                        # frames aligned again from rest (restart_from_rest)
         self.lost = 0                            # frames not aligned and without a motion prior (pose held)
         self._bridged = 0                        # consecutive bridged frames (the constant velocity's age)
+        self._bridged_s = 0.0                    # time from the last aligned frame to the previous frame
+        self._refused_v_m_s: NDArray[np.float64] | None = None   # the previous frame's alignment, if refused
 
     def reset(self) -> None:
         self._kf = self._prev = self._kf_prev = None
@@ -176,6 +178,8 @@ class RgbdOdometry:
         self._T_c0_ck = np.eye(4)
         self._last_motion = None
         self._bridged = 0
+        self._bridged_s = 0.0
+        self._refused_v_m_s = None
 
     @property
     def T_c0_ck(self) -> Mat4:
@@ -245,24 +249,35 @@ class RgbdOdometry:
         elif self._prev is not None and self._prev is not self._kf:
             pair = self.align(self._prev, cur, R_ckm1_ck_prior, T_pred)
             T_ckm1_ck = inv_T(pair.T_ck_ckm1)
-        if pair.ok and T_pred is not None and self._bridged == 0 and cfg.max_translation_jump_m > 0.0 \
+        refused_v_m_s: NDArray[np.float64] | None = None
+        if pair.ok and T_pred is not None and cfg.max_translation_jump_m > 0.0 \
                 and not restarted:   # a restart is not measured against the constant velocity it overturns
             # a multirotor cannot change its velocity by more than a few g: a per-frame translation far from the
-            # constant-velocity one is an alignment in a wrong basin, however good its photometric fit
-            t_pred = inv_T(T_pred)[:3, 3]
-            if float(np.linalg.norm(T_ckm1_ck[:3, 3] - t_pred)) > cfg.max_translation_jump_m:
+            # constant-velocity one is an alignment in a wrong basin, however good its photometric fit. Through
+            # bridged frames the velocity is the last aligned one carried on, so the bound also holds after them
+            t_pred, t_m = inv_T(T_pred)[:3, 3], T_ckm1_ck[:3, 3]
+            bound_m = self._jump_bound_m(dt_s)
+            # unless the frame before was refused and this one agrees with it: two alignments in a row that
+            # agree with each other and not with the carried velocity say the carried one was wrong
+            seconded = self._refused_v_m_s is not None \
+                and float(np.linalg.norm(t_m - self._refused_v_m_s * dt_s)) <= bound_m
+            if float(np.linalg.norm(t_m - t_pred)) > bound_m and not seconded:
                 self.rejected_jumps += 1
                 pair = dataclasses.replace(pair, ok=False)
                 T_kf_ck = None
+                refused_v_m_s = t_m / dt_s
+        self._refused_v_m_s = refused_v_m_s
         bridged = False
         if pair.ok:
             self._bridged = 0
+            self._bridged_s = 0.0
             self._last_motion = (inv_T(T_ckm1_ck), dt_s)
         else:
             T_ckm1_ck, bridged = self._motion_prior(T_pred, R_ckm1_ck_prior)
             if bridged:
                 self.fallbacks += 1
                 self._bridged += 1
+                self._bridged_s += max(dt_s, 0.0)
             else:
                 self.lost += 1
             # the constant velocity carries on through bridged frames (and ends with them)
@@ -403,6 +418,17 @@ class RgbdOdometry:
                 or float(np.linalg.norm(T_kf_ck[:3, 3])) > cfg.keyframe_max_translation_m
                 or float(np.linalg.norm(so3_log(T_kf_ck[:3, :3]))) > cfg.keyframe_max_rotation_rad)
 
+    def _jump_bound_m(self, dt_s: float) -> float:
+        """How far a frame's translation may be from the constant-velocity prediction (the jump gate): the fixed
+        ``max_translation_jump_m``, or, when it is more (long or bridged intervals), how far ``max_acceleration_m_s2``
+        takes the step off the prediction: the carried velocity is the last aligned pair's mean, half its interval
+        old, and the time since that pair runs on through the bridged frames: ``a (t + dt) (t + dt + dt_last) / 2``
+        (``a dt^2`` at a steady rate)."""
+        cfg = self.config
+        dt_last = self._last_motion[1] if self._last_motion is not None else 0.0
+        t_s = self._bridged_s + max(dt_s, 0.0)
+        return max(cfg.max_translation_jump_m, 0.5 * cfg.max_acceleration_m_s2 * t_s * (t_s + dt_last))
+
     def _predict(self, dt_s: float) -> Mat4 | None:
         """Constant-velocity guess of ``T_ck_ckm1`` (DVO's motion prior as the starting point): the last pair's
         twist scaled to this frame interval; None after a failure or for a non-positive interval."""
@@ -411,7 +437,9 @@ class RgbdOdometry:
         T_last, dt_last = self._last_motion
         if dt_s <= 0.0 or dt_last <= 0.0:
             return None
-        f = min(dt_s / dt_last, 3.0)
+        # the velocity is carried at its value whatever the interval: a starved reader's long or irregular
+        # intervals, and bridged frames, scale the motion, not the velocity
+        f = dt_s / dt_last
         w = so3_log(T_last[:3, :3]) * f
         T = se3_exp(np.concatenate([np.zeros(3), w]))
         T[:3, 3] = T_last[:3, 3] * f

@@ -49,6 +49,10 @@ class OdometryConfig:
     max_translation_jump_m: float = 0.03             # per-frame translation this far from the constant-velocity
                                                      # prediction is a wrong alignment (0.9 m/s gained in 33 ms
                                                      # at 30 Hz, ~3 g; SITL: a hovering vehicle "jumped" 9 cm)
+    max_acceleration_m_s2: float = 10.0              # the most a multirotor's velocity changes per second (1 g;
+                                                     # its tracker: 25 deg of tilt, 4.6 m/s^2 level, 0.6 g down):
+                                                     # at intervals past 55 ms (a starved reader) or over bridged
+                                                     # frames the jump bound grows with it (RgbdOdometry._jump_bound_m)
     convergence_eps: float = 2e-5                    # |delta| (m, rad) below which a level stops
     coarse_convergence_px: float = 0.1               # update (in the level's pixels) below which a coarse level stops
     affine_brightness: bool = False                  # estimate a brightness gain and bias per pair (exposure)
