@@ -20,12 +20,16 @@ does) and all telemetry at full rate.
 which plays the board and the companion, under ``SCHED_FIFO`` (the hardware does not wait for a CPU), so that
 the figure is the bridge's own tail; ``--rt-priority N`` starts the bridge with ``--rt-priority N``.
 
-    python benchmarks/bench_bridge.py [--seconds 20] [--busy] [--rt-priority 20]
+``--cpu-share CORES`` holds the bridge to that much CPU (a CFS share, ``harness.cpu_share``; needs root): a starved
+board, where the bridge merges the IMU samples it is late for instead of queueing them.
+
+    python benchmarks/bench_bridge.py [--seconds 20] [--busy] [--rt-priority 20] [--cpu-share 0.15]
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import math
 import os
 import re
@@ -44,6 +48,7 @@ import psutil
 REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
 
+from harness.cpu_share import CpuShare  # noqa: E402
 from quadlink.frames import GRAVITY_M_S2  # noqa: E402
 from quadlink.mavlink import mavlink  # noqa: E402
 from quadlink.mk import messages as mk  # noqa: E402
@@ -66,7 +71,15 @@ def main() -> None:
     parser.add_argument("--seconds", type=float, default=20.0)
     parser.add_argument("--busy", action="store_true", help="a CPU burner per core during the run (loaded board)")
     parser.add_argument("--rt-priority", type=int, default=0, help="the bridge's --rt-priority (0: normal)")
+    parser.add_argument("--cpu-share", type=float, default=0.0,
+                        help="hold the bridge to this many cores (CFS, harness.cpu_share; needs root); 0: none")
     args = parser.parse_args()
+    with contextlib.ExitStack() as held:
+        share = held.enter_context(CpuShare(args.cpu_share)) if args.cpu_share > 0 else None
+        _run(args, share)
+
+
+def _run(args: argparse.Namespace, share: CpuShare | None) -> None:
 
     cmd_srv = socket.create_server(("127.0.0.1", 0))
     imu_srv = socket.create_server(("127.0.0.1", 0))
@@ -85,6 +98,8 @@ def main() -> None:
              "--params", str(tmp / "params.yaml"), "--config", str(tmp / "bridge.yaml"),
              "--rt-priority", str(args.rt_priority)],
             cwd=REPO, start_new_session=True, stdout=log_file, stderr=subprocess.STDOUT)
+    if share is not None:
+        share.add(bridge.pid)
     cmd_srv.settimeout(20.0)
     imu_srv.settimeout(20.0)
     cmd, _ = cmd_srv.accept()
@@ -228,7 +243,8 @@ def main() -> None:
           f"30 Hz ODOMETRY + 20 Hz setpoints in)")
     print(f"  machine: {os.cpu_count()} cores, load average {os.getloadavg()[0]:.2f} (other processes share them); "
           f"{'a CPU burner per core, ' if args.busy else ''}bridge "
-          f"{'SCHED_FIFO ' + str(args.rt_priority) if args.rt_priority else 'at normal priority'}")
+          f"{'SCHED_FIFO ' + str(args.rt_priority) if args.rt_priority else 'at normal priority'}"
+          + (f", held to {share.cores} core (throttled {share.throttled_s():.1f} s)" if share is not None else ""))
 
 
 if __name__ == "__main__":

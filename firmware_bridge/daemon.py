@@ -79,6 +79,11 @@ log = logging.getLogger(__name__)
 
 IMU_PERIOD_S = 0.002
 CONTROL_DECIMATION = 5  # 500 Hz IMU / 5 = 100 Hz setpoints
+# an IMU sample whose bytes were read this long before its turn: the bridge is behind its IMU (a starved CPU). It
+# does not queue on: the samples are merged, as many as it is behind, at most IMU_MERGE_MAX (see _on_imu_frame;
+# under IMU_DT_MAX_S, the estimators' longest step). Never in lock-step
+IMU_BEHIND_S = 0.02
+IMU_MERGE_MAX = 25   # 50 ms
 COUNTER_MODULO = 4096
 TICK_S = 0.01  # autopilot.tick period (telemetry streams, failsafes, version requests, parameter saving)
 # lock-step: steps are 10 ms of simulated time apart, but t_k - t_(k-1) in floating point may be a hair under
@@ -121,6 +126,7 @@ class BridgeConfig:
 class BridgeStats:
     imu_samples: int = 0
     imu_gaps: int = 0
+    imu_merged: int = 0       # samples merged into their control period's one (the bridge behind its IMU)
     setpoints_sent: int = 0
     mavlink_in: int = 0
     mavlink_out: int = 0
@@ -203,6 +209,9 @@ class BridgeDaemon:
         self._mk_dropped_seen = 0
         # clock state
         self._imu_index: int | None = None  # unwrapped sample index
+        # while behind: the samples merged so far, and the sums of their accel and gyro
+        self._merged_n = 0
+        self._merged_sum = np.zeros(6)
         self._last_imu_wall: float | None = None
         self._now_s = 0.0
         self._time_offset_s = 0.0
@@ -500,10 +509,28 @@ class BridgeDaemon:
             self._imu_index += delta
         self._last_imu_wall = self.clock()
         self.stats.imu_samples += 1
-        now = self.now_s()
         imu_cfg = self.vehicle.imu
-        out = self.autopilot.on_imu(now, self._imu_index * 2000, sample.accel_m_s2(imu_cfg),
-                                    sample.gyro_rad_s(imu_cfg))
+        accel, gyro = sample.accel_m_s2(imu_cfg), sample.gyro_rad_s(imu_cfg)
+        lag_s = 0.0 if self.lockstep_mode else self._wall_clock() - read_wall
+        if lag_s > IMU_BEHIND_S or self._merged_n:
+            # behind its IMU the bridge would fly on data ever older (held to 0.15 core it queued 4 s of it): the
+            # samples are merged, as many as it is behind (at least a control period's, at most IMU_MERGE_MAX),
+            # into their mean rate and specific force at the last one's time (the estimators integrate over the
+            # stamps' interval; the companion integrates HIGHRES_IMU by stamp too), estimated, streamed and
+            # controlled once; back in time, what was merged goes with the next sample and each runs again
+            self._merged_sum[:3] += accel
+            self._merged_sum[3:] += gyro
+            self._merged_n += 1
+            want = min(IMU_MERGE_MAX, max(CONTROL_DECIMATION, round(lag_s / IMU_PERIOD_S)))
+            if lag_s > IMU_BEHIND_S and self._merged_n < want:
+                return
+            self.stats.imu_merged += self._merged_n - 1
+            mean = self._merged_sum / self._merged_n
+            accel, gyro = mean[:3], mean[3:]
+            self._merged_n = 0
+            self._merged_sum = np.zeros(6)
+        now = self.now_s()
+        out = self.autopilot.on_imu(now, self._imu_index * 2000, accel, gyro)
         self._send(out)
         if out:
             self._imu_latency_s.append(self._wall_clock() - read_wall)
@@ -575,11 +602,12 @@ class BridgeDaemon:
             self._last_status_log = wall
             ap = self.autopilot
             p50, p99 = self.imu_latency_ms()
-            log.info("t=%.1fs mode %s armed %s in_air %s odom %s board %s | imu %d (gaps %d) setpoints %d "
+            log.info("t=%.1fs mode %s armed %s in_air %s odom %s board %s | imu %d (gaps %d, merged %d) setpoints %d "
                      "mav in %d out %d | bad mav %d mk %d | odometry gated %d by the drag %d (off it at most %.2f m/s) "
                      "| imu->mavlink in-process p50 %.3f p99 %.3f ms",
                      self.now_s(), ap.mode.name, ap.armed, ap.in_air, ap.odom_ok, ap.board_link_ok,
-                     self.stats.imu_samples, self.stats.imu_gaps, self.stats.setpoints_sent, self.stats.mavlink_in,
+                     self.stats.imu_samples, self.stats.imu_gaps, self.stats.imu_merged, self.stats.setpoints_sent,
+                     self.stats.mavlink_in,
                      self.stats.mavlink_out, ap.counters["mavlink_bad"], ap.counters["mk_bad"],
                      ap.counters["odometry_gated"], ap.counters["odometry_drag_gated"],
                      ap.state.drag_disagreement_max_m_s, p50, p99)
