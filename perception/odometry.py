@@ -115,6 +115,23 @@ def _covariance(information: NDArray[np.float64] | None) -> NDArray[np.float64] 
         return None
 
 
+def fuse_poses(T_a: Mat4, cov_a: NDArray[np.float64], T_b: Mat4, cov_b: NDArray[np.float64], max_step_m: float
+               ) -> tuple[Mat4, NDArray[np.float64]] | None:
+    """The information-weighted mean of two estimates of one pose (covariances of left perturbations in the
+    reference's frame) and its covariance: ``exp(step) T_a``, ``step`` the share of ``log(T_b T_a^-1)`` that
+    ``T_b``'s information carries. None when the step leaves the segment between them or moves more than
+    ``max_step_m`` (an ill-conditioned information, an estimate in another basin)."""
+    delta = _se3_log(T_b @ inv_T(T_a))
+    info_b = np.linalg.inv(cov_b)
+    info = np.linalg.inv(cov_a) + info_b
+    step = np.asarray(np.linalg.solve(info, info_b @ delta), dtype=np.float64)
+    reach_m = min(max_step_m, float(np.linalg.norm(delta[:3])) + 1e-9)
+    if not np.all(np.isfinite(step)) or float(np.linalg.norm(step[:3])) > reach_m \
+            or float(np.linalg.norm(step[3:])) > float(np.linalg.norm(delta[3:])) + 1e-9:
+        return None
+    return se3_exp(step) @ T_a, np.asarray(np.linalg.inv(info), dtype=np.float64)
+
+
 def _adjoint(T: Mat4) -> NDArray[np.float64]:
     """6×6 adjoint of ``T`` for twists (v, w): ``T exp(x) T^-1 = exp(Ad x)``; moves a covariance between frames."""
     R = T[:3, :3]
@@ -155,6 +172,7 @@ class RgbdOdometry:
         self._prev: PreparedFrame | None = None  # the previous frame (fallback reference if the keyframe fails)
         self._T_c0_kf = np.eye(4)
         self._T_kf_ckm1 = np.eye(4)              # previous frame in the keyframe
+        self._cov_kf_ckm1: NDArray[np.float64] | None = None   # its covariance (frame_fusion)
         self._kf_frames = 0                      # frames aligned against the keyframe so far
         self._T_c0_ck = np.eye(4)
         self._stamp_s = 0.0
@@ -165,6 +183,7 @@ class RgbdOdometry:
         self.rejected_refinements = 0            # fusions refused by the step gate (see _refine)
         self.fallbacks = 0                       # frames not aligned, bridged by the motion prior
         self.restarts = 0                        # frames aligned again from rest (restart_from_rest)
+        self.fused_frames = 0                    # frames fused with an alignment against the previous (frame_fusion)
         self.lost = 0                            # frames not aligned and without a motion prior (pose held)
         self._bridged = 0                        # consecutive bridged frames (the constant velocity's age)
         self._bridged_s = 0.0                    # time from the last aligned frame to the previous frame
@@ -282,6 +301,16 @@ class RgbdOdometry:
                 self.lost += 1
             # the constant velocity carries on through bridged frames (and ends with them)
             self._last_motion = (inv_T(T_ckm1_ck), dt_s) if bridged and T_pred is not None else None
+        cov_kf_ck_now = None
+        if T_kf_ck is not None and cfg.frame_fusion:
+            cov_kf_ck_now = _covariance(pair.information)
+            if self._prev is not None and self._prev is not self._kf and self._cov_kf_ckm1 is not None \
+                    and cov_kf_ck_now is not None and self._has_depth(self._prev):
+                T_kf_ck, cov_kf_ck_now = self._fuse_previous(cur, T_kf_ck, cov_kf_ck_now, T_ckm1_kf,
+                                                             R_ckm1_ck_prior)
+                T_ckm1_ck = T_ckm1_kf @ T_kf_ck
+                self._last_motion = (inv_T(T_ckm1_ck), dt_s)
+        self._cov_kf_ckm1 = cov_kf_ck_now
         self._prev = cur
         self._stamp_s = stamp_s
         self._kf_frames += 1
@@ -389,6 +418,31 @@ class RgbdOdometry:
         # departure from SO(3) doubled at every refined keyframe (1e-16 to 0.06 in 47 of them, the SITL's
         # 40 m divergence; test_refined_keyframes_keep_the_chained_pose_rigid)
         return se3_exp(_adjoint(inv_T(T_p_kf)) @ step) @ T_kf_ck
+
+    def _fuse_previous(self, cur: PreparedFrame, T_kf_ck: Mat4, cov_kf_ck: NDArray[np.float64], T_ckm1_kf: Mat4,
+                       R_ckm1_ck_prior: NDArray[np.float64] | None) -> tuple[Mat4, NDArray[np.float64]]:
+        """``T_kf_ck`` and its covariance fused with a second estimate, the previous frame's pose in the keyframe
+        times an alignment against the previous frame (``frame_fusion``): the per-frame form of :meth:`_refine`'s
+        window, which brings each frame the constraint to its neighbour that a gyro's prior otherwise gives. The
+        second alignment runs on the finest level from the chain's estimate with the coarsest level's iteration
+        budget (fewer left `fr1_xyz`'s rotation where it was); the same step gate as :meth:`_refine`."""
+        assert self._prev is not None and self._cov_kf_ckm1 is not None
+        cfg = self.config
+        T_kf_ckm1 = inv_T(T_ckm1_kf)
+        T_ckm1_ck_chain = T_ckm1_kf @ T_kf_ck
+        finest = dataclasses.replace(cfg, levels=1, iterations=(max(cfg.iterations),),
+                                     max_points=cfg.max_points[-1:])
+        pair = align_pair(self._prev, cur, finest, R_ckm1_ck_prior, inv_T(T_ckm1_ck_chain), None)
+        cov_direct = _covariance(pair.information)
+        if not pair.ok or cov_direct is None:
+            return T_kf_ck, cov_kf_ck
+        Ad = _adjoint(T_kf_ckm1)
+        fused = fuse_poses(T_kf_ck, cov_kf_ck, T_kf_ckm1 @ inv_T(pair.T_ck_ckm1),
+                           self._cov_kf_ckm1 + Ad @ cov_direct @ Ad.T, cfg.max_translation_jump_m)
+        if fused is None:
+            return T_kf_ck, cov_kf_ck
+        self.fused_frames += 1
+        return fused
 
     def _set_keyframe(self, frame: PreparedFrame, T_kf_frame: Mat4 | None = None,
                       cov_kf_frame: NDArray[np.float64] | None = None) -> None:

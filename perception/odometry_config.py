@@ -67,6 +67,10 @@ class OdometryConfig:
     keyframe_refinement: bool = True                 # a new keyframe is also aligned against the keyframe before
                                                      # the current one and the two estimates are fused by their
                                                      # information (DVO-SLAM's local window of keyframes)
+    frame_fusion: bool = False                       # each frame also aligned (finest level) against the previous
+                                                     # frame, its two poses fused by their information (held out on
+                                                     # TUM it meets every target; the SITL's velocity gains nothing
+                                                     # for 50 % more CPU: off, docs/reference/odometry.md)
     register_depth_in_time: bool = True              # turn an unsynchronised depth image to the colour instant
     register_depth_translation: bool = True          # and have the depth term compare the depth instants (their
                                                      # translation at constant velocity, see align_pair)

@@ -20,6 +20,7 @@ from perception.odometry import (
     RgbdOdometry,
     _adjoint,
     _se3_log,
+    fuse_poses,
     prepare_frame,
     rotate_depth,
     se3_exp,
@@ -496,6 +497,36 @@ def test_keyframe_pose_chain_over_several_keyframes_against_ground_truth() -> No
         last = f2f.process(k / 30, *render(T, K), K)
     assert f2f.keyframes == len(T_w)
     assert np.linalg.norm(last.T_c0_ck[:3, 3] - results[-1].T_c0_ck[:3, 3]) < 2e-3
+
+
+def test_per_frame_fusion_keeps_every_pose_and_step_on_the_truth() -> None:
+    """frame_fusion (a variant, off by default): every frame not right after a keyframe switch is fused with its
+    alignment against the previous frame, and the fused poses and steps stay on the truth."""
+    odo = RgbdOdometry(OdometryConfig(frame_fusion=True))
+    T_w = _flight_frames(16)
+    results = [odo.process(k / 30, *render(T, K), K) for k, T in enumerate(T_w)]
+    assert all(r.ok for r in results)
+    assert odo.fused_frames >= len(T_w) - 2 * odo.keyframes
+    for k in range(1, len(T_w)):
+        E = inv_T(inv_T(T_w[0]) @ T_w[k]) @ results[k].T_c0_ck
+        assert np.linalg.norm(E[:3, 3]) < 1e-3 and math.degrees(np.linalg.norm(so3_log(E[:3, :3]))) < 0.02, k
+        E = inv_T(inv_T(T_w[k - 1]) @ T_w[k]) @ results[k].T_ckm1_ck
+        assert np.linalg.norm(E[:3, 3]) < 3e-4 and math.degrees(np.linalg.norm(so3_log(E[:3, :3]))) < 0.01, k
+        assert np.allclose(inv_T(results[k - 1].T_c0_ck) @ results[k].T_c0_ck, results[k].T_ckm1_ck, atol=1e-9), k
+
+
+def test_fuse_poses_is_the_information_weighted_mean_and_refuses_a_step_outside_the_two() -> None:
+    T_a = pose(R_from_euler(0.0, 0.1, 0.0), [1.0, 0.0, 0.0])
+    T_b = se3_exp(np.array([0.02, 0.0, 0.0, 0.0, 0.0, 0.004])) @ T_a   # 2 cm and 0.23 deg off, in the reference
+    cov = np.eye(6) * 1e-6
+    fused = fuse_poses(T_a, cov, T_b, cov, 0.03)
+    assert fused is not None
+    T, cov_f = fused
+    assert np.allclose(_se3_log(T @ inv_T(T_a)), [0.01, 0.0, 0.0, 0.0, 0.0, 0.002], atol=1e-6)   # the midpoint
+    assert np.allclose(cov_f, cov / 2)
+    fused = fuse_poses(T_a, cov, T_b, 4 * cov, 0.03)   # b four times as uncertain: a fifth of the way
+    assert fused is not None and np.allclose(_se3_log(fused[0] @ inv_T(T_a))[:3], [0.004, 0.0, 0.0], atol=1e-6)
+    assert fuse_poses(T_a, cov, T_b, cov, 0.005) is None   # a 1 cm step beyond the gate's 5 mm
 
 
 def test_se3_log_inverts_se3_exp_and_the_adjoint_moves_a_twist() -> None:
