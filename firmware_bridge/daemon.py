@@ -126,7 +126,7 @@ class BridgeConfig:
 class BridgeStats:
     imu_samples: int = 0
     imu_gaps: int = 0
-    imu_merged: int = 0       # samples merged into their control period's one (the bridge behind its IMU)
+    imu_merged: int = 0       # samples merged into a later one (the bridge behind its IMU)
     setpoints_sent: int = 0
     mavlink_in: int = 0
     mavlink_out: int = 0
