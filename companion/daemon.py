@@ -108,7 +108,7 @@ from companion.recording import FrameRecording
 from companion.reference import ReferenceOutput
 from companion.reference_params import ReferenceParams
 from companion.router import route_from_autopilot
-from companion.scheduler import PeriodicTasks, Task
+from companion.scheduler import HeartbeatBehindAutopilot, PeriodicTasks, Task
 from companion.security import GcsSecurity
 from companion.seen_ground import SeenGround
 from companion.stats import PROGRESS_EVERY_S, AirborneCounts, ProgressLine, Stats
@@ -217,6 +217,7 @@ class Companion:
                                     Task.GCS_TIMESYNC: cfg.links.gcs_timesync_period_s, Task.COMMAND_AGE: 1.0,
                                     Task.FALLBACK: 1.0 / t.fallback_setpoint_rate_hz,
                                     Task.FEEDBACK: 1.0 / t.feedback_rate_hz, Task.PROGRESS: PROGRESS_EVERY_S}, clock())
+        self.own_heartbeat = HeartbeatBehindAutopilot()   # never ahead of the autopilot's traffic (mavsdk_server)
         self.progress = ProgressLine(PROGRESS_EVERY_S)
         self.time = AutopilotTime(self.timesync, t.camera_stamps, clock())   # stamps what we send
         self.latency = LatencyGuard(cfg.latency)   # the age of each frame's data, paid for by the safety law
@@ -441,9 +442,15 @@ class Companion:
                 msg.autopilot != mavlink.MAV_AUTOPILOT_INVALID and msg.get_srcComponent() == self.ap_compid:
             # the autopilot's heartbeat with the mode of the motion authority (companion.gcs_commands)
             if self.out.to_gcs_as(self.gcs_commands.mode_heartbeat(msg), msg.get_srcSystem(), msg.get_srcComponent()):
-                self.stats.routed_to_gcs += 1
+                self._routed_to_gcs()
         elif route.forward and self._forward(self.gcs, msg):
-            self.stats.routed_to_gcs += 1
+            self._routed_to_gcs()
+
+    def _routed_to_gcs(self) -> None:
+        """An autopilot message went to the ground stations: the companion's held heartbeat goes right behind it."""
+        self.stats.routed_to_gcs += 1
+        if self.own_heartbeat.forwarded():
+            self.out.to_gcs(msgs.heartbeat_message(self.modes.mode))
 
     def _on_autopilot_identity(self, sysid: int, ap_compid: int) -> None:
         """The autopilot's heartbeat names the vehicle's system id (the companion speaks as it) and its component."""
@@ -746,6 +753,8 @@ class Companion:
         self.modes.on_motion_command(self.arbiter.last_command_s)   # a live link alone keeps no vehicle flying
         self._emit(self.modes.update(now, self.vehicle.status(), self.state.odometry_ok, self._failsafe_refusal))
         self._emit(self.autopilot_input.poll_commands(now, self.sysid, self.ap_compid))
+        if self.own_heartbeat.expired(now):   # held, and the autopilot fell silent: it goes alone
+            self.out.to_gcs(msgs.heartbeat_message(self.modes.mode))
         for task in self.tasks.due(now, camera_silent, ImuClock.silent(now, self.time.imu_wall_s)):
             self._run_task(task, now)
 
@@ -753,7 +762,8 @@ class Companion:
         if task == Task.HEARTBEAT:
             hb = msgs.heartbeat_message(self.modes.mode)
             self.out.to_autopilot(hb)
-            self.out.to_gcs(hb)
+            if self.own_heartbeat.due(now):   # else held for the autopilot's next message (scheduler's docstring)
+                self.out.to_gcs(hb)
         elif task == Task.TIMESYNC:
             self.out.to_autopilot(mavlink.MAVLink_timesync_message(0, int(now * 1e9)))
         elif task == Task.GCS_TIMESYNC:

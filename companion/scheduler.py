@@ -72,3 +72,49 @@ class PeriodicTasks:
         when = {Task.FALLBACK: camera_silent, Task.FEEDBACK: imu_silent}
         return [task for task in Task
                 if when.get(task, True) and self._deadlines.due(task.value, now_s, self.periods_s[task])]
+
+
+class HeartbeatBehindAutopilot:
+    """When the companion's own HEARTBEAT goes to the ground stations: right behind an autopilot message it
+    forwards them, never ahead of the autopilot.
+
+    mavsdk_server (the classic API's, v4.0.5) declares a vehicle found once, at the first HEARTBEAT it hears, and
+    only if it has heard the autopilot (compid 1) by then: a station that hears the companion's heartbeat first
+    never opens its gRPC port, whatever it hears later. A station hears the companion from the moment its first
+    datagram arrives, so while the autopilot is heard the due heartbeat is held until the next autopilot message is
+    forwarded and sent in the same turn, behind it, to the same stations; the autopilot silent for ``lost_s``
+    (or never heard), it goes alone, so a station still sees the companion of a vehicle whose autopilot is gone.
+    The daemon reports forwarded messages without a clock reading (500 a second); a turn's time marks them."""
+
+    def __init__(self, lost_s: float = 1.5) -> None:
+        self.lost_s = lost_s
+        self._heard_s: float | None = None
+        self._forwarded = False
+        self._held = False
+
+    def forwarded(self) -> bool:
+        """An autopilot message went to the ground stations: True when the held heartbeat goes now, behind it."""
+        self._forwarded = True
+        held, self._held = self._held, False
+        return held
+
+    def due(self, now_s: float) -> bool:
+        """The heartbeat is due at ``now_s``: True when it goes now (the autopilot not heard), False when held."""
+        self._mark(now_s)
+        self._held = self._autopilot_heard(now_s)
+        return not self._held
+
+    def expired(self, now_s: float) -> bool:
+        """True once, when a held heartbeat is to go alone (the autopilot fell silent while it waited)."""
+        self._mark(now_s)
+        if self._held and not self._autopilot_heard(now_s):
+            self._held = False
+            return True
+        return False
+
+    def _mark(self, now_s: float) -> None:
+        if self._forwarded:
+            self._heard_s, self._forwarded = now_s, False
+
+    def _autopilot_heard(self, now_s: float) -> bool:
+        return self._heard_s is not None and now_s - self._heard_s <= self.lost_s

@@ -216,6 +216,11 @@ def rig() -> Iterator[LockstepRig]:
     r.close()
 
 
+def _own_heartbeats(peer: Peer) -> list[int]:
+    """The steps in which ``peer`` received the companion's HEARTBEAT."""
+    return [k for k, m in peer.of_type("HEARTBEAT") if m.get_srcComponent() == 191]
+
+
 def _setpoints(peer: Peer) -> list[tuple[int, Any]]:
     return peer.of_type("SET_POSITION_TARGET_LOCAL_NED")
 
@@ -229,7 +234,11 @@ def test_the_daemon_is_a_function_of_the_steps(rig: LockstepRig) -> None:
     assert [(k, m.tc1, m.ts1) for k, m in ts] == [(first, 0, int(t_of(first) * 1e9))]
     gcs_ts = [(k, m.ts1) for k, m in rig.gcs.of_type("TIMESYNC") if m.get_srcComponent() == 191]
     assert gcs_ts == [(first, int(t_of(first) * 1e9))]
-    assert rig.bridge.of_type("HEARTBEAT") and rig.gcs.of_type("HEARTBEAT"), "the companion's heartbeats"
+    assert rig.bridge.of_type("HEARTBEAT"), "the companion's heartbeat to the autopilot"
+    # ... and not yet to the ground station, which has heard nothing of the autopilot (its heartbeat came before
+    # the station's first datagram): it waits behind the autopilot's next message (companion.scheduler's
+    # HeartbeatBehindAutopilot; mavsdk_server would never find the vehicle otherwise)
+    assert not _own_heartbeats(rig.gcs)
 
     # (b) a ground-station datagram not yet announced waits for the step that announces it
     rig.gcs.send(mavlink.MAVLink_command_long_message(1, 191, mavlink.MAV_CMD_USER_1, 0, 0, 0, 0, 0, 0, 0, 0))
@@ -275,11 +284,18 @@ def test_the_daemon_is_a_function_of_the_steps(rig: LockstepRig) -> None:
     # (d) again: the 1 Hz tasks are due on simulated time, whatever the wall time (these steps take ~1 s or less)
     wall0 = time.monotonic()
     while rig.k <= 101:
+        rig.imu_chunk(rig.k - 1)
         rig.step()
     ts_steps = [k for k, _ in rig.bridge.of_type("TIMESYNC")]
     assert ts_steps == [0, 100], ts_steps   # t_s 0.01 and 1.01
     assert [m.ts1 for _, m in rig.bridge.of_type("TIMESYNC")] == [int(t_of(0) * 1e9), int(t_of(100) * 1e9)]
-    assert sorted({k for k, m in rig.gcs.of_type("HEARTBEAT") if m.get_srcComponent() == 191}) == [0, 100]
+    # the one held at step 0 went with the first autopilot message the station received, the one due at step 100
+    # (t_s 1.01) with the autopilot's next, each right behind it
+    first_ap = min(k for k, m in rig.gcs.received if m.get_srcComponent() == 1)
+    assert _own_heartbeats(rig.gcs) == [first_ap, 101], _own_heartbeats(rig.gcs)
+    got = [m for _, m in rig.gcs.received]
+    assert all(got[i - 1].get_srcComponent() == 1 for i, m in enumerate(got)
+               if m.get_type() == "HEARTBEAT" and m.get_srcComponent() == 191)
     assert time.monotonic() - wall0 < 30.0
 
     # nothing is sent outside a step

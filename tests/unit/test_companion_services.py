@@ -14,7 +14,7 @@ from companion.params import PARAM_NAMES, CompanionParams, handle_param_message,
 from companion.recording import FrameRecording
 from companion.reference_params import ReferenceParams
 from companion.router import route_from_autopilot, route_from_gcs
-from companion.scheduler import Deadlines, PeriodicTasks, StampTicker, Task
+from companion.scheduler import Deadlines, HeartbeatBehindAutopilot, PeriodicTasks, StampTicker, Task
 from companion.stats import AirborneCounts, ProgressLine, Stats
 from quadlink.mavlink import mavlink
 
@@ -113,6 +113,21 @@ def test_periodic_tasks_run_in_order_and_the_conditional_ones_only_while_their_c
     assert tasks.due(1.0, camera_silent=False, imu_silent=False) == [Task.HEARTBEAT, Task.TIMESYNC, Task.GCS_TIMESYNC,
                                                                       Task.COMMAND_AGE]
     assert tasks.due(5.0, camera_silent=False, imu_silent=False)[-1] == Task.PROGRESS   # first one period in
+
+
+def test_the_companions_heartbeat_waits_for_the_autopilots_next_message_while_the_autopilot_is_heard() -> None:
+    gate = HeartbeatBehindAutopilot(lost_s=1.5)
+    assert gate.due(0.0), "never heard the autopilot: the heartbeat goes alone"
+    assert not gate.forwarded(), "nothing held"
+    assert not gate.due(1.0), "the autopilot heard 1 s ago (marked at this turn): held"
+    assert not gate.expired(1.2)
+    assert gate.forwarded(), "the next forwarded autopilot message carries it"
+    assert not gate.forwarded(), "once"
+    # the autopilot falls silent while a heartbeat waits: it goes alone once the silence passes lost_s
+    assert not gate.due(2.0)
+    assert not gate.expired(3.5), "1.5 s of silence is still heard"
+    assert gate.expired(3.6) and not gate.expired(3.7)
+    assert gate.due(4.0), "silent: due heartbeats go at once"
 
 
 def test_the_progress_line_gives_the_camera_rate_since_the_last_line() -> None:
