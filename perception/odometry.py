@@ -477,7 +477,8 @@ class RgbdOdometry:
         ``max_translation_jump_m``, or, when it is more (long or bridged intervals), how far ``max_acceleration_m_s2``
         takes the step off the prediction: the carried velocity is the last aligned pair's mean, half its interval
         old, and the time since that pair runs on through the bridged frames: ``a (t + dt) (t + dt + dt_last) / 2``
-        (``a dt^2`` at a steady rate)."""
+        (``a dt^2`` at a steady rate). ``dt_last`` is the interval of the last motion carried: the aligned pair's,
+        or after bridged frames the last bridged frame's (the same at a steady rate)."""
         cfg = self.config
         dt_last = self._last_motion[1] if self._last_motion is not None else 0.0
         t_s = self._bridged_s + max(dt_s, 0.0)

@@ -8,9 +8,10 @@ import math
 from pathlib import Path
 from typing import Any
 
+from memory_links import MemoryConn
+
 from firmware_bridge.daemon import IMU_BEHIND_S, IMU_MERGE_MAX, BridgeConfig, BridgeDaemon
 from quadlink.frames import GRAVITY_M_S2
-from quadlink.mavlink import mavlink
 from quadlink.mk import messages as mk
 from quadlink.mk.protocol import ADDR_FC, encode_frame
 from quadlink.vehicle import VehicleConfig
@@ -33,27 +34,13 @@ class _Board:
         pass
 
 
-class _Conn:
-    """A pymavlink connection's codec writing into memory (what the daemon uses of a ``mavfile``)."""
-
-    def __init__(self) -> None:
-        self.data = bytearray()
-        self.mav = mavlink.MAVLink(self, 1, 1)
-
-    def write(self, buf: bytes) -> None:
-        self.data += buf
-
-    def close(self) -> None:
-        pass
-
-
 def _fly(tmp_path: Path, lags_s: list[float]) -> tuple[BridgeDaemon, list[Any]]:
     """One IMU sample per entry (a steady yaw at 1 rad/s, level), each handled ``lag`` after its bytes were read;
     the daemon and the HIGHRES_IMU messages it sent."""
     wall = [0.0]
     config = BridgeConfig(mavlink_urls=("udpout:127.0.0.1:31510",), params_file=str(tmp_path / "p.yaml"))
     daemon = BridgeDaemon(config, VehicleConfig(), clock=lambda: wall[0])
-    daemon.attach_links(_Board(), [_Conn()])
+    daemon.attach_links(_Board(), [MemoryConn()])
     imu_cfg = VehicleConfig().imu
     for k, lag_s in enumerate(lags_s):
         read_s = k * IMU_PERIOD_S
@@ -61,9 +48,7 @@ def _fly(tmp_path: Path, lags_s: list[float]) -> tuple[BridgeDaemon, list[Any]]:
                                                                 [0.0, 0.0, YAW_RATE_RAD_S], imu_cfg, k).pack())
         wall[0] = read_s + lag_s
         daemon._dispatch(("imu", frame, read_s))
-    rx = mavlink.MAVLink(None)
-    rx.robust_parsing = True
-    sent = [m for m in rx.parse_buffer(bytes(daemon.mavlinks[0].data)) or [] if m.get_type() == "HIGHRES_IMU"]
+    sent = [m for m in daemon.mavlinks[0].messages() if m.get_type() == "HIGHRES_IMU"]
     return daemon, sent
 
 

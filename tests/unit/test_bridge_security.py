@@ -9,6 +9,7 @@ from typing import Any
 
 import pytest
 from click.testing import CliRunner
+from memory_links import MemoryConn
 
 from firmware_bridge.daemon import BridgeConfig, BridgeDaemon
 from quadlink.cli import main
@@ -19,33 +20,11 @@ from quadlink.vehicle import VehicleConfig
 FORCE = 21196.0
 
 
-class Capture:
-    """What a link's codec writes (the file of a pymavlink ``MAVLink``)."""
-
-    def __init__(self) -> None:
-        self.data = bytearray()
-
-    def write(self, buf: bytes) -> None:
-        self.data += buf
-
-
-class Conn:
-    """A pymavlink connection's codec on an in-memory file (what the daemon uses of a ``mavfile``)."""
-
-    def __init__(self, sysid: int, compid: int) -> None:
-        self.file = Capture()
-        self.mav = mavlink.MAVLink(self.file, sysid, compid)
-        self.mav.robust_parsing = True
-
-    def close(self) -> None:
-        pass
-
-
 def _daemon(tmp_path: Path, security: SecurityConfig | None = None) -> BridgeDaemon:
     config = BridgeConfig(mavlink_urls=("udpout:127.0.0.1:31500", "udpout:127.0.0.1:31501"),
                           params_file=str(tmp_path / "p.yaml"), security=security or SecurityConfig())
     daemon = BridgeDaemon(config, VehicleConfig())
-    daemon.mavlinks = [Conn(1, 1), Conn(1, 1)]
+    daemon.mavlinks = [MemoryConn(1, 1), MemoryConn(1, 1)]
     daemon.enable_signing()
     return daemon
 
@@ -60,7 +39,7 @@ def _packet(sysid: int, msg: Any, key: bytes | None = None) -> bytes:
 def _received(daemon: BridgeDaemon, link: int) -> list[Any]:
     rx = mavlink.MAVLink(None)
     rx.robust_parsing = True
-    return rx.parse_buffer(bytes(daemon.mavlinks[link].file.data)) or []
+    return rx.parse_buffer(bytes(daemon.mavlinks[link].data)) or []
 
 
 def _in_flight(daemon: BridgeDaemon) -> None:
