@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from numpy.typing import NDArray
 
-from perception.floor import FloorConfig, measure_floor
+from perception.floor import FloorConfig, _median, measure_floor
 from quadlink.camera import CameraIntrinsics
 from quadlink.frames import R_hq, Rx, Ry
 
@@ -129,3 +129,12 @@ def test_a_strip_of_floor_is_levelled_by_its_normals_not_fitted(rng: np.random.G
     assert in_h is not None and obs is not None
     assert abs(obs.height_m - 2.4) < 0.5 * abs(in_h.height_m - 2.4)
     assert obs.height_m == pytest.approx(2.4, abs=0.03)
+
+
+def test_the_floors_median_is_numpys_to_the_bit(rng: np.random.Generator) -> None:
+    """The fit's own median (no np.median machinery) gives np.median's value exactly: odd and even sizes, ties, a
+    NaN."""
+    for n in (1, 2, 3, 4, 7, 8, 150, 151, 1301):
+        for x in (rng.normal(size=n), np.round(rng.normal(size=n), 1)):
+            assert _median(x) == float(np.median(x))
+    assert math.isnan(_median(np.array([0.5, math.nan, 0.7])))
