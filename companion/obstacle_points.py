@@ -82,8 +82,8 @@ def with_open_tops(points: ArrayLike, open_top: ArrayLike | None, height_m: floa
     flags = np.asarray(open_top, dtype=bool).reshape(-1)
     if flags.shape[0] != points_h_m.shape[0] or not flags.any():
         return points_h_m
-    finite = np.isfinite(points_h_m).all(axis=1)
-    z = points_h_m[:, 2]
+    x, y, z = points_h_m[:, 0], points_h_m[:, 1], points_h_m[:, 2]
+    finite = np.isfinite(x) & np.isfinite(y) & np.isfinite(z)   # (.all(axis=1) on N x 3 is the slow reduction)
     up = flags & finite & (z > 0.0)
     if height_m is not None and math.isfinite(height_m):
         up &= (height_m - z) > floor_margin_m
@@ -107,8 +107,8 @@ def _capped(q: NDArray[np.float64], seen: NDArray[np.float64]) -> NDArray[np.boo
     (no tree per frame)."""
     # only the seen points that could cap one: not too low for the lowest candidate, near the candidates' box
     lo, hi = q[:, :2].min(axis=0) - 2 * TOP_NEAR_M, q[:, :2].max(axis=0) + 2 * TOP_NEAR_M
-    near = (seen[:, 2] < q[:, 2].max() + TOP_LEVEL_M) & (seen[:, :2] >= lo).all(axis=1) \
-        & (seen[:, :2] <= hi).all(axis=1)
+    near = (seen[:, 2] < q[:, 2].max() + TOP_LEVEL_M) & (seen[:, 0] >= lo[0]) & (seen[:, 1] >= lo[1]) \
+        & (seen[:, 0] <= hi[0]) & (seen[:, 1] <= hi[1])
     seen = seen[near]
     if not seen.shape[0]:
         return np.zeros(q.shape[0], dtype=bool)
