@@ -159,7 +159,7 @@ class NetworkConfig:
     http_port: int = 8080
     source_system: int = 255
     source_component: int = GROUND_COMPONENT_ID
-    heartbeat_timeout_s: float = 2.0
+    heartbeat_timeout_s: float = 2.0      # no autopilot HEARTBEAT (through the companion) this long: a warning
     signing_key_file: str | None = None   # MAVLink 2 signing key shared with the vehicle (quadlink keygen FILE)
     signing_link_id: int = 0              # signing stream id: distinct per ground station sharing a system id
 

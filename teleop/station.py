@@ -84,6 +84,11 @@ def warnings_for(tel: Telemetry, link_is_ok: bool, t_s: float, cfg: TeleopConfig
     if not link_is_ok:
         out.append("VEHICLE LINK LOST" if tel.feedback is not None else "no vehicle link yet")
     fb = tel.feedback
+    heard = tel.autopilot_heartbeat_t_s
+    if link_is_ok and heard is not None and t_s - heard > cfg.network.heartbeat_timeout_s:
+        # the companion talks, the flight controller's bridge behind it has gone quiet (its heartbeat comes through
+        # the companion): the vehicle's own failsafes are all that fly it now
+        out.append(f"AUTOPILOT SILENT {t_s - heard:.0f} s")
     if fb is not None and link_is_ok:
         if not fb.flags & FLAG_ODOMETRY_OK:
             out.append("odometry not tracking")

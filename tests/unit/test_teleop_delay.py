@@ -150,3 +150,18 @@ def test_csv_row_carries_the_round_trip_and_the_passivity_account() -> None:
     empty = next(csv.DictReader(io.StringIO(",".join(CSV_FIELDS) + "\n" + ",".join(
         map(str, csv_row(1.0, None, ManualControl(0, 0, 500, 0), Telemetry(), None))) + "\n")))
     assert empty["rtt_ms"] == "" and empty["pass_observed_j"] == ""
+
+
+def test_the_station_warns_when_the_autopilot_falls_silent_behind_a_talking_companion() -> None:
+    from dataclasses import replace
+
+    from teleop.station import warnings_for
+    from teleop.telemetry import Telemetry
+
+    cfg = TeleopConfig()   # network.heartbeat_timeout_s 2 s
+    heard = replace(Telemetry(), autopilot_heartbeat_t_s=10.0)
+    assert not [w for w in warnings_for(heard, True, 11.9, cfg) if "AUTOPILOT" in w]
+    assert "AUTOPILOT SILENT 3 s" in warnings_for(heard, True, 13.0, cfg)
+    # the whole link lost is its own warning, and an autopilot never heard is "no vehicle link yet"'s business
+    assert not [w for w in warnings_for(heard, False, 13.0, cfg) if "AUTOPILOT" in w]
+    assert not [w for w in warnings_for(Telemetry(), True, 13.0, cfg) if "AUTOPILOT" in w]
