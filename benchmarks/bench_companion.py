@@ -235,7 +235,7 @@ def run(feed: Feed, warmup_frames: int, profile: str | None = None, config: str 
 def perception_alone(feed: Feed, config: str | None = None, paced: bool = True) -> dict[str, float]:
     """The perception pipeline in this process on the same frames and IMU, configured as the daemon was (its
     ``perception_config``, if the companion YAML ``config`` names one): its share of latency and CPU. ``paced``: a
-    frame every 1/30 s, as the daemon gets them (the same work between idle gaps costs this machine about twice the
+    frame every 1/30 s, as the daemon gets them (the same work between idle gaps costs this machine about 1.5x the
     CPU of frames back to back: its caches and clock go cold; measure_floor 0.45 -> 1.16 ms)."""
     from companion.config import load_companion_config
     from perception.pipeline import PerceptionConfig, PerceptionPipeline

@@ -386,21 +386,15 @@ def test_the_classic_mavsdk_server_finds_the_vehicle_when_the_companion_speaks_f
     heartbeat falls due before anything of the autopilot could reach the server: it must wait behind the
     autopilot's next message, and the server then open its gRPC port."""
     import socket
-    import subprocess
-    from importlib.resources import files
+
+    from mavsdk_classic import mavsdk_server
 
     pytest.importorskip("mavsdk_grpc")
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        grpc_port = s.getsockname()[1]
     gcs_link = rig.daemon.gcs
     clients_before = len(gcs_link.clients)
-    binary = files("mavsdk_grpc") / "bin" / "mavsdk_server"
     log_path = tmp_path / "mavsdk_server.log"
-    with open(log_path, "wb") as log:
-        server = subprocess.Popen([str(binary), "-p", str(grpc_port), f"udpout://127.0.0.1:{gcs_link.port.getsockname()[1]}"],
-                                  stdout=log, stderr=subprocess.STDOUT)
-    try:
+    with mavsdk_server(f"udpout://127.0.0.1:{gcs_link.port.getsockname()[1]}", log_path) as server:
+        server.start()
         deadline = time.monotonic() + 10.0
         while len(gcs_link.clients) == clients_before:   # the autopilot talks until the server is a client
             assert time.monotonic() < deadline, "mavsdk_server never reached the companion"
@@ -414,11 +408,8 @@ def test_the_classic_mavsdk_server_finds_the_vehicle_when_the_companion_speaks_f
             rig.ap.send_state()
             time.sleep(0.1)
             with socket.socket() as c:
-                opened = c.connect_ex(("127.0.0.1", grpc_port)) == 0
+                opened = c.connect_ex(("127.0.0.1", server.port)) == 0
         assert opened, f"gRPC port never opened; mavsdk_server: {log_path.read_text(errors='replace')[-600:]}"
-    finally:
-        server.terminate()
-        server.wait(5.0)
 
 
 def test_cli_rejects_bad_input_with_status_2(tmp_path: Path) -> None:
