@@ -246,6 +246,9 @@ def test_arm_takeoff_offboard_body_velocity_and_land(stack):
             is not None
         p, _, _ = stack.state()
         assert abs(p[2]) < 0.15
+    except BaseException:
+        _land_after_failure(gcs)
+        raise
     finally:
         sps.stop.set()
         odom.stop.set()
@@ -396,6 +399,18 @@ def _land(gcs: Gcs) -> None:
     assert gcs.recv("HEARTBEAT", 25.0, lambda m: not m.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED) is not None
 
 
+def _land_after_failure(gcs: Gcs) -> None:
+    """A test failed, perhaps in the air: LAND (its odometry still flowing) and wait for the disarm, so the module's
+    next flight starts on the ground (CI once began the next take-off 0.75 m up). Never raises: the failure that
+    brought it here is the one to report."""
+    try:
+        gcs.command(mavlink.MAV_CMD_NAV_LAND)
+        if gcs.recv("HEARTBEAT", 60.0, lambda m: not m.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED) is None:
+            print("after the failure: still armed 60 s after LAND")
+    except Exception as e:  # noqa: BLE001 - cleanup after a failure already being reported
+        print(f"after the failure, LAND: {e!r}")
+
+
 def test_takeoff_without_odometry_on_the_ground_climbs_open_loop_then_closed_loop(stack):
     """Odometry only once the truth is 0.4 m up: phase 1 on the accelerometer, phase 2 to the take-off height."""
     gcs = Gcs(stack.gcs_port)
@@ -427,6 +442,9 @@ def test_takeoff_without_odometry_on_the_ground_climbs_open_loop_then_closed_loo
         assert height == pytest.approx(1.2, abs=0.2)
         assert not any("Odometry lost" in t or "No odometry" in t for t in texts), texts
         _land(gcs)
+    except BaseException:
+        _land_after_failure(gcs)
+        raise
     finally:
         odom.stop.set()
         gcs.close()
@@ -465,11 +483,15 @@ def test_odometry_lost_at_lift_off_does_not_carry_the_climb_past_the_takeoff_hei
         print(f"odometry lost at lift-off, back at {odom.valid_since_height_m}: top {peak.top_m:.2f} m, "
               f"{height:.2f} m 4 s after LOITER, for 1.0 m; {texts}")
         assert any("open loop" in t for t in texts) and any("closed loop" in t for t in texts), texts
-        # 0.15 m when the board flew on the true attitude; on its own estimate (issue 29) the peak measured 1.10,
-        # 1.12 m alone and 1.17 m twice under load (CI and a shared machine): the bound widened to 0.20 m with them
-        assert peak.top_m < 1.0 + 0.20, f"climbed to {peak.top_m:.2f} m for a 1.0 m take-off"
+        # on the board's own attitude (issue 29) the peak measured 1.10-1.17 m, and 1.21 m in CI, while the height
+        # was anchored to the accelerometer's climb when the odometry came back (0.04 m at 0.20 m up in CI). On the
+        # ground anchor taken at arming: 1.01-1.03 m, three runs beside two busy cores. The bound is back at 0.15 m
+        assert peak.top_m < 1.0 + 0.15, f"climbed to {peak.top_m:.2f} m for a 1.0 m take-off"
         assert height == pytest.approx(1.0, abs=0.15)
         _land(gcs)
+    except BaseException:
+        _land_after_failure(gcs)
+        raise
     finally:
         if peak is not None:
             peak.stop.set()
@@ -515,6 +537,9 @@ def test_takeoff_with_no_odometry_at_all_is_bounded_and_lands(stack):
         assert any("No odometry in takeoff" in t for t in texts), texts
         assert 0.5 < peak.top_m <= 0.7 + 0.25
         assert abs(p[2] - p_ground[2]) < 0.15
+    except BaseException:
+        _land_after_failure(gcs)
+        raise
     finally:
         if peak is not None:
             peak.stop.set()
@@ -599,6 +624,9 @@ def test_geometric_tracker_flies_a_px4_trajectory_setpoint_stream(stack):
         assert gcs.command(mavlink.MAV_CMD_NAV_LAND) == mavlink.MAV_RESULT_ACCEPTED
         assert gcs.recv("HEARTBEAT", 90.0, lambda m: not m.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED) \
             is not None
+    except BaseException:
+        _land_after_failure(gcs)
+        raise
     finally:
         if traj is not None:
             traj.stop.set()

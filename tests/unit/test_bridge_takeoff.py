@@ -290,6 +290,45 @@ def test_takeoff_on_odometry_that_just_stopped_climbs_open_loop_not_on_a_frozen_
     assert top < 1.0 + 0.1 and height(sim) == pytest.approx(1.0, abs=0.1)
 
 
+def test_odometry_that_paused_on_the_ground_gives_the_height_from_its_ground_not_the_accelerometers_climb():
+    """CI (test_bridge_sitl): odometry valid at arming, stale at the take-off (BRG_ODOM_LOSS_T 2 s), back 0.20 m up
+    in the same frame with the accelerometer's climb reading 0.04 m: anchored to that climb, the take-off ended
+    0.21 m above its height. The ground anchor taken at arming is kept; the height is the odometry's. Here the
+    accelerometer reads 0.3 m/s^2 less climb once the motors spin (vibration), so its climb lags the truth."""
+    params = ParamTable()
+    params.set("BRG_ODOM_LOSS_T", 2.0)
+    sim = blind_sim(bias=False, params=params)
+    sim.odom = True
+    arm_and_sit(sim)
+    sim.odom = False
+    sim.step(1.0)
+    assert sim.ap.odom_ok   # not yet timed out: the take-off starts open loop on the stale odometry
+    sim.accel_bias_q = np.array([0.0, 0.0, 0.3])
+    assert sim.command(mavlink.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, math.nan, math.nan, math.nan, 1.0)[0] == \
+        mavlink.MAV_RESULT_ACCEPTED
+    assert sim.ap.takeoff_phase == TakeoffPhase.OPEN_LOOP, sim.statustext
+    while height(sim) < 0.25:
+        sim.step(0.02)
+        assert sim.t < 30.0
+    climbed_m = sim.ap.state.vertical.height_m
+    sim.odom = True
+    sim.step(0.1)
+    height_error_m = sim.ap.state.height_m - height(sim)
+    while sim.ap.mode == FlightMode.TAKEOFF:
+        sim.step(0.02)
+        assert sim.t < 30.0
+    at_loiter_m = height(sim)
+    top = at_loiter_m
+    for _ in range(100):
+        sim.step(0.02)
+        top = max(top, height(sim))
+    assert climbed_m < 0.25 - 0.05, climbed_m   # the accelerometer's climb is behind the truth here
+    assert abs(height_error_m) < 0.02, height_error_m   # anchored on the ground: 0.10 m low on the climb's
+    assert sim.ap.mode == FlightMode.LOITER and sim.ap.failsafe_reason is None, sim.statustext
+    assert not any("Odometry height" in t for t in sim.statustext), sim.statustext  # not re-anchored
+    assert at_loiter_m == pytest.approx(1.0, abs=0.06) and top < 1.0 + 0.06, (at_loiter_m, top)
+
+
 def test_odometry_stale_in_the_closed_loop_climb_goes_open_loop_before_the_loss_timeout():
     """The same in the climb: odometry that stops at 0.15 m (BRG_ODOM_LOSS_T 2 s) is treated as lost after the IMU's
     prediction horizon, not flown frozen for 2 s."""
