@@ -78,7 +78,8 @@ class CommanderService:
             # paused and comes back in the same frame gives the height from the ground it measured, not the
             # accelerometer's climb until then (CI: 0.04 m climbed at 0.20 m up, and the take-off ended 0.21 m
             # above its height). A frame reset, or a height TKO_REANCHOR_M from the climb, re-anchors it to the
-            # climb (firmware_bridge.offboard.on_odometry)
+            # climb (firmware_bridge.offboard.on_odometry); quadlink's companion counts a reset whenever its odometry
+            # is good again after failing, so only a stream that paused (a link gap) keeps the ground anchor
             s.z_ground_m = None
         s.height_m = s.vertical.height_m
         s.event(mavlink.MAV_SEVERITY_INFO, f"Takeoff to {s.takeoff_target_m:.1f} m, open loop until odometry")
