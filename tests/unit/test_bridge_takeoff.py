@@ -329,6 +329,44 @@ def test_odometry_that_paused_on_the_ground_gives_the_height_from_its_ground_not
     assert at_loiter_m == pytest.approx(1.0, abs=0.06) and top < 1.0 + 0.06, (at_loiter_m, top)
 
 
+def test_odometry_that_comes_back_in_a_new_frame_is_anchored_to_the_climb_not_the_old_ground():
+    """The same take-off, but the odometry comes back reset (its reset counter moved, its origin 0.2 m away, as
+    quadlink's companion restarts after a failure): the ground anchor taken at arming belongs to the old frame and
+    is dropped; the new frame is anchored to the measured climb, and the take-off still ends at its height."""
+    params = ParamTable()
+    params.set("BRG_ODOM_LOSS_T", 2.0)
+    sim = blind_sim(bias=False, params=params)
+    send = sim.send
+    new_frame = False
+
+    def restarted(encoded):
+        if new_frame and encoded.get_type() == "ODOMETRY":
+            encoded.reset_counter = 1
+            encoded.z -= 0.2
+        return send(encoded)
+
+    sim.send = restarted
+    sim.odom = True
+    arm_and_sit(sim)
+    sim.odom = False
+    sim.step(1.0)
+    assert sim.command(mavlink.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, math.nan, math.nan, math.nan, 1.0)[0] == \
+        mavlink.MAV_RESULT_ACCEPTED
+    assert sim.ap.takeoff_phase == TakeoffPhase.OPEN_LOOP, sim.statustext
+    while height(sim) < 0.25:
+        sim.step(0.02)
+        assert sim.t < 30.0
+    new_frame = sim.odom = True
+    sim.step(0.1)
+    height_error_m = sim.ap.state.height_m - height(sim)
+    while sim.ap.mode == FlightMode.TAKEOFF:
+        sim.step(0.02)
+        assert sim.t < 30.0
+    assert abs(height_error_m) < 0.05, height_error_m   # on the old ground anchor: 0.2 m off
+    assert sim.ap.mode == FlightMode.LOITER and sim.ap.failsafe_reason is None, sim.statustext
+    assert height(sim) == pytest.approx(1.0, abs=0.06)
+
+
 def test_odometry_stale_in_the_closed_loop_climb_goes_open_loop_before_the_loss_timeout():
     """The same in the climb: odometry that stops at 0.15 m (BRG_ODOM_LOSS_T 2 s) is treated as lost after the IMU's
     prediction horizon, not flown frozen for 2 s."""
