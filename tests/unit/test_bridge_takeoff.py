@@ -290,20 +290,24 @@ def test_takeoff_on_odometry_that_just_stopped_climbs_open_loop_not_on_a_frozen_
     assert top < 1.0 + 0.1 and height(sim) == pytest.approx(1.0, abs=0.1)
 
 
-def test_odometry_that_paused_on_the_ground_gives_the_height_from_its_ground_not_the_accelerometers_climb():
-    """CI (test_bridge_sitl): odometry valid at arming, stale at the take-off (BRG_ODOM_LOSS_T 2 s), back 0.20 m up
-    in the same frame with the accelerometer's climb reading 0.04 m: anchored to that climb, the take-off ended
-    0.21 m above its height. The ground anchor taken at arming is kept; the height is the odometry's. Here the
-    accelerometer reads 0.3 m/s^2 less climb once the motors spin (vibration), so its climb lags the truth."""
+def paused_odometry_sim() -> Sim:
     params = ParamTable()
     params.set("BRG_ODOM_LOSS_T", 2.0)
-    sim = blind_sim(bias=False, params=params)
+    return blind_sim(bias=False, params=params)
+
+
+def take_off_on_odometry_that_paused(sim: Sim, back, accel_bias_in_air_q: np.ndarray | None = None
+                                     ) -> tuple[float, float]:
+    """Odometry valid at arming, stale at the take-off (1 s: with BRG_ODOM_LOSS_T 2 s not yet lost), back 0.25 m up
+    (``back()`` is called then); flown to the end of the take-off. Returns the accelerometer's climb when the odometry
+    came back and the bridge's height error 0.1 s later."""
     sim.odom = True
     arm_and_sit(sim)
     sim.odom = False
     sim.step(1.0)
     assert sim.ap.odom_ok   # not yet timed out: the take-off starts open loop on the stale odometry
-    sim.accel_bias_q = np.array([0.0, 0.0, 0.3])
+    if accel_bias_in_air_q is not None:
+        sim.accel_bias_q = accel_bias_in_air_q
     assert sim.command(mavlink.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, math.nan, math.nan, math.nan, 1.0)[0] == \
         mavlink.MAV_RESULT_ACCEPTED
     assert sim.ap.takeoff_phase == TakeoffPhase.OPEN_LOOP, sim.statustext
@@ -311,14 +315,24 @@ def test_odometry_that_paused_on_the_ground_gives_the_height_from_its_ground_not
         sim.step(0.02)
         assert sim.t < 30.0
     climbed_m = sim.ap.state.vertical.height_m
+    back()
     sim.odom = True
     sim.step(0.1)
     height_error_m = sim.ap.state.height_m - height(sim)
     while sim.ap.mode == FlightMode.TAKEOFF:
         sim.step(0.02)
         assert sim.t < 30.0
-    at_loiter_m = height(sim)
-    top = at_loiter_m
+    return climbed_m, height_error_m
+
+
+def test_odometry_that_paused_on_the_ground_gives_the_height_from_its_ground_not_the_accelerometers_climb():
+    """CI (test_bridge_sitl): odometry valid at arming, stale at the take-off (BRG_ODOM_LOSS_T 2 s), back 0.20 m up
+    in the same frame with the accelerometer's climb reading 0.04 m: anchored to that climb, the take-off ended
+    0.21 m above its height. The ground anchor taken at arming is kept; the height is the odometry's. Here the
+    accelerometer reads 0.3 m/s^2 less climb once the motors spin (vibration), so its climb lags the truth."""
+    sim = paused_odometry_sim()
+    climbed_m, height_error_m = take_off_on_odometry_that_paused(sim, lambda: None, np.array([0.0, 0.0, 0.3]))
+    at_loiter_m = top = height(sim)
     for _ in range(100):
         sim.step(0.02)
         top = max(top, height(sim))
@@ -333,35 +347,18 @@ def test_odometry_that_comes_back_in_a_new_frame_is_anchored_to_the_climb_not_th
     """The same take-off, but the odometry comes back reset (its reset counter moved, its origin 0.2 m away, as
     quadlink's companion restarts after a failure): the ground anchor taken at arming belongs to the old frame and
     is dropped; the new frame is anchored to the measured climb, and the take-off still ends at its height."""
-    params = ParamTable()
-    params.set("BRG_ODOM_LOSS_T", 2.0)
-    sim = blind_sim(bias=False, params=params)
+    sim = paused_odometry_sim()
     send = sim.send
-    new_frame = False
+    new_frame = [False]
 
     def restarted(encoded):
-        if new_frame and encoded.get_type() == "ODOMETRY":
+        if new_frame[0] and encoded.get_type() == "ODOMETRY":
             encoded.reset_counter = 1
             encoded.z -= 0.2
         return send(encoded)
 
     sim.send = restarted
-    sim.odom = True
-    arm_and_sit(sim)
-    sim.odom = False
-    sim.step(1.0)
-    assert sim.command(mavlink.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, math.nan, math.nan, math.nan, 1.0)[0] == \
-        mavlink.MAV_RESULT_ACCEPTED
-    assert sim.ap.takeoff_phase == TakeoffPhase.OPEN_LOOP, sim.statustext
-    while height(sim) < 0.25:
-        sim.step(0.02)
-        assert sim.t < 30.0
-    new_frame = sim.odom = True
-    sim.step(0.1)
-    height_error_m = sim.ap.state.height_m - height(sim)
-    while sim.ap.mode == FlightMode.TAKEOFF:
-        sim.step(0.02)
-        assert sim.t < 30.0
+    _, height_error_m = take_off_on_odometry_that_paused(sim, lambda: new_frame.__setitem__(0, True))
     assert abs(height_error_m) < 0.05, height_error_m   # on the old ground anchor: 0.2 m off
     assert sim.ap.mode == FlightMode.LOITER and sim.ap.failsafe_reason is None, sim.statustext
     assert height(sim) == pytest.approx(1.0, abs=0.06)
