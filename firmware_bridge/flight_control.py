@@ -176,6 +176,11 @@ class FlightControlService:
             s.fs_hover_until_s = None
             s.event(mavlink.MAV_SEVERITY_WARNING, "Failsafe: hover done, landing")
             self.commander.set_mode(FlightMode.LAND, now_s, "failsafe")
+        if s.mode == FlightMode.LOITER:
+            # PX4's Hold holds its place: the hover after a take-off, a ground station's HOLD and the failsafe hover of
+            # a stalled companion (BRG_FS_HOVER_T) flew a velocity loop asked for zero, which creeps (3-8 cm/s) and
+            # stays wherever a push left it (0.5 m off after a 0.3 N gust in the point-mass test)
+            v_ref[:2] = self._position_hold(est.yaw_rad)
         sp = s.vel_sp
         if s.mode == FlightMode.OFFBOARD and sp is not None and sp.yaw_rate_rad_s is None and sp.yaw_rad is not None:
             s.yaw_sp_rad = None  # an absolute yaw target is tracked in velocity_reference

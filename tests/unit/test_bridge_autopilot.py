@@ -362,10 +362,14 @@ def test_takeoff_offboard_body_velocity_and_land():
 
 
 def test_integral_holds_velocity_against_wind():
+    """OFFBOARD at v = 0 (LOITER holds its place on top: test_loiter_holds_its_place_as_px4_hold_does)."""
     sim = Sim()
     fly_to_hover(sim)
+    sim.step(0.5, setpoint=velocity_body(0, 0, 0))
+    assert sim.command(mavlink.MAV_CMD_DO_SET_MODE, 1, 6, 0)[0] == mavlink.MAV_RESULT_ACCEPTED
     sim.wind_n = np.array([0.8, 0.0, 0.0])
-    sim.step(8.0)
+    sim.step(8.0, setpoint=velocity_body(0, 0, 0))
+    assert sim.ap.mode == FlightMode.OFFBOARD
     assert np.linalg.norm(sim.v) < 0.05  # the integral cancels the push: velocity hold, no drift
 
 
@@ -963,6 +967,34 @@ def test_land_holds_the_place_where_it_began():
     assert not sim.ap.armed_cmd
     moved = float(np.linalg.norm(sim.p[:2] - start[:2]))
     assert moved < 0.14, f"landed {moved:.2f} m from where LAND began"   # 0.11 m; 0.18 m on v = 0 alone
+
+
+def test_loiter_holds_its_place_as_px4_hold_does():
+    """PX4's Hold holds its position. LOITER (after a take-off, a ground station's HOLD, the failsafe hover of a
+    stalled companion) flew a velocity loop asked for zero: a push moved it and it stayed there. Here the companion
+    stops in OFFBOARD (the failsafe hover, BRG_FS_HOVER_T 12 s) and a steady 0.3 N push comes: with the hold the
+    vehicle gives 0.11 m and comes back to within 0.03 m of where the hover began in 6 s; on v = 0 alone (the
+    control) it is 0.43 m away then and still going."""
+    off_m, peak_m = {}, {}
+    for hold in (True, False):
+        sim = Sim(ParamTable({"BRG_FS_HOVER_T": 12.0}))
+        fly_to_hover(sim)
+        if not hold:   # the control: LOITER's loop on v = 0 alone
+            sim.ap.flight_control._position_hold = lambda yaw_rad: np.zeros(2)  # type: ignore[method-assign]
+        sim.step(0.5, setpoint=velocity_body(0, 0, 0))
+        assert sim.command(mavlink.MAV_CMD_DO_SET_MODE, 1, 6, 0)[0] == mavlink.MAV_RESULT_ACCEPTED
+        sim.step(1.0, setpoint=velocity_body(0.0, 0, 0))
+        sim.step(1.2)                                    # the companion stops talking
+        assert sim.ap.mode == FlightMode.LOITER and any("Offboard lost" in t for t in sim.statustext)
+        start = sim.p.copy()
+        sim.wind_n = np.array([0.3, 0.0, 0.0])
+        peak_m[hold] = 0.0
+        for _ in range(300):                             # 6 s
+            sim.step(0.02)
+            peak_m[hold] = max(peak_m[hold], float(np.linalg.norm(sim.p[:2] - start[:2])))
+        assert sim.ap.mode == FlightMode.LOITER
+        off_m[hold] = float(np.linalg.norm(sim.p[:2] - start[:2]))
+    assert off_m[True] < 0.05 and peak_m[True] < 0.15 and off_m[False] > 0.3, (off_m, peak_m)
 
 
 def test_a_takeoff_holds_the_place_where_its_closed_loop_began():
