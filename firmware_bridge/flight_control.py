@@ -32,7 +32,7 @@ BLIND_DESCENT_EXTRA_S = 3.0  # the blind descent probes for the ground after hei
 # to 0.21 m of a box. Longer, and the accelerometer's bias (~0.05 m/s^2) would steer it instead.
 ODOM_LOST_BRAKE_S = 1.0
 ODOM_LOST_BRAKE_TILT_RAD = 0.15   # ~1.5 m/s^2: 0.4 m/s braked in under 0.3 s
-LAND_HOLD_GAIN_1_S = 1.0          # LAND's and TAKEOFF's position hold: m/s back per m away from where it began
+LAND_HOLD_GAIN_1_S = 1.0          # LAND's, TAKEOFF's, LOITER's position hold: m/s back per m from where it began
 LAND_HOLD_MAX_M_S = 0.15
 LAND_HOLD_REANCHOR_M = 0.5        # farther than this from the anchor (an odometry reset): a new anchor
 # the board's level: it holds its own attitude estimate, whose error (its accelerometer's bias, the drag it reads as
@@ -179,7 +179,7 @@ class FlightControlService:
         if s.mode == FlightMode.LOITER:
             # PX4's Hold holds its place: the hover after a take-off, a ground station's HOLD and the failsafe hover of
             # a stalled companion (BRG_FS_HOVER_T) flew a velocity loop asked for zero, which creeps (3-8 cm/s) and
-            # stays wherever a push left it (0.5 m off after a 0.3 N gust in the point-mass test)
+            # stays wherever a push left it (0.41 m off after 6 s of a steady 0.3 N push in the point-mass test)
             v_ref[:2] = self._position_hold(est.yaw_rad)
         sp = s.vel_sp
         if s.mode == FlightMode.OFFBOARD and sp is not None and sp.yaw_rate_rad_s is None and sp.yaw_rad is not None:
@@ -283,8 +283,8 @@ class FlightControlService:
         return self._finish(cmd)
 
     def _position_hold(self, yaw_rad: float) -> np.ndarray:
-        """LAND and TAKEOFF on odometry hold the place where they began (PX4's land and take-off hold their
-        position), not only v = 0: a velocity loop asked for zero creeps (3-8 cm/s seen), and a vertical descent
+        """LAND, TAKEOFF and LOITER on odometry hold the place where they began (PX4's land, take-off and Hold hold
+        their position), not only v = 0: a velocity loop asked for zero creeps (3-8 cm/s seen), and a vertical descent
         beside a box came 0.10 m nearer it (campaign seed 2031 flight 22). In H, at most LAND_HOLD_MAX_M_S;
         re-anchored after a jump and at every mode change (:meth:`CommanderService.set_mode`)."""
         s = self.state

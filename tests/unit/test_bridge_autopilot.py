@@ -974,7 +974,7 @@ def test_loiter_holds_its_place_as_px4_hold_does():
     stalled companion) flew a velocity loop asked for zero: a push moved it and it stayed there. Here the companion
     stops in OFFBOARD (the failsafe hover, BRG_FS_HOVER_T 12 s) and a steady 0.3 N push comes: with the hold the
     vehicle gives 0.11 m and comes back to within 0.03 m of where the hover began in 6 s; on v = 0 alone (the
-    control) it is 0.43 m away then and still going."""
+    control) it is 0.41 m away then and still going."""
     off_m, peak_m = {}, {}
     for hold in (True, False):
         sim = Sim(ParamTable({"BRG_FS_HOVER_T": 12.0}))
