@@ -304,9 +304,16 @@ class BaroAltitude:
     Wire size: 12 bytes -> 4 base64 groups -> 16 characters -> 22 bytes framed (50 Hz: 1,100 B/s, 9.5 % of
     port 1). The bridge fuses it with the IMU for the blind (companion-less) descent; the board uses the same
     estimate for its own failsafe's touchdown detection.
+
+    ``altitude_cm`` and ``climb_cm_s`` are the output of the board's alpha-beta filter on the pressure's height
+    (``firmware/src/baro.h``: alpha 2^-7, beta 2^-15 per 2 ms tick), not the height itself: the consumer that
+    compares them with a height runs the same filter on it (``FILTER_ALPHA_1_S``, ``FILTER_BETA_1_S2``, its gains as
+    rates: ``h += (climb + alpha r) dt``, ``climb += beta r dt``, ``r`` = height - h).
     """
 
     COMMAND: ClassVar[str] = "Z"
+    FILTER_ALPHA_1_S: ClassVar[float] = 500.0 / 2 ** 7
+    FILTER_BETA_1_S2: ClassVar[float] = 500.0 ** 2 / 2 ** 15
     STRUCT: ClassVar[struct.Struct] = struct.Struct("<ihIBB")
     FLAG_VALID: ClassVar[int] = 0x01
     FLAG_SATURATED: ClassVar[int] = 0x02
