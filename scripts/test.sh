@@ -20,13 +20,14 @@ if [ "$#" -gt 0 ]; then   # the caller chose what to run: one process, as asked
   exec .venv/bin/python -m pytest -m "$marker" -q "$@"
 fi
 # the pure tests (no sockets, no processes, no wall clock) on two workers; then everything else in one process:
-# the flights and the real-time tests measure timing and must not share the machine with each other
+# the flights and the real-time tests measure timing and must not share the machine with each other; the 15
+# slowest are listed at the end (where the 30-minute budget goes)
 echo "[test] pytest -m '$marker' tests/unit tests/protocol on 2 workers"
 status=0
 .venv/bin/python -m pytest -m "$marker" -q -n 2 tests/unit tests/protocol || status=$?
 [ "$status" = 5 ] && status=0   # 5: nothing selected (the slow set has no pure tests)
 echo "[test] pytest -m '$marker' (the rest)"
 rest=0
-.venv/bin/python -m pytest -m "$marker" -q --ignore=tests/unit --ignore=tests/protocol || rest=$?
+.venv/bin/python -m pytest -m "$marker" -q --durations=15 --ignore=tests/unit --ignore=tests/protocol || rest=$?
 [ "$rest" = 5 ] && rest=0
 [ "$status" = 0 ] && [ "$rest" = 0 ]
