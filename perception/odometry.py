@@ -115,12 +115,12 @@ def _covariance(information: NDArray[np.float64] | None) -> NDArray[np.float64] 
         return None
 
 
-def fuse_poses(T_a: Mat4, cov_a: NDArray[np.float64], T_b: Mat4, cov_b: NDArray[np.float64], max_step_m: float
-               ) -> tuple[Mat4, NDArray[np.float64]] | None:
-    """The information-weighted mean of two estimates of one pose (covariances of left perturbations in the
-    reference's frame) and its covariance: ``exp(step) T_a``, ``step`` the share of ``log(T_b T_a^-1)`` that
-    ``T_b``'s information carries. None when the step leaves the segment between them or moves more than
-    ``max_step_m`` (an ill-conditioned information, an estimate in another basin)."""
+def _fusion_step(T_a: Mat4, cov_a: NDArray[np.float64], T_b: Mat4, cov_b: NDArray[np.float64], max_step_m: float
+                 ) -> tuple[NDArray[np.float64], NDArray[np.float64]] | None:
+    """The left perturbation (in the reference's frame) that takes ``T_a`` to the information-weighted mean of two
+    estimates of one pose, and the summed information: ``step`` is the share of ``log(T_b T_a^-1)`` that ``T_b``'s
+    information carries. None when the step leaves the segment between them or moves more than ``max_step_m``
+    (an ill-conditioned information, an estimate in another basin)."""
     delta = _se3_log(T_b @ inv_T(T_a))
     info_b = np.linalg.inv(cov_b)
     info = np.linalg.inv(cov_a) + info_b
@@ -129,6 +129,17 @@ def fuse_poses(T_a: Mat4, cov_a: NDArray[np.float64], T_b: Mat4, cov_b: NDArray[
     if not np.all(np.isfinite(step)) or float(np.linalg.norm(step[:3])) > reach_m \
             or float(np.linalg.norm(step[3:])) > float(np.linalg.norm(delta[3:])) + 1e-9:
         return None
+    return step, info
+
+
+def fuse_poses(T_a: Mat4, cov_a: NDArray[np.float64], T_b: Mat4, cov_b: NDArray[np.float64], max_step_m: float
+               ) -> tuple[Mat4, NDArray[np.float64]] | None:
+    """The information-weighted mean of two estimates of one pose (covariances of left perturbations in the
+    reference's frame) and its covariance: ``exp(step) T_a`` (:func:`_fusion_step`; None where it is)."""
+    fused = _fusion_step(T_a, cov_a, T_b, cov_b, max_step_m)
+    if fused is None:
+        return None
+    step, info = fused
     return se3_exp(step) @ T_a, np.asarray(np.linalg.inv(info), dtype=np.float64)
 
 
@@ -398,19 +409,15 @@ class RgbdOdometry:
             return T_kf_ck
         Ad = _adjoint(T_p_kf)
         cov_chain = self._cov_kfprev_kf + Ad @ cov_kf_ck @ Ad.T
-        info_chain, info_direct = np.linalg.inv(cov_chain), np.linalg.inv(cov_direct)
-        # direct minus chain as a left perturbation in kf_prev's frame, weighted by the direct's share
-        delta = _se3_log(inv_T(pair.T_ck_ckm1) @ inv_T(T_p_ck_chain))
-        step = np.asarray(np.linalg.solve(info_chain + info_direct, info_direct @ delta), dtype=np.float64)
-        # the fused pose lies between the two estimates, a few pixels from the chain's: a step beyond the jump
-        # gate's translation or the delta itself (an ill-conditioned information, a direct alignment in another
-        # basin) is not a refinement (a SITL flight with the pan-scan off diverged to 40 m without this gate)
-        reach_m = min(cfg.max_translation_jump_m, float(np.linalg.norm(delta[:3])) + 1e-9)
-        too_far = float(np.linalg.norm(step[:3])) > reach_m \
-            or float(np.linalg.norm(step[3:])) > float(np.linalg.norm(delta[3:])) + 1e-9
-        if not np.all(np.isfinite(step)) or too_far:
+        # direct minus chain as a left perturbation in kf_prev's frame, weighted by the direct's share. The fused
+        # pose lies between the two estimates, a few pixels from the chain's: a step beyond the jump gate's
+        # translation or the delta itself (an ill-conditioned information, a direct alignment in another basin)
+        # is not a refinement (a SITL flight with the pan-scan off diverged to 40 m without this gate)
+        fused = _fusion_step(T_p_ck_chain, cov_chain, inv_T(pair.T_ck_ckm1), cov_direct, cfg.max_translation_jump_m)
+        if fused is None:
             self.rejected_refinements += 1
             return T_kf_ck
+        step = fused[0]
         self.refined_keyframes += 1
         # the step moved into kf's frame, applied to the frame's own pose in kf: the same pose as
         # inv(T_p_kf) exp(step) T_p_kf T_kf_ck, but that product's inv_T (R^T) of T_p_kf is an inverse only for an
