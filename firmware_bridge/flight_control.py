@@ -32,9 +32,9 @@ BLIND_DESCENT_EXTRA_S = 3.0  # the blind descent probes for the ground after hei
 # to 0.21 m of a box. Longer, and the accelerometer's bias (~0.05 m/s^2) would steer it instead.
 ODOM_LOST_BRAKE_S = 1.0
 ODOM_LOST_BRAKE_TILT_RAD = 0.15   # ~1.5 m/s^2: 0.4 m/s braked in under 0.3 s
-LAND_HOLD_GAIN_1_S = 1.0          # LAND's, TAKEOFF's, LOITER's position hold: m/s back per m from where it began
-LAND_HOLD_MAX_M_S = 0.15
-LAND_HOLD_REANCHOR_M = 0.5        # farther than this from the anchor (an odometry reset): a new anchor
+POSITION_HOLD_GAIN_1_S = 1.0      # LAND's, TAKEOFF's, LOITER's position hold: m/s back per m from where it began
+POSITION_HOLD_MAX_M_S = 0.15
+POSITION_HOLD_REANCHOR_M = 0.5    # farther than this from the anchor (an odometry reset): a new anchor
 # the board's level: it holds its own attitude estimate, whose error (its accelerometer's bias, the drag it reads as
 # tilt, its gyro bias times its filter's 8 s) is 0.5-2 deg; campaign 20261217's flight 6 came down the last 0.3 m of
 # its landing "level" at 2 deg of true roll and slid 0.07 m toward a partition. In steady flight on odometry the
@@ -285,19 +285,19 @@ class FlightControlService:
     def _position_hold(self, yaw_rad: float) -> np.ndarray:
         """LAND, TAKEOFF and LOITER on odometry hold the place where they began (PX4's land, take-off and Hold hold
         their position), not only v = 0: a velocity loop asked for zero creeps (3-8 cm/s seen), and a vertical descent
-        beside a box came 0.10 m nearer it (campaign seed 2031 flight 22). In H, at most LAND_HOLD_MAX_M_S;
+        beside a box came 0.10 m nearer it (campaign seed 2031 flight 22). In H, at most POSITION_HOLD_MAX_M_S;
         re-anchored after a jump and at every mode change (:meth:`CommanderService.set_mode`)."""
         s = self.state
         p = s.odom_p_ned_m
         if p is None or not np.all(np.isfinite(p[:2])):
             s.hold_anchor_ned_m = None
             return np.zeros(2)
-        if s.hold_anchor_ned_m is None or float(np.linalg.norm(p[:2] - s.hold_anchor_ned_m)) > LAND_HOLD_REANCHOR_M:
+        if s.hold_anchor_ned_m is None or float(np.linalg.norm(p[:2] - s.hold_anchor_ned_m)) > POSITION_HOLD_REANCHOR_M:
             s.hold_anchor_ned_m = p[:2].copy()
         e_ned = np.array([p[0] - s.hold_anchor_ned_m[0], p[1] - s.hold_anchor_ned_m[1], 0.0])
-        v_h = -LAND_HOLD_GAIN_1_S * (Rz(-yaw_rad) @ e_ned)[:2]
+        v_h = -POSITION_HOLD_GAIN_1_S * (Rz(-yaw_rad) @ e_ned)[:2]
         speed = float(np.linalg.norm(v_h))
-        return v_h * (LAND_HOLD_MAX_M_S / speed) if speed > LAND_HOLD_MAX_M_S else v_h
+        return v_h * (POSITION_HOLD_MAX_M_S / speed) if speed > POSITION_HOLD_MAX_M_S else v_h
 
     def _level(self) -> tuple[float, float]:
         """The (roll, pitch) to command for level flight: the trim learnt in this flight (0 before any; 0 with
