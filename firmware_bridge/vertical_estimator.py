@@ -34,11 +34,12 @@ with the triple pole at ``baro_bandwidth_rad_s`` (k1 = 3 w0, k2 = 3 w0^2, k3 = w
 the fast motion, the baro's noise (a few cm after the board's oversampling) and its slow drift are filtered.
 ``z_baro`` is not the pressure's height: it is the board's alpha-beta filter of it (``firmware/src/baro.c``,
 alpha 2^-7 and beta 2^-15 per 2 ms tick: a second-order low-pass at 2.8 rad/s, damping 0.7), which lags a climb
-by 0.05-0.1 m as it starts. So the innovation compares it with ``AB(h)``, the same filter run on this estimate
-(what the frame would read if the estimate were the truth), not with ``h``: compared with ``h``, the blind
-climb's height ran 0.06-0.10 m behind the truth at the odometry's hand-over 0.4 m up and the take-off ended at
-1.27-1.31 m for 1.2 m (SITL, 3 runs). The filter inside the loop costs phase margin (71 deg at w0 = 1 rad/s
-without it, 27 deg with it), so the pole moves to 0.7 rad/s (42 deg).
+as it starts: 0.08 m at most, 0.2 m up, for the take-off's 0.5 m/s reached at 2 m/s^2. So the innovation
+compares it with ``AB(h)``, the same filter run on this estimate (what the frame would read if the estimate were
+the truth), not with ``h``: compared with ``h``, the blind climb's height ran 0.06-0.10 m behind the truth at the
+odometry's hand-over 0.4 m up and the take-off ended at 1.27-1.31 m for 1.2 m (SITL, 3 runs). The filter inside
+the loop costs phase margin (71 deg at w0 = 1 rad/s without it, 27 deg with it), so the pole moves to 0.7 rad/s
+(42 deg).
 A baro frame older than ``BARO_STALE_S`` (or marked invalid or saturated) is not used: the accelerometer-only
 estimate goes on from where the fused one was.
 """
