@@ -59,6 +59,15 @@ class NonFiniteCommand(ValueError):
     """A board command with a NaN or infinite field: a bug upstream, never sent to the board."""
 
 
+@dataclass
+class BlindDescent:
+    """A landing without odometry, from its start (``FlightControl._blind_step``)."""
+    start_s: float
+    height0_m: float                # the estimated height then
+    floor_s: float | None = None    # when the baro-fused estimate first read the floor
+    floor_thrust: float = 0.0       # the thrust that held the descent just before then
+
+
 @dataclass(frozen=True)
 class BoardCommand:
     """What the board gets at 100 Hz (the daemon packs it into an MK ``AttitudeSetpoint``).
@@ -191,7 +200,7 @@ class BridgeState:
         self.tko_climbed_m = 0.0           # the take-off's climb, integrated from the velocity estimate
         self.tko_disagree_told = False
         self.hover_thrust_learned: float | None = None
-        self.blind_descent: tuple[float, float] | None = None  # (start time, estimated height then)
+        self.blind_descent: BlindDescent | None = None
         # setpoints
         self.setpoint_time_s: float | None = None
         self.vel_sp: VelocitySetpoint | None = None

@@ -52,6 +52,7 @@ class Sim:
         self.odom_z_offset_m = 0.0  # the odometry's z error (a drifting odometry on the ground)
         self.accel_bias_q = np.zeros(3)  # the IMU's accelerometer bias (body FRD, m/s^2)
         self.baro = False  # the board's Z frames at 50 Hz (the truth's altitude, no noise)
+        self.baro_error_m = 0.0  # added to the baro's altitude (its drift since the take-off)
         self.level_error_rad = (0.0, 0.0)  # the board flies its own estimate: (roll, pitch) it holds for "level"
         self.odom_velocity_error_n = np.zeros(3)  # added to the odometry's velocity (NED): garbage near the floor
 
@@ -103,7 +104,7 @@ class Sim:
                                             last_setpoint_seq=0)
                     self._collect(self.ap.on_board_status(self.t, status))
                 if self.baro and self.k % 10 == 0:
-                    self.ap.on_board_baro(100.0 - float(self.p[2]), True)
+                    self.ap.on_board_baro(100.0 - float(self.p[2]) + self.baro_error_m, True)
             if self.odom and self.k % 17 == 0:
                 v_q = R.T @ (self.v + self.odom_velocity_error_n)
                 q = quat_wxyz_from_euler(self.roll, self.pitch, self.yaw)
@@ -475,6 +476,42 @@ def test_odometry_lost_in_the_air_descends_and_lands_whatever_the_accelerometer_
     assert max(heights) < -z0 + 0.05, f"climbed to {max(heights):.2f} m from {-z0:.2f} m"
     assert heights[-1] < 0.01 and not sim.ap.armed_cmd, "not landed and disarmed within 10 s"
     assert sim.ap.failsafe_reason is None or "odometry" in sim.ap.failsafe_reason
+
+
+def _blind_landing_on_a_drifted_baro(band_m: float, baro_error_m: float) -> tuple[float, float]:
+    """Odometry lost in a hover, the baro drifted by ``baro_error_m`` since the take-off: (the truth's fastest
+    descent in the last 0.2 s before touchdown (m/s), seconds from the loss to the disarm)."""
+    sim = Sim(ParamTable({"BRG_OL_LAND_BAND": band_m}))
+    sim.baro = True
+    fly_to_hover(sim)
+    sim.baro_error_m = baro_error_m
+    sim.step(5.0)                              # the fused height follows the drifted baro
+    assert sim.ap.state.vertical.estimate.baro_fused
+    sim.odom = False
+    t_lost, speeds, touchdown = sim.t, [], None
+    while sim.ap.armed_cmd and sim.t < t_lost + 20.0:
+        sim.step(0.002)
+        if touchdown is None:
+            speeds.append(float(sim.v[2]))
+            if sim.p[2] >= 0.0:
+                touchdown = max(speeds[-100:])
+    assert touchdown is not None and not sim.ap.armed_cmd, "not landed and disarmed within 20 s"
+    return touchdown, sim.t - t_lost
+
+
+def test_a_blind_landing_on_a_baro_that_reads_low_holds_its_descent_through_the_floor_it_reads():
+    """The SITL, the companion killed in a 1.2 m hover: where the baro had drifted 0.13-0.18 m low the estimate
+    read the floor that far above it, its descent stopped there, and the speed loop, chasing the descent rate, cut
+    the thrust: touchdown at 0.67-0.77 m/s in 4 of 8 landings (0.51-0.53 in the others). The descent's thrust is
+    held through BRG_OL_LAND_BAND (0.3 m) below the floor the estimate reads: touchdown at the descent rate (0.5 m/s)
+    whichever way the baro drifted, and the landing still ends."""
+    rate = ParamTable()["BRG_OL_LAND_SPD"]
+    for error_m in (-0.15, 0.0, 0.15):
+        speed, took_s = _blind_landing_on_a_drifted_baro(0.3, error_m)
+        assert speed < rate + 0.05, f"baro {error_m:+.2f} m: touched down at {speed:.2f} m/s"
+        assert took_s < 10.0, f"baro {error_m:+.2f} m: disarmed {took_s:.1f} s after the loss"
+    dropped, _ = _blind_landing_on_a_drifted_baro(0.0, -0.15)   # without the hold: the thrust cut 0.15 m up
+    assert dropped > rate + 0.1, f"without the hold: {dropped:.2f} m/s"
 
 
 def test_board_link_loss_is_reported_and_blocks_arming():
