@@ -234,7 +234,8 @@ class Flight:
 
     def __init__(self, out_dir: Path, scenario: str, offset: int, lockstep: bool,
                  companion_config: Path | None, sitl_duration_s: float, camera: str = "tcp://127.0.0.1:{port}",
-                 shipped_timeouts: bool = False, cpu_share: CpuShare | None = None, journal: bool = False) -> None:
+                 shipped_timeouts: bool = False, cpu_share: CpuShare | None = None, journal: bool = False,
+                 sitl_config: Path | None = None) -> None:
         from quadlink.mavlink.connection import open_mavlink
 
         self.out_dir = out_dir
@@ -267,7 +268,8 @@ class Flight:
             companion_config = companion_config_with(out_dir, **({} if shipped_timeouts else LOADED_MACHINE))
         try:   # a part that fails to start must not leave the others running or the sockets open
             self.vehicle = Vehicle(out_dir,
-                                   SitlPart(scenario, lockstep, duration_s=sitl_duration_s, ready_after_s=2.0),
+                                   SitlPart(scenario, lockstep, duration_s=sitl_duration_s, ready_after_s=2.0,
+                                            config=None if sitl_config is None else str(sitl_config)),
                                    BridgePart(ready_after_s=1.0),
                                    CompanionPart(companion_config, camera=camera, ready_after_s=1.0,
                                                  journal=out_dir / "companion.qljn" if journal else None),
@@ -369,14 +371,16 @@ class Flight:
 def flight(out_dir: Path, scenario: str = "paper-arena", offset: int | None = None, lockstep: bool = True,
            companion_config: Path | None = None, sitl_duration_s: float = 400.0,
            camera: str = "tcp://127.0.0.1:{port}", shipped_timeouts: bool = False,
-           cpu_share: CpuShare | None = None, journal: bool = False) -> Iterator[Flight]:
+           cpu_share: CpuShare | None = None, journal: bool = False,
+           sitl_config: Path | None = None) -> Iterator[Flight]:
     """A flight on the demo's ports shifted by ``offset`` (None: a free one, :func:`harness.ports.free_port_offset`);
     ``camera``: the companion's camera URL, ``{port}`` the SITL's camera stream port;
     ``shipped_timeouts``: the failsafe timeouts as shipped (else the loaded-machine margins, and the test says why);
     ``cpu_share``: the bridge and the companion run in this CPU share (harness.cpu_share); ``journal``: the companion
-    journals its inputs to ``out_dir/companion.qljn`` (~12 MB/s)."""
+    journals its inputs to ``out_dir/companion.qljn`` (~12 MB/s); ``sitl_config``: the SITL's configuration file
+    (None: configs/sitl.yaml; ``scenario`` still names the arena)."""
     f = Flight(out_dir, scenario, free_port_offset() if offset is None else offset, lockstep, companion_config,
-               sitl_duration_s, camera, shipped_timeouts, cpu_share, journal)
+               sitl_duration_s, camera, shipped_timeouts, cpu_share, journal, sitl_config)
     try:
         yield f
     finally:
