@@ -24,6 +24,7 @@ from quadlink.safety import CLEARANCE_BOUND_M, SAFE_DISTANCE_M
 
 TARGET_M = CLEARANCE_BOUND_M
 WORST_N = 5
+TOUCHDOWN_BOUND_M_S = 0.7   # a landing's impact speed above this is listed (PX4's MPC_LAND_SPEED; the failsafe tests')
 TAKEOFF_S = 5.0   # a take-off to 1 m takes 2-3 s: a flight airborne for less came down in its take-off (the bridge
                   # lands a take-off without odometry); its session was not flown
 
@@ -53,6 +54,7 @@ def flight_row(r: FlightResult) -> dict[str, Any]:
         "sim_duration_s": rep.get("sim_duration_s", math.nan),
         "flying_time_s": rep.get("flying_time_s", math.nan),
         "max_height_m": env.get("max_height_m", math.nan),
+        "touchdown_m_s": env.get("touchdown_m_s", math.nan),
         "cpu_share_cores": draws.get("starvation", {}).get("cpu_cores", math.nan),
         "busy_neighbours": draws.get("starvation", {}).get("busy_neighbours"),
         "data_age_p50_ms": rep.get("data_age_ms", {}).get("p50", math.nan),
@@ -136,6 +138,12 @@ def summarize(results: list[FlightResult], options: CampaignOptions, wall_s: flo
             if _finite(flown, "velocity_rmse_m_s").size else math.nan,
             "tracking_rmse_m_s_median": float(np.median(_finite(flown, "tracking_rmse_m_s")))
             if _finite(flown, "tracking_rmse_m_s").size else math.nan,
+            # the landing's impact speed (truth), against PX4's MPC_LAND_SPEED-like bound the failsafe tests use
+            "touchdown_m_s_median": float(np.median(_finite(flown, "touchdown_m_s")))
+            if _finite(flown, "touchdown_m_s").size else math.nan,
+            "touchdown_m_s_max": float(np.max(_finite(flown, "touchdown_m_s")))
+            if _finite(flown, "touchdown_m_s").size else math.nan,
+            "touchdowns_over_bound": [r["index"] for r in flown if r.get("touchdown_m_s", 0.0) > TOUCHDOWN_BOUND_M_S],
             "share_with_setpoint_gaps": float(np.mean([(r["setpoint_gaps_over_100ms"] or 0) > 0 for r in gaps]))
             if gaps else math.nan,
             "wall_time_s": wall_s, "simulated_s": sim_s,
@@ -195,12 +203,13 @@ def write_campaign(results: list[FlightResult], options: CampaignOptions, wall_s
 def summary_text(campaign: dict[str, Any]) -> str:
     s = campaign["summary"]
     lines = [f"{'flight':>6} {'status':<9} {'layout':<18} {'operator':<8} {'min d':>6} {'surface':<8} "
-             f"{'v RMSE':>7} {'track':>7} {'gaps':>4} {'flying':>6} {'sitl seed':>10}"]
+             f"{'v RMSE':>7} {'track':>7} {'land':>5} {'gaps':>4} {'flying':>6} {'sitl seed':>10}"]
     for r in campaign["flights"]:
         lines.append(f"{r['index']:>6} {r['status'] + ('*' if r['retried'] else ''):<9} {str(r['layout']):<18} "
                      f"{str(r['operator']):<8} {r['min_nonfloor_distance_m']:6.2f} {str(r['closest_surface']):<8} "
                      f"{r['velocity_rmse_m_s']:7.3f} {r['tracking_rmse_m_s']:7.3f} "
-                     f"{str(r['setpoint_gaps_over_100ms']):>4} {r['flying_time_s']:5.1f}s {str(r['seed']['sitl']):>10}")
+                     f"{r.get('touchdown_m_s', math.nan):5.2f} {str(r['setpoint_gaps_over_100ms']):>4} "
+                     f"{r['flying_time_s']:5.1f}s {str(r['seed']['sitl']):>10}")
     lines += [
         "",
         f"flights {s['flights']} (ok {s['ok']}; failed {s['failed'] or 'none'}; retried (*) {s['retried'] or 'none'}; "
@@ -212,6 +221,9 @@ def summary_text(campaign: dict[str, Any]) -> str:
         f"velocity-estimate RMSE median {s['velocity_rmse_m_s_median']:.3f} m/s; tracking RMSE median "
         f"{s['tracking_rmse_m_s_median']:.3f} m/s; flights with setpoint gaps > 100 ms: "
         f"{100 * s['share_with_setpoint_gaps']:.0f} %",
+        f"touchdown speed (truth) median {s.get('touchdown_m_s_median', math.nan):.2f} m/s, fastest "
+        f"{s.get('touchdown_m_s_max', math.nan):.2f} m/s; over {TOUCHDOWN_BOUND_M_S} m/s: "
+        f"{s.get('touchdowns_over_bound') or 'none'}",
         f"throughput: {s['flights_per_hour']:.1f} flights/h ({s['simulated_s']:.0f} s simulated in "
         f"{s['wall_time_s']:.0f} s wall)",
         "worst flights:",

@@ -15,7 +15,7 @@ from harness.campaign.draws import CAMERA_TILT_DEG, StarvationRange, draw_flight
 from harness.campaign.offboard_client import plan_end_s, setpoint_at
 from harness.campaign.report import summarize, summary_text, write_campaign
 from harness.campaign.runner import CampaignOptions, FlightResult, flight_ports, progress_line
-from harness.campaign.safety import envelope, read_truth
+from harness.campaign.safety import envelope, read_truth, touchdown_m_s
 from harness.campaign.sessions import MOTION_OFFSET_RAD, generate_session
 from harness.demo.cli import PORT_BLOCK_SIZE, PORT_NAMES, FlightSpec, Ports, compare_reports
 from quadlink.config import load_config
@@ -201,6 +201,36 @@ def test_envelope_adds_the_ceiling_to_the_truth_distance(tmp_path: Path) -> None
     assert env.surface == "obstacle" and env.min_nonfloor_m == pytest.approx(0.35, abs=0.006)
 
 
+def _landing(cut_height_m: float, hop_m: float = 0.0, rate_hz: float = 50.0) -> tuple[np.ndarray, np.ndarray]:
+    """Truth at ``rate_hz`` (local NED, z = 0 resting): up to 1.2 m, down at 0.5 m/s, the thrust cut
+    ``cut_height_m`` above the floor (1.7 m/s^2 more: 0.83 x hover), then ``hop_m`` up and down again at 0.2 m/s."""
+    dt, z, v, zs = 1.0 / rate_hz, 0.0, 0.0, []
+    zs += [0.0] * 50 + list(np.linspace(0.0, -1.2, 120)) + [-1.2] * 50
+    z, v = -1.2, 0.5
+    while z < 0.0:
+        if -z <= cut_height_m:
+            v += 1.7 * dt
+        z += v * dt
+        zs.append(min(z, 0.0))
+    zs += [0.0] * 20
+    if hop_m > 0:
+        zs += list(np.linspace(0.0, -hop_m, 10)) + list(np.arange(-hop_m, 0.0, 0.2 * dt)) + [0.0] * 20
+    zs_a = np.asarray(zs)
+    return np.arange(zs_a.size) * dt, np.column_stack([np.zeros_like(zs_a), np.zeros_like(zs_a), zs_a])
+
+
+def test_touchdown_speed_is_the_last_landings_impact() -> None:
+    t, p = _landing(0.0)
+    assert touchdown_m_s(t, p) == pytest.approx(0.5, abs=0.02)
+    t, p = _landing(0.15)          # the thrust cut 0.15 m up: sqrt(0.5^2 + 2 x 1.7 x 0.15) = 0.86 m/s
+    assert touchdown_m_s(t, p) == pytest.approx(math.sqrt(0.25 + 2 * 1.7 * 0.15), abs=0.04)
+    t, p = _landing(0.15, hop_m=0.05)   # a hop after the impact: the last landing's, at 0.2 m/s
+    assert touchdown_m_s(t, p) == pytest.approx(0.2, abs=0.02)
+    assert math.isnan(touchdown_m_s(t[:200], p[:200]))             # still in the air at the end
+    assert math.isnan(touchdown_m_s(t[:40], p[:40]))               # never left the floor
+    assert math.isnan(touchdown_m_s(np.zeros(0), np.zeros((0, 3))))
+
+
 def test_port_slots_and_blocks_never_share_a_port() -> None:
     sets = [set(Ports(flight_ports(3000, k)).as_dict().values()) for k in range(40)]
     assert all(len(s) == len(PORT_NAMES) for s in sets)
@@ -239,7 +269,7 @@ def test_report_summary_from_flight_envelopes(tmp_path: Path) -> None:
                                             "setpoint_gaps_over_100ms": int(k == 3),
                                             "flying_time_s": 2.5 if k == 4 else 30.0},
                                     envelope={"min_nonfloor_m": env.min_nonfloor_m, "surface": env.surface,
-                                              "max_height_m": 1.0},
+                                              "max_height_m": 1.0, "touchdown_m_s": 0.35 + 0.1 * k},
                                     draws={"sitl_seed": k}))
     campaign = summarize(results, CampaignOptions(6, 1, tmp_path), 600.0)
     s_ = campaign["summary"]
@@ -253,6 +283,9 @@ def test_report_summary_from_flight_envelopes(tmp_path: Path) -> None:
     # a flight that came down in its take-off (2.5 s airborne) is listed: its session was not flown
     assert s_["landed_in_takeoff"] == [4] and s_["did_not_take_off"] == []
     assert "landed in the take-off, under 5 s airborne [4]" in summary_text(campaign)
+    # the landings' impact speeds 0.35-0.85 m/s: the two over 0.7 m/s listed
+    assert s_["touchdown_m_s_max"] == pytest.approx(0.85) and s_["touchdowns_over_bound"] == [4, 5]
+    assert "fastest 0.85 m/s; over 0.7 m/s: [4, 5]" in summary_text(campaign)
 
 
 def test_a_starved_campaigns_report_is_written_with_its_starvation_range(tmp_path: Path) -> None:
