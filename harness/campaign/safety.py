@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
+from harness.demo.metrics import touchdown_m_s
 from harness.demo.report import FlightLog
 from harness.judge import ArenaGeometry, judge
 from quadlink.ids import TRUTH_SENSOR_NON_FLOOR
@@ -60,28 +61,6 @@ class Envelope:
     surface: str  # "ceiling" or "obstacle"
     max_height_m: float  # centre of mass above the floor
     touchdown_m_s: float = math.nan  # the last landing's impact speed (:func:`touchdown_m_s`)
-
-
-TOUCHDOWN_REST_M = 0.02    # the centre of mass within this of its height at the start: resting on the floor
-TOUCHDOWN_WINDOW_S = 0.2   # the impact's speed: the fastest descent over this long before coming to rest
-
-
-def touchdown_m_s(t_s: Array, p_local_ned_m: Array, rest_m: float = TOUCHDOWN_REST_M,
-                  window_s: float = TOUCHDOWN_WINDOW_S) -> float:
-    """The last landing's vertical speed at impact (m/s, descending positive): the fastest descent, from consecutive
-    truth positions, over the ``window_s`` before the centre of mass last came back within ``rest_m`` of where it
-    rested at the start (on the floor). NaN if it never left the floor, or did not come back to it (in the air at the
-    end, or landed on an object)."""
-    t = np.asarray(t_s, dtype=float)
-    z = np.asarray(p_local_ned_m, dtype=float).reshape(-1, 3)[:, 2]
-    airborne = np.flatnonzero(z < -rest_m)
-    if t.size < 2 or airborne.size == 0 or airborne[-1] + 1 >= z.size:
-        return math.nan
-    k = int(airborne[-1]) + 1                      # the first sample at rest after the last one in the air
-    dt = np.diff(t[:k + 1])
-    vz = np.diff(z[:k + 1]) / np.where(dt > 0, dt, np.inf)
-    window = t[1:k + 1] >= t[k] - window_s
-    return float(np.max(vz[window]))
 
 
 def envelope(truth: TruthSeries, scenario: ScenarioConfig, body_height_m: float = PhysicsConfig().body_size_m[2],

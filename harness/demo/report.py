@@ -39,6 +39,7 @@ TARGETS = {
     "fraction_estimate_le_truth": 0.95,  # at least
     "setpoint_gaps_over_100ms": 0,  # at most
     "passivity_epsilon_j": 1e-3,  # observed energy of the force port at least -epsilon (over an impaired link)
+    "touchdown_m_s": 0.7,  # the landing's impact speed at most (PX4's MPC_LAND_SPEED; the failsafe tests' bound)
 }
 
 
@@ -197,6 +198,8 @@ def compute_report(flight: FlightLog, cpu_s: dict[str, float] | None = None, sce
                                "objects_m": j.min_object_m, "ceiling_m": j.min_ceiling_m}
         report["mobility"] = {"max_excursion_m": j.max_excursion_m, "path_length_m": j.path_length_m,
                               "max_height_m": j.max_height_m}
+    if flight.t_truth.size:
+        report["touchdown_m_s"] = metrics.touchdown_m_s(flight.t_truth, flight.p_ned)
     if flight.t_dist1.size and flight.t_fb.size:
         # The companion's map leaves the floor out by design (repulsion acts in a horizontal band), so its
         # nearest obstacle is compared with the truth of the same kind: nearest surface excluding floor and
@@ -339,6 +342,12 @@ def check_targets(report: dict[str, Any]) -> dict[str, Any]:
         v = passivity["min_observed_j"]
         out["passivity_min_observed_energy_j"] = {"value": v, "target": f">= -{TARGETS['passivity_epsilon_j']}",
                                                   "pass": bool(v >= -TARGETS["passivity_epsilon_j"])}
+    v = report.get("touchdown_m_s")
+    if v is not None:
+        bound = TARGETS["touchdown_m_s"]
+        out["touchdown_m_s"] = {"value": v, "target": f"<= {bound}", "pass": bool(v <= bound)} if math.isfinite(v) \
+            else {"value": v, "target": f"<= {bound}", "pass": None,
+                  "note": "not measured: not back on the floor at the end (in the air, or on an object)"}
     v = report.get("setpoint_gaps_over_100ms")
     if v is not None:
         out["setpoint_gaps_over_100ms"] = {"value": v, "target": "== 0",

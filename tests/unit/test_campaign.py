@@ -15,9 +15,10 @@ from harness.campaign.draws import CAMERA_TILT_DEG, StarvationRange, draw_flight
 from harness.campaign.offboard_client import plan_end_s, setpoint_at
 from harness.campaign.report import summarize, summary_text, write_campaign
 from harness.campaign.runner import CampaignOptions, FlightResult, flight_ports, progress_line
-from harness.campaign.safety import envelope, read_truth, touchdown_m_s
+from harness.campaign.safety import envelope, read_truth
 from harness.campaign.sessions import MOTION_OFFSET_RAD, generate_session
 from harness.demo.cli import PORT_BLOCK_SIZE, PORT_NAMES, FlightSpec, Ports, compare_reports
+from harness.demo.metrics import touchdown_m_s
 from quadlink.config import load_config
 from quadlink.mavlink import mavlink
 from quadlink.mavlink.setpoint_masks import TM_VELOCITY_YAW_RATE

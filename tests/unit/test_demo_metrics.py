@@ -56,7 +56,7 @@ def test_sinusoid_fit_recovers_pan_scan(rng: np.random.Generator) -> None:
 
 def test_report_on_synthetic_flight(rng: np.random.Generator) -> None:
     t = np.arange(0, 20, 0.02)
-    alt = np.clip(t - 1, 0, 1.0)
+    alt = np.clip(np.minimum(t - 1, 1.0 - 0.4 * (t - 15)), 0, 1.0)   # up to 1 m, down at 0.4 m/s from 15 s
     v_n = np.where(t > 5, 0.3, 0.0)
     f = FlightLog(
         t_truth=t, p_ned=np.stack([np.cumsum(v_n) * 0.02, 0 * t, -alt], axis=1),
@@ -87,6 +87,8 @@ def test_report_on_synthetic_flight(rng: np.random.Generator) -> None:
     assert all(t["pass"] for t in report["targets"].values())
     bad = check_targets({**report, "min_true_clearance_m": 0.3})
     assert not bad["min_true_clearance_m"]["pass"]
+    assert report["touchdown_m_s"] == pytest.approx(0.4, abs=0.01)
+    assert check_targets({**report, "touchdown_m_s": 0.9})["touchdown_m_s"]["pass"] is False
 
 
 def test_a_flight_never_near_a_surface_has_its_estimate_check_not_measured() -> None:
@@ -107,6 +109,7 @@ def test_a_flight_never_near_a_surface_has_its_estimate_check_not_measured() -> 
     target = report["targets"]["fraction_estimate_le_truth"]
     assert target["pass"] is None and "never within 0.90 m" in target["note"]
     assert "NOT MEASURED" in summary_table(report) and "FAIL" not in summary_table(report)
+    assert report["targets"]["touchdown_m_s"]["pass"] is None    # still in the air at the end: not measured
     assert check_targets({**report, "fraction_estimate_le_truth": 0.5})["fraction_estimate_le_truth"]["pass"] is False
 
 
