@@ -246,11 +246,12 @@ class FlightControlService:
                 # low at the floor in 4 of 8 SITL landings): the estimator stops its descent there, and the speed
                 # loop, chasing the descent rate, cut the thrust and dropped the vehicle the rest of the way at up
                 # to 0.77 m/s. So the thrust that held the descent is held while the descent covers the baro's
-                # error (BRG_OL_LAND_BAND), then the loop's cut is the ground test. Not capped at the hover prior:
-                # the SITL's vehicle needs 0.49 where its config says 0.41
+                # error (BRG_OL_LAND_BAND), then the loop's cut is the ground test. At most the hover thrust learnt
+                # in the take-off (a landing begun at the floor must not climb on a take-off's thrust), not the
+                # config's prior: the SITL's vehicle needs 0.49 where its config says 0.41
                 if descent.floor_s is None:
                     descent.floor_s = now_s
-                    descent.floor_thrust = s.last_board_command.thrust
+                    descent.floor_thrust = min(s.last_board_command.thrust, learned)
                 if now_s - descent.floor_s < p["BRG_OL_LAND_BAND"] / vz_ref:
                     floor_hold = descent.floor_thrust
             if s.vertical.estimate.baro_fused:

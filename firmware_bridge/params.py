@@ -67,8 +67,8 @@ PARAM_SPECS: tuple[ParamSpec, ...] = (
     ParamSpec("BRG_TKO_RAMP_T", 1.0, 0.0, 5.0, "s", "take-off phase 1: thrust ramp from idle"),
     ParamSpec("BRG_OL_LAND_SPD", 0.5, 0.1, 1.0, "m/s", "landing without odometry: descent rate (ArduPilot LAND_SPEED)"),
     ParamSpec("BRG_OL_LAND_BAND", 0.3, 0.0, 1.0, "m",
-              "landing without odometry on the barometer: the descent's thrust is held this far on once the estimate "
-              "reads the floor (the baro height's error there)"),
+              "a landing's level descent on the barometer (the last BRG_LAND_LVL_ALT, or all of one without "
+              "odometry): its thrust is held this far on once the estimate reads the floor (the baro's drift)"),
     ParamSpec("BRG_ODOM_VGATE", 0.3, 0.0, 5.0, "m/s",
               "odometry velocity further than this from the IMU's prediction is refused (0: off)"),
     ParamSpec("BRG_ODOM_VZGATE", 0.5, 0.0, 5.0, "m/s",

@@ -61,7 +61,8 @@ class NonFiniteCommand(ValueError):
 
 @dataclass
 class BlindDescent:
-    """A landing without odometry, from its start (``FlightControl._blind_step``)."""
+    """A landing flown as the blind descent (without odometry, or the level last part of any landing), from its
+    start (``FlightControlService._blind_step``)."""
     start_s: float
     height0_m: float                # the estimated height then
     floor_s: float | None = None    # when the baro-fused estimate first read the floor

@@ -514,6 +514,34 @@ def test_a_blind_landing_on_a_baro_that_reads_low_holds_its_descent_through_the_
     assert dropped > rate + 0.1, f"without the hold: {dropped:.2f} m/s"
 
 
+def test_the_held_descent_thrust_is_at_most_the_hover_thrust_learnt_in_the_take_off():
+    """The thrust held through the band is the one that held the descent, but never more than the take-off's learnt
+    hover thrust (or the prior, when the take-off learnt none): a landing that reads the floor right after a high
+    thrust (here forced to 1.25 x hover as the estimate reaches the floor) must not climb on it for the band's 0.6 s."""
+    sim = Sim()
+    sim.baro = True
+    fly_to_hover(sim)
+    sim.baro_error_m = -0.15
+    sim.step(5.0)
+    state = sim.ap.state
+    sim.odom = False
+    high = 1.25 * state.pid_tracker.hover_thrust_fraction
+    heights = []
+    while state.blind_descent is None or state.blind_descent.floor_s is None:
+        if state.vertical.height_m < 0.03:      # the step that reads the floor sees a high last thrust
+            c = state.last_board_command
+            state.last_board_command = BoardCommand(c.roll_rad, c.pitch_rad, c.yaw_rate_rad_s, high, c.armed)
+        sim.step(0.002)
+        assert sim.t < 60.0
+    floor_read_at_m = -float(sim.p[2])
+    learnt = state.hover_thrust_learned   # None: this take-off saw odometry from the ground; the prior stands
+    assert state.blind_descent.floor_thrust <= (learnt or state.pid_tracker.hover_thrust_fraction) + 1e-9
+    for _ in range(300):
+        sim.step(0.002)
+        heights.append(-float(sim.p[2]))
+    assert max(heights) <= floor_read_at_m + 0.01, f"climbed from {floor_read_at_m:.2f} to {max(heights):.2f} m"
+
+
 def test_board_link_loss_is_reported_and_blocks_arming():
     sim = Sim()
     sim.step(0.5)
