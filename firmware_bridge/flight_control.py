@@ -27,6 +27,7 @@ HOVER_LEARN_TAU_S = 1.0  # low-pass of the thrust in the open-loop climb: the ho
 GROUND_CONTACT_ACCEL_M_S2 = 0.3  # below hover thrust, less vertical acceleration than this = the ground carries it
 TKO_HEIGHT_DISAGREE_M = 0.3  # take-off: integrated climb above the odometry's height by this much is told
 BLIND_DESCENT_EXTRA_S = 3.0  # the blind descent probes for the ground after height / rate + this
+DESCENT_THRUST_TAU_S = 0.3  # the blind descent's thrust, low-passed: what it holds through the floor's band
 FLOOR_READ_M = 0.01  # the baro-fused height reads the floor (the estimator holds it at 0; the baro's pull, mm)
 # odometry lost in the air: the horizontal velocity it last saw (plus the IMU's integral since) is braked for this
 # long before the attitude goes level. Campaign 2, flight 16: levelled at once, the vehicle slid 0.19 m on landing
@@ -238,20 +239,23 @@ class FlightControlService:
         if s.mode != FlightMode.TAKEOFF:
             vz_ref = p["BRG_OL_LAND_SPD"]
             if s.blind_descent is None:
-                s.blind_descent = BlindDescent(now_s, s.vertical.height_m)
+                s.blind_descent = BlindDescent(now_s, s.vertical.height_m, s.last_board_command.thrust)
             descent = s.blind_descent
             learned = s.hover_thrust_learned if s.hover_thrust_learned is not None else hover_prior
+            if descent.floor_s is None:
+                descent.thrust_lp += (s.last_board_command.thrust - descent.thrust_lp) * min(
+                    1.0, dt / DESCENT_THRUST_TAU_S)
             if s.vertical.estimate.baro_fused and s.vertical.height_m <= FLOOR_READ_M:
                 # the estimate reads the floor, but the baro's height has drifted since the take-off (0.13-0.18 m
                 # low at the floor in 4 of 8 SITL landings): the estimator stops its descent there, and the speed
                 # loop, chasing the descent rate, cut the thrust and dropped the vehicle the rest of the way at up
-                # to 0.77 m/s. So the thrust that held the descent is held while the descent covers the baro's
-                # error (BRG_OL_LAND_BAND), then the loop's cut is the ground test. At most the hover thrust learnt
-                # in the take-off (a landing begun at the floor must not climb on a take-off's thrust), not the
-                # config's prior: the SITL's vehicle needs 0.49 where its config says 0.41
+                # to 0.77 m/s. So the thrust that held the descent (its low-pass: not a last step's spike) is held
+                # while the descent covers the baro's error (BRG_OL_LAND_BAND), then the loop's cut is the ground
+                # test. Not the take-off's learnt hover thrust nor the config's prior: the climb's low-pass had not
+                # settled (0.58-0.76 m/s held at it), and the SITL's vehicle needs 0.49 where its config says 0.41
                 if descent.floor_s is None:
                     descent.floor_s = now_s
-                    descent.floor_thrust = min(s.last_board_command.thrust, learned)
+                    descent.floor_thrust = descent.thrust_lp
                 if now_s - descent.floor_s < p["BRG_OL_LAND_BAND"] / vz_ref:
                     floor_hold = descent.floor_thrust
             if s.vertical.estimate.baro_fused:

@@ -514,10 +514,10 @@ def test_a_blind_landing_on_a_baro_that_reads_low_holds_its_descent_through_the_
     assert dropped > rate + 0.1, f"without the hold: {dropped:.2f} m/s"
 
 
-def test_the_held_descent_thrust_is_at_most_the_hover_thrust_learnt_in_the_take_off():
-    """The thrust held through the band is the one that held the descent, but never more than the take-off's learnt
-    hover thrust (or the prior, when the take-off learnt none): a landing that reads the floor right after a high
-    thrust (here forced to 1.25 x hover as the estimate reaches the floor) must not climb on it for the band's 0.6 s."""
+def test_the_held_descent_thrust_is_the_descents_not_a_last_steps_spike():
+    """The thrust held through the band is the descent's, low-passed, not the last step's: a landing that reads the
+    floor right after a thrust spike (here 1.25 x hover, forced in the steps as the estimate reaches the floor) must
+    not climb on it for the band's 0.6 s. (The Sim's vehicle hovers at exactly its config's prior.)"""
     sim = Sim()
     sim.baro = True
     fly_to_hover(sim)
@@ -534,8 +534,7 @@ def test_the_held_descent_thrust_is_at_most_the_hover_thrust_learnt_in_the_take_
         sim.step(0.002)
         assert sim.t < 60.0
     floor_read_at_m = -float(sim.p[2])
-    learnt = state.hover_thrust_learned   # None: this take-off saw odometry from the ground; the prior stands
-    assert state.blind_descent.floor_thrust <= (learnt or state.pid_tracker.hover_thrust_fraction) + 1e-9
+    assert state.blind_descent.floor_thrust < high - 0.05      # the descent's (0.48-0.50 here), not the spike's
     for _ in range(300):
         sim.step(0.002)
         heights.append(-float(sim.p[2]))
