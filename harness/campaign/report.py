@@ -20,11 +20,12 @@ import numpy as np
 
 from harness.campaign import manoeuvres
 from harness.campaign.runner import CampaignOptions, FlightResult
+from harness.demo.report import TARGETS
 from quadlink.safety import CLEARANCE_BOUND_M, SAFE_DISTANCE_M
 
 TARGET_M = CLEARANCE_BOUND_M
 WORST_N = 5
-TOUCHDOWN_BOUND_M_S = 0.7   # a landing's impact speed above this is listed (PX4's MPC_LAND_SPEED; the failsafe tests')
+TOUCHDOWN_BOUND_M_S = TARGETS["touchdown_m_s"]   # a landing's impact speed above this is listed (the demo's target)
 TAKEOFF_S = 5.0   # a take-off to 1 m takes 2-3 s: a flight airborne for less came down in its take-off (the bridge
                   # lands a take-off without odometry); its session was not flown
 
