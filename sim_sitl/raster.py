@@ -506,6 +506,9 @@ def _clip_near(pts: NDArray[np.float64], near_m: float) -> NDArray[np.float64]:
     return np.array(out) if out else np.zeros((0, 3))
 
 
+EDGE_MIN_PX = 1e-6   # a shorter edge is a repeated vertex (_inset)
+
+
 def _inset(uv: NDArray[np.float64], d_px: float) -> NDArray[np.float64]:
     """Convex polygons (G, n, 2) in pixels with every edge moved ``d_px`` inward.
 
@@ -528,9 +531,13 @@ def _inset(uv: NDArray[np.float64], d_px: float) -> NDArray[np.float64]:
         det = n_prev[..., 0] * nrm[..., 1] - n_prev[..., 1] * nrm[..., 0]
         out = np.stack([(c_prev * nrm[..., 1] - c * n_prev[..., 1]) / det,
                         (n_prev[..., 0] * c - nrm[..., 0] * c_prev) / det], axis=-1)
-    degenerate = ~np.isfinite(out).all(axis=(1, 2)) | (np.abs(det) < 1e-6).any(axis=1)
+    # an edge under a micro-pixel is a repeated vertex too: its normal is rounding noise (a triangle with two corners
+    # 2e-16 px apart, hypothesis: its "inset" threw a corner 2 px outside the face)
+    degenerate = ~np.isfinite(out).all(axis=(1, 2)) | (np.abs(det) < 1e-6).any(axis=1) | \
+        (length < EDGE_MIN_PX).any(axis=1)
     ox, oy = out[..., 0], out[..., 1]
-    new_area2 = np.sum(ox * oy[:, nxt] - ox[:, nxt] * oy, axis=1)
+    with np.errstate(invalid="ignore", over="ignore"):   # a degenerate polygon's corners are inf or NaN here
+        new_area2 = np.sum(ox * oy[:, nxt] - ox[:, nxt] * oy, axis=1)
     # every corner of a polygon that is left lies on the inner side of every moved edge; past vanishing the
     # corners are where the moved edges cross outside each other (a bow-tie, or a triangle turned 180 degrees)
     with np.errstate(invalid="ignore"):
