@@ -40,6 +40,7 @@ counted (``handler_errors``) and logged at most every few seconds: it never ends
 from __future__ import annotations
 
 import logging
+import math
 from collections.abc import Callable
 from typing import Any, Generic, TypeVar, overload
 
@@ -156,10 +157,11 @@ class Autopilot:
     def on_board_status(self, now_s: float, status: BoardStatusLike) -> list[Outbound]:
         return self.commander.on_board_status(now_s, status)
 
-    def on_board_baro(self, altitude_m: float, valid: bool) -> None:
-        """The board's barometric altitude (``Z`` frame, m, + up): fused into the vertical estimate that the blind
-        flight (no odometry, no companion) descends on."""
-        self.state.vertical.on_baro(altitude_m, valid)
+    def on_board_baro(self, altitude_m: float, valid: bool, climb_m_s: float = math.nan) -> None:
+        """The board's barometric altitude and climb rate (``Z`` frame, m and m/s, + up): fused into the vertical
+        estimate that the blind flight (no odometry, no companion) descends on; the climb rate says when a landing's
+        descent has stopped below the floor the drifted altitude reads."""
+        self.state.vertical.on_baro(altitude_m, valid, climb_m_s)
         self.state.baro_frames += 1
 
     def on_board_version(self, text: str, version_int: int = 0) -> None:

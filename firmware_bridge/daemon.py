@@ -550,7 +550,7 @@ class BridgeDaemon:
                 self._send(self.autopilot.on_board_status(now, status))
             elif frame.command == mk.BaroAltitude.COMMAND:
                 baro = mk.BaroAltitude.unpack(frame.payload)
-                self.autopilot.on_board_baro(baro.altitude_m, baro.valid and not baro.saturated)
+                self.autopilot.on_board_baro(baro.altitude_m, baro.valid and not baro.saturated, baro.climb_m_s)
             elif frame.command == mk.Version.COMMAND:
                 version = mk.Version.unpack(frame.payload)
                 text = f"FlightCtrl {version.version_str} (protocol {version.proto_major}.{version.proto_minor})"

@@ -18,7 +18,7 @@ from firmware_bridge.modes import FlightMode
 from firmware_bridge.offboard import OffboardService
 from firmware_bridge.state import AttitudeSetpoint, BlindDescent, BoardCommand, BridgeState
 from firmware_bridge.velocity_tracker import AttitudeCommand
-from quadlink.frames import Rz, wrap_pi
+from quadlink.frames import GRAVITY_M_S2, Rz, wrap_pi
 from quadlink.mavlink import mavlink
 from quadlink.mk.flags import BoardFlightState
 
@@ -28,7 +28,13 @@ GROUND_CONTACT_ACCEL_M_S2 = 0.3  # below hover thrust, less vertical acceleratio
 TKO_HEIGHT_DISAGREE_M = 0.3  # take-off: integrated climb above the odometry's height by this much is told
 BLIND_DESCENT_EXTRA_S = 3.0  # the blind descent probes for the ground after height / rate + this
 DESCENT_THRUST_TAU_S = 0.3  # the blind descent's thrust, low-passed: what it holds through the floor's band
+BARO_REREF_MIN_HEIGHT_M = 0.5  # the odometry's height references the baro above this (the camera's 0.5 m range)
 FLOOR_READ_M = 0.01  # the baro-fused height reads the floor (the estimator holds it at 0; the baro's pull, mm)
+BARO_STILL_M_S = 0.15  # the board's baro climb rate under this (in size) is "not descending" (its failsafe's ground
+                       # speed, firmware/src/params.c failsafe_ground_speed_m_s)
+FLOOR_HOLD_NO_RATE_S = 0.6  # without the board's climb rate (an older board, a stale frame) the hold lasts this long
+FLOOR_HOLD_GAIN_S_M = 0.3   # the held thrust's trim per m/s of climb-rate error (the board's failsafe_climb_gain)
+FLOOR_HOLD_TRIM = 0.1       # at most +-10 % of the held thrust
 # odometry lost in the air: the horizontal velocity it last saw (plus the IMU's integral since) is braked for this
 # long before the attitude goes level. Campaign 2, flight 16: levelled at once, the vehicle slid 0.19 m on landing
 # to 0.21 m of a box. Longer, and the accelerometer's bias (~0.05 m/s^2) would steer it instead.
@@ -243,7 +249,12 @@ class FlightControlService:
             descent = s.blind_descent
             learned = s.hover_thrust_learned if s.hover_thrust_learned is not None else hover_prior
             if descent.floor_s is None:
-                descent.thrust_lp += (s.last_board_command.thrust - descent.thrust_lp) * min(
+                # the thrust that would hold the descent's speed: the command, less what it accelerated the vehicle
+                # by (thrust ~ g - a_down). The plain command's low-pass held a descent that was still speeding up
+                # (the estimate read the floor 1.5 s into it: 0.47 m/s there, 0.62 at the touchdown, SITL)
+                a_down = s.vertical.estimate.accel_z_m_s2
+                scale = GRAVITY_M_S2 / min(max(GRAVITY_M_S2 - a_down, 0.5 * GRAVITY_M_S2), 1.5 * GRAVITY_M_S2)
+                descent.thrust_lp += (s.last_board_command.thrust * scale - descent.thrust_lp) * min(
                     1.0, dt / DESCENT_THRUST_TAU_S)
             if s.vertical.estimate.baro_fused and s.vertical.height_m <= FLOOR_READ_M:
                 # the estimate reads the floor, but the baro's height has drifted since the take-off (0.13-0.18 m
@@ -256,8 +267,25 @@ class FlightControlService:
                 if descent.floor_s is None:
                     descent.floor_s = now_s
                     descent.floor_thrust = descent.thrust_lp
-                if now_s - descent.floor_s < p["BRG_OL_LAND_BAND"] / vz_ref:
-                    floor_hold = descent.floor_thrust
+                    s.event(mavlink.MAV_SEVERITY_INFO, f"Landing: baro reads the floor, hold {descent.thrust_lp:.2f}")
+                # how far on: while the board's baro climb rate says the vehicle still descends. The drift since the
+                # take-off moves the altitude, not its rate, and it grows with the flight (the SITL's random walk:
+                # 0.27 m of one sigma after 2 min; a fixed 0.3 m band dropped a 0.45 m drift at 0.85 m/s). On the
+                # floor the rate falls under BARO_STILL_M_S within ~0.4 s (the board's filter's lag); without a
+                # fresh rate, or after BRG_OL_LAND_BAND, the hold ends as the fixed band did
+                climb = s.vertical.estimate.baro_climb_m_s
+                descending = not math.isfinite(climb) or climb < -BARO_STILL_M_S
+                descent.seen_descending = descent.seen_descending or descending
+                if not descent.floor_still and not descending and descent.seen_descending:
+                    descent.floor_still = True    # latched: the rate's noise does not restart the hold
+                    s.event(mavlink.MAV_SEVERITY_INFO,
+                            f"Landing: descent stopped {now_s - descent.floor_s:.2f} s below (climb {climb:+.2f})")
+                if not descent.floor_still and now_s - descent.floor_s < p["BRG_OL_LAND_BAND"] / vz_ref and \
+                        (math.isfinite(climb) or now_s - descent.floor_s < FLOOR_HOLD_NO_RATE_S):
+                    # trimmed on the rate as the board's own failsafe descent is (firmware/src/safety.c): a hold
+                    # that begins before the descent has (the estimate at the floor in a hover) must start it
+                    trim = FLOOR_HOLD_GAIN_S_M * (-vz_ref - climb) if math.isfinite(climb) else 0.0
+                    floor_hold = descent.floor_thrust * (1.0 + min(max(trim, -FLOOR_HOLD_TRIM), FLOOR_HOLD_TRIM))
             if s.vertical.estimate.baro_fused:
                 # on the barometer the estimate cannot run away upward: the descent may use the thrust it needs
                 # to hold its speed (a ceiling at the short take-off's learnt thrust dropped it at 1.2 m/s)
@@ -405,6 +433,11 @@ class FlightControlService:
             s.height_m = s.vertical.height_m
         elif s.z_ground_m is not None and s.odom_z_m is not None:
             s.height_m = -(s.odom_z_m - s.z_ground_m)
+            if s.odom_ok and s.in_air and s.mode != FlightMode.LAND and s.height_m >= BARO_REREF_MIN_HEIGHT_M:
+                # the odometry's height keeps the baro's reference: its drift would move the floor a landing's level
+                # descent reads (a 150 s hover: 0.06-0.51 m low in the SITL). Not in a landing nor near the floor,
+                # where the camera sees too little (the odometry is the worse height there)
+                s.vertical.reference_height(s.height_m, dt, s.params["BRG_BARO_REF_T"])
         elif s.in_air:
             s.height_m -= float(self.offboard.v_est_h(s.control_time_s or 0.0)[2]) * dt
         else:

@@ -66,9 +66,13 @@ PARAM_SPECS: tuple[ParamSpec, ...] = (
     ParamSpec("BRG_TKO_THR_MRG", 0.25, 0.05, 0.6, "fraction", "take-off phase 1: thrust ceiling above hover, fraction"),
     ParamSpec("BRG_TKO_RAMP_T", 1.0, 0.0, 5.0, "s", "take-off phase 1: thrust ramp from idle"),
     ParamSpec("BRG_OL_LAND_SPD", 0.5, 0.1, 1.0, "m/s", "landing without odometry: descent rate (ArduPilot LAND_SPEED)"),
-    ParamSpec("BRG_OL_LAND_BAND", 0.3, 0.0, 1.0, "m",
+    ParamSpec("BRG_BARO_REF_T", 20.0, 0.0, 600.0, "s",
+              "in the air on good odometry (above 0.5 m, not landing) the baro's ground reference follows the "
+              "odometry's height over this time constant: its drift leaves the floor a landing reads (0: never)"),
+    ParamSpec("BRG_OL_LAND_BAND", 1.0, 0.0, 2.0, "m",
               "a landing's level descent on the barometer (the last BRG_LAND_LVL_ALT, or all of one without "
-              "odometry): its thrust is held this far on once the estimate reads the floor (the baro's drift)"),
+              "odometry): once the estimate reads the floor its thrust is held while the baro's climb rate says "
+              "it still descends, at most this far on (the baro's drift since the take-off)"),
     ParamSpec("BRG_ODOM_VGATE", 0.3, 0.0, 5.0, "m/s",
               "odometry velocity further than this from the IMU's prediction is refused (0: off)"),
     ParamSpec("BRG_ODOM_VZGATE", 0.5, 0.0, 5.0, "m/s",

@@ -68,6 +68,8 @@ class BlindDescent:
     thrust_lp: float                # the descent's thrust, low-passed (DESCENT_THRUST_TAU_S) until the floor
     floor_s: float | None = None    # when the baro-fused estimate first read the floor
     floor_thrust: float = 0.0       # the thrust that held the descent then (thrust_lp)
+    floor_still: bool = False       # since then, the board's baro climb rate has said the descent stopped
+    seen_descending: bool = False   # the board's baro climb rate has said it descends (since the floor read)
 
 
 @dataclass(frozen=True)

@@ -42,6 +42,12 @@ the loop costs phase margin (71 deg at w0 = 1 rad/s without it, 27 deg with it),
 (42 deg).
 A baro frame older than ``BARO_STALE_S`` (or marked invalid or saturated) is not used: the accelerometer-only
 estimate goes on from where the fused one was.
+
+The baro's ground reference drifts (weather, the sensor warming up: after 2.7 min of hover the SITL's had moved
+0.06-0.51 m), so in the air a better height (the odometry's, :meth:`VerticalEstimator.reference_height`) moves the
+reference slowly toward what it implies, as PX4's EKF2 learns its baro's bias against its height reference. The
+frame's climb rate, which the drift does not move, is kept beside the estimate (``baro_climb_m_s``): a landing
+uses it to tell that its descent has stopped below the floor a drifted height reads.
 """
 
 from __future__ import annotations
@@ -58,6 +64,9 @@ DEFAULT_BARO_BANDWIDTH_RAD_S = 0.7  # the fused filter's triple pole: the baro's
 BARO_STALE_S = 0.2                  # a baro reading older than this (10 frames at 50 Hz) is not fused
 BARO_GROUND_TAU_S = 1.0             # the ground's baro reference is averaged over this while pinned (one 'Z'
                                     # frame is 0.04 m RMS off at rest, 0.18 m peak to peak: the SITL's sensor)
+DEFAULT_BARO_REREF_TAU_S = 20.0     # ... and follows a better height over this in the air (reference_height): the
+                                    # SITL's baro had drifted 0.06-0.51 m after 2.7 min of hover, its odometry's
+                                    # height 0-5 mm; a baro's drift (weather, warm-up) is minutes, not seconds
 
 
 @dataclass(frozen=True)
@@ -68,6 +77,8 @@ class VerticalEstimate:
     pinned: bool  # on the ground: the thrust is below lift-off
     accel_z_m_s2: float  # bias-corrected vertical acceleration (NED), low-passed (ACCEL_LOWPASS_TAU_S)
     baro_fused: bool = False  # the last update was corrected by a fresh baro reading
+    baro_climb_m_s: float = math.nan  # the board's barometric climb rate (+ up), NaN when not fresh: its 'Z' frame's,
+                                      # the derivative of the pressure's height, which its drift does not move
 
 
 class VerticalEstimator:
@@ -93,18 +104,21 @@ class VerticalEstimator:
         self._k = (3.0 * w0, 3.0 * w0 * w0, w0 ** 3)
         self._baro_alt_m: float | None = None   # the last usable baro altitude (board's reference, + up)
         self._baro_t_s = -math.inf
+        self._baro_climb_m_s = math.nan
         self._baro_ground_m: float | None = None  # the baro altitude where the estimator was last pinned
         self._t_s = 0.0                          # the estimator's own time (sum of the IMU's dt)
         self._fused = False
         self._h_board_m = 0.0       # AB(h): the board's alpha-beta filter run on this estimate (height, + up)
         self._climb_board_m_s = 0.0  # and its climb rate (+ up)
 
-    def on_baro(self, altitude_m: float, valid: bool = True) -> None:
-        """A ``Z`` frame's barometric altitude (m, + up, the board's reference), received now (the estimator's
-        time): used until it is ``BARO_STALE_S`` old. Invalid or non-finite readings are ignored."""
+    def on_baro(self, altitude_m: float, valid: bool = True, climb_m_s: float = math.nan) -> None:
+        """A ``Z`` frame's barometric altitude (m, + up, the board's reference) and climb rate (m/s, + up; NaN if
+        not given), received now (the estimator's time): used until they are ``BARO_STALE_S`` old. Invalid or
+        non-finite altitudes are ignored."""
         if not valid or not math.isfinite(altitude_m):
             return
         self._baro_alt_m = float(altitude_m)
+        self._baro_climb_m_s = float(climb_m_s) if math.isfinite(climb_m_s) else math.nan
         self._baro_t_s = self._t_s
         if self._pinned and self._baro_ground_m is None:
             self._baro_ground_m = self._baro_alt_m   # the first reading; averaged from here while pinned
@@ -114,6 +128,19 @@ class VerticalEstimator:
         if self._baro_alt_m is None or self._baro_ground_m is None or self._t_s - self._baro_t_s > BARO_STALE_S:
             return None
         return self._baro_alt_m - self._baro_ground_m
+
+    def reference_height(self, height_m: float, dt_s: float, tau_s: float = DEFAULT_BARO_REREF_TAU_S) -> None:
+        """In the air, a better height above the take-off point (the odometry's, while it is good): the baro's
+        ground reference follows it over ``tau_s`` (<= 0: it does not), so the baro's drift since the take-off
+        leaves the floor the fused height reads (PX4's EKF2 learns its baro's bias against its height reference
+        so). The frame is the board's filter of the pressure's height: it is compared with that height filtered
+        the same way (``AB(h)``'s lag added to ``height_m``). Not on the ground (pinned), without a fresh frame,
+        or with a non-finite height."""
+        if tau_s <= 0.0 or self._pinned or self._baro_alt_m is None or self._baro_ground_m is None \
+                or not math.isfinite(height_m) or self._t_s - self._baro_t_s > BARO_STALE_S:
+            return
+        ground_m = self._baro_alt_m - (float(height_m) + self._h_board_m - self._h)
+        self._baro_ground_m += (ground_m - self._baro_ground_m) * min(1.0, max(dt_s, 0.0) / tau_s)
 
     def reset_ground(self) -> None:
         """On the ground (landed, disarmed, or at the start of a take-off): pin; the learnt bias is kept."""
@@ -183,7 +210,8 @@ class VerticalEstimator:
 
     @property
     def estimate(self) -> VerticalEstimate:
-        return VerticalEstimate(self._vz, self._h, self._bias or 0.0, self._pinned, self._a_lp, self._fused)
+        climb = self._baro_climb_m_s if self._t_s - self._baro_t_s <= BARO_STALE_S else math.nan
+        return VerticalEstimate(self._vz, self._h, self._bias or 0.0, self._pinned, self._a_lp, self._fused, climb)
 
     @property
     def vz_m_s(self) -> float:

@@ -54,6 +54,8 @@ class Sim:
         self.accel_bias_q = np.zeros(3)  # the IMU's accelerometer bias (body FRD, m/s^2)
         self.baro = False  # the board's Z frames at 50 Hz (the truth's altitude, no noise)
         self.baro_error_m = 0.0  # added to the baro's altitude (its drift since the take-off)
+        self.baro_ab = (100.0, 0.0)  # the board's filtered (altitude m, climb m/s), up positive
+        self.baro_climb = True       # the 'Z' frames carry the climb rate (False: NaN, as from an older board)
         self.level_error_rad = (0.0, 0.0)  # the board flies its own estimate: (roll, pitch) it holds for "level"
         self.odom_velocity_error_n = np.zeros(3)  # added to the odometry's velocity (NED): garbage near the floor
 
@@ -104,8 +106,12 @@ class Sim:
                                             board_time_ms=self.k * 2, imu_sample_count=self.k,
                                             last_setpoint_seq=0)
                     self._collect(self.ap.on_board_status(self.t, status))
-                if self.baro and self.k % 10 == 0:
-                    self.ap.on_board_baro(100.0 - float(self.p[2]) + self.baro_error_m, True)
+                if self.baro:   # the board's alpha-beta filter on the pressure's height, every tick; 'Z' at 50 Hz
+                    r = 100.0 - float(self.p[2]) + self.baro_error_m - self.baro_ab[0]
+                    self.baro_ab = (self.baro_ab[0] + (self.baro_ab[1] + mk.BaroAltitude.FILTER_ALPHA_1_S * r) * dt,
+                                    self.baro_ab[1] + mk.BaroAltitude.FILTER_BETA_1_S2 * r * dt)
+                    if self.k % 10 == 0:
+                        self.ap.on_board_baro(self.baro_ab[0], True, self.baro_ab[1] if self.baro_climb else math.nan)
             if self.odom and self.k % 17 == 0:
                 v_q = R.T @ (self.v + self.odom_velocity_error_n)
                 q = quat_wxyz_from_euler(self.roll, self.pitch, self.yaw)
@@ -479,11 +485,15 @@ def test_odometry_lost_in_the_air_descends_and_lands_whatever_the_accelerometer_
     assert sim.ap.failsafe_reason is None or "odometry" in sim.ap.failsafe_reason
 
 
-def _blind_landing_on_a_drifted_baro(band_m: float, baro_error_m: float) -> tuple[float, float]:
+def _blind_landing_on_a_drifted_baro(band_m: float, baro_error_m: float, climb_rate: bool = True,
+                                     ) -> tuple[float, float, float]:
     """Odometry lost in a hover, the baro drifted by ``baro_error_m`` since the take-off: (the truth's fastest
-    descent in the last 0.2 s before touchdown (m/s), seconds from the loss to the disarm)."""
-    sim = Sim(ParamTable({"BRG_OL_LAND_BAND": band_m}))
+    descent in the last 0.2 s before touchdown (m/s), seconds from the loss to the disarm, seconds from the truth's
+    touchdown to the disarm)."""
+    # a drift since the baro's reference last followed the odometry (BRG_BARO_REF_T would take it out in the hover)
+    sim = Sim(ParamTable({"BRG_OL_LAND_BAND": band_m, "BRG_BARO_REF_T": 0.0}))
     sim.baro = True
+    sim.baro_climb = climb_rate
     fly_to_hover(sim)
     sim.baro_error_m = baro_error_m
     sim.step(5.0)                              # the fused height follows the drifted baro
@@ -496,22 +506,67 @@ def _blind_landing_on_a_drifted_baro(band_m: float, baro_error_m: float) -> tupl
         positions.append(sim.p.copy())
     touchdown = touchdown_m_s(np.asarray(times), np.asarray(positions))   # the campaigns' and the demo's measure
     assert math.isfinite(touchdown) and not sim.ap.armed_cmd, "not landed and disarmed within 20 s"
-    return touchdown, sim.t - t_lost
+    heights = -np.asarray(positions)[:, 2]
+    t_floor = times[int(np.argmax(heights < 0.005))]
+    return touchdown, sim.t - t_lost, sim.t - t_floor
 
 
 def test_a_blind_landing_on_a_baro_that_reads_low_holds_its_descent_through_the_floor_it_reads():
     """The SITL, the companion killed in a 1.2 m hover: where the baro had drifted 0.13-0.18 m low the estimate
     read the floor that far above it, its descent stopped there, and the speed loop, chasing the descent rate, cut
     the thrust: touchdown at 0.67-0.77 m/s in 4 of 8 landings (0.51-0.53 in the others). The descent's thrust is
-    held through BRG_OL_LAND_BAND (0.3 m) below the floor the estimate reads: touchdown at the descent rate (0.5 m/s)
-    whichever way the baro drifted, and the landing still ends."""
-    rate = ParamTable()["BRG_OL_LAND_SPD"]
-    for error_m in (-0.15, 0.0, 0.15):
-        speed, took_s = _blind_landing_on_a_drifted_baro(0.3, error_m)
-        assert speed < rate + 0.05, f"baro {error_m:+.2f} m: touched down at {speed:.2f} m/s"
+    held below the floor the estimate reads while the board's baro climb rate says the vehicle still descends (at
+    most BRG_OL_LAND_BAND): touchdown near the descent rate (0.5 m/s) whichever way the baro drifted, as far as a
+    long flight's drift (-0.6 m here, from a 1 m hover; 0.49-0.59 m/s), and the landing ends within 1.6 s of the
+    touchdown (1.15-1.27 s: the rate's filter lags it by ~0.5-0.8 s; 0.8 s with the fixed hold). A baro that reads
+    high has the vehicle on the floor before the estimate reads it (no hold): the estimate's convergence ends it."""
+    for error_m in (-0.6, -0.3, 0.0, 0.3):
+        speed, took_s, after_s = _blind_landing_on_a_drifted_baro(1.0, error_m)
+        assert speed < 0.62, f"baro {error_m:+.2f} m: touched down at {speed:.2f} m/s"
         assert took_s < 10.0, f"baro {error_m:+.2f} m: disarmed {took_s:.1f} s after the loss"
-    dropped, _ = _blind_landing_on_a_drifted_baro(0.0, -0.15)   # without the hold: the thrust cut 0.15 m up
-    assert dropped > rate + 0.1, f"without the hold: {dropped:.2f} m/s"
+        assert after_s < (1.6 if error_m <= 0.15 else 3.0), f"baro {error_m:+.2f} m: disarmed {after_s:.1f} s late"
+    dropped, _, _ = _blind_landing_on_a_drifted_baro(0.0, -0.15)   # without the hold: the thrust cut 0.15 m up
+    assert dropped > 0.7, f"without the hold: {dropped:.2f} m/s"
+
+
+def test_without_the_boards_climb_rate_the_floor_hold_lasts_the_old_fixed_band():
+    """A board whose 'Z' frames carry no climb rate (NaN): the hold lasts FLOOR_HOLD_NO_RATE_S (0.6 s, 0.3 m at the
+    descent rate), which a short flight's drift needs and a long flight's exceeds."""
+    held, _, _ = _blind_landing_on_a_drifted_baro(1.0, -0.15, climb_rate=False)
+    assert held < 0.6, f"0.15 m low without the rate: {held:.2f} m/s"
+    dropped, _, _ = _blind_landing_on_a_drifted_baro(1.0, -0.45, climb_rate=False)
+    assert dropped > 0.7, f"0.45 m low without the rate: {dropped:.2f} m/s (the rate's hold: < 0.62)"
+
+
+def test_the_odometrys_height_keeps_the_baros_reference_in_a_long_hover():
+    """After 2.7 min of hover the SITL's baro had drifted 0.06-0.51 m from its take-off reference while the odometry's
+    height was within 5 mm of the truth: the fused height read the floor that far above it. In the air, on good
+    odometry, the baro's reference follows the odometry's height (BRG_BARO_REF_T, 20 s): 60 s after the baro went
+    0.5 m off the fused height is back within 0.05 m of the truth, and still reads it 1 s after the odometry is
+    lost; with BRG_BARO_REF_T 0 it stays 0.5 m low."""
+    off_m = {}
+    for tau_s in (20.0, 0.0):
+        sim = Sim(ParamTable({"BRG_BARO_REF_T": tau_s}))
+        sim.baro = True
+        fly_to_hover(sim)
+        sim.baro_error_m = -0.5
+        sim.step(2.0)
+        fooled_m = -float(sim.p[2]) - sim.ap.state.vertical.height_m
+        assert fooled_m > 0.3, f"the fused height follows the baro first: {fooled_m:.2f} m low"
+        sim.step(58.0)
+        sim.odom = False
+        sim.step(1.0)
+        off_m[tau_s] = sim.ap.state.vertical.height_m + float(sim.p[2])
+    assert abs(off_m[20.0]) < 0.05, off_m
+    assert off_m[0.0] < -0.4, off_m
+
+
+def test_a_hold_that_begins_at_the_floor_it_reads_starts_the_descent():
+    """The baro's drift can put the estimate at the floor with the vehicle still in a hover (0.9 m low from a 1 m
+    hover): a hold at the descent's thrust would hover on. The hold is trimmed on the board's climb rate as its own
+    failsafe descent is: the vehicle descends and touches down slower than the descent rate."""
+    speed, took_s, _ = _blind_landing_on_a_drifted_baro(1.0, -0.9)
+    assert speed < 0.55 and took_s < 10.0, (speed, took_s)
 
 
 def test_the_held_descent_thrust_is_the_descents_not_a_last_steps_spike():
