@@ -33,6 +33,7 @@ FLOOR_READ_M = 0.01  # the baro-fused height reads the floor (the estimator hold
 BARO_STILL_M_S = 0.15  # the board's baro climb rate under this (in size) is "not descending" (its failsafe's ground
                        # speed, firmware/src/params.c failsafe_ground_speed_m_s)
 FLOOR_HOLD_NO_RATE_S = 0.6  # without the board's climb rate (an older board, a stale frame) the hold lasts this long
+DESCENT_SEEN_FRACTION = 0.6  # of BRG_OL_LAND_SPD: the baro's climb rate reads a descent under way
 FLOOR_HOLD_GAIN_S_M = 0.3   # the held thrust's trim per m/s of climb-rate error (the board's failsafe_climb_gain)
 FLOOR_HOLD_TRIM = 0.1       # at most +-10 % of the held thrust
 # odometry lost in the air: the horizontal velocity it last saw (plus the IMU's integral since) is braked for this
@@ -275,16 +276,22 @@ class FlightControlService:
                 # fresh rate, or after BRG_OL_LAND_BAND, the hold ends as the fixed band did
                 climb = s.vertical.estimate.baro_climb_m_s
                 descending = not math.isfinite(climb) or climb < -BARO_STILL_M_S
-                descent.seen_descending = descent.seen_descending or descending
+                # the descent is under way once the rate reads most of the descent rate (a slower one, started by the
+                # trim below from a hover, hovered about BARO_STILL_M_S and was taken for stopped in the air)
+                descent.seen_descending = descent.seen_descending or (
+                    math.isfinite(climb) and climb < -DESCENT_SEEN_FRACTION * vz_ref)
                 if not descent.floor_still and not descending and descent.seen_descending:
                     descent.floor_still = True    # latched: the rate's noise does not restart the hold
                     s.event(mavlink.MAV_SEVERITY_INFO,
                             f"Landing: descent stopped {now_s - descent.floor_s:.2f} s below (climb {climb:+.2f})")
                 if not descent.floor_still and now_s - descent.floor_s < p["BRG_OL_LAND_BAND"] / vz_ref and \
                         (math.isfinite(climb) or now_s - descent.floor_s < FLOOR_HOLD_NO_RATE_S):
-                    # trimmed on the rate as the board's own failsafe descent is (firmware/src/safety.c): a hold
-                    # that begins before the descent has (the estimate at the floor in a hover) must start it
+                    # trimmed on the rate as the board's own failsafe descent is (firmware/src/safety.c), one way at a
+                    # time: before the rate has seen a descent (the estimate at the floor in a hover) the trim may
+                    # only lower the thrust, to start one; after, only raise it, against a descent faster than the
+                    # rate. Both ways, the rate's lag (~0.5 s) sped a LAND's 0.4 m/s up to 0.68 (campaign 20261211)
                     trim = FLOOR_HOLD_GAIN_S_M * (-vz_ref - climb) if math.isfinite(climb) else 0.0
+                    trim = max(trim, 0.0) if descent.seen_descending else min(trim, 0.0)
                     floor_hold = descent.floor_thrust * (1.0 + min(max(trim, -FLOOR_HOLD_TRIM), FLOOR_HOLD_TRIM))
             if s.vertical.estimate.baro_fused:
                 # on the barometer the estimate cannot run away upward: the descent may use the thrust it needs

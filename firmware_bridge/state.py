@@ -69,7 +69,7 @@ class BlindDescent:
     floor_s: float | None = None    # when the baro-fused estimate first read the floor
     floor_thrust: float = 0.0       # the thrust that held the descent then (thrust_lp)
     floor_still: bool = False       # since then, the board's baro climb rate has said the descent stopped
-    seen_descending: bool = False   # the board's baro climb rate has said it descends (since the floor read)
+    seen_descending: bool = False   # the board's baro climb rate has read a descent under way (since the floor read)
 
 
 @dataclass(frozen=True)
