@@ -257,7 +257,9 @@ class FlightControlService:
                 scale = GRAVITY_M_S2 / min(max(GRAVITY_M_S2 - a_down, 0.5 * GRAVITY_M_S2), 1.5 * GRAVITY_M_S2)
                 descent.thrust_lp += (s.last_board_command.thrust * scale - descent.thrust_lp) * min(
                     1.0, dt / DESCENT_THRUST_TAU_S)
-            if s.vertical.estimate.baro_fused and s.vertical.height_m <= FLOOR_READ_M:
+            # latched at the read: the baro's pull lifts the held estimate over FLOOR_READ_M now and then (0.014-0.019
+            # m), and each time the loop's cut was back (campaign 20261211 flight 4: 0.48 -> 0.40, 0.70 m/s)
+            if s.vertical.estimate.baro_fused and (s.vertical.height_m <= FLOOR_READ_M or descent.floor_s is not None):
                 # the estimate reads the floor, but the baro's height has drifted since the take-off (0.13-0.18 m
                 # low at the floor in 4 of 8 SITL landings): the estimator stops its descent there, and the speed
                 # loop, chasing the descent rate, cut the thrust and dropped the vehicle the rest of the way at up

@@ -590,6 +590,30 @@ def test_a_land_past_the_floor_it_reads_is_not_sped_up_by_the_hold():
         assert not sim.ap.armed_cmd and speed < 0.51, f"baro {error_m:+.2f} m: {speed:.2f} m/s"
 
 
+def test_the_floor_hold_stays_when_the_estimate_lifts_off_the_floor_it_read():
+    """Once the estimate has read the floor the hold lasts until the rate says the descent stopped, even if the
+    estimate lifts over FLOOR_READ_M again: the baro's pull did that by 14-19 mm in campaign 20261211 flight 4, and
+    each time the loop's cut came back (0.48 -> 0.40 thrust, touchdown 0.70 m/s; 0.44 with the hold latched). Here a
+    0.15 m pressure step as the floor is read (0.74 m/s unlatched)."""
+    sim = Sim(ParamTable({"BRG_BARO_REF_T": 0.0}))
+    sim.baro = True
+    fly_to_hover(sim)
+    sim.baro_error_m = -0.3
+    sim.step(5.0)
+    sim.odom = False
+    t0, times, positions, stepped = sim.t, [], [], False
+    while sim.ap.armed_cmd and sim.t < t0 + 20.0:
+        descent = sim.ap.state.blind_descent
+        if not stepped and descent is not None and descent.floor_s is not None:
+            sim.baro_error_m += 0.15
+            stepped = True
+        sim.step(0.002)
+        times.append(sim.t)
+        positions.append(sim.p.copy())
+    speed = touchdown_m_s(np.asarray(times), np.asarray(positions))
+    assert stepped and not sim.ap.armed_cmd and speed < 0.55, f"{speed:.2f} m/s"
+
+
 def test_the_held_descent_thrust_is_the_descents_not_a_last_steps_spike():
     """The thrust held through the band is the descent's, low-passed, not the last step's: a landing that reads the
     floor right after a thrust spike (here 1.25 x hover, forced in the steps as the estimate reaches the floor) must
