@@ -264,9 +264,9 @@ class FlightControlService:
                 # low at the floor in 4 of 8 SITL landings): the estimator stops its descent there, and the speed
                 # loop, chasing the descent rate, cut the thrust and dropped the vehicle the rest of the way at up
                 # to 0.77 m/s. So the thrust that held the descent (its low-pass: not a last step's spike) is held
-                # while the descent covers the baro's error (BRG_OL_LAND_BAND), then the loop's cut is the ground
-                # test. Not the take-off's learnt hover thrust nor the config's prior: the climb's low-pass had not
-                # settled (0.58-0.76 m/s held at it), and the SITL's vehicle needs 0.49 where its config says 0.41
+                # on past the floor it reads, then the loop's cut is the ground test. Not the take-off's learnt hover
+                # thrust nor the config's prior: the climb's low-pass had not settled (0.58-0.76 m/s held at it), and
+                # the SITL's vehicle needs 0.49 where its config says 0.41
                 if descent.floor_s is None:
                     descent.floor_s = now_s
                     descent.floor_thrust = descent.thrust_lp
@@ -291,7 +291,8 @@ class FlightControlService:
                     # trimmed on the rate as the board's own failsafe descent is (firmware/src/safety.c), one way at a
                     # time: before the rate has seen a descent (the estimate at the floor in a hover) the trim may
                     # only lower the thrust, to start one; after, only raise it, against a descent faster than the
-                    # rate. Both ways, the rate's lag (~0.5 s) sped a LAND's 0.4 m/s up to 0.68 (campaign 20261211)
+                    # rate. The rate lags ~0.5 s: trimmed both ways, a LAND's 0.4 m/s level part sped up to 0.52-0.53
+                    # m/s at the touchdown in the unit model (0.49 one way)
                     trim = FLOOR_HOLD_GAIN_S_M * (-vz_ref - climb) if math.isfinite(climb) else 0.0
                     trim = max(trim, 0.0) if descent.seen_descending else min(trim, 0.0)
                     floor_hold = descent.floor_thrust * (1.0 + min(max(trim, -FLOOR_HOLD_TRIM), FLOOR_HOLD_TRIM))
