@@ -27,7 +27,7 @@ HOVER_LEARN_TAU_S = 1.0  # low-pass of the thrust in the open-loop climb: the ho
 GROUND_CONTACT_ACCEL_M_S2 = 0.3  # below hover thrust, less vertical acceleration than this = the ground carries it
 TKO_HEIGHT_DISAGREE_M = 0.3  # take-off: integrated climb above the odometry's height by this much is told
 BLIND_DESCENT_EXTRA_S = 3.0  # the blind descent probes for the ground after height / rate + this
-DESCENT_THRUST_TAU_S = 0.3  # the blind descent's thrust, low-passed: what it holds through the floor's band
+DESCENT_THRUST_TAU_S = 0.3  # the blind descent's thrust, low-passed: what it holds past the floor it reads
 BARO_REREF_MIN_HEIGHT_M = 0.5  # the odometry's height references the baro above this (the camera's 0.5 m range)
 FLOOR_READ_M = 0.01  # the baro-fused height reads the floor (the estimator holds it at 0; the baro's pull, mm)
 BARO_STILL_M_S = 0.15  # the board's baro climb rate under this (in size) is "not descending" (its failsafe's ground
@@ -269,7 +269,6 @@ class FlightControlService:
                 # the SITL's vehicle needs 0.49 where its config says 0.41
                 if descent.floor_s is None:
                     descent.floor_s = now_s
-                    descent.floor_thrust = descent.thrust_lp
                     s.event(mavlink.MAV_SEVERITY_INFO, f"Landing: baro reads the floor, hold {descent.thrust_lp:.2f}")
                 # how far on: while the board's baro climb rate says the vehicle still descends. The drift since the
                 # take-off moves the altitude, not its rate, and it grows with the flight (the SITL's random walk:
@@ -295,7 +294,7 @@ class FlightControlService:
                     # m/s at the touchdown in the unit model (0.49 one way)
                     trim = FLOOR_HOLD_GAIN_S_M * (-vz_ref - climb) if math.isfinite(climb) else 0.0
                     trim = max(trim, 0.0) if descent.seen_descending else min(trim, 0.0)
-                    floor_hold = descent.floor_thrust * (1.0 + min(max(trim, -FLOOR_HOLD_TRIM), FLOOR_HOLD_TRIM))
+                    floor_hold = descent.thrust_lp * (1.0 + min(max(trim, -FLOOR_HOLD_TRIM), FLOOR_HOLD_TRIM))
             if s.vertical.estimate.baro_fused:
                 # on the barometer the estimate cannot run away upward: the descent may use the thrust it needs
                 # to hold its speed (a ceiling at the short take-off's learnt thrust dropped it at 1.2 m/s)

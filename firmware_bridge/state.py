@@ -65,9 +65,9 @@ class BlindDescent:
     start (``FlightControlService._blind_step``)."""
     start_s: float
     height0_m: float                # the estimated height then
-    thrust_lp: float                # the descent's thrust, low-passed (DESCENT_THRUST_TAU_S) until the floor
+    thrust_lp: float                # the descent's thrust, low-passed (DESCENT_THRUST_TAU_S) until the floor read,
+                                    # then the thrust the hold holds
     floor_s: float | None = None    # when the baro-fused estimate first read the floor
-    floor_thrust: float = 0.0       # the thrust that held the descent then (thrust_lp)
     floor_still: bool = False       # since then, the board's baro climb rate has said the descent stopped
     seen_descending: bool = False   # the board's baro climb rate has read a descent under way (since the floor read)
 
