@@ -51,8 +51,16 @@ POSITION_HOLD_REANCHOR_M = 0.5    # farther than this from the anchor (an odomet
 # bridge's estimate
 LEVEL_TRIM_TAU_S = 2.0
 LEVEL_TRIM_STEADY_RAD_S = 0.1     # learnt only while the roll and pitch rates are below this (the board has settled)
-LEVEL_TRIM_MAX_RAD = math.radians(5.0)
+# the board's level error grows with its gyro's bias drift since the arming (its filter holds the bias learnt on the
+# ground; the error is the drift times the filter's 8 s): in the SITL's model (0.0005 rad/s per sqrt(s)) one sigma is
+# 2.9 deg after 150 s and 7 deg after 15 minutes, and a 150 s hover learnt 7.7 deg (draw 1 of the long-hover landings).
+# Capped at 5 deg, the blind descent flew 2-3 deg off level and slid 0.82 m
+LEVEL_TRIM_MAX_RAD = math.radians(15.0)
 DRAG_HOLD_TILT_RAD = 0.1          # the hold on the drag's velocity corrects a slide of tenths of m/s: ~1 m/s^2 is ample
+# (the brake's and the hold's tilt are bounded around the level, :meth:`FlightControlService._level`, not around the
+# board's zero: its zero is off by the board's level error, which the tracker's integral carries)
+RESTING_THRUST_S = 0.3  # "resting on something": the thrust under the touchdown test's this long. A descent's start
+                        # cuts it for ~0.1 s in the air (the odometry lost in a hover: the brake was dropped for good)
 CONTROL_DT_S = 0.01  # nominal step (every 5th IMU sample); the measured dt is bounded to [1 ms, 100 ms]
 YAW_TRACK_GAIN_1_S = 2.0  # an absolute yaw target is tracked through the yaw-rate command
 
@@ -73,6 +81,7 @@ class FlightControlService:
         s = self.state
         dt = CONTROL_DT_S if s.control_time_s is None else min(max(now_s - s.control_time_s, 1e-3), 0.1)
         s.control_time_s = now_s
+        self._note_thrust(now_s)
         self.commander.check_links(now_s)
         self._update_height(dt)
         est = s.filter.estimate
@@ -134,8 +143,7 @@ class FlightControlService:
                 roll, pitch = (0.0, 0.0) if resting else self._level()
                 cmd = AttitudeCommand(roll, pitch, 0.0, cmd.thrust_fraction, cmd.a_des_h_m_s2, cmd.saturated)
             else:   # a gentle brake: the velocity it acts on is a dead reckoning
-                roll = min(max(cmd.roll_rad, -ODOM_LOST_BRAKE_TILT_RAD), ODOM_LOST_BRAKE_TILT_RAD)
-                pitch = min(max(cmd.pitch_rad, -ODOM_LOST_BRAKE_TILT_RAD), ODOM_LOST_BRAKE_TILT_RAD)
+                roll, pitch = self._tilt_around_level(cmd, ODOM_LOST_BRAKE_TILT_RAD)
                 cmd = AttitudeCommand(roll, pitch, 0.0, cmd.thrust_fraction, cmd.a_des_h_m_s2, cmd.saturated)
             self._detect_touchdown(now_s, cmd, abs(float(v_est[2])))
             return self._finish(cmd)
@@ -312,9 +320,13 @@ class FlightControlService:
             s.pid_tracker.reset()  # the ground carries the vehicle while the thrust ramps: nothing to integrate
         yaw_rate = self._heading_hold(dt, 0.0, est.yaw_rad)
         # horizontally: level, or, once the drag's velocity has been learnt in this flight, a hold on it (the
-        # board's level is ~0.5-1 deg off its own estimate: 0.1-0.3 m/s of slide), never on or at the ground
-        # nor while resting on something (thrust under the touchdown test's: a tilt there skids the vehicle)
-        drag = None if s.vertical.estimate.pinned or self._level_landing() or self._resting_thrust() \
+        # board's level is ~0.5-1 deg off its own estimate: 0.1-0.3 m/s of slide), down to the floor the estimate
+        # reads, never on or at the ground nor while resting on something (thrust under the touchdown test's: a
+        # tilt there skids the vehicle). Through the level part of a landing too: after a 150 s hover the trim
+        # was 2 deg off the board's level error (learnt in the pan-scan's swing), and the last 0.3 m, flown on it
+        # alone, sped a 0.2 m/s slide up to 0.45 (SITL, draw 1 of the long-hover landings)
+        at_floor = s.blind_descent is not None and s.blind_descent.floor_s is not None
+        drag = None if s.vertical.estimate.pinned or at_floor or self._resting_thrust() \
             else self.offboard.drag_velocity_h(est)
         v_est = np.array([0.0, 0.0, vz_est]) if drag is None else np.array([drag[0], drag[1], vz_est])
         cmd = s.pid_tracker.update(dt, np.array([0.0, 0.0, vz_ref]), yaw_rate, v_est, est.roll_rad, est.pitch_rad)
@@ -322,8 +334,7 @@ class FlightControlService:
         # level by the bridge's estimate in the air; on or at the ground the board's own level (a tilt there skids)
         roll, pitch = (0.0, 0.0) if s.vertical.estimate.pinned or self._resting_thrust() else self._level()
         if drag is not None:
-            roll = min(max(cmd.roll_rad, -DRAG_HOLD_TILT_RAD), DRAG_HOLD_TILT_RAD)
-            pitch = min(max(cmd.pitch_rad, -DRAG_HOLD_TILT_RAD), DRAG_HOLD_TILT_RAD)
+            roll, pitch = self._tilt_around_level(cmd, DRAG_HOLD_TILT_RAD)
         cmd = AttitudeCommand(roll, pitch, cmd.yaw_rate_rad_s, thrust, cmd.a_des_h_m_s2,
                               cmd.saturated or thrust < cmd.thrust_fraction)
         if s.mode == FlightMode.TAKEOFF and not s.vertical.estimate.pinned:
@@ -363,6 +374,12 @@ class FlightControlService:
             return 0.0, 0.0
         return float(s.level_trim_rad[0]), float(s.level_trim_rad[1])
 
+    def _tilt_around_level(self, cmd: AttitudeCommand, tilt_rad: float) -> tuple[float, float]:
+        """The command's (roll, pitch) within ``tilt_rad`` of the level (:meth:`_level`)."""
+        level_roll, level_pitch = self._level()
+        return (min(max(cmd.roll_rad, level_roll - tilt_rad), level_roll + tilt_rad),
+                min(max(cmd.pitch_rad, level_pitch - tilt_rad), level_pitch + tilt_rad))
+
     def _learn_level_trim(self, dt: float, est: Any) -> None:
         """Low-pass the board's level error, the last command minus the bridge's estimate, while the odometry is
         good and the attitude steady, in the air and not in the level landing (see LEVEL_TRIM_TAU_S)."""
@@ -377,10 +394,20 @@ class FlightControlService:
         s.level_trim_rad += min(dt / LEVEL_TRIM_TAU_S, 1.0) * (error - s.level_trim_rad)
         np.clip(s.level_trim_rad, -LEVEL_TRIM_MAX_RAD, LEVEL_TRIM_MAX_RAD, out=s.level_trim_rad)
 
-    def _resting_thrust(self) -> bool:
-        """The last thrust is under the touchdown test's (LNDMC_THR_MAX x hover): resting on something."""
+    def _note_thrust(self, now_s: float) -> None:
+        """Since when the last thrust has been under the touchdown test's (LNDMC_THR_MAX x hover), for
+        :meth:`_resting_thrust`."""
         s = self.state
-        return s.last_board_command.thrust < s.params["LNDMC_THR_MAX"] * s.tracker.hover_thrust_fraction
+        if s.last_board_command.thrust >= s.params["LNDMC_THR_MAX"] * s.tracker.hover_thrust_fraction:
+            s.low_thrust_since_s = None
+        elif s.low_thrust_since_s is None:
+            s.low_thrust_since_s = now_s
+
+    def _resting_thrust(self) -> bool:
+        """The thrust has been under the touchdown test's for RESTING_THRUST_S: resting on something."""
+        s = self.state
+        return s.low_thrust_since_s is not None and s.control_time_s is not None \
+            and s.control_time_s - s.low_thrust_since_s >= RESTING_THRUST_S
 
     def _level_landing(self) -> bool:
         """The barometer-fused height is below BRG_LAND_LVL_ALT (0: never): a landing flies the rest level, and a

@@ -180,6 +180,7 @@ class BridgeState:
         # odometry velocity -- a ramp of odometry error cannot walk it along, as it walks the last accepted sample
         self.v_h_gate_ref = np.zeros(3)
         self.odom_lost_s: float | None = None   # when the odometry was lost in the air (None: not lost)
+        self.low_thrust_since_s: float | None = None  # since when the thrust is under the touchdown test's (None: not)
         self.odom_reset_counter: int | None = None
         self.odom_p_ned_m: np.ndarray | None = None  # the odometry's position (its local frame), if finite
         self.hold_anchor_ned_m: np.ndarray | None = None  # where LAND or TAKEOFF began (x, y of the odometry)
