@@ -3,8 +3,9 @@
 * HEARTBEAT of an autopilot (:func:`is_autopilot_heartbeat`) -> the vehicle's state
   (:class:`companion.vehicle_state.VehicleState`); the daemon also takes the vehicle's system id from it;
 * EXTENDED_SYS_STATE -> the vehicle's landed state;
-* ALTITUDE -> the autopilot's barometer-fused height (its ``altitude_relative``), which the ceiling limit takes
-  when it is higher than the odometry's (:func:`companion.vertical_limits.vertical_limits`);
+* ALTITUDE -> the autopilot's barometer-fused height (its ``altitude_relative``) and its barometer's own altitude
+  (``altitude_monotonic``, taken less its value on the ground), the higher of which the ceiling limit takes when it
+  is higher than the odometry's (:func:`companion.vertical_limits.vertical_limits`);
 * COMMAND_ACK -> the acked command queue (:mod:`companion.commands`); a command refused or never acknowledged
   goes back to the mode machine (:meth:`companion.modes.ModeMachine.on_request_failed`);
 * TIMESYNC -> the offset to the autopilot's clock (:class:`companion.timesync.TimeSync`); its requests are
@@ -58,7 +59,7 @@ class AutopilotInput:
         elif kind == "EXTENDED_SYS_STATE":
             self.vehicle.landed_state = msg.landed_state
         elif kind == "ALTITUDE":
-            self.vehicle.on_altitude(msg.altitude_relative, self._clock())
+            self.vehicle.on_altitude(msg.altitude_relative, self._clock(), msg.altitude_monotonic)
         elif kind == "COMMAND_ACK":
             done, failed = self.commands.on_ack(msg.command, msg.result, self._clock())
             if done is not None:

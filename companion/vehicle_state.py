@@ -23,6 +23,10 @@ class VehicleState:
     heartbeat_wall_s: float | None = None
     baro_height_m: float | None = None      # ALTITUDE.altitude_relative: the autopilot's barometer-fused height
     baro_height_s: float | None = None      # when it came (monotonic)
+    # ALTITUDE.altitude_monotonic: the board's own barometric altitude (never re-referenced), and its value when the
+    # vehicle was last on the ground (None: not seen on the ground since the companion started)
+    baro_monotonic_m: float | None = None
+    baro_monotonic_ground_m: float | None = None
 
     def on_heartbeat(self, base_mode: int, custom_mode: int, now_s: float) -> None:
         """The autopilot's HEARTBEAT fields, received at ``now_s`` (monotonic)."""
@@ -33,17 +37,28 @@ class VehicleState:
         self.custom_mode = custom_mode
         self.heartbeat_wall_s = now_s
 
-    def on_altitude(self, altitude_relative_m: float, now_s: float) -> None:
-        """The autopilot's ALTITUDE (its barometer-fused height above the take-off spot, NaN: none), at ``now_s``."""
+    def on_altitude(self, altitude_relative_m: float, now_s: float, altitude_monotonic_m: float = math.nan) -> None:
+        """The autopilot's ALTITUDE at ``now_s``: its barometer-fused height above the take-off spot and its
+        board's own barometric altitude (NaN: none). On the ground the latter is the take-off's reference."""
         h = float(altitude_relative_m)
         self.baro_height_m = h if math.isfinite(h) else None
+        m = float(altitude_monotonic_m)
+        self.baro_monotonic_m = m if math.isfinite(m) else None
+        if self.baro_monotonic_m is not None and not self.status().in_air:
+            self.baro_monotonic_ground_m = self.baro_monotonic_m
         self.baro_height_s = now_s
 
     def baro_height(self, now_s: float) -> float | None:
-        """The autopilot's barometer-fused height if it came within BARO_HEIGHT_MAX_AGE_S of ``now_s``, else None."""
+        """The height above the take-off spot the autopilot's barometer gives, for the ceiling: the higher of its
+        fused height (whose reference follows the odometry's height in the air, BRG_BARO_REF_T) and the board's own
+        altitude since the vehicle was last on the ground (which follows nothing), if they came within
+        BARO_HEIGHT_MAX_AGE_S of ``now_s``; None without either."""
         if self.baro_height_s is None or now_s - self.baro_height_s > BARO_HEIGHT_MAX_AGE_S:
             return None
-        return self.baro_height_m
+        heights = [self.baro_height_m] if self.baro_height_m is not None else []
+        if self.baro_monotonic_m is not None and self.baro_monotonic_ground_m is not None and self.status().in_air:
+            heights.append(self.baro_monotonic_m - self.baro_monotonic_ground_m)
+        return max(heights) if heights else None
 
     def status(self) -> VehicleStatus:
         px4 = decode_custom_mode(self.custom_mode)

@@ -100,13 +100,20 @@ class TelemetryService:
 
     def altitude(self, now_s: float) -> Any:
         """ALTITUDE: the barometer-fused height above where the vehicle last stood (the take-off spot,
-        :mod:`firmware_bridge.vertical_estimator`) as ``altitude_local`` and ``altitude_relative`` (and
-        ``altitude_monotonic``), NaN without a fresh baro reading; AMSL, terrain and bottom clearance unknown (NaN).
-        The companion keeps its ceiling from the higher of this and its odometry's height."""
+        :mod:`firmware_bridge.vertical_estimator`; in the air its baro reference follows the odometry's height,
+        ``BRG_BARO_REF_T``) as ``altitude_local`` and ``altitude_relative``, NaN without a fresh baro reading; as
+        ``altitude_monotonic`` the board's own barometric altitude, never re-referenced (MAVLink's recommended value:
+        the uncorrected baro altitude since the power-up); AMSL, terrain and bottom clearance unknown (NaN). The
+        companion keeps its ceiling from the highest of its odometry's height, the fused height and the board's since
+        the take-off (altitude_monotonic less its value on the ground), so a slowly drifting odometry, which the
+        fused height follows, is still checked by a barometer that does not."""
         s = self.state
-        h = s.vertical.height_m if s.vertical.estimate.baro_fused else math.nan
+        fused = s.vertical.estimate.baro_fused
+        h = s.vertical.height_m if fused else math.nan
+        raw = s.vertical.baro_altitude_m
+        monotonic = raw if fused and raw is not None else math.nan
         nan = math.nan
-        return s.mav.altitude_encode(int(now_s * 1e6), h, nan, h, h, nan, nan)
+        return s.mav.altitude_encode(int(now_s * 1e6), monotonic, nan, h, h, nan, nan)
 
     def landed_state(self) -> int:
         if not self.state.in_air:

@@ -218,5 +218,13 @@ class VerticalEstimator:
         return self._vz
 
     @property
+    def baro_altitude_m(self) -> float | None:
+        """The board's own barometric altitude (m, + up, from its reference at its power-up; never re-referenced:
+        :meth:`reference_height` moves the ground this estimator reads it from, not it), if fresh."""
+        if self._baro_alt_m is None or self._t_s - self._baro_t_s > BARO_STALE_S:
+            return None
+        return self._baro_alt_m
+
+    @property
     def height_m(self) -> float:
         return self._h

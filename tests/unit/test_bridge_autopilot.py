@@ -211,9 +211,29 @@ def test_altitude_carries_the_baro_fused_height_at_20_hz_and_only_with_a_baro():
             last = altitudes[-1]
             assert last.altitude_relative == pytest.approx(-float(sim.p[2]), abs=0.15)
             assert last.altitude_local == last.altitude_relative and math.isnan(last.altitude_amsl)
+            # the board's own altitude, never re-referenced: its Z frame's (100 m + the height in this model)
+            assert last.altitude_monotonic == pytest.approx(sim.baro_ab[0], abs=0.02)
         else:
             assert altitudes == []
             assert math.isnan(sim.ap.telemetry.altitude(sim.t).altitude_relative)   # asked for: NaN, not 0
+
+
+def test_altitude_monotonic_keeps_the_baro_the_odometry_does_not_move():
+    """In the air the fused height's baro reference follows the odometry's height (BRG_BARO_REF_T): an odometry
+    that reads 0.4 m low takes the fused height (altitude_relative) with it, so the companion's ceiling limit lost
+    its independent check. altitude_monotonic is the board's own altitude: the baro's height since the take-off
+    (it less its value on the ground) still says where the vehicle is."""
+    sim = Sim(ParamTable({"BRG_BARO_REF_T": 5.0}))
+    sim.baro = True
+    sim.step(0.5)
+    ground = sim.baro_ab[0]                           # the board's altitude on the ground
+    fly_to_hover(sim)
+    sim.odom_z_offset_m = 0.4                         # the odometry's height reads 0.4 m low (NED z + 0.4)
+    sim.step(30.0, setpoint=velocity_body(0, 0, 0))   # the operator holds; the reference follows for 6 tau
+    alt = sim.ap.telemetry.altitude(sim.t)
+    true_h = -float(sim.p[2])
+    assert alt.altitude_relative < true_h - 0.25, "the fused height did not follow the odometry (the premise)"
+    assert alt.altitude_monotonic - ground == pytest.approx(true_h, abs=0.05)
 
 
 def test_highres_imu_is_si_and_stamped_with_board_time():

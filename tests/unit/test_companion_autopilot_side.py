@@ -158,6 +158,40 @@ def test_the_autopilot_altitude_is_the_baro_height_while_fresh() -> None:
     assert vehicle.baro_height(11.0) is None
 
 
+def test_the_ceilings_baro_height_is_the_higher_of_the_fused_one_and_the_boards_own_since_the_ground() -> None:
+    """The fused height's reference follows the odometry's height in the air (the bridge's BRG_BARO_REF_T): against
+    an odometry drifting low it reads low too. ALTITUDE's altitude_monotonic, the board's own altitude, less its
+    value when the vehicle was last on the ground, is a height that follows nothing: the ceiling takes the higher."""
+    vehicle = VehicleState()
+    now = [10.0]
+    ap = AutopilotInput(vehicle, CommandQueue(), ModeMachine(ModeParams()), TimeSync(), lambda: now[0])
+
+    def altitude(relative: float, monotonic: float) -> None:
+        ap.on_message(wire(mavlink.MAVLink_altitude_message(0, monotonic, math.nan, relative, relative, math.nan,
+                                                            math.nan)))
+
+    def landed(state: int) -> None:
+        ap.on_message(wire(mavlink.MAVLink_extended_sys_state_message(mavlink.MAV_VTOL_STATE_MC, state)))
+
+    altitude(1.0, 101.4)                               # not yet seen on the ground: the fused height alone
+    assert vehicle.baro_height(10.0) == pytest.approx(1.0, abs=1e-4)
+    landed(mavlink.MAV_LANDED_STATE_ON_GROUND)
+    altitude(0.0, 100.0)                               # on the ground: the board's altitude is the reference
+    assert vehicle.baro_height(10.0) == pytest.approx(0.0, abs=1e-4)
+    landed(mavlink.MAV_LANDED_STATE_IN_AIR)
+    altitude(1.0, 101.4)                               # the fused height follows an odometry 0.4 m low
+    assert vehicle.baro_height(10.0) == pytest.approx(1.4, abs=1e-4)
+    altitude(1.6, 101.4)                               # or reads higher than the board's: the higher
+    assert vehicle.baro_height(10.0) == pytest.approx(1.6, abs=1e-4)
+    altitude(math.nan, 101.4)                          # no fused height (the bridge's baro not fused)
+    assert vehicle.baro_height(10.0) == pytest.approx(1.4, abs=1e-4)
+    landed(mavlink.MAV_LANDED_STATE_ON_GROUND)
+    altitude(0.0, 100.3)                               # landed again: a new reference
+    landed(mavlink.MAV_LANDED_STATE_IN_AIR)
+    altitude(0.5, 100.9)
+    assert vehicle.baro_height(10.0) == pytest.approx(0.6, abs=1e-4)
+
+
 def imu(time_usec: int, gyro_z: float = 0.1) -> Any:
     return wire(mavlink.MAVLink_highres_imu_message(time_usec, 0.0, 0.0, -9.81, 0.0, 0.0, gyro_z, 0, 0, 0, 0, 0, 0, 0,
                                                     0x3F))
