@@ -48,10 +48,9 @@ def _hover_at(f: Flight, height_m: float) -> None:
 
 
 def _kill_in_a_hover(tmp_path: Path, height_m: float, sitl_config: Path | None = None, hover_s: float = 0.0,
-                     land: bool = False, judge_drift: bool = True) -> None:
+                     land: bool = False) -> None:
     """The companion killed in a hover (or, ``land``, the ground station's LAND through the companion: its last
-    BRG_LAND_LVL_ALT is the same level descent on the baro): touchdown, clearance and (``judge_drift``) the drift
-    judged on the truth."""
+    BRG_LAND_LVL_ALT is the same level descent on the baro): touchdown, clearance and the drift judged on the truth."""
     config = companion_config_with(tmp_path, reference={"room_height_m": 3.0})
     with flight(tmp_path, offset=OFFSET, lockstep=False, shipped_timeouts=True, companion_config=config,
                 sitl_config=sitl_config) as f:
@@ -73,7 +72,7 @@ def _kill_in_a_hover(tmp_path: Path, height_m: float, sitl_config: Path | None =
               f"after {t_td - t_kill:.1f} s at {vz_td:.2f} m/s, "
               f"drift {drift:.2f} m; {f.log.summary()}")
         assert vz_td <= MAX_TOUCHDOWN_M_S, f"touched down at {vz_td:.2f} m/s"
-        assert drift <= MAX_DRIFT_M or not judge_drift, f"drifted {drift:.2f} m"
+        assert drift <= MAX_DRIFT_M, f"drifted {drift:.2f} m"
         s = f.log.min_surface()
         assert s is not None and s.clearance.surface_m >= MIN_CLEARANCE_M, f.log.summary()
 
@@ -104,14 +103,14 @@ def test_after_a_long_hover_a_landing_touches_down_gently(tmp_path: Path, index:
     or below it than in a short flight. Drawn vehicles and heights from a seed of their own; even draws kill the
     companion, odd ones land through it (the last BRG_LAND_LVL_ALT of every landing is the same descent).
 
-    The drift is printed, not judged: after the long hover the pan-scan swings the vehicle at up to 0.3 m/s, and a
-    kill or a LAND in the swing carried it 0.52-0.73 m (draw 1, three runs; docs/limits.md, an open finding). The
-    touchdown and the clearance are judged."""
-    _kill_drawn(tmp_path, LONG_DRAWN_SEED, index, hover_s=LONG_HOVER_S, land=index % 2 == 1, judge_drift=False)
+    The board's level drifts in the long hover (its gyro bias, held from the ground: 7.7 deg on draw 1), and the
+    pan-scan swings the vehicle at up to 0.3 m/s: a kill or a LAND in the swing carried draw 1 0.52-1.00 m until the
+    level trim, the hold's tilt bounds, the resting test and the hold through the level part were mended
+    (``fbe9f79``; then 0.08-0.30 m over the six draws, draw 1's kill re-flown 0.48 m)."""
+    _kill_drawn(tmp_path, LONG_DRAWN_SEED, index, hover_s=LONG_HOVER_S, land=index % 2 == 1)
 
 
-def _kill_drawn(tmp_path: Path, seed: int, index: int, hover_s: float, land: bool = False,
-                judge_drift: bool = True) -> None:
+def _kill_drawn(tmp_path: Path, seed: int, index: int, hover_s: float, land: bool = False) -> None:
     seq = np.random.SeedSequence(seed, spawn_key=(index,))
     vehicle_ss, sitl_ss, height_ss = seq.spawn(3)
     vehicle, sitl, record = draw_vehicle_and_sensors(vehicle_ss, sitl_ss)
@@ -120,7 +119,7 @@ def _kill_drawn(tmp_path: Path, seed: int, index: int, hover_s: float, land: boo
     (tmp_path / "sitl.yaml").write_text(yaml.safe_dump({**sitl, "vehicle": str(tmp_path / "vehicle.yaml")},
                                                        sort_keys=False))
     print(f"draw {index} of seed {seed}: {height_m} m, {record}")
-    _kill_in_a_hover(tmp_path, height_m, tmp_path / "sitl.yaml", hover_s=hover_s, land=land, judge_drift=judge_drift)
+    _kill_in_a_hover(tmp_path, height_m, tmp_path / "sitl.yaml", hover_s=hover_s, land=land)
 
 
 def test_a_companion_stalled_beside_a_wall_does_not_carry_the_vehicle_into_it(tmp_path: Path) -> None:
