@@ -13,6 +13,7 @@ from quadlink.px4_modes import Px4AutoSubMode, Px4MainMode, decode_custom_mode
 log = logging.getLogger("companion.daemon")
 
 BARO_HEIGHT_MAX_AGE_S = 0.5   # an ALTITUDE older than this is not the vehicle's height any more
+BARO_GROUND_MEAN_SAMPLES = 20  # the baro's ground reference: the mean of up to this many ALTITUDEs (1 s at 20 Hz)
 
 
 @dataclass
@@ -27,6 +28,7 @@ class VehicleState:
     # vehicle was last on the ground (None: not seen on the ground since the companion started)
     baro_monotonic_m: float | None = None
     baro_monotonic_ground_m: float | None = None
+    baro_ground_samples: int = 0            # of this stay on the ground (0 in the air): the reference's mean
 
     def on_heartbeat(self, base_mode: int, custom_mode: int, now_s: float) -> None:
         """The autopilot's HEARTBEAT fields, received at ``now_s`` (monotonic)."""
@@ -44,8 +46,15 @@ class VehicleState:
         self.baro_height_m = h if math.isfinite(h) else None
         m = float(altitude_monotonic_m)
         self.baro_monotonic_m = m if math.isfinite(m) else None
-        if self.baro_monotonic_m is not None and not self.status().in_air:
-            self.baro_monotonic_ground_m = self.baro_monotonic_m
+        if self.status().in_air:
+            self.baro_ground_samples = 0
+        elif self.baro_monotonic_m is not None:
+            # the mean of the last BARO_GROUND_MEAN_SAMPLES on the ground (the board's altitude jitters by centimetres;
+            # one sample would be the reference's error), restarted at each landing (the baro drifted in the flight)
+            n = self.baro_ground_samples = min(self.baro_ground_samples + 1, BARO_GROUND_MEAN_SAMPLES)
+            prev = self.baro_monotonic_ground_m if n > 1 and self.baro_monotonic_ground_m is not None \
+                else self.baro_monotonic_m
+            self.baro_monotonic_ground_m = prev + (self.baro_monotonic_m - prev) / n
         self.baro_height_s = now_s
 
     def baro_height(self, now_s: float) -> float | None:
